@@ -1,0 +1,1076 @@
+//! Datasets: the Blender (NeRF synthetic) format, image loading and downscaling, backgrounds,
+//! random ray batches.
+//!
+//! The Blender format is a scene folder with `transforms_{train,val,test}.json`, each holding
+//! `camera_angle_x` (horizontal field of view, radians) and `frames[]` of
+//! `{ "file_path": "./train/r_0", "transform_matrix": 4×4 camera-to-world }` (OpenGL axes);
+//! `file_path` is relative to the scene folder and gets `.png` appended when it has no extension.
+//! Images are RGBA PNGs; [`load_blender`] keeps them as straight (not premultiplied) RGBA `f32`
+//! in `[0, 1]` and composites onto a background only when rays are drawn ([`Background`]).
+//!
+//! Ray batches ([`RayBatch`]) are flat `f32` arrays (`3·n` per quantity) refilled in place, so the
+//! training loop does not allocate: [`Dataset::sample_rays`] for training (uniform over all pixels
+//! of all views, optional jitter and random backgrounds), [`Dataset::view_rays`] for evaluation.
+
+use std::path::{Path, PathBuf};
+
+use nerf_rays::{Aabb, Camera, Intrinsics, PixelConvention};
+use rand::Rng as _;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+/// Errors of dataset loading and writing. Every message starts with the file it concerns.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    /// The split's `transforms_<split>.json` does not exist.
+    #[error("{}: transforms file not found", .path.display())]
+    MissingTransforms {
+        /// The missing transforms file.
+        path: PathBuf,
+    },
+    /// A file could not be read, created or written.
+    #[error("{}: {source}", .path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The transforms file is not valid JSON (the message gives line and column).
+    #[error("{}: malformed JSON: {source}", .path.display())]
+    Json {
+        /// The transforms file.
+        path: PathBuf,
+        /// The parser error (with line and column).
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A required key is absent, e.g. `camera_angle_x` or `frames[3].file_path`.
+    #[error("{}: missing key `{key}`", .path.display())]
+    MissingKey {
+        /// The transforms file.
+        path: PathBuf,
+        /// The key, with its position (`frames[i].key`) for per-frame keys.
+        key: String,
+    },
+    /// A key has a value of the wrong type or out of range.
+    #[error("{}: invalid `{key}`: {reason}", .path.display())]
+    InvalidValue {
+        /// The transforms file.
+        path: PathBuf,
+        /// The key.
+        key: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// A frame's image file does not exist.
+    #[error("{}: image file of frame {frame} not found", .path.display())]
+    MissingImage {
+        /// The expected image path.
+        path: PathBuf,
+        /// Index of the frame in the transforms file.
+        frame: usize,
+    },
+    /// An image file could not be decoded.
+    #[error("{}: cannot decode image: {source}", .path.display())]
+    Decode {
+        /// The image file.
+        path: PathBuf,
+        /// The decoder error.
+        #[source]
+        source: image::ImageError,
+    },
+    /// An image could not be encoded or written.
+    #[error("{}: cannot write image: {source}", .path.display())]
+    Encode {
+        /// The image file.
+        path: PathBuf,
+        /// The encoder error.
+        #[source]
+        source: image::ImageError,
+    },
+    /// An image's size differs from the first image's.
+    #[error("{}: image is {width}x{height}, but the first image {} is {first_width}x{first_height}", .path.display(), .first.display())]
+    SizeMismatch {
+        /// The offending image.
+        path: PathBuf,
+        /// Its width.
+        width: u32,
+        /// Its height.
+        height: u32,
+        /// The first image of the split.
+        first: PathBuf,
+        /// The first image's width.
+        first_width: u32,
+        /// The first image's height.
+        first_height: u32,
+    },
+    /// A frame's `transform_matrix` holds a value that is not finite (as `f32`).
+    #[error("{}: frame {frame}: non-finite value in transform_matrix", .path.display())]
+    NonFinitePose {
+        /// The transforms file.
+        path: PathBuf,
+        /// Index of the frame in the transforms file.
+        frame: usize,
+    },
+    /// A frame's `transform_matrix` is not a 4×4 or 3×4 array of numbers.
+    #[error("{}: frame {frame}: transform_matrix must be a 4x4 or 3x4 array of numbers, got {shape}", .path.display())]
+    BadMatrix {
+        /// The transforms file.
+        path: PathBuf,
+        /// Index of the frame in the transforms file.
+        frame: usize,
+        /// What was found instead.
+        shape: String,
+    },
+    /// The split has no frames, or the view selection leaves none.
+    #[error("{}: empty split: {reason}", .path.display())]
+    EmptySplit {
+        /// The transforms file.
+        path: PathBuf,
+        /// Why it is empty.
+        reason: String,
+    },
+    /// The view selection is invalid (`every:0`).
+    #[error("{}: invalid view selection: {reason}", .path.display())]
+    BadSelection {
+        /// The transforms file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The downscale factor is 0 or does not divide the image size.
+    #[error("{}: bad downscale factor {k}: {reason}", .path.display())]
+    BadDownscale {
+        /// The transforms file (factor 0) or the image whose size it does not divide.
+        path: PathBuf,
+        /// The factor.
+        k: u32,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// Background colour that transparent pixels are composited onto.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum Background {
+    /// White (1, 1, 1): the NeRF papers' evaluation convention.
+    #[default]
+    White,
+    /// Black (0, 0, 0).
+    Black,
+    /// A uniform random colour per ray (instant-ngp training). Where a fixed colour is needed
+    /// (evaluation: [`Dataset::view_rays`], [`Dataset::view_rgb`]) it is treated as white.
+    Random,
+}
+
+impl Background {
+    /// The fixed colour of this background (`Random` → white).
+    pub fn fixed_rgb(self) -> [f32; 3] {
+        match self {
+            Background::Black => [0.0; 3],
+            Background::White | Background::Random => [1.0; 3],
+        }
+    }
+}
+
+/// A dataset split.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Split {
+    /// Training views.
+    Train,
+    /// Validation views.
+    Val,
+    /// Test views.
+    Test,
+}
+
+impl Split {
+    /// `"train"`, `"val"` or `"test"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Split::Train => "train",
+            Split::Val => "val",
+            Split::Test => "test",
+        }
+    }
+
+    /// The split's transforms file name, `transforms_<split>.json`.
+    pub fn transforms_file(self) -> String {
+        format!("transforms_{}.json", self.as_str())
+    }
+}
+
+impl std::fmt::Display for Split {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl std::str::FromStr for Split {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "train" => Ok(Split::Train),
+            "val" => Ok(Split::Val),
+            "test" => Ok(Split::Test),
+            _ => Err(format!("unknown split `{s}` (expected train, val or test)")),
+        }
+    }
+}
+
+/// Which views of a split to use: all, every k-th (k ≥ 1, starting at view 0), or the first n.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ViewSelection {
+    /// Every view.
+    All,
+    /// Views 0, k, 2k, … (k ≥ 1).
+    Every(usize),
+    /// Views 0 … n−1 (fewer if the split has fewer).
+    First(usize),
+}
+
+impl ViewSelection {
+    /// The selected indices among `n` views; `Err` for `Every(0)`.
+    pub fn indices(&self, n: usize) -> Result<Vec<usize>, String> {
+        match *self {
+            ViewSelection::All => Ok((0..n).collect()),
+            ViewSelection::Every(0) => Err("every:0 (k must be at least 1)".into()),
+            ViewSelection::Every(k) => Ok((0..n).step_by(k).collect()),
+            ViewSelection::First(m) => Ok((0..n.min(m)).collect()),
+        }
+    }
+}
+
+impl std::fmt::Display for ViewSelection {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ViewSelection::All => write!(f, "all"),
+            ViewSelection::Every(k) => write!(f, "every:{k}"),
+            ViewSelection::First(n) => write!(f, "first:{n}"),
+        }
+    }
+}
+
+impl std::str::FromStr for ViewSelection {
+    type Err = String;
+    /// Parses `"all"`, `"every:K"` (K ≥ 1) or `"first:N"`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || {
+            format!("invalid view selection `{s}` (expected `all`, `every:K` with K >= 1, or `first:N`)")
+        };
+        let t = s.trim();
+        if t == "all" {
+            return Ok(ViewSelection::All);
+        }
+        let (kind, num) = t.split_once(':').ok_or_else(bad)?;
+        let num: usize = num.trim().parse().map_err(|_| bad())?;
+        match kind.trim() {
+            "every" if num >= 1 => Ok(ViewSelection::Every(num)),
+            "first" => Ok(ViewSelection::First(num)),
+            _ => Err(bad()),
+        }
+    }
+}
+
+/// Options of [`load_blender`].
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LoadOptions {
+    /// Integer downscale factor (≥ 1; must divide the image size): k×k box average.
+    pub downscale: u32,
+    /// Which views of the split to load.
+    pub views: ViewSelection,
+}
+
+impl Default for LoadOptions {
+    /// Full resolution, all views.
+    fn default() -> Self {
+        Self {
+            downscale: 1,
+            views: ViewSelection::All,
+        }
+    }
+}
+
+/// One split of a scene in memory.
+#[derive(Clone)]
+pub struct Dataset {
+    /// The scene folder.
+    pub root: PathBuf,
+    /// Which split this is.
+    pub split: Split,
+    /// Image width (after downscaling).
+    pub width: u32,
+    /// Image height (after downscaling).
+    pub height: u32,
+    /// One camera per view.
+    pub cameras: Vec<Camera>,
+    /// Per view: RGBA, row-major, straight (not premultiplied) alpha, values in `[0, 1]` (= u8/255).
+    pub images: Vec<Vec<f32>>,
+    /// Per view: the image file it was loaded from.
+    pub file_paths: Vec<PathBuf>,
+    /// Near bound of the ray segment (Blender: 2).
+    pub near: f32,
+    /// Far bound of the ray segment (Blender: 6).
+    pub far: f32,
+    /// Scene bounds (Blender scenes: the cube of half-extent 1.5).
+    pub aabb: Aabb,
+}
+
+impl std::fmt::Debug for Dataset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Dataset")
+            .field("root", &self.root)
+            .field("split", &self.split)
+            .field("width", &self.width)
+            .field("height", &self.height)
+            .field("n_views", &self.cameras.len())
+            .field("near", &self.near)
+            .field("far", &self.far)
+            .field("aabb", &self.aabb)
+            .finish_non_exhaustive()
+    }
+}
+
+/// A batch of rays with their targets. All arrays are flat, `3·n` long unless stated.
+#[derive(Default, Clone, Debug)]
+pub struct RayBatch {
+    /// Ray origins.
+    pub origins: Vec<f32>,
+    /// Unit ray directions.
+    pub dirs: Vec<f32>,
+    /// Target RGB composited onto the ray's background.
+    pub target: Vec<f32>,
+    /// Background RGB of each ray (what the renderer must composite onto).
+    pub background: Vec<f32>,
+    /// Per ray (`n` long): index of the view the ray comes from.
+    pub view_ids: Vec<u32>,
+    /// Per ray (`n` long): pixel index `row·W + col` within its view.
+    pub pixel_ids: Vec<u32>,
+}
+
+impl RayBatch {
+    /// Number of rays.
+    pub fn len(&self) -> usize {
+        self.origins.len() / 3
+    }
+
+    /// Whether the batch holds no rays.
+    pub fn is_empty(&self) -> bool {
+        self.origins.is_empty()
+    }
+
+    /// Removes all rays, keeping the allocations.
+    pub fn clear(&mut self) {
+        self.origins.clear();
+        self.dirs.clear();
+        self.target.clear();
+        self.background.clear();
+        self.view_ids.clear();
+        self.pixel_ids.clear();
+    }
+
+    /// Resizes every array for `n` rays (contents unspecified), reusing allocations.
+    fn resize(&mut self, n: usize) {
+        self.origins.resize(3 * n, 0.0);
+        self.dirs.resize(3 * n, 0.0);
+        self.target.resize(3 * n, 0.0);
+        self.background.resize(3 * n, 0.0);
+        self.view_ids.resize(n, 0);
+        self.pixel_ids.resize(n, 0);
+    }
+}
+
+/// Rays per parallel work item of [`Dataset::sample_rays`]; each chunk draws from its own
+/// generator (`nerf_core::rng(seed, chunk)`), so results do not depend on the thread count.
+pub const SAMPLE_CHUNK: usize = 4096;
+
+#[inline]
+fn composite(px: &[f32], bg: [f32; 3], out: &mut [f32]) {
+    let a = px[3];
+    for c in 0..3 {
+        out[c] = px[c] * a + (1.0 - a) * bg[c];
+    }
+}
+
+impl Dataset {
+    /// Number of views.
+    pub fn n_views(&self) -> usize {
+        self.cameras.len()
+    }
+
+    /// Fills `out` (reusing its allocations) with `n` rays drawn uniformly over all pixels of all
+    /// views: random view, random pixel, optional sub-pixel jitter (`u, v` uniform over the
+    /// pixel's square instead of its position under `conv`; with [`PixelConvention::Integer`]
+    /// the square of pixel `i` is `[i − ½, i + ½)`); target = rgb·a + (1−a)·bg with bg from
+    /// `background` (Random: uniform per ray). Draws one `u64` from `rng` and derives a
+    /// generator per chunk of [`SAMPLE_CHUNK`] rays from it, so the batch is a deterministic
+    /// function of `rng`'s state; runs in parallel over chunks.
+    ///
+    /// # Panics
+    /// If the dataset has no views.
+    pub fn sample_rays(
+        &self,
+        n: usize,
+        background: Background,
+        conv: PixelConvention,
+        jitter: bool,
+        rng: &mut nerf_core::Rng,
+        out: &mut RayBatch,
+    ) {
+        assert!(self.n_views() > 0, "sample_rays on a dataset without views");
+        out.resize(n);
+        let seed: u64 = rng.gen();
+        let (w, h) = (self.width, self.height);
+        let n_views = self.n_views() as u32;
+        let off = conv.offset();
+        let c3 = 3 * SAMPLE_CHUNK;
+        (
+            out.origins.par_chunks_mut(c3),
+            out.dirs.par_chunks_mut(c3),
+            out.target.par_chunks_mut(c3),
+            out.background.par_chunks_mut(c3),
+            out.view_ids.par_chunks_mut(SAMPLE_CHUNK),
+            out.pixel_ids.par_chunks_mut(SAMPLE_CHUNK),
+        )
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(chunk, (o, d, t, b, vi, pi))| {
+                let mut r = nerf_core::rng(seed, chunk as u64);
+                for k in 0..vi.len() {
+                    let view = r.gen_range(0..n_views);
+                    let col = r.gen_range(0..w);
+                    let row = r.gen_range(0..h);
+                    let (u, v) = if jitter {
+                        (
+                            col as f32 + off - 0.5 + r.gen::<f32>(),
+                            row as f32 + off - 0.5 + r.gen::<f32>(),
+                        )
+                    } else {
+                        (col as f32 + off, row as f32 + off)
+                    };
+                    let bg = match background {
+                        Background::Random => [r.gen::<f32>(), r.gen::<f32>(), r.gen::<f32>()],
+                        fixed => fixed.fixed_rgb(),
+                    };
+                    let cam = &self.cameras[view as usize];
+                    let ray = cam.ray_at(u, v);
+                    let pix = row * w + col;
+                    let px = &self.images[view as usize][4 * pix as usize..4 * pix as usize + 4];
+                    let s = 3 * k..3 * k + 3;
+                    o[s.clone()].copy_from_slice(&ray.origin.to_array());
+                    d[s.clone()].copy_from_slice(&ray.dir.to_array());
+                    b[s.clone()].copy_from_slice(&bg);
+                    composite(px, bg, &mut t[s]);
+                    vi[k] = view;
+                    pi[k] = pix;
+                }
+            });
+    }
+
+    /// Every pixel of view `i`, row-major, composited on the given fixed background
+    /// (White/Black; Random → treated as White). Fills `out` (reusing allocations); parallel over
+    /// rows.
+    ///
+    /// # Panics
+    /// If `i >= n_views()`.
+    pub fn view_rays(
+        &self,
+        i: usize,
+        background: Background,
+        conv: PixelConvention,
+        out: &mut RayBatch,
+    ) {
+        assert!(i < self.n_views(), "view index {i} out of range");
+        let (w, h) = (self.width as usize, self.height as usize);
+        out.resize(w * h);
+        let bg = background.fixed_rgb();
+        let cam = &self.cameras[i];
+        let img = &self.images[i];
+        (
+            out.origins.par_chunks_mut(3 * w),
+            out.dirs.par_chunks_mut(3 * w),
+            out.target.par_chunks_mut(3 * w),
+            out.background.par_chunks_mut(3 * w),
+            out.view_ids.par_chunks_mut(w),
+            out.pixel_ids.par_chunks_mut(w),
+        )
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(row, (o, d, t, b, vi, pi))| {
+                for col in 0..w {
+                    let ray = cam.ray(col as u32, row as u32, conv);
+                    let pix = row * w + col;
+                    let s = 3 * col..3 * col + 3;
+                    o[s.clone()].copy_from_slice(&ray.origin.to_array());
+                    d[s.clone()].copy_from_slice(&ray.dir.to_array());
+                    b[s.clone()].copy_from_slice(&bg);
+                    composite(&img[4 * pix..4 * pix + 4], bg, &mut t[s]);
+                    vi[col] = i as u32;
+                    pi[col] = pix as u32;
+                }
+            });
+    }
+
+    /// The view's RGB image composited on `background` (Random → White), `3·W·H` long.
+    ///
+    /// # Panics
+    /// If `i >= n_views()`.
+    pub fn view_rgb(&self, i: usize, background: Background) -> Vec<f32> {
+        let bg = background.fixed_rgb();
+        let img = &self.images[i];
+        let mut out = vec![0.0f32; img.len() / 4 * 3];
+        for (px, o) in img.chunks_exact(4).zip(out.chunks_exact_mut(3)) {
+            composite(px, bg, o);
+        }
+        out
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Loading
+
+struct Frame {
+    index: usize,
+    image: PathBuf,
+    c2w: Vec<[f32; 4]>,
+}
+
+fn parse_matrix(path: &Path, frame: usize, v: &Value) -> Result<Vec<[f32; 4]>, DataError> {
+    let bad = |shape: String| DataError::BadMatrix {
+        path: path.to_path_buf(),
+        frame,
+        shape,
+    };
+    let rows = v
+        .as_array()
+        .ok_or_else(|| bad(format!("a non-array value {}", json_kind(v))))?;
+    let mut m = Vec::with_capacity(rows.len());
+    let mut shape = Vec::with_capacity(rows.len());
+    let mut all_numbers = true;
+    for r in rows {
+        match r.as_array() {
+            Some(r) => {
+                shape.push(r.len());
+                all_numbers &= r.iter().all(Value::is_number);
+            }
+            None => return Err(bad(format!("a row that is {}", json_kind(r)))),
+        }
+    }
+    let desc = || {
+        let cols: Vec<String> = shape.iter().map(|c| c.to_string()).collect();
+        format!("{} rows of lengths [{}]", shape.len(), cols.join(", "))
+    };
+    if !(rows.len() == 3 || rows.len() == 4) || shape.iter().any(|&c| c != 4) {
+        return Err(bad(desc()));
+    }
+    if !all_numbers {
+        return Err(bad("a non-numeric entry".into()));
+    }
+    let mut finite = true;
+    for r in rows {
+        let r = r.as_array().unwrap();
+        let row: [f32; 4] = std::array::from_fn(|c| r[c].as_f64().unwrap_or(f64::NAN) as f32);
+        finite &= row.iter().all(|x| x.is_finite());
+        m.push(row);
+    }
+    if !finite {
+        return Err(DataError::NonFinitePose {
+            path: path.to_path_buf(),
+            frame,
+        });
+    }
+    Ok(m)
+}
+
+fn json_kind(v: &Value) -> &'static str {
+    match v {
+        Value::Null => "null",
+        Value::Bool(_) => "a boolean",
+        Value::Number(_) => "a number",
+        Value::String(_) => "a string",
+        Value::Array(_) => "an array",
+        Value::Object(_) => "an object",
+    }
+}
+
+fn image_path(root: &Path, file_path: &str) -> PathBuf {
+    let rel = file_path.strip_prefix("./").unwrap_or(file_path);
+    let mut p = root.join(rel);
+    if p.extension().is_none() {
+        p.set_extension("png");
+    }
+    p
+}
+
+/// A decoded image: width, height, straight RGBA f32 pixels.
+type Decoded = (u32, u32, Vec<f32>);
+
+/// Decodes an image to straight RGBA f32 in `[0, 1]`.
+fn decode_rgba(path: &Path) -> Result<Decoded, DataError> {
+    let io = |source| DataError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let img = image::ImageReader::open(path)
+        .map_err(io)?
+        .with_guessed_format()
+        .map_err(io)?
+        .decode()
+        .map_err(|source| DataError::Decode {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    let (w, h) = (img.width(), img.height());
+    let lut8: [f32; 256] = std::array::from_fn(|i| i as f32 / 255.0);
+    let px = match img {
+        image::DynamicImage::ImageRgba8(b) => {
+            b.as_raw().iter().map(|&v| lut8[v as usize]).collect()
+        }
+        image::DynamicImage::ImageRgb8(b) => b
+            .as_raw()
+            .chunks_exact(3)
+            .flat_map(|p| {
+                [
+                    lut8[p[0] as usize],
+                    lut8[p[1] as usize],
+                    lut8[p[2] as usize],
+                    1.0,
+                ]
+            })
+            .collect(),
+        image::DynamicImage::ImageRgba16(b) => {
+            b.as_raw().iter().map(|&v| v as f32 / 65535.0).collect()
+        }
+        image::DynamicImage::ImageRgb16(b) => b
+            .as_raw()
+            .chunks_exact(3)
+            .flat_map(|p| {
+                [
+                    p[0] as f32 / 65535.0,
+                    p[1] as f32 / 65535.0,
+                    p[2] as f32 / 65535.0,
+                    1.0,
+                ]
+            })
+            .collect(),
+        other => other.to_rgba32f().into_raw(),
+    };
+    Ok((w, h, px))
+}
+
+/// k×k box average of an RGBA image (`w`, `h` divisible by `k`).
+fn downscale_rgba(px: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
+    if k == 1 {
+        return px.to_vec();
+    }
+    let (ow, oh) = (w / k, h / k);
+    let inv = 1.0 / (k * k) as f32;
+    let mut out = vec![0.0f32; ow * oh * 4];
+    for (oy, orow) in out.chunks_exact_mut(4 * ow).enumerate() {
+        for (ox, o) in orow.chunks_exact_mut(4).enumerate() {
+            let mut acc = [0.0f32; 4];
+            for y in oy * k..oy * k + k {
+                let row = &px[4 * (y * w + ox * k)..4 * (y * w + ox * k + k)];
+                for p in row.chunks_exact(4) {
+                    for c in 0..4 {
+                        acc[c] += p[c];
+                    }
+                }
+            }
+            for c in 0..4 {
+                o[c] = acc[c] * inv;
+            }
+        }
+    }
+    out
+}
+
+/// Loads one split of a Blender-format scene: reads `root/transforms_<split>.json`, selects
+/// views, decodes their images in parallel (RGBA 8/16-bit or RGB PNG; alpha 1 when absent),
+/// optionally downscales them by a k×k box average, and builds cameras with
+/// `Intrinsics::from_fov_x(W0, H0, camera_angle_x).downscaled(k)`. Every frame's
+/// `transform_matrix` is validated, even for unselected views. Sets `near = 2`, `far = 6` and
+/// `aabb = Aabb::cube(1.5)` (the NeRF-synthetic conventions).
+pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
+    let tpath = root.join(split.transforms_file());
+    if !tpath.is_file() {
+        return Err(DataError::MissingTransforms { path: tpath });
+    }
+    let text = std::fs::read_to_string(&tpath).map_err(|source| DataError::Io {
+        path: tpath.clone(),
+        source,
+    })?;
+    let json: Value = serde_json::from_str(&text).map_err(|source| DataError::Json {
+        path: tpath.clone(),
+        source,
+    })?;
+    let missing = |key: String| DataError::MissingKey {
+        path: tpath.clone(),
+        key,
+    };
+    let invalid = |key: String, reason: String| DataError::InvalidValue {
+        path: tpath.clone(),
+        key,
+        reason,
+    };
+    if !json.is_object() {
+        return Err(invalid(
+            "<top level>".into(),
+            format!("expected an object, got {}", json_kind(&json)),
+        ));
+    }
+    let angle_v = json
+        .get("camera_angle_x")
+        .ok_or_else(|| missing("camera_angle_x".into()))?;
+    let angle = angle_v.as_f64().ok_or_else(|| {
+        invalid(
+            "camera_angle_x".into(),
+            format!("expected a number, got {}", json_kind(angle_v)),
+        )
+    })?;
+    if !(angle > 0.0 && angle < std::f64::consts::PI) {
+        return Err(invalid(
+            "camera_angle_x".into(),
+            format!("{angle} is not in (0, pi)"),
+        ));
+    }
+    let frames_v = json.get("frames").ok_or_else(|| missing("frames".into()))?;
+    let frames_json = frames_v.as_array().ok_or_else(|| {
+        invalid(
+            "frames".into(),
+            format!("expected an array, got {}", json_kind(frames_v)),
+        )
+    })?;
+    if frames_json.is_empty() {
+        return Err(DataError::EmptySplit {
+            path: tpath.clone(),
+            reason: "`frames` is empty".into(),
+        });
+    }
+    let mut frames = Vec::with_capacity(frames_json.len());
+    for (i, f) in frames_json.iter().enumerate() {
+        let fp_v = f
+            .get("file_path")
+            .ok_or_else(|| missing(format!("frames[{i}].file_path")))?;
+        let fp = fp_v.as_str().ok_or_else(|| {
+            invalid(
+                format!("frames[{i}].file_path"),
+                format!("expected a string, got {}", json_kind(fp_v)),
+            )
+        })?;
+        let m = f
+            .get("transform_matrix")
+            .ok_or_else(|| missing(format!("frames[{i}].transform_matrix")))?;
+        let c2w = parse_matrix(&tpath, i, m)?;
+        frames.push(Frame {
+            index: i,
+            image: image_path(root, fp),
+            c2w,
+        });
+    }
+    let selected = opts
+        .views
+        .indices(frames.len())
+        .map_err(|reason| DataError::BadSelection {
+            path: tpath.clone(),
+            reason,
+        })?;
+    if selected.is_empty() {
+        return Err(DataError::EmptySplit {
+            path: tpath.clone(),
+            reason: format!("view selection `{}` leaves no views", opts.views),
+        });
+    }
+    let k = opts.downscale;
+    if k == 0 {
+        return Err(DataError::BadDownscale {
+            path: tpath.clone(),
+            k,
+            reason: "the factor must be at least 1".into(),
+        });
+    }
+    let frames: Vec<&Frame> = selected.iter().map(|&i| &frames[i]).collect();
+    for f in &frames {
+        if !f.image.is_file() {
+            return Err(DataError::MissingImage {
+                path: f.image.clone(),
+                frame: f.index,
+            });
+        }
+    }
+
+    // Decode (and downscale) in parallel; report the first failing frame in order.
+    let decoded: Vec<Result<Decoded, DataError>> = frames
+        .par_iter()
+        .map(|f| {
+            let (w, h, px) = decode_rgba(&f.image)?;
+            if w % k != 0 || h % k != 0 {
+                return Err(DataError::BadDownscale {
+                    path: f.image.clone(),
+                    k,
+                    reason: format!("it does not divide the image size {w}x{h}"),
+                });
+            }
+            if w == 0 || h == 0 {
+                return Err(DataError::BadDownscale {
+                    path: f.image.clone(),
+                    k,
+                    reason: "the image is empty".into(),
+                });
+            }
+            Ok((
+                w,
+                h,
+                downscale_rgba(&px, w as usize, h as usize, k as usize),
+            ))
+        })
+        .collect();
+    let mut images = Vec::with_capacity(decoded.len());
+    let mut size = None;
+    for (f, d) in frames.iter().zip(decoded) {
+        let (w, h, px) = d?;
+        match size {
+            None => size = Some((w, h, f.image.clone())),
+            Some((fw, fh, ref first)) if (fw, fh) != (w, h) => {
+                return Err(DataError::SizeMismatch {
+                    path: f.image.clone(),
+                    width: w,
+                    height: h,
+                    first: first.clone(),
+                    first_width: fw,
+                    first_height: fh,
+                })
+            }
+            _ => {}
+        }
+        images.push(px);
+    }
+    let (w0, h0, _) = size.expect("at least one view");
+    let intr = Intrinsics::from_fov_x(w0, h0, angle).downscaled(k);
+    let cameras = frames
+        .iter()
+        .map(|f| {
+            Camera::from_c2w(intr, &f.c2w).map_err(|_| DataError::NonFinitePose {
+                path: tpath.clone(),
+                frame: f.index,
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Dataset {
+        root: root.to_path_buf(),
+        split,
+        width: intr.width,
+        height: intr.height,
+        cameras,
+        images,
+        file_paths: frames.iter().map(|f| f.image.clone()).collect(),
+        near: 2.0,
+        far: 6.0,
+        aabb: Aabb::cube(1.5),
+    })
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writing
+
+#[inline]
+fn to_u8(v: f32) -> u8 {
+    // NaN → 0 (the `as` cast saturates NaN to 0).
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+fn write_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    bytes: &[u8],
+    color: image::ExtendedColorType,
+) -> Result<(), DataError> {
+    use image::ImageEncoder as _;
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|source| DataError::Io {
+            path: parent.to_path_buf(),
+            source,
+        })?;
+    }
+    let file = std::fs::File::create(path).map_err(|source| DataError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let mut wr = std::io::BufWriter::new(file);
+    image::codecs::png::PngEncoder::new(&mut wr)
+        .write_image(bytes, width, height, color)
+        .map_err(|source| DataError::Encode {
+            path: path.to_path_buf(),
+            source,
+        })?;
+    use std::io::Write as _;
+    wr.flush().map_err(|source| DataError::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
+/// Writes an RGB f32 image (`3·W·H` values, row-major; clamped to `[0, 1]`, rounded to u8) as PNG,
+/// creating the parent folder if needed; the error names the path.
+///
+/// # Panics
+/// If `rgb.len() != 3·width·height`.
+pub fn save_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(), DataError> {
+    assert_eq!(
+        rgb.len(),
+        3 * width as usize * height as usize,
+        "save_png: rgb is not 3·W·H long"
+    );
+    let bytes: Vec<u8> = rgb.iter().map(|&v| to_u8(v)).collect();
+    write_png(path, width, height, &bytes, image::ExtendedColorType::Rgb8)
+}
+
+/// Writes a dataset back out in the Blender format: `out_root/transforms_<split>.json` with
+/// `camera_angle_x` recomputed for the dataset's width (from the first camera's `fx`),
+/// `frames[k] = { "file_path": "./<split>/r_<k>", "transform_matrix": 4×4 }`, and RGBA 8-bit PNGs
+/// `out_root/<split>/r_<k>.png` (written in parallel). `attribution`, when given, becomes a
+/// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones.
+/// The format stores only the horizontal field of view: a principal point off the image centre or
+/// `fy != fx` is not preserved.
+pub fn write_blender(
+    ds: &Dataset,
+    out_root: &Path,
+    attribution: Option<&str>,
+) -> Result<(), DataError> {
+    let split = ds.split.as_str();
+    let tpath = out_root.join(ds.split.transforms_file());
+    let Some(first) = ds.cameras.first() else {
+        return Err(DataError::EmptySplit {
+            path: tpath,
+            reason: "the dataset has no views to write".into(),
+        });
+    };
+    let img_dir = out_root.join(split);
+    std::fs::create_dir_all(&img_dir).map_err(|source| DataError::Io {
+        path: img_dir.clone(),
+        source,
+    })?;
+    let frames: Vec<Value> = ds
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(k, cam)| {
+            let m = cam.c2w();
+            let rows: Vec<Value> = m
+                .iter()
+                .map(|r| Value::Array(r.iter().map(|&v| Value::from(v as f64)).collect()))
+                .collect();
+            serde_json::json!({
+                "file_path": format!("./{split}/r_{k}"),
+                "transform_matrix": rows,
+            })
+        })
+        .collect();
+    let mut top = serde_json::Map::new();
+    if let Some(a) = attribution {
+        top.insert("attribution".into(), Value::from(a));
+    }
+    top.insert(
+        "camera_angle_x".into(),
+        Value::from(first.intrinsics.fov_x()),
+    );
+    top.insert("frames".into(), Value::Array(frames));
+    let text = serde_json::to_string_pretty(&Value::Object(top))
+        .expect("serialising a JSON value cannot fail");
+    std::fs::write(&tpath, text + "\n").map_err(|source| DataError::Io {
+        path: tpath.clone(),
+        source,
+    })?;
+    let (w, h) = (ds.width, ds.height);
+    ds.images
+        .par_iter()
+        .enumerate()
+        .map(|(k, img)| {
+            let bytes: Vec<u8> = img.iter().map(|&v| to_u8(v)).collect();
+            write_png(
+                &img_dir.join(format!("r_{k}.png")),
+                w,
+                h,
+                &bytes,
+                image::ExtendedColorType::Rgba8,
+            )
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn view_selection_parse_and_indices() {
+        assert_eq!("all".parse::<ViewSelection>(), Ok(ViewSelection::All));
+        assert_eq!(
+            "every:8".parse::<ViewSelection>(),
+            Ok(ViewSelection::Every(8))
+        );
+        assert_eq!(
+            "first:5".parse::<ViewSelection>(),
+            Ok(ViewSelection::First(5))
+        );
+        for bad in ["every:0", "every", "first:x", "some:3", "", "every:-1"] {
+            let e = bad.parse::<ViewSelection>().unwrap_err();
+            assert!(
+                e.contains("invalid view selection") && e.contains(bad),
+                "{e}"
+            );
+        }
+        assert_eq!(
+            ViewSelection::Every(3).indices(10).unwrap(),
+            vec![0, 3, 6, 9]
+        );
+        assert_eq!(ViewSelection::First(3).indices(2).unwrap(), vec![0, 1]);
+        assert_eq!(ViewSelection::All.indices(3).unwrap(), vec![0, 1, 2]);
+        assert!(ViewSelection::Every(0).indices(3).is_err());
+        for s in ["all", "every:8", "first:5"] {
+            assert_eq!(s.parse::<ViewSelection>().unwrap().to_string(), s);
+        }
+        assert_eq!("val".parse::<Split>(), Ok(Split::Val));
+        assert!("validation".parse::<Split>().is_err());
+    }
+
+    #[test]
+    fn box_downscale_of_known_pattern() {
+        // 4x2 RGBA image, channel c of pixel (x,y) = 10y + x + 100c.
+        let (w, h) = (4, 2);
+        let px: Vec<f32> = (0..w * h * 4)
+            .map(|i| {
+                let (p, c) = (i / 4, i % 4);
+                (10 * (p / w) + p % w + 100 * c) as f32
+            })
+            .collect();
+        let d = downscale_rgba(&px, w, h, 2);
+        assert_eq!(d.len(), 2 * 4);
+        for c in 0..4 {
+            let base = 100.0 * c as f32;
+            assert_eq!(d[c], base + (0.0 + 1.0 + 10.0 + 11.0) / 4.0);
+            assert_eq!(d[4 + c], base + (2.0 + 3.0 + 12.0 + 13.0) / 4.0);
+        }
+    }
+
+    #[test]
+    fn image_path_appends_png_only_without_extension() {
+        let r = Path::new("/scene");
+        assert_eq!(
+            image_path(r, "./train/r_0"),
+            Path::new("/scene/train/r_0.png")
+        );
+        assert_eq!(
+            image_path(r, "train/r_0.jpg"),
+            Path::new("/scene/train/r_0.jpg")
+        );
+    }
+}

@@ -1,0 +1,434 @@
+use super::*;
+
+fn cfg(
+    input_dim: usize,
+    output_dim: usize,
+    hidden_dim: usize,
+    hidden_layers: usize,
+    ha: Activation,
+    oa: Activation,
+) -> MlpConfig {
+    MlpConfig {
+        input_dim,
+        output_dim,
+        hidden_dim,
+        hidden_layers,
+        hidden_activation: ha,
+        output_activation: oa,
+        skips: vec![],
+        bias: true,
+    }
+}
+
+fn random(n: usize, seed: u64, scale: f64) -> Vec<f64> {
+    let mut r = nerf_core::rng(seed, 99);
+    (0..n)
+        .map(|_| (2.0 * r.gen::<f64>() - 1.0) * scale)
+        .collect()
+}
+
+/// L = Σ g·mlp(x). Checks every parameter gradient and d_input against central differences in f64.
+fn fd_check(config: MlpConfig, n: usize, seed: u64) {
+    let mut rng = nerf_core::rng(seed, 0);
+    let mut mlp = Mlp::<f64>::new(config.clone(), &mut rng);
+    let x = random(n * config.input_dim, seed + 1, 1.0);
+    let g = random(n * config.output_dim, seed + 2, 1.0);
+    let mut tape = MlpTape::default();
+    mlp.forward(n, &x, &mut tape);
+    let mut dx = vec![f64::NAN; x.len()];
+    mlp.backward(n, &x, &mut tape, &g, Some(&mut dx));
+    let loss = |m: &Mlp<f64>, x: &[f64]| {
+        let mut out = vec![0.0; n * config.output_dim];
+        m.infer(n, x, &mut MlpScratch::default(), &mut out);
+        out.iter().zip(&g).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let h = 1e-6;
+    let close = |an: f64, fd: f64| (an - fd).abs() <= 1e-8 + 1e-6 * an.abs().max(fd.abs());
+    let mut worst: f64 = 0.0;
+    let mut probe = mlp.clone();
+    for i in 0..mlp.n_params() {
+        let p0 = probe.params()[i];
+        probe.params_mut()[i] = p0 + h;
+        let lp = loss(&probe, &x);
+        probe.params_mut()[i] = p0 - h;
+        let lm = loss(&probe, &x);
+        probe.params_mut()[i] = p0;
+        let fd = (lp - lm) / (2.0 * h);
+        let an = mlp.grads()[i];
+        worst = worst.max((an - fd).abs());
+        assert!(
+            close(an, fd),
+            "param {i}: analytic {an} vs fd {fd} ({config:?})"
+        );
+    }
+    for i in 0..x.len() {
+        let mut xp = x.clone();
+        xp[i] += h;
+        let mut xm = x.clone();
+        xm[i] -= h;
+        let fd = (loss(&mlp, &xp) - loss(&mlp, &xm)) / (2.0 * h);
+        assert!(
+            close(dx[i], fd),
+            "d_input[{i}]: analytic {} vs fd {fd} ({config:?})",
+            dx[i]
+        );
+    }
+    // The check must not pass vacuously.
+    assert!(
+        mlp.grads().iter().any(|v| v.abs() > 1e-3),
+        "all gradients ~0"
+    );
+    assert!(dx.iter().any(|v| v.abs() > 1e-3), "d_input ~0");
+    let _ = worst;
+}
+
+#[test]
+fn fd_single_linear_layer() {
+    fd_check(cfg(4, 3, 0, 0, Activation::Relu, Activation::None), 6, 1);
+}
+
+#[test]
+fn fd_relu_layer() {
+    fd_check(cfg(3, 2, 7, 1, Activation::Relu, Activation::None), 8, 2);
+}
+
+#[test]
+fn fd_sigmoid_layers() {
+    fd_check(
+        cfg(3, 2, 5, 1, Activation::Sigmoid, Activation::Sigmoid),
+        7,
+        3,
+    );
+}
+
+#[test]
+fn fd_tanh_softplus_exp() {
+    fd_check(cfg(2, 3, 5, 1, Activation::Tanh, Activation::Exp), 5, 4);
+    fd_check(
+        cfg(2, 3, 5, 1, Activation::Softplus, Activation::Softplus),
+        5,
+        5,
+    );
+}
+
+#[test]
+fn fd_skip_connection() {
+    let mut c = cfg(3, 2, 6, 2, Activation::Relu, Activation::None);
+    c.skips = vec![1];
+    fd_check(c, 6, 6);
+}
+
+#[test]
+fn fd_three_hidden_layers_with_skip_and_no_bias() {
+    let mut c = cfg(5, 4, 8, 3, Activation::Relu, Activation::Sigmoid);
+    c.skips = vec![2];
+    fd_check(c.clone(), 9, 7);
+    c.bias = false;
+    c.skips = vec![1, 2];
+    fd_check(c, 9, 8);
+}
+
+#[test]
+fn fd_large_batch_exercises_parallel_paths() {
+    // n·width above the element-wise chunk so the rayon paths run; check a sample of parameters.
+    let mut c = cfg(4, 3, 32, 2, Activation::Sigmoid, Activation::None);
+    c.skips = vec![1];
+    let n = 1200;
+    let mut mlp = Mlp::<f64>::new(c.clone(), &mut nerf_core::rng(9, 0));
+    let x = random(n * 4, 10, 1.0);
+    let g = random(n * 3, 11, 1e-2);
+    let mut tape = MlpTape::default();
+    mlp.forward(n, &x, &mut tape);
+    mlp.backward(n, &x, &mut tape, &g, None);
+    let loss = |m: &Mlp<f64>| {
+        let mut out = vec![0.0; n * 3];
+        m.infer(n, &x, &mut MlpScratch::default(), &mut out);
+        out.iter().zip(&g).map(|(a, b)| a * b).sum::<f64>()
+    };
+    let h = 1e-6;
+    let mut probe = mlp.clone();
+    for i in (0..mlp.n_params()).step_by(13) {
+        let p0 = probe.params()[i];
+        probe.params_mut()[i] = p0 + h;
+        let lp = loss(&probe);
+        probe.params_mut()[i] = p0 - h;
+        let lm = loss(&probe);
+        probe.params_mut()[i] = p0;
+        let fd = (lp - lm) / (2.0 * h);
+        let an = mlp.grads()[i];
+        assert!(
+            (an - fd).abs() <= 1e-8 + 1e-6 * an.abs(),
+            "param {i}: {an} vs {fd}"
+        );
+    }
+}
+
+#[test]
+fn paper_trunk_shape() {
+    let c = MlpConfig::nerf_trunk(63, 257);
+    let mlp = Mlp::<f32>::new(c, &mut nerf_core::rng(0, 0));
+    let shapes = mlp.layer_shapes();
+    assert_eq!(shapes.len(), 9);
+    assert_eq!(shapes[0], (63, 256));
+    assert_eq!(
+        shapes[5],
+        (319, 256),
+        "nerf-pytorch pts_linears[5] takes [input, h]"
+    );
+    assert_eq!(shapes[8], (256, 257));
+    for (i, s) in shapes.iter().enumerate() {
+        if ![0, 5, 8].contains(&i) {
+            assert_eq!(*s, (256, 256));
+        }
+    }
+    // nerf-pytorch parameter count of pts_linears + alpha_linear + feature_linear.
+    let expect = (63 * 256 + 256) + 6 * (256 * 256 + 256) + (319 * 256 + 256) + (256 * 257 + 257);
+    assert_eq!(mlp.n_params(), expect);
+    assert_eq!(
+        mlp.flops_per_sample(),
+        2 * (63 * 256 + 6 * 256 * 256 + 319 * 256 + 256 * 257)
+    );
+}
+
+#[test]
+fn init_is_pytorch_linear_uniform() {
+    let mut c = cfg(63, 4, 256, 2, Activation::Relu, Activation::None);
+    c.skips = vec![1];
+    let mlp = Mlp::<f32>::new(c.clone(), &mut nerf_core::rng(5, 0));
+    for ((fan_in, out), (w, b)) in mlp.layer_shapes().into_iter().zip(mlp.layer_offsets()) {
+        let bound = 1.0 / (fan_in as f32).sqrt();
+        let ws = &mlp.params()[w..w + fan_in * out];
+        let bs = &mlp.params()[b.unwrap()..b.unwrap() + out];
+        for s in [ws, bs] {
+            let max = s.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            assert!(
+                max <= bound,
+                "fan_in {fan_in}: max |p| {max} > bound {bound}"
+            );
+            // Enough draws to nearly reach the bound (a too-narrow init would fail here).
+            if s.len() >= 64 {
+                assert!(
+                    max > 0.9 * bound,
+                    "fan_in {fan_in}: max |p| {max}, bound {bound}"
+                );
+            }
+        }
+        let mean = ws.iter().sum::<f32>() / ws.len() as f32;
+        assert!(mean.abs() < 0.1 * bound, "weights not centred: {mean}");
+    }
+    // Same seed → same parameters; f64 and f32 draw the same numbers.
+    let again = Mlp::<f32>::new(c.clone(), &mut nerf_core::rng(5, 0));
+    assert_eq!(mlp.params(), again.params());
+    let wide = Mlp::<f64>::new(c, &mut nerf_core::rng(5, 0));
+    assert!(mlp
+        .params()
+        .iter()
+        .zip(wide.params())
+        .all(|(a, b)| (*a as f64 - b).abs() < 1e-7));
+    assert!(mlp.grads().iter().all(|g| *g == 0.0));
+}
+
+#[test]
+fn infer_equals_forward_including_from_worker_threads() {
+    let c = MlpConfig {
+        hidden_dim: 64,
+        ..MlpConfig::nerf_trunk(27, 5)
+    };
+    let mlp = Mlp::<f32>::new(c, &mut nerf_core::rng(6, 0));
+    let n = 1000;
+    let x: Vec<f32> = random(n * 27, 12, 1.0)
+        .into_iter()
+        .map(|v| v as f32)
+        .collect();
+    let mut tape = MlpTape::default();
+    let y = mlp.forward(n, &x, &mut tape).to_vec();
+    let mut out = vec![f32::NAN; n * 5];
+    mlp.infer(n, &x, &mut MlpScratch::default(), &mut out);
+    let close = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .all(|(p, q)| (p - q).abs() <= 1e-5 * (1.0 + q.abs()))
+    };
+    assert!(close(&out, &y));
+    // Chunks of 100 from many threads at once.
+    let mut out2 = vec![f32::NAN; n * 5];
+    out2.par_chunks_mut(100 * 5)
+        .zip(x.par_chunks(100 * 27))
+        .for_each_init(MlpScratch::default, |s, (o, xi)| {
+            mlp.infer(xi.len() / 27, xi, s, o)
+        });
+    assert!(close(&out2, &y));
+    // Output really depends on the input (not a constant).
+    assert!((y[0] - y[5]).abs() > 1e-6 || (y[1] - y[6]).abs() > 1e-6);
+}
+
+#[test]
+fn grads_accumulate_over_two_backward_calls() {
+    let mut c = cfg(6, 3, 16, 2, Activation::Relu, Activation::None);
+    c.skips = vec![1];
+    let mut mlp = Mlp::<f64>::new(c, &mut nerf_core::rng(7, 0));
+    let n = 20;
+    let x1 = random(n * 6, 13, 1.0);
+    let x2 = random(n * 6, 14, 1.0);
+    let g = random(n * 3, 15, 1.0);
+    let mut tape = MlpTape::default();
+    let grad_of = |m: &mut Mlp<f64>, x: &[f64], tape: &mut MlpTape<f64>| {
+        m.zero_grad();
+        m.forward(n, x, tape);
+        m.backward(n, x, tape, &g, None);
+        m.grads().to_vec()
+    };
+    let g1 = grad_of(&mut mlp, &x1, &mut tape);
+    let g2 = grad_of(&mut mlp, &x2, &mut tape);
+    // Without zero_grad in between: g1 + g2.
+    mlp.zero_grad();
+    mlp.forward(n, &x1, &mut tape);
+    mlp.backward(n, &x1, &mut tape, &g, None);
+    mlp.forward(n, &x2, &mut tape);
+    mlp.backward(n, &x2, &mut tape, &g, None);
+    for i in 0..mlp.n_params() {
+        assert!(
+            (mlp.grads()[i] - (g1[i] + g2[i])).abs() <= 1e-12 * (1.0 + g1[i].abs() + g2[i].abs())
+        );
+    }
+    assert!(g1.iter().zip(&g2).any(|(a, b)| (a - b).abs() > 1e-6));
+    mlp.zero_grad();
+    assert!(mlp.grads().iter().all(|v| *v == 0.0));
+}
+
+#[test]
+fn tape_and_scratch_are_reused_without_reallocation() {
+    let mlp = Mlp::<f32>::new(
+        MlpConfig {
+            hidden_dim: 32,
+            ..MlpConfig::nerf_trunk(9, 4)
+        },
+        &mut nerf_core::rng(8, 0),
+    );
+    let x: Vec<f32> = random(64 * 9, 16, 1.0)
+        .into_iter()
+        .map(|v| v as f32)
+        .collect();
+    let mut tape = MlpTape::default();
+    let p1 = mlp.forward(64, &x, &mut tape).as_ptr();
+    let p2 = mlp.forward(32, &x[..32 * 9], &mut tape).as_ptr();
+    let p3 = mlp.forward(64, &x, &mut tape).as_ptr();
+    assert_eq!(p1, p2);
+    assert_eq!(p1, p3);
+    let mut s = MlpScratch::default();
+    let mut out = vec![0.0f32; 64 * 4];
+    mlp.infer(64, &x, &mut s, &mut out);
+    let (a, b) = (s.a.as_ptr(), s.b.as_ptr());
+    mlp.infer(16, &x[..16 * 9], &mut s, &mut out[..16 * 4]);
+    mlp.infer(64, &x, &mut s, &mut out);
+    assert!((s.a.as_ptr(), s.b.as_ptr()) == (a, b) || (s.a.as_ptr(), s.b.as_ptr()) == (b, a));
+}
+
+#[test]
+fn f32_gradients_agree_with_f64() {
+    let mut c = cfg(8, 4, 32, 3, Activation::Relu, Activation::Sigmoid);
+    c.skips = vec![2];
+    let m64 = Mlp::<f64>::new(c.clone(), &mut nerf_core::rng(9, 0));
+    let mut m64 = m64;
+    let mut m32 = Mlp::<f32>::new(c, &mut nerf_core::rng(9, 0));
+    m32.params_mut()
+        .iter_mut()
+        .zip(m64.params())
+        .for_each(|(a, b)| *a = *b as f32);
+    m64.params_mut()
+        .iter_mut()
+        .zip(m32.params().to_vec())
+        .for_each(|(a, b)| *a = b as f64);
+    let n = 50;
+    let x = random(n * 8, 17, 1.0);
+    let g = random(n * 4, 18, 1.0);
+    let (x32, g32): (Vec<f32>, Vec<f32>) = (
+        x.iter().map(|v| *v as f32).collect(),
+        g.iter().map(|v| *v as f32).collect(),
+    );
+    let (mut t64, mut t32) = (MlpTape::default(), MlpTape::default());
+    m64.forward(n, &x, &mut t64);
+    m32.forward(n, &x32, &mut t32);
+    let mut d64 = vec![0.0; n * 8];
+    let mut d32 = vec![0.0f32; n * 8];
+    m64.backward(n, &x, &mut t64, &g, Some(&mut d64));
+    m32.backward(n, &x32, &mut t32, &g32, Some(&mut d32));
+    let scale = m64.grads().iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let err = m32
+        .grads()
+        .iter()
+        .zip(m64.grads())
+        .map(|(a, b)| (*a as f64 - b).abs())
+        .fold(0.0, f64::max);
+    assert!(
+        err < 1e-4 * scale,
+        "f32 vs f64 grads: {err} (scale {scale})"
+    );
+    let err = d32
+        .iter()
+        .zip(&d64)
+        .map(|(a, b)| (*a as f64 - b).abs())
+        .fold(0.0, f64::max);
+    assert!(err < 1e-4, "f32 vs f64 d_input: {err}");
+}
+
+#[test]
+fn config_validation_and_serde() {
+    let mut rng = nerf_core::rng(0, 0);
+    let mut c = cfg(3, 1, 8, 2, Activation::Relu, Activation::None);
+    c.skips = vec![2];
+    assert_eq!(
+        Mlp::<f32>::try_new(c.clone(), &mut rng).unwrap_err(),
+        MlpError::SkipOutOfRange {
+            index: 2,
+            hidden_layers: 2
+        }
+    );
+    c.skips = vec![0];
+    assert!(Mlp::<f32>::try_new(c.clone(), &mut rng).is_err());
+    c.skips = vec![1, 1];
+    assert_eq!(
+        Mlp::<f32>::try_new(c.clone(), &mut rng).unwrap_err(),
+        MlpError::DuplicateSkip(1)
+    );
+    c.skips = vec![];
+    c.hidden_dim = 0;
+    assert!(Mlp::<f32>::try_new(c.clone(), &mut rng)
+        .unwrap_err()
+        .to_string()
+        .contains("hidden_dim"));
+    c.hidden_layers = 0;
+    assert!(
+        Mlp::<f32>::try_new(c, &mut rng).is_ok(),
+        "hidden_dim is unused without hidden layers"
+    );
+    let t = MlpConfig::nerf_trunk(63, 257);
+    let json = serde_json::to_string(&t).unwrap();
+    assert!(
+        json.contains("\"relu\"") && json.contains("\"none\""),
+        "{json}"
+    );
+    assert_eq!(serde_json::from_str::<MlpConfig>(&json).unwrap(), t);
+}
+
+#[test]
+fn activations_and_derivatives() {
+    for act in [
+        Activation::None,
+        Activation::Relu,
+        Activation::Sigmoid,
+        Activation::Tanh,
+        Activation::Softplus,
+        Activation::Exp,
+    ] {
+        for z in [-3.0f64, -0.4, 0.3, 2.5] {
+            let h = 1e-6;
+            let fd = (act.apply(z + h) - act.apply(z - h)) / (2.0 * h);
+            let an = act.derivative_from_output(act.apply(z));
+            assert!((fd - an).abs() < 1e-8, "{act:?} at {z}: {an} vs {fd}");
+        }
+    }
+    assert_eq!(Activation::Softplus.apply(-800.0f64), 0.0);
+    assert_eq!(Activation::Softplus.apply(800.0f64), 800.0);
+    assert_eq!(Activation::Sigmoid.apply(-800.0f32), 0.0);
+}

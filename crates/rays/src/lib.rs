@@ -1,0 +1,428 @@
+//! Pinhole cameras, camera-to-world poses (OpenGL convention), pixel-to-ray generation and
+//! axis-aligned bounding boxes.
+//!
+//! Conventions (those of the Blender / NeRF-synthetic format, nerf-pytorch and nerfstudio):
+//! - A [`Camera`] holds a camera-to-world rotation and the camera centre. Camera axes are OpenGL's:
+//!   the camera looks down its local −z, +y is up, +x is right.
+//! - Image coordinates `(u, v)`: `u` grows with the column (to the right), `v` with the row
+//!   (downwards). The camera-space direction through `(u, v)` is
+//!   `[(u − cx)/fx, −(v − cy)/fy, −1]`, exactly as nerf-pytorch's `get_rays`.
+//! - [`PixelConvention`] says where pixel `(col, row)` sits: at its centre `(col + ½, row + ½)`
+//!   (the default, as in instant-ngp and nerfstudio) or at the integer corner `(col, row)`
+//!   (nerf-pytorch).
+//! - [`Ray::dir`] is always unit length; [`Camera::pixel_dir_unnormalized`] gives the
+//!   nerf-pytorch direction whose camera-space z component is −1.
+
+use glam::{Mat3, Vec3};
+use serde::{Deserialize, Serialize};
+
+/// Errors of camera construction.
+#[derive(Debug, thiserror::Error)]
+pub enum RayError {
+    /// A value of the camera-to-world matrix is NaN or infinite.
+    #[error("non-finite value in camera pose")]
+    NonFinitePose,
+    /// The camera-to-world matrix does not have 3 or 4 rows.
+    #[error("camera pose must have 3 or 4 rows of 4 values, got {rows} rows")]
+    BadPoseShape {
+        /// Number of rows that were given.
+        rows: usize,
+    },
+    /// Intrinsics that cannot describe a pinhole camera (zero size, non-positive or non-finite focal).
+    #[error("invalid camera intrinsics: {0}")]
+    BadIntrinsics(String),
+}
+
+/// Pinhole intrinsics in pixels: image size, focal lengths and principal point.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Intrinsics {
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Horizontal focal length in pixels.
+    pub fx: f32,
+    /// Vertical focal length in pixels.
+    pub fy: f32,
+    /// Principal point, horizontal (pixels from the left image edge).
+    pub cx: f32,
+    /// Principal point, vertical (pixels from the top image edge).
+    pub cy: f32,
+}
+
+impl Intrinsics {
+    /// Blender: `f = 0.5·W / tan(0.5·camera_angle_x)` computed in f64 (then rounded to f32),
+    /// `fx = fy = f`, `cx = W/2`, `cy = H/2`.
+    pub fn from_fov_x(width: u32, height: u32, camera_angle_x: f64) -> Self {
+        let f = (0.5 * width as f64 / (0.5 * camera_angle_x).tan()) as f32;
+        Self {
+            width,
+            height,
+            fx: f,
+            fy: f,
+            cx: width as f32 * 0.5,
+            cy: height as f32 * 0.5,
+        }
+    }
+
+    /// Downscaled by an integer factor `k`: `W/k`, `H/k` (integer division), focal lengths and
+    /// principal point divided by `k` — nerf-pytorch's `half_res` for `k = 2`.
+    ///
+    /// # Panics
+    /// If `k == 0` (programmer error; validate user input before calling).
+    pub fn downscaled(&self, k: u32) -> Self {
+        assert!(k >= 1, "downscale factor must be at least 1");
+        let kf = k as f32;
+        Self {
+            width: self.width / k,
+            height: self.height / k,
+            fx: self.fx / kf,
+            fy: self.fy / kf,
+            cx: self.cx / kf,
+            cy: self.cy / kf,
+        }
+    }
+
+    /// Horizontal field of view in radians, `2·atan(0.5·W / fx)` (computed in f64); the inverse
+    /// of [`Intrinsics::from_fov_x`].
+    pub fn fov_x(&self) -> f64 {
+        2.0 * (0.5 * self.width as f64 / self.fx as f64).atan()
+    }
+
+    /// Checks that the size is non-zero and the focal lengths and principal point are finite
+    /// (focal lengths positive).
+    pub fn validate(&self) -> Result<(), RayError> {
+        if self.width == 0 || self.height == 0 {
+            return Err(RayError::BadIntrinsics(format!(
+                "image size {}x{} is empty",
+                self.width, self.height
+            )));
+        }
+        if !(self.fx.is_finite() && self.fy.is_finite() && self.fx > 0.0 && self.fy > 0.0) {
+            return Err(RayError::BadIntrinsics(format!(
+                "focal lengths ({}, {}) must be finite and positive",
+                self.fx, self.fy
+            )));
+        }
+        if !(self.cx.is_finite() && self.cy.is_finite()) {
+            return Err(RayError::BadIntrinsics(format!(
+                "principal point ({}, {}) must be finite",
+                self.cx, self.cy
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Where pixel `(col, row)` sits in continuous image coordinates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PixelConvention {
+    /// Pixel `(i, j)` → `(i + 0.5, j + 0.5)`: the pixel centre (instant-ngp, nerfstudio).
+    #[default]
+    Center,
+    /// Pixel `(i, j)` → `(i, j)`: nerf-pytorch's `get_rays` (no half-pixel offset).
+    Integer,
+}
+
+impl PixelConvention {
+    /// The offset added to integer pixel indices: 0.5 for [`Center`](Self::Center), 0 for
+    /// [`Integer`](Self::Integer).
+    #[inline]
+    pub fn offset(self) -> f32 {
+        match self {
+            PixelConvention::Center => 0.5,
+            PixelConvention::Integer => 0.0,
+        }
+    }
+}
+
+/// A ray `origin + t·dir`; `dir` is unit length.
+#[derive(Clone, Copy, Debug)]
+pub struct Ray {
+    /// Ray origin (the camera centre for camera rays).
+    pub origin: Vec3,
+    /// Unit direction.
+    pub dir: Vec3,
+}
+
+impl Ray {
+    /// The point at parameter `t`.
+    #[inline]
+    pub fn at(&self, t: f32) -> Vec3 {
+        self.origin + t * self.dir
+    }
+}
+
+/// An axis-aligned box.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Aabb {
+    /// Minimum corner.
+    pub min: [f32; 3],
+    /// Maximum corner.
+    pub max: [f32; 3],
+}
+
+impl Aabb {
+    /// The cube `[−half, half]³`.
+    pub fn cube(half: f32) -> Self {
+        Self {
+            min: [-half; 3],
+            max: [half; 3],
+        }
+    }
+
+    /// The centre `(min + max)/2`.
+    pub fn center(&self) -> [f32; 3] {
+        std::array::from_fn(|a| 0.5 * (self.min[a] + self.max[a]))
+    }
+
+    /// The side lengths `max − min`.
+    pub fn extent(&self) -> [f32; 3] {
+        std::array::from_fn(|a| self.max[a] - self.min[a])
+    }
+
+    /// Whether `p` lies inside the closed box.
+    pub fn contains(&self, p: [f32; 3]) -> bool {
+        (0..3).all(|a| p[a] >= self.min[a] && p[a] <= self.max[a])
+    }
+
+    /// Slab test. If the ray `origin + t·dir` (t ≥ 0) hits the box, returns
+    /// `(t_enter.max(0), t_exit)`; an origin inside the box gives `t_enter = 0`. `dir` need not be
+    /// unit length (the `t` are in units of `dir`); zero components are handled (the ray is then
+    /// parallel to that slab and hits only if the origin lies between its planes). A box entirely
+    /// behind the origin, a miss, or NaN input gives `None`.
+    pub fn intersect(&self, origin: [f32; 3], dir: [f32; 3]) -> Option<(f32, f32)> {
+        if origin.iter().chain(dir.iter()).any(|v| v.is_nan()) {
+            return None;
+        }
+        let mut t0 = 0.0f32;
+        let mut t1 = f32::INFINITY;
+        for a in 0..3 {
+            let (o, d) = (origin[a], dir[a]);
+            if d == 0.0 {
+                // Parallel to the slab; `!(..)` also rejects NaN.
+                if !(o >= self.min[a] && o <= self.max[a]) {
+                    return None;
+                }
+                continue;
+            }
+            let inv = 1.0 / d;
+            let ta = (self.min[a] - o) * inv;
+            let tb = (self.max[a] - o) * inv;
+            let (near, far) = if ta <= tb { (ta, tb) } else { (tb, ta) };
+            t0 = t0.max(near);
+            t1 = t1.min(far);
+            if t0 > t1 {
+                return None;
+            }
+        }
+        Some((t0, t1))
+    }
+}
+
+/// A pinhole camera: intrinsics plus the camera-to-world pose (OpenGL axes: looks down −z, +y up).
+#[derive(Clone, Copy, Debug)]
+pub struct Camera {
+    /// Pinhole intrinsics.
+    pub intrinsics: Intrinsics,
+    /// Camera-to-world rotation (columns: the camera's x, y, z axes in world coordinates).
+    pub rotation: Mat3,
+    /// Camera centre in world coordinates.
+    pub position: Vec3,
+}
+
+impl Camera {
+    /// From the Blender/nerfstudio 4×4 (or top 3×4) row-major camera-to-world matrix
+    /// (`transform_matrix`): rotation = the top-left 3×3 block, position = the last column.
+    /// `Err(RayError::NonFinitePose)` if any value is not finite, `Err(RayError::BadPoseShape)`
+    /// if there are not 3 or 4 rows. The bottom row of a 4×4 matrix is not used.
+    pub fn from_c2w(intrinsics: Intrinsics, c2w: &[[f32; 4]]) -> Result<Self, RayError> {
+        if c2w.len() != 3 && c2w.len() != 4 {
+            return Err(RayError::BadPoseShape { rows: c2w.len() });
+        }
+        if c2w.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(RayError::NonFinitePose);
+        }
+        let m = |r: usize, c: usize| c2w[r][c];
+        let rotation = Mat3::from_cols(
+            Vec3::new(m(0, 0), m(1, 0), m(2, 0)),
+            Vec3::new(m(0, 1), m(1, 1), m(2, 1)),
+            Vec3::new(m(0, 2), m(1, 2), m(2, 2)),
+        );
+        let position = Vec3::new(m(0, 3), m(1, 3), m(2, 3));
+        Ok(Self {
+            intrinsics,
+            rotation,
+            position,
+        })
+    }
+
+    /// The row-major 4×4 camera-to-world matrix (bottom row `[0, 0, 0, 1]`), the inverse of
+    /// [`Camera::from_c2w`].
+    pub fn c2w(&self) -> [[f32; 4]; 4] {
+        let r = &self.rotation;
+        let p = self.position;
+        [
+            [r.x_axis.x, r.y_axis.x, r.z_axis.x, p.x],
+            [r.x_axis.y, r.y_axis.y, r.z_axis.y, p.y],
+            [r.x_axis.z, r.y_axis.z, r.z_axis.z, p.z],
+            [0.0, 0.0, 0.0, 1.0],
+        ]
+    }
+
+    /// World direction (not normalised) through continuous image coordinates `(u, v)`:
+    /// `R·[(u−cx)/fx, −(v−cy)/fy, −1]`.
+    #[inline]
+    pub fn dir_at_unnormalized(&self, u: f32, v: f32) -> Vec3 {
+        let k = &self.intrinsics;
+        let d = Vec3::new((u - k.cx) / k.fx, -(v - k.cy) / k.fy, -1.0);
+        self.rotation * d
+    }
+
+    /// Unnormalised direction exactly as nerf-pytorch `get_rays`: `R·[(u−cx)/fx, −(v−cy)/fy, −1]`
+    /// where `(u, v)` are the coordinates of pixel `(col, row)` under `conv`.
+    #[inline]
+    pub fn pixel_dir_unnormalized(&self, col: u32, row: u32, conv: PixelConvention) -> Vec3 {
+        let o = conv.offset();
+        self.dir_at_unnormalized(col as f32 + o, row as f32 + o)
+    }
+
+    /// Unit-direction ray through pixel `(col, row)` under `conv`.
+    #[inline]
+    pub fn ray(&self, col: u32, row: u32, conv: PixelConvention) -> Ray {
+        let o = conv.offset();
+        self.ray_at(col as f32 + o, row as f32 + o)
+    }
+
+    /// Unit-direction ray through continuous image coordinates `(u, v)` (`u` along columns, `v`
+    /// along rows, `(0, 0)` the top-left corner of the image).
+    #[inline]
+    pub fn ray_at(&self, u: f32, v: f32) -> Ray {
+        Ray {
+            origin: self.position,
+            dir: self.dir_at_unnormalized(u, v).normalize(),
+        }
+    }
+
+    /// All rays, row-major (row 0 first), written into flat `origins` / `dirs` (unit) arrays,
+    /// each resized to `3·W·H` (their allocations are reused).
+    pub fn rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>) {
+        let (w, h) = (
+            self.intrinsics.width as usize,
+            self.intrinsics.height as usize,
+        );
+        let n = w * h;
+        origins.clear();
+        dirs.clear();
+        origins.resize(3 * n, 0.0);
+        dirs.resize(3 * n, 0.0);
+        let p = self.position.to_array();
+        for (o, d) in origins
+            .chunks_exact_mut(3)
+            .zip(dirs.chunks_exact_mut(3).enumerate())
+        {
+            let (idx, d) = d;
+            let (row, col) = ((idx / w) as u32, (idx % w) as u32);
+            o.copy_from_slice(&p);
+            d.copy_from_slice(&self.ray(col, row, conv).dir.to_array());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn test_camera() -> Camera {
+        let k = Intrinsics::from_fov_x(8, 6, 0.9);
+        let c2w = [
+            [0.0f32, 0.0, 1.0, 2.0],
+            [1.0, 0.0, 0.0, -1.0],
+            [0.0, 1.0, 0.0, 0.5],
+            [0.0, 0.0, 0.0, 1.0],
+        ];
+        Camera::from_c2w(k, &c2w).unwrap()
+    }
+
+    #[test]
+    fn fov_round_trip_and_downscale() {
+        let k = Intrinsics::from_fov_x(800, 800, 0.6911112070083618);
+        assert!((k.fx - 1111.111).abs() < 1e-2, "{}", k.fx);
+        assert_eq!((k.cx, k.cy), (400.0, 400.0));
+        assert!((k.fov_x() - 0.6911112070083618).abs() < 1e-6);
+        let h = k.downscaled(2);
+        assert_eq!((h.width, h.height), (400, 400));
+        assert_eq!(
+            (h.fx, h.fy, h.cx, h.cy),
+            (k.fx / 2.0, k.fy / 2.0, 200.0, 200.0)
+        );
+        assert!(k.validate().is_ok());
+        let bad = Intrinsics { fx: f32::NAN, ..k };
+        assert!(matches!(bad.validate(), Err(RayError::BadIntrinsics(_))));
+    }
+
+    #[test]
+    fn c2w_round_trip_and_errors() {
+        let cam = test_camera();
+        let m = cam.c2w();
+        let cam2 = Camera::from_c2w(cam.intrinsics, &m[..3]).unwrap();
+        assert_eq!(cam2.rotation, cam.rotation);
+        assert_eq!(cam2.position, cam.position);
+        let mut bad = m;
+        bad[1][2] = f32::INFINITY;
+        assert!(matches!(
+            Camera::from_c2w(cam.intrinsics, &bad),
+            Err(RayError::NonFinitePose)
+        ));
+        assert!(matches!(
+            Camera::from_c2w(cam.intrinsics, &m[..2]),
+            Err(RayError::BadPoseShape { rows: 2 })
+        ));
+    }
+
+    #[test]
+    fn centre_pixel_looks_down_minus_z() {
+        let cam = test_camera();
+        // Centre convention: pixel (3,2) of 8x6 sits at (3.5,2.5); the principal point is (4,3),
+        // so use ray_at for the exact centre: camera −z maps to world −(third column).
+        let r = cam.ray_at(4.0, 3.0);
+        assert!((r.dir - Vec3::new(-1.0, 0.0, 0.0)).length() < 1e-6);
+        // +u moves along camera +x, +v along camera −y.
+        let right = cam.dir_at_unnormalized(5.0, 3.0) - cam.dir_at_unnormalized(4.0, 3.0);
+        let down = cam.dir_at_unnormalized(4.0, 4.0) - cam.dir_at_unnormalized(4.0, 3.0);
+        assert!((right.normalize() - cam.rotation.x_axis).length() < 1e-6);
+        assert!((down.normalize() + cam.rotation.y_axis).length() < 1e-6);
+    }
+
+    #[test]
+    fn rays_into_matches_ray() {
+        let cam = test_camera();
+        let (mut o, mut d) = (vec![1.0; 5], Vec::new());
+        cam.rays_into(PixelConvention::Center, &mut o, &mut d);
+        assert_eq!(o.len(), 3 * 8 * 6);
+        assert_eq!(d.len(), 3 * 8 * 6);
+        for row in 0..6u32 {
+            for col in 0..8u32 {
+                let i = 3 * (row as usize * 8 + col as usize);
+                let r = cam.ray(col, row, PixelConvention::Center);
+                assert_eq!(&d[i..i + 3], &r.dir.to_array());
+                assert_eq!(&o[i..i + 3], &cam.position.to_array());
+                assert!((r.dir.length() - 1.0).abs() < 1e-6);
+            }
+        }
+    }
+
+    #[test]
+    fn aabb_basics() {
+        let b = Aabb {
+            min: [-1.0, 0.0, 2.0],
+            max: [3.0, 2.0, 4.0],
+        };
+        assert_eq!(b.center(), [1.0, 1.0, 3.0]);
+        assert_eq!(b.extent(), [4.0, 2.0, 2.0]);
+        assert!(b.contains([0.0, 1.0, 3.0]));
+        assert!(!b.contains([0.0, 1.0, 5.0]));
+        assert_eq!(Aabb::cube(1.5).extent(), [3.0; 3]);
+    }
+}

@@ -1,0 +1,77 @@
+//! Compositing throughput: forward and backward over 4096 rays × 192 samples (f32).
+
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use nerf_render::{composite_backward, composite_forward, CompositeOutputs};
+use rand::Rng;
+use std::hint::black_box;
+
+fn bench(c: &mut Criterion) {
+    let (n_rays, per_ray) = (4096usize, 192usize);
+    let n = n_rays * per_ray;
+    let mut g = nerf_core::rng(0, 0);
+    let offsets: Vec<u32> = (0..=n_rays).map(|r| (r * per_ray) as u32).collect();
+    let sigma: Vec<f32> = (0..n).map(|_| 0.5 * g.gen::<f32>()).collect();
+    let rgb: Vec<f32> = (0..3 * n).map(|_| g.gen()).collect();
+    let dt = vec![4.0 / per_ray as f32; n];
+    let t: Vec<f32> = (0..n).map(|k| 2.0 + (k % per_ray) as f32 * dt[0]).collect();
+    let bg: Vec<f32> = (0..3 * n_rays).map(|_| g.gen()).collect();
+    let d_rgb: Vec<f32> = (0..3 * n_rays).map(|_| g.gen::<f32>() - 0.5).collect();
+    let d_op: Vec<f32> = (0..n_rays).map(|_| g.gen::<f32>() - 0.5).collect();
+    let d_depth: Vec<f32> = (0..n_rays).map(|_| g.gen::<f32>() - 0.5).collect();
+    let mut out = CompositeOutputs::new();
+    let (mut d_sigma, mut d_c) = (vec![0.0f32; n], vec![0.0f32; 3 * n]);
+
+    let mut grp = c.benchmark_group("composite_4096x192");
+    grp.throughput(Throughput::Elements(n as u64));
+    grp.bench_function("forward", |b| {
+        b.iter(|| {
+            composite_forward(
+                &offsets,
+                &sigma,
+                &rgb,
+                &dt,
+                &t,
+                Some(&bg),
+                0.0,
+                black_box(&mut out),
+            )
+        })
+    });
+    composite_forward(&offsets, &sigma, &rgb, &dt, &t, Some(&bg), 0.0, &mut out);
+    grp.bench_function("backward", |b| {
+        b.iter(|| {
+            composite_backward(
+                &offsets,
+                &sigma,
+                &rgb,
+                &dt,
+                &t,
+                Some(&bg),
+                &out,
+                &d_rgb,
+                Some(&d_op),
+                Some(&d_depth),
+                black_box(&mut d_sigma),
+                black_box(&mut d_c),
+            )
+        })
+    });
+    grp.bench_function("forward_early_stop_1e-4", |b| {
+        b.iter(|| {
+            composite_forward(
+                &offsets,
+                &sigma,
+                &rgb,
+                &dt,
+                &t,
+                Some(&bg),
+                1e-4,
+                black_box(&mut out),
+            )
+        })
+    });
+    grp.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

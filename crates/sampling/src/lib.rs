@@ -1,0 +1,22 @@
+//! Samplers that turn rays into packed samples for volume rendering.
+//!
+//! * [`RaySamples`] — the packed (CSR, nerfacc-style) layout shared by every sampler, field and the
+//!   compositor: flat per-sample arrays (`positions`, `dirs`, `t`, `dt`, `ray_indices`) plus
+//!   `ray_offsets` so that ray `r` owns samples `ray_offsets[r]..ray_offsets[r+1]`.
+//! * [`stratified`] — jittered (or bin-centre) samples in `[near, far]` per ray (NeRF's coarse pass).
+//! * [`sample_pdf`] — nerf-pytorch's inverse-CDF sampler for one ray, conventions included.
+//! * [`hierarchical`] — the coarse-to-fine pass over a whole packed batch.
+//!
+//! Interval convention: `δ_i = t_{i+1} − t_i`, and the last interval is `far − t_{N−1}` (finite;
+//! nerf-pytorch uses `1e10`). All samplers reuse the output's allocations, allocate nothing per
+//! ray, run in parallel over blocks of rays with rayon, and give results independent of the number
+//! of threads (per-ray generators derived from one seed drawn per call).
+
+mod packed;
+mod par;
+mod pdf;
+mod stratified;
+
+pub use packed::RaySamples;
+pub use pdf::{hierarchical, sample_pdf};
+pub use stratified::stratified;

@@ -1,0 +1,60 @@
+//! Training and evaluation of any radiance field behind the `RadianceField` trait.
+//!
+//! [`Trainer`] takes random ray batches from a [`nerf_data::Dataset`], turns them into packed
+//! samples (stratified, then optionally hierarchical through a coarse instance of the same field),
+//! queries the field(s), composites, takes the photometric MSE on every stage, back-propagates
+//! through compositing into the field(s) and steps Adam. [`run`] wraps it into a whole run with
+//! a progress bar, a time budget, atomic checkpoints (resumable, written on Ctrl-C), evaluation on
+//! held-out views and `metrics.json`. Nothing here knows which field it drives.
+
+pub mod checkpoint;
+pub mod config;
+pub mod eval;
+pub mod run;
+pub mod trainer;
+
+pub use checkpoint::Checkpoint;
+pub use config::{SamplerConfig, TrainConfig};
+pub use eval::{evaluate, EvalReport, ViewMetrics};
+pub use run::{run, RunOptions, RunSummary};
+pub use trainer::{SceneBounds, StepStats, Trainer};
+
+use std::path::PathBuf;
+
+/// Errors of training and evaluation.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The run's config is inconsistent.
+    #[error("invalid training config: {0}")]
+    Config(String),
+    /// Building or loading a field failed.
+    #[error(transparent)]
+    Field(#[from] nerf_field::FieldError),
+    /// Loading data or writing images failed.
+    #[error(transparent)]
+    Data(#[from] nerf_data::DataError),
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A checkpoint is unreadable or does not fit the run.
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint {
+        /// The checkpoint file.
+        path: PathBuf,
+        /// What is wrong.
+        message: String,
+    },
+    /// Training was interrupted (Ctrl-C); the state was saved.
+    #[error("interrupted at step {step}; checkpoint saved to {checkpoint} (resume with --resume)")]
+    Interrupted {
+        /// Steps completed.
+        step: u64,
+        /// Where the state was written.
+        checkpoint: PathBuf,
+    },
+}

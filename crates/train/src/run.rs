@@ -1,0 +1,191 @@
+//! A whole training run: budget, progress, checkpoints, resume, Ctrl-C, evaluation, metrics.json.
+
+use crate::checkpoint::Checkpoint;
+use crate::config::TrainConfig;
+use crate::eval::{evaluate, EvalReport};
+use crate::trainer::{SceneBounds, Trainer};
+use crate::TrainError;
+use indicatif::{ProgressBar, ProgressStyle};
+use nerf_data::Dataset;
+use nerf_field::Registry;
+use serde_json::json;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// How a run is carried out (as opposed to what is trained, which is [`TrainConfig`]).
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    /// Output folder: `checkpoint.bin`, `history.jsonl`, `renders/`, `metrics.json`.
+    pub out_dir: PathBuf,
+    /// Continue from `<out_dir>/checkpoint.bin` when it exists.
+    pub resume: bool,
+    /// Show a progress bar on stderr.
+    pub progress: bool,
+    /// Set (e.g. by a Ctrl-C handler) to stop after the current step and save a checkpoint.
+    pub stop: Arc<AtomicBool>,
+    /// Write the rendered test views as PNG.
+    pub write_renders: bool,
+    /// Scene name recorded in metrics.json.
+    pub scene: String,
+}
+
+impl RunOptions {
+    /// Defaults: no resume, progress bar, renders written, a fresh stop flag.
+    pub fn new(out_dir: impl Into<PathBuf>) -> Self {
+        Self {
+            out_dir: out_dir.into(),
+            resume: false,
+            progress: true,
+            stop: Arc::new(AtomicBool::new(false)),
+            write_renders: true,
+            scene: String::new(),
+        }
+    }
+}
+
+/// The outcome of [`run`].
+#[derive(Clone, Debug)]
+pub struct RunSummary {
+    /// What was written to `metrics.json`.
+    pub metrics: serde_json::Value,
+    /// Evaluation on the test views.
+    pub eval: EvalReport,
+    /// Steps taken in total (including resumed ones).
+    pub iterations: u64,
+}
+
+fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |e| TrainError::Io { path: path.to_path_buf(), source: e }
+}
+
+/// Writes `bytes` to `path` atomically (temporary file + rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), TrainError> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).map_err(io_err(&tmp))?;
+    std::fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+/// Trains `config` on `train`, evaluates on `test`, and writes results under `opts.out_dir`.
+pub fn run(
+    config: TrainConfig,
+    registry: &Registry,
+    train: &Dataset,
+    test: &Dataset,
+    opts: &RunOptions,
+) -> Result<RunSummary, TrainError> {
+    let out = &opts.out_dir;
+    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    let ck_path = out.join("checkpoint.bin");
+    let mut trainer = Trainer::new(config.clone(), registry, SceneBounds::of(train))?;
+    let (mut elapsed, mut samples_seen) = (0.0f64, 0u64);
+    if opts.resume && ck_path.exists() {
+        let ck = Checkpoint::load(&ck_path)?;
+        let same = |a: &TrainConfig, b: &TrainConfig| {
+            a.field == b.field && a.field_config == b.field_config && a.sampler == b.sampler && a.seed == b.seed
+        };
+        if !same(&ck.config, &config) {
+            return Err(TrainError::Checkpoint {
+                path: ck_path,
+                message: "was written by a run with a different field, field config, sampler or seed".into(),
+            });
+        }
+        trainer.restore(ck.step, &ck.fields, ck.adam)?;
+        elapsed = ck.elapsed_secs;
+        samples_seen = ck.samples_seen;
+    }
+    let save = |t: &Trainer, elapsed: f64, samples_seen: u64| {
+        Checkpoint {
+            step: t.step_count(),
+            elapsed_secs: elapsed,
+            samples_seen,
+            config: t.config().clone(),
+            fields: t.export_fields(),
+            adam: t.adam_state(),
+        }
+        .save(&ck_path)
+    };
+
+    let hist_path = out.join("history.jsonl");
+    let mut history = std::fs::OpenOptions::new()
+        .create(true)
+        .append(opts.resume)
+        .write(true)
+        .truncate(!opts.resume)
+        .open(&hist_path)
+        .map_err(io_err(&hist_path))?;
+
+    let pb = if opts.progress { ProgressBar::new(config.iters) } else { ProgressBar::hidden() };
+    pb.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} steps {per_sec} {msg}")
+            .expect("valid template"),
+    );
+    pb.set_position(trainer.step_count());
+    let budget = config.time_budget_secs.unwrap_or(f64::INFINITY);
+    let start = Instant::now();
+    let base_elapsed = elapsed;
+    let base_step = trainer.step_count();
+    let mut last_loss = f32::NAN;
+    while trainer.step_count() < config.iters && elapsed < budget {
+        if opts.stop.load(Ordering::SeqCst) {
+            save(&trainer, elapsed, samples_seen)?;
+            pb.abandon_with_message("interrupted");
+            return Err(TrainError::Interrupted { step: trainer.step_count(), checkpoint: ck_path });
+        }
+        let s = trainer.step(train);
+        samples_seen += s.n_samples as u64;
+        elapsed = base_elapsed + start.elapsed().as_secs_f64();
+        last_loss = s.loss;
+        pb.inc(1);
+        let done = trainer.step_count();
+        if done % config.log_every.max(1) == 0 || done == config.iters {
+            let psnr = nerf_metrics::mse_to_psnr(s.mse as f64);
+            pb.set_message(format!("loss {:.5} psnr {:.2} lr {:.2e}", s.loss, psnr, s.lr));
+            let line = json!({"step": done, "elapsed_secs": elapsed, "loss": s.loss, "train_psnr": psnr, "lr": s.lr});
+            writeln!(history, "{line}").map_err(io_err(&hist_path))?;
+        }
+        if config.checkpoint_every > 0 && done % config.checkpoint_every == 0 {
+            save(&trainer, elapsed, samples_seen)?;
+        }
+    }
+    pb.finish_with_message(format!("trained {} steps in {:.1}s", trainer.step_count(), elapsed));
+    save(&trainer, elapsed, samples_seen)?;
+
+    let epb = if opts.progress { ProgressBar::new(test.n_views() as u64) } else { ProgressBar::hidden() };
+    epb.set_style(ProgressStyle::with_template("eval {bar:30} {pos}/{len} views").expect("valid template"));
+    let renders = out.join("renders");
+    let report = evaluate(&trainer, test, opts.write_renders.then_some(renders.as_path()), |i, _| {
+        epb.set_position(i as u64)
+    })?;
+    epb.finish_and_clear();
+
+    let steps_this_run = trainer.step_count() - base_step;
+    let iters = trainer.step_count();
+    let metrics = json!({
+        "field": config.field,
+        "device": "cpu",
+        "adapter": serde_json::Value::Null,
+        "scene": opts.scene,
+        "iterations": iters,
+        "wall_seconds": elapsed,
+        "ms_per_iter": if iters > 0 { 1e3 * elapsed / iters as f64 } else { 0.0 },
+        "samples_per_sec": if elapsed > 0.0 { samples_seen as f64 / elapsed } else { 0.0 },
+        "steps_this_invocation": steps_this_run,
+        "final_train_loss": last_loss,
+        "test_psnr": report.psnr,
+        "test_ssim": report.ssim,
+        "n_test_views": report.views.len(),
+        "eval_seconds": report.seconds,
+        "width": test.width,
+        "height": test.height,
+        "n_params": trainer.n_params(),
+        "threads": rayon::current_num_threads(),
+        "config": config,
+        "per_view": report.views,
+    });
+    let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
+    write_atomic(&out.join("metrics.json"), text.as_bytes())?;
+    Ok(RunSummary { metrics, eval: report, iterations: iters })
+}

@@ -1,0 +1,315 @@
+//! One training step and batched rendering, for any field behind the `RadianceField` trait.
+
+use crate::config::{SamplerConfig, TrainConfig};
+use crate::TrainError;
+use nerf_data::{Dataset, RayBatch};
+use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
+use nerf_optim::{Adam, AdamState};
+use nerf_render::{composite_backward, composite_forward, mse_loss_grad, CompositeOutputs};
+use nerf_sampling::{hierarchical, stratified, RaySamples};
+
+/// Where the scene lives: what fields and samplers need to know about it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SceneBounds {
+    /// Scene box lower corner.
+    pub aabb_min: [f32; 3],
+    /// Scene box upper corner.
+    pub aabb_max: [f32; 3],
+    /// Near distance along unit rays.
+    pub near: f32,
+    /// Far distance along unit rays.
+    pub far: f32,
+}
+
+impl SceneBounds {
+    /// The bounds of a loaded dataset.
+    pub fn of(ds: &Dataset) -> Self {
+        Self { aabb_min: ds.aabb.min, aabb_max: ds.aabb.max, near: ds.near, far: ds.far }
+    }
+}
+
+/// Per-field buffers of one sampling stage (reused every step).
+#[derive(Default)]
+struct Stage {
+    samples: RaySamples,
+    sigma: Vec<f32>,
+    rgb: Vec<f32>,
+    comp: CompositeOutputs<f32>,
+    d_ray_rgb: Vec<f32>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+}
+
+/// What one step did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepStats {
+    /// Step index (0-based) that was just taken.
+    pub step: u64,
+    /// Total loss (sum of the per-stage MSEs).
+    pub loss: f32,
+    /// Photometric MSE of the final stage (the image the user sees).
+    pub mse: f32,
+    /// Field samples evaluated in this step (all stages).
+    pub n_samples: usize,
+    /// Learning rate used.
+    pub lr: f32,
+}
+
+/// RNG streams (see `nerf_core::rng`): field initialisation, per-step batches.
+const STREAM_STEP: u64 = 1 << 40;
+
+/// Trains one or more instances of a field with a field-agnostic sampler and compositor.
+pub struct Trainer {
+    config: TrainConfig,
+    bounds: SceneBounds,
+    fields: Vec<Box<dyn RadianceField>>,
+    group_names: Vec<Vec<String>>,
+    adam: Adam,
+    step: u64,
+    batch: RayBatch,
+    near: Vec<f32>,
+    far: Vec<f32>,
+    stages: Vec<Stage>,
+}
+
+impl Trainer {
+    /// Builds the field(s) named by `config.field` from the registry.
+    pub fn new(config: TrainConfig, registry: &Registry, bounds: SceneBounds) -> Result<Self, TrainError> {
+        config.validate().map_err(TrainError::Config)?;
+        let n = config.sampler.n_fields();
+        let mut fields = Vec::with_capacity(n);
+        for i in 0..n {
+            let ctx = FieldContext {
+                aabb_min: bounds.aabb_min,
+                aabb_max: bounds.aabb_max,
+                seed: config.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(i as u64),
+            };
+            fields.push(registry.build(&config.field, &config.field_config, &ctx)?);
+        }
+        let prefixes: &[&str] = if n == 1 { &["field"] } else { &["coarse", "fine"] };
+        let group_names = fields
+            .iter_mut()
+            .zip(prefixes)
+            .map(|(f, p)| f.param_groups().iter().map(|g| format!("{p}/{}", g.name)).collect())
+            .collect();
+        let adam = Adam::new(config.adam.clone());
+        Ok(Self {
+            stages: (0..n).map(|_| Stage::default()).collect(),
+            config,
+            bounds,
+            fields,
+            group_names,
+            adam,
+            step: 0,
+            batch: RayBatch::default(),
+            near: Vec::new(),
+            far: Vec::new(),
+        })
+    }
+
+    /// The run's config.
+    pub fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+
+    /// Steps taken so far.
+    pub fn step_count(&self) -> u64 {
+        self.step
+    }
+
+    /// The fields being trained (coarse first when hierarchical; the last one renders the image).
+    pub fn fields(&self) -> &[Box<dyn RadianceField>] {
+        &self.fields
+    }
+
+    /// Total trainable parameters over all field instances.
+    pub fn n_params(&self) -> usize {
+        self.fields.iter().map(|f| f.n_params()).sum()
+    }
+
+    /// Takes one optimisation step on a random batch of rays from `data`.
+    pub fn step(&mut self, data: &Dataset) -> StepStats {
+        let cfg = &self.config;
+        let mut rng = nerf_core::rng(cfg.seed, STREAM_STEP + self.step);
+        data.sample_rays(cfg.batch_rays, cfg.train_background, cfg.pixel_convention, false, &mut rng, &mut self.batch);
+        let n_rays = self.batch.len();
+        self.near.clear();
+        self.near.resize(n_rays, self.bounds.near);
+        self.far.clear();
+        self.far.resize(n_rays, self.bounds.far);
+        for f in self.fields.iter_mut() {
+            f.zero_grad();
+        }
+        let perturb = cfg.perturb;
+        let thr = cfg.transmittance_threshold;
+        let b = &self.batch;
+        // Stage 0: stratified samples.
+        let n0 = match cfg.sampler {
+            SamplerConfig::Stratified { n_samples } => n_samples,
+            SamplerConfig::Hierarchical { n_coarse, .. } => n_coarse,
+        };
+        stratified(&b.origins, &b.dirs, &self.near, &self.far, n0, perturb.then_some(&mut rng), &mut self.stages[0].samples);
+        forward_stage(self.fields[0].as_mut(), &mut self.stages[0], &b.background, thr);
+        // Stage 1: importance samples from the coarse weights (detached, as in the paper).
+        if let SamplerConfig::Hierarchical { n_fine, .. } = cfg.sampler {
+            let (s0, s1) = self.stages.split_at_mut(1);
+            hierarchical(
+                &s0[0].samples,
+                &s0[0].comp.weights,
+                &b.origins,
+                &b.dirs,
+                &self.far,
+                n_fine,
+                perturb.then_some(&mut rng),
+                &mut s1[0].samples,
+            );
+            forward_stage(self.fields[1].as_mut(), &mut s1[0], &b.background, thr);
+        }
+        // Loss on every stage, then backward through compositing into each field.
+        let mut loss = 0.0;
+        let mut mse = 0.0;
+        let mut n_samples = 0;
+        for (field, st) in self.fields.iter_mut().zip(self.stages.iter_mut()) {
+            st.d_ray_rgb.resize(3 * n_rays, 0.0);
+            mse = mse_loss_grad(&st.comp.rgb, &b.target, &mut st.d_ray_rgb);
+            loss += mse;
+            n_samples += st.samples.len();
+            let n = st.samples.len();
+            st.d_sigma.resize(n, 0.0);
+            st.d_rgb.resize(3 * n, 0.0);
+            composite_backward(
+                &st.samples.ray_offsets,
+                &st.sigma,
+                &st.rgb,
+                &st.samples.dt,
+                &st.samples.t,
+                Some(&b.background),
+                &st.comp,
+                &st.d_ray_rgb,
+                None,
+                None,
+                &mut st.d_sigma,
+                &mut st.d_rgb,
+            );
+            field.backward(&st.d_sigma, &st.d_rgb);
+        }
+        let lr = cfg.lr.lr(self.step);
+        let Self { fields, group_names, adam, .. } = self;
+        let mut groups: Vec<ParamGroupMut<'_>> = Vec::new();
+        for (f, names) in fields.iter_mut().zip(group_names.iter()) {
+            for (g, name) in f.param_groups().into_iter().zip(names) {
+                groups.push(ParamGroupMut { name, ..g });
+            }
+        }
+        adam.step(&mut groups, lr);
+        let stats = StepStats { step: self.step, loss, mse, n_samples, lr };
+        self.step += 1;
+        stats
+    }
+
+    /// Renders rays (inference, deterministic sampling) in chunks of `render_chunk_rays`.
+    /// Outputs: rgb `3·n`, opacity `n`, depth `n`.
+    pub fn render_rays(
+        &self,
+        origins: &[f32],
+        dirs: &[f32],
+        background: &[f32],
+        rgb: &mut [f32],
+        opacity: &mut [f32],
+        depth: &mut [f32],
+    ) {
+        let n = origins.len() / 3;
+        let chunk = self.config.render_chunk_rays;
+        let mut stages: Vec<Stage> = (0..self.fields.len()).map(|_| Stage::default()).collect();
+        let (mut near, mut far) = (Vec::new(), Vec::new());
+        for r0 in (0..n).step_by(chunk) {
+            let r1 = (r0 + chunk).min(n);
+            let (o, d, bg) = (&origins[3 * r0..3 * r1], &dirs[3 * r0..3 * r1], &background[3 * r0..3 * r1]);
+            near.clear();
+            near.resize(r1 - r0, self.bounds.near);
+            far.clear();
+            far.resize(r1 - r0, self.bounds.far);
+            let n0 = match self.config.sampler {
+                SamplerConfig::Stratified { n_samples } => n_samples,
+                SamplerConfig::Hierarchical { n_coarse, .. } => n_coarse,
+            };
+            stratified(o, d, &near, &far, n0, None, &mut stages[0].samples);
+            query_stage(self.fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
+            if let SamplerConfig::Hierarchical { n_fine, .. } = self.config.sampler {
+                let (s0, s1) = stages.split_at_mut(1);
+                hierarchical(&s0[0].samples, &s0[0].comp.weights, o, d, &far, n_fine, None, &mut s1[0].samples);
+                query_stage(self.fields[1].as_ref(), &mut s1[0], bg, self.config.transmittance_threshold);
+            }
+            let last = stages.last().unwrap();
+            rgb[3 * r0..3 * r1].copy_from_slice(&last.comp.rgb);
+            opacity[r0..r1].copy_from_slice(&last.comp.opacity);
+            depth[r0..r1].copy_from_slice(&last.comp.depth);
+        }
+    }
+
+    /// Parameters of every field instance (for checkpoints).
+    pub fn export_fields(&self) -> Vec<Vec<(String, Vec<f32>)>> {
+        self.fields.iter().map(|f| f.export_params()).collect()
+    }
+
+    /// Optimiser state (for checkpoints).
+    pub fn adam_state(&self) -> AdamState {
+        self.adam.state()
+    }
+
+    /// Restores parameters, optimiser state and the step counter from a checkpoint.
+    pub fn restore(
+        &mut self,
+        step: u64,
+        fields: &[Vec<(String, Vec<f32>)>],
+        adam: AdamState,
+    ) -> Result<(), TrainError> {
+        if fields.len() != self.fields.len() {
+            return Err(TrainError::Config(format!(
+                "checkpoint holds {} field instances, this config needs {}",
+                fields.len(),
+                self.fields.len()
+            )));
+        }
+        for (f, groups) in self.fields.iter_mut().zip(fields) {
+            f.import_params(groups)?;
+        }
+        self.adam.load_state(adam).map_err(TrainError::Config)?;
+        self.step = step;
+        Ok(())
+    }
+}
+
+fn forward_stage(field: &mut dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
+    let n = st.samples.len();
+    st.sigma.resize(n, 0.0);
+    st.rgb.resize(3 * n, 0.0);
+    field.forward(&st.samples.positions, &st.samples.dirs, &mut st.sigma, &mut st.rgb);
+    composite_forward(
+        &st.samples.ray_offsets,
+        &st.sigma,
+        &st.rgb,
+        &st.samples.dt,
+        &st.samples.t,
+        Some(background),
+        thr,
+        &mut st.comp,
+    );
+}
+
+fn query_stage(field: &dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
+    let n = st.samples.len();
+    st.sigma.resize(n, 0.0);
+    st.rgb.resize(3 * n, 0.0);
+    field.query(&st.samples.positions, &st.samples.dirs, &mut st.sigma, &mut st.rgb);
+    composite_forward(
+        &st.samples.ray_offsets,
+        &st.sigma,
+        &st.rgb,
+        &st.samples.dt,
+        &st.samples.t,
+        Some(background),
+        thr,
+        &mut st.comp,
+    );
+}

@@ -1,0 +1,49 @@
+//! nerf-rs: neural radiance fields in Rust.
+//!
+//! This facade re-exports the workspace's crates under short names and owns the **field
+//! registry** — the one place that lists the field kinds a program can build by name. Everything
+//! else (sampling, compositing, the trainer, the CLI) drives fields only through
+//! [`field::RadianceField`].
+//!
+//! | module | crate | what |
+//! |---|---|---|
+//! | [`core`] | nerf-core | `Real` scalar trait, seeded RNG |
+//! | [`rays`] | nerf-rays | cameras, rays, AABB |
+//! | [`data`] | nerf-data | Blender datasets, ray batches, PNG |
+//! | [`sampling`] | nerf-sampling | packed samples: stratified, hierarchical |
+//! | [`render`] | nerf-render | compositing forward/backward, loss |
+//! | [`metrics`] | nerf-metrics | PSNR, SSIM |
+//! | [`encoding`] | nerf-encoding | frequency encoding |
+//! | [`mlp`] | nerf-mlp | MLPs with backward (GEMM) |
+//! | [`optim`] | nerf-optim | Adam, learning-rate schedules |
+//! | [`field`] | nerf-field | the `RadianceField` trait, registry types |
+//! | [`field_freq`] | nerf-field-freq | the paper's NeRF field |
+//! | [`train`] | nerf-train | trainer, evaluation, checkpoints, runs |
+
+pub use nerf_core as core;
+pub use nerf_data as data;
+pub use nerf_encoding as encoding;
+pub use nerf_field as field;
+pub use nerf_field_freq as field_freq;
+pub use nerf_metrics as metrics;
+pub use nerf_mlp as mlp;
+pub use nerf_optim as optim;
+pub use nerf_rays as rays;
+pub use nerf_render as render;
+pub use nerf_sampling as sampling;
+pub use nerf_train as train;
+
+use nerf_field::{Registry, RegistryEntry};
+
+/// Every field kind nerf-rs ships, by name. A new field adds one entry here.
+pub fn registry() -> Registry {
+    let mut r = Registry::new();
+    r.register(RegistryEntry {
+        name: "freq",
+        description: "the paper's NeRF: frequency encoding + 8x256 MLP, coarse and fine networks",
+        default_config: nerf_field_freq::default_config,
+        train_preset: || serde_json::Value::Null,
+        build: nerf_field_freq::build,
+    });
+    r
+}
