@@ -224,7 +224,9 @@ impl std::str::FromStr for Split {
 }
 
 /// Which views of a split to use: all, every k-th (k ≥ 1, starting at view 0), or the first n.
+/// Serialised as its string form (`"all"`, `"every:8"`, `"first:5"`), as on the command line.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
 pub enum ViewSelection {
     /// Every view.
     All,
@@ -274,6 +276,19 @@ impl std::str::FromStr for ViewSelection {
             "first" => Ok(ViewSelection::First(num)),
             _ => Err(bad()),
         }
+    }
+}
+
+impl TryFrom<String> for ViewSelection {
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        s.parse()
+    }
+}
+
+impl From<ViewSelection> for String {
+    fn from(v: ViewSelection) -> String {
+        v.to_string()
     }
 }
 

@@ -3,14 +3,15 @@
 //! after its 5th layer, a density head (σ = ReLU), a 256-wide feature layer and a 128-wide
 //! view-dependent colour branch with a sigmoid.
 //!
-//! It is a composition of reusable parts — two [`FrequencyEncoding`]s and three [`Mlp`]s — and is
+//! It is a composition of reusable parts — two [`FrequencyEncoding`]s and two [`Mlp`]s — and is
 //! generic over [`Real`] so that the whole field's backward pass can be checked against finite
 //! differences in `f64`. The `f32` instance implements [`RadianceField`].
 //!
 //! Layer layout (nerf-pytorch's `NeRF` with `use_viewdirs=True`):
 //! ```text
-//! γ(x) (63) ─► trunk: 8 × Linear(·,256)+ReLU, input re-concatenated [γ(x), h] before layer 6 ─► h (256)
-//! h ─► head: Linear(256, 1+256) ─► σ = ReLU(out[0]),  feature = out[1..]
+//! γ(x) (63) ─► trunk: 8 × Linear(·,256)+ReLU, input re-concatenated [γ(x), h] before layer 6,
+//!              then Linear(256, 1+256) (nerf-pytorch's alpha_linear and feature_linear fused)
+//!              ─► σ = ReLU(out[0]),  feature = out[1..]
 //! [feature, γ(d)] (256+27) ─► colour: Linear(283,128)+ReLU ─► Linear(128,3)+sigmoid ─► rgb
 //! ```
 
@@ -61,7 +62,7 @@ impl FreqNerfConfig {
             return bad("width, depth and view_width must be positive".into());
         }
         if let Some(s) = self.skips.iter().find(|&&s| s + 1 >= self.depth) {
-            return bad(format!("skip after layer {s} needs a later layer (depth {})", self.depth));
+            return bad(format!("skip after layer {s} needs a later trunk layer (depth {})", self.depth));
         }
         if self.pos_frequencies > 24 || self.dir_frequencies > 24 {
             return bad("more than 24 frequency bands exceeds f32 precision".into());
@@ -81,11 +82,9 @@ struct Tape<T: Real> {
     color_in: Vec<T>,
     raw_sigma: Vec<T>,
     trunk: MlpTape<T>,
-    head: MlpTape<T>,
     color: MlpTape<T>,
     // backward scratch
     d_color_in: Vec<T>,
-    d_head: Vec<T>,
     d_trunk: Vec<T>,
 }
 
@@ -95,7 +94,6 @@ pub struct FreqNerf<T: Real> {
     pos_enc: FrequencyEncoding,
     dir_enc: FrequencyEncoding,
     trunk: Mlp<T>,
-    head: Mlp<T>,
     color: Mlp<T>,
     tape: Tape<T>,
 }
@@ -119,28 +117,16 @@ impl<T: Real> FreqNerf<T> {
         let din = Encoding::<T>::output_dim(&dir_enc);
         let w = config.width;
         let mut rng = nerf_core::rng(seed, 0xF1E1D);
+        // nerf-pytorch's `skips=[4]` (concatenate after layer 4) = MlpConfig's "layer 5 takes [x, h]".
         let trunk = Mlp::new(
             MlpConfig {
                 input_dim: pin,
-                output_dim: w,
-                hidden_dim: w,
-                hidden_layers: config.depth - 1,
-                hidden_activation: Activation::Relu,
-                output_activation: Activation::Relu,
-                skips: config.skips.clone(),
-                bias: true,
-            },
-            &mut rng,
-        );
-        let head = Mlp::new(
-            MlpConfig {
-                input_dim: w,
                 output_dim: 1 + w,
                 hidden_dim: w,
-                hidden_layers: 0,
-                hidden_activation: Activation::None,
+                hidden_layers: config.depth,
+                hidden_activation: Activation::Relu,
                 output_activation: Activation::None,
-                skips: vec![],
+                skips: config.skips.iter().map(|s| s + 1).collect(),
                 bias: true,
             },
             &mut rng,
@@ -158,7 +144,7 @@ impl<T: Real> FreqNerf<T> {
             },
             &mut rng,
         );
-        Ok(Self { config, pos_enc, dir_enc, trunk, head, color, tape: Tape::default() })
+        Ok(Self { config, pos_enc, dir_enc, trunk, color, tape: Tape::default() })
     }
 
     /// The config.
@@ -168,12 +154,12 @@ impl<T: Real> FreqNerf<T> {
 
     /// Trainable scalars.
     pub fn n_params(&self) -> usize {
-        self.trunk.n_params() + self.head.n_params() + self.color.n_params()
+        self.trunk.n_params() + self.color.n_params()
     }
 
     /// Forward FLOPs per sample (multiply-adds × 2 of the three MLPs).
     pub fn flops_per_sample(&self) -> usize {
-        self.trunk.flops_per_sample() + self.head.flops_per_sample() + self.color.flops_per_sample()
+        self.trunk.flops_per_sample() + self.color.flops_per_sample()
     }
 
     fn pos_dim(&self) -> usize {
@@ -198,8 +184,7 @@ impl<T: Real> FreqNerf<T> {
         t.dir_in.extend_from_slice(dirs);
         t.pos_enc.resize(n * pd, T::zero());
         self.pos_enc.forward(positions, &mut t.pos_enc);
-        let h = self.trunk.forward(n, &t.pos_enc, &mut t.trunk);
-        let head_out = self.head.forward(n, h, &mut t.head);
+        let head_out = self.trunk.forward(n, &t.pos_enc, &mut t.trunk);
         // colour input = [feature, γ(d)]
         t.color_in.resize(n * (w + dd), T::zero());
         t.raw_sigma.resize(n, T::zero());
@@ -226,14 +211,13 @@ impl<T: Real> FreqNerf<T> {
         let (dd, w) = (Encoding::<T>::output_dim(&self.dir_enc), self.config.width);
         t.d_color_in.resize(n * (w + dd), T::zero());
         self.color.backward(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in));
-        t.d_head.resize(n * (1 + w), T::zero());
+        t.d_trunk.resize(n * (1 + w), T::zero());
         for k in 0..n {
-            let dh = &mut t.d_head[k * (1 + w)..(k + 1) * (1 + w)];
+            let dh = &mut t.d_trunk[k * (1 + w)..(k + 1) * (1 + w)];
+            // σ = ReLU(raw): the gradient passes where raw > 0.
             dh[0] = if t.raw_sigma[k] > T::zero() { d_sigma[k] } else { T::zero() };
             dh[1..].copy_from_slice(&t.d_color_in[k * (w + dd)..k * (w + dd) + w]);
         }
-        t.d_trunk.resize(n * w, T::zero());
-        self.head.backward(n, t.trunk.output(), &mut t.head, &t.d_head, Some(&mut t.d_trunk));
         self.trunk.backward(n, &t.pos_enc, &mut t.trunk, &t.d_trunk, None);
     }
 
@@ -247,10 +231,8 @@ impl<T: Real> FreqNerf<T> {
             let m = c1 - c0;
             s.pos_enc.resize(m * pd, T::zero());
             self.pos_enc.forward(&positions[3 * c0..3 * c1], &mut s.pos_enc);
-            s.h.resize(m * w, T::zero());
-            self.trunk.infer(m, &s.pos_enc, &mut s.mlp, &mut s.h);
             s.head.resize(m * (1 + w), T::zero());
-            self.head.infer(m, &s.h, &mut s.mlp, &mut s.head);
+            self.trunk.infer(m, &s.pos_enc, &mut s.mlp, &mut s.head);
             s.dir_enc.resize(m * dd, T::zero());
             self.dir_enc.forward(&dirs[3 * c0..3 * c1], &mut s.dir_enc);
             s.color_in.resize(m * (w + dd), T::zero());
@@ -275,24 +257,22 @@ impl<T: Real> FreqNerf<T> {
             let m = c1 - c0;
             s.pos_enc.resize(m * pd, T::zero());
             self.pos_enc.forward(&positions[3 * c0..3 * c1], &mut s.pos_enc);
-            s.h.resize(m * w, T::zero());
-            self.trunk.infer(m, &s.pos_enc, &mut s.mlp, &mut s.h);
             s.head.resize(m * (1 + w), T::zero());
-            self.head.infer(m, &s.h, &mut s.mlp, &mut s.head);
+            self.trunk.infer(m, &s.pos_enc, &mut s.mlp, &mut s.head);
             for k in 0..m {
                 sigma[c0 + k] = s.head[k * (1 + w)].max(T::zero());
             }
         }
     }
 
-    /// The three networks' parameters and gradients, in the order trunk, head, colour.
-    pub fn networks_mut(&mut self) -> [&mut Mlp<T>; 3] {
-        [&mut self.trunk, &mut self.head, &mut self.color]
+    /// The two networks (trunk with σ/feature head, colour branch), mutable.
+    pub fn networks_mut(&mut self) -> [&mut Mlp<T>; 2] {
+        [&mut self.trunk, &mut self.color]
     }
 
-    /// Read-only access to the three networks.
-    pub fn networks(&self) -> [&Mlp<T>; 3] {
-        [&self.trunk, &self.head, &self.color]
+    /// The two networks (trunk with σ/feature head, colour branch).
+    pub fn networks(&self) -> [&Mlp<T>; 2] {
+        [&self.trunk, &self.color]
     }
 }
 
@@ -300,14 +280,13 @@ impl<T: Real> FreqNerf<T> {
 struct QueryScratch<T: Real> {
     pos_enc: Vec<T>,
     dir_enc: Vec<T>,
-    h: Vec<T>,
     head: Vec<T>,
     color_in: Vec<T>,
     mlp: MlpScratch<T>,
 }
 
-/// Group names of the three networks (stable: they key optimiser state and checkpoints).
-pub const GROUP_NAMES: [&str; 3] = ["trunk", "head", "color"];
+/// Group names of the two networks (stable: they key optimiser state and checkpoints).
+pub const GROUP_NAMES: [&str; 2] = ["trunk", "color"];
 
 impl RadianceField for FreqNerf<f32> {
     fn kind(&self) -> &'static str {

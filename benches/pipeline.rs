@@ -1,0 +1,58 @@
+//! Pipeline benchmarks of the facade: the frequency encoding forward/backward and one full
+//! training iteration of the paper's field (coarse + fine) on the in-repo scene, as samples/s.
+//! Per-component benches live beside their crates: `cargo bench -p nerf-mlp` (MLP at width 256,
+//! GFLOP/s) and `cargo bench -p nerf-render` (compositing forward/backward).
+//!
+//! `NERF_BENCH_SMALL=1` shrinks every size for a quick CI-sized run.
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use nerf::data::{load_blender, LoadOptions, Split, ViewSelection};
+use nerf::encoding::{Encoding, FrequencyEncoding, FrequencyEncodingConfig};
+use nerf::train::{SamplerConfig, SceneBounds, TrainConfig, Trainer};
+use rand::Rng as _;
+use std::hint::black_box;
+
+fn small() -> bool {
+    std::env::var_os("NERF_BENCH_SMALL").is_some()
+}
+
+fn encoding(c: &mut Criterion) {
+    let n = if small() { 1 << 12 } else { 1 << 16 };
+    let enc = FrequencyEncoding::new(3, &FrequencyEncodingConfig { n_frequencies: 10, include_input: true });
+    let mut rng = nerf::core::rng(0, 0);
+    let x: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.5..1.5)).collect();
+    let d_out: Vec<f32> = (0..63 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let mut out = vec![0.0f32; 63 * n];
+    let mut d_in = vec![0.0f32; 3 * n];
+    let mut g = c.benchmark_group("frequency_encoding_L10");
+    g.throughput(Throughput::Elements(n as u64));
+    g.bench_function(BenchmarkId::new("forward", n), |b| b.iter(|| enc.forward(black_box(&x), &mut out)));
+    g.bench_function(BenchmarkId::new("backward", n), |b| {
+        b.iter(|| Encoding::<f32>::backward(&enc, black_box(&x), &d_out, &mut [], Some(&mut d_in)))
+    });
+    g.finish();
+}
+
+fn training_iteration(c: &mut Criterion) {
+    let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    let data = load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::All })
+        .expect("in-repo scene loads");
+    let (rays, n_coarse, n_fine) = if small() { (64, 16, 16) } else { (256, 64, 128) };
+    let config = TrainConfig {
+        batch_rays: rays,
+        sampler: SamplerConfig::Hierarchical { n_coarse, n_fine },
+        ..TrainConfig::default()
+    };
+    let mut trainer = Trainer::new(config, &nerf::registry(), SceneBounds::of(&data)).unwrap();
+    let samples = trainer.step(&data).n_samples; // warm up buffers; samples per step are fixed
+    let mut g = c.benchmark_group("train_step_freq_paper");
+    g.sample_size(10);
+    g.throughput(Throughput::Elements(samples as u64));
+    g.bench_function(BenchmarkId::new(format!("{rays}rays_{n_coarse}+{n_fine}"), samples), |b| {
+        b.iter(|| black_box(trainer.step(&data)))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, encoding, training_iteration);
+criterion_main!(benches);

@@ -1,0 +1,212 @@
+//! The `nerf` binary end to end: bad input gives a clear error naming the file (exit code ≠ 0, no
+//! panic), Ctrl-C saves a checkpoint that `--resume` continues from.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn nerf() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_nerf"))
+}
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+/// Fails unless the command failed cleanly (exit 1, no panic) with a message containing `needles`.
+fn assert_clean_failure(o: &Output, needles: &[&str]) {
+    let e = stderr(o);
+    assert_eq!(o.status.code(), Some(1), "expected exit code 1, stderr: {e}");
+    assert!(!e.contains("panicked"), "must not panic: {e}");
+    for n in needles {
+        assert!(e.contains(n), "stderr should mention `{n}`: {e}");
+    }
+}
+
+/// A copy of the in-repo scene with only a few views, which tests may break.
+fn small_scene(dir: &Path) -> PathBuf {
+    let out = dir.join("scene");
+    let o = nerf()
+        .args(["export-scene"])
+        .arg(repo().join("scenes/lego_100"))
+        .arg(&out)
+        .args(["--downscale", "2", "--train-views", "first:3", "--test-views", "first:1"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    out
+}
+
+/// A tiny field and sampler so that steps take milliseconds.
+fn write_tiny_config(cfg: &Path) {
+    std::fs::write(
+        cfg,
+        "batch_rays = 64\ncheckpoint_every = 5\nlog_every = 1\n[field_config]\nwidth = 16\ndepth = 2\nskips = []\nview_width = 8\n\
+         [sampler]\nkind = \"hierarchical\"\nn_coarse = 8\nn_fine = 8\n",
+    )
+    .unwrap();
+}
+
+fn train_tiny(scene: &Path, out: &Path, extra: &[&str]) -> Output {
+    let cfg = out.with_extension("toml");
+    write_tiny_config(&cfg);
+    nerf()
+        .arg("train")
+        .arg(scene)
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--out")
+        .arg(out)
+        .args(["--quiet", "--no-renders"])
+        .args(extra)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn missing_scene_folder_names_the_transforms_file() {
+    let d = tempfile::tempdir().unwrap();
+    let o = train_tiny(&d.path().join("nope"), &d.path().join("run"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["transforms_train.json"]);
+}
+
+#[test]
+fn malformed_json_names_the_file() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    std::fs::write(s.join("transforms_train.json"), "{ \"camera_angle_x\": 0.69, \"frames\": [ }").unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["transforms_train.json"]);
+}
+
+#[test]
+fn missing_image_names_the_image() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    std::fs::remove_file(s.join("train/r_1.png")).unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["r_1.png"]);
+}
+
+#[test]
+fn wrong_image_size_names_the_image() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    image::RgbaImage::new(7, 9).save(s.join("train/r_2.png")).unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["r_2.png"]);
+}
+
+#[test]
+fn nan_pose_names_the_file_and_frame() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let p = s.join("transforms_train.json");
+    let mut j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    // JSON has no NaN literal; an overflowing number is the way a non-finite pose arrives.
+    j["frames"][1]["transform_matrix"][0][3] = serde_json::json!(1e300);
+    std::fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["transforms_train.json", "frame 1"]);
+}
+
+#[test]
+fn empty_split_is_an_error() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    std::fs::write(s.join("transforms_test.json"), "{\"camera_angle_x\": 0.69, \"frames\": []}").unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["transforms_test.json"]);
+}
+
+#[test]
+fn unknown_field_and_bad_config_are_errors() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1", "--field", "nope"]);
+    assert_clean_failure(&o, &["nope", "freq"]);
+    let cfg = d.path().join("bad.toml");
+    std::fs::write(&cfg, "iterz = 3\n").unwrap();
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).output().unwrap();
+    assert_clean_failure(&o, &["bad.toml", "iterz"]);
+}
+
+#[test]
+fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "3"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+    for k in [
+        "field", "device", "iterations", "wall_seconds", "ms_per_iter", "samples_per_sec", "test_psnr", "test_ssim",
+        "n_test_views", "width", "height", "config",
+    ] {
+        assert!(m.get(k).is_some(), "metrics.json lacks `{k}`: {m}");
+    }
+    assert_eq!(m["field"], "freq");
+    assert_eq!(m["iterations"], 3);
+    assert_eq!(m["width"], 50);
+    assert_eq!(m["n_test_views"], 1);
+    assert!(m["samples_per_sec"].as_f64().unwrap() > 0.0);
+    let o = nerf().arg("eval").arg(&run).arg(&s).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
+    let (a, b) = (m["test_psnr"].as_f64().unwrap(), e["test_psnr"].as_f64().unwrap());
+    assert!((a - b).abs() < 1e-9, "eval of the checkpoint must reproduce the run's PSNR: {a} vs {b}");
+    assert!(run.join("eval/r_0.png").is_file());
+}
+
+#[cfg(unix)]
+#[test]
+fn ctrl_c_saves_a_checkpoint_and_resume_continues() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let cfg = run.with_extension("toml");
+    // Start a long run, interrupt it once it has logged a few steps.
+    write_tiny_config(&cfg);
+    let child = nerf()
+        .arg("train")
+        .arg(&s)
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--out")
+        .arg(&run)
+        .args(["--quiet", "--no-renders", "--iters", "100000000"])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let hist = run.join("history.jsonl");
+    let t0 = std::time::Instant::now();
+    while std::fs::read_to_string(&hist).map(|h| h.lines().count()).unwrap_or(0) < 3 {
+        assert!(t0.elapsed().as_secs() < 120, "training did not start");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let ok = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(ok.success());
+    let o = child.wait_with_output().unwrap();
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(130), "{e}");
+    assert!(e.contains("checkpoint") && e.contains("--resume"), "{e}");
+    assert!(!e.contains("panicked"), "{e}");
+    let ck = nerf_train_step(&run);
+    assert!(ck >= 3, "checkpoint holds step {ck}");
+    // Resume to a fixed total and finish normally.
+    let target = ck + 4;
+    let o = train_tiny(&s, &run, &["--resume", "--iters", &target.to_string()]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(m["iterations"].as_u64(), Some(target));
+    assert_eq!(m["steps_this_invocation"].as_u64(), Some(4));
+}
+
+/// The step stored in a run's checkpoint.
+fn nerf_train_step(run: &Path) -> u64 {
+    nerf::train::Checkpoint::load(&run.join("checkpoint.bin")).unwrap().step
+}
