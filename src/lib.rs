@@ -10,14 +10,15 @@
 //! | [`core`] | nerf-core | `Real` scalar trait, seeded RNG |
 //! | [`rays`] | nerf-rays | cameras, rays, AABB |
 //! | [`data`] | nerf-data | Blender datasets, ray batches, PNG |
-//! | [`sampling`] | nerf-sampling | packed samples: stratified, hierarchical |
+//! | [`sampling`] | nerf-sampling | packed samples: stratified, hierarchical, occupancy-grid marching |
 //! | [`render`] | nerf-render | compositing forward/backward, loss |
 //! | [`metrics`] | nerf-metrics | PSNR, SSIM |
-//! | [`encoding`] | nerf-encoding | frequency encoding |
+//! | [`encoding`] | nerf-encoding | frequency, hash-grid and spherical-harmonics encodings |
 //! | [`mlp`] | nerf-mlp | MLPs with backward (GEMM) |
 //! | [`optim`] | nerf-optim | Adam, learning-rate schedules |
 //! | [`field`] | nerf-field | the `RadianceField` trait, registry types |
 //! | [`field_freq`] | nerf-field-freq | the paper's NeRF field |
+//! | [`field_hash`] | nerf-field-hash | the Instant-NGP hash-grid field |
 //! | [`train`] | nerf-train | trainer, evaluation, checkpoints, runs |
 
 pub use nerf_core as core;
@@ -25,6 +26,7 @@ pub use nerf_data as data;
 pub use nerf_encoding as encoding;
 pub use nerf_field as field;
 pub use nerf_field_freq as field_freq;
+pub use nerf_field_hash as field_hash;
 pub use nerf_metrics as metrics;
 pub use nerf_mlp as mlp;
 pub use nerf_optim as optim;
@@ -44,6 +46,13 @@ pub fn registry() -> Registry {
         default_config: nerf_field_freq::default_config,
         train_preset: || serde_json::Value::Null,
         build: nerf_field_freq::build,
+    });
+    r.register(RegistryEntry {
+        name: "hash",
+        description: "Instant-NGP: multiresolution hash grid + SH + tiny MLPs, occupancy-grid marching",
+        default_config: nerf_field_hash::default_config,
+        train_preset: nerf_field_hash::train_preset,
+        build: nerf_field_hash::build,
     });
     r
 }

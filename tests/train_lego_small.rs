@@ -81,13 +81,14 @@ fn resumed_training_matches_uninterrupted_training() {
         config: config.clone(),
         fields: first.export_fields(),
         adam: first.adam_state(),
+        sampler: first.sampler_state(),
     }
     .save(&path)
     .unwrap();
     drop(first);
     let ck = nerf::train::Checkpoint::load(&path).unwrap();
     let mut resumed = Trainer::new(config, &registry, bounds).unwrap();
-    resumed.restore(ck.step, &ck.fields, ck.adam).unwrap();
+    resumed.restore(ck.step, &ck.fields, ck.adam, &ck.sampler).unwrap();
     for _ in 0..3 {
         resumed.step(&train);
     }

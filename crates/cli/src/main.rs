@@ -221,7 +221,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
     let test = load_blender(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views })?;
     let mut trainer = Trainer::new(ck.config.clone(), &nerf::registry(), SceneBounds::of(&test))?;
-    trainer.restore(ck.step, &ck.fields, ck.adam)?;
+    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |_, _| {})?;
     let text = serde_json::to_string_pretty(&serde_json::json!({

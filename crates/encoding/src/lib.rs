@@ -1,4 +1,6 @@
-//! Input encodings as reusable parts: NeRF's frequency (positional) encoding, later hash grid and spherical harmonics.
+//! Input encodings as reusable parts: NeRF's frequency (positional) encoding, Instant-NGP's
+//! multiresolution hash grid ([`HashGrid`]) and the spherical-harmonics direction encoding
+//! ([`SphericalHarmonics`]).
 //!
 //! An [`Encoding`] maps `input_dim` floats per sample to `output_dim` floats per sample, with a
 //! hand-written backward pass. Batches are row-major: sample `k`'s input is
@@ -11,8 +13,14 @@ use nerf_core::Real;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+pub mod hash_grid;
+pub mod sh;
+
+pub use hash_grid::{spatial_hash, HashGrid, HashGridConfig, HashGridConfigError, Precision};
+pub use sh::{ShConfig, ShConfigError, SphericalHarmonics};
+
 /// An input encoding: maps `input_dim` floats per sample to `output_dim` floats. Parameter-free encodings
-/// have `n_params() == 0`; parametric ones (the hash grid, later) own their parameters.
+/// have `n_params() == 0`; parametric ones (the hash grid) own their parameters.
 pub trait Encoding<T: Real>: Send + Sync {
     /// Floats per input sample.
     fn input_dim(&self) -> usize;
@@ -27,6 +35,17 @@ pub trait Encoding<T: Real>: Send + Sync {
     /// Given dL/d(out), accumulates dL/d(params) into `d_params` (len n_params) and, when `d_input` is Some,
     /// writes dL/d(input) (n·input_dim).
     fn backward(&self, input: &[T], d_out: &[T], d_params: &mut [T], d_input: Option<&mut [T]>);
+    /// The trainable parameters (empty for parameter-free encodings), laid out as `backward`'s `d_params`.
+    fn params(&self) -> &[T] {
+        &[]
+    }
+    /// The trainable parameters, mutable (call [`Encoding::sync_storage`] after changing them).
+    fn params_mut(&mut self) -> &mut [T] {
+        &mut []
+    }
+    /// Re-derives any reduced-precision copy of the parameters that lookups read (the hash grid's
+    /// `f16` mirror) after the parameters changed; a no-op by default.
+    fn sync_storage(&mut self) {}
 }
 
 /// Serde description of an encoding, chosen by `otype` in config files

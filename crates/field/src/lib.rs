@@ -88,6 +88,10 @@ pub trait RadianceField: Send + Sync {
     /// Sets all parameter gradients to zero.
     fn zero_grad(&mut self);
 
+    /// Called after every optimiser step (and after parameters are loaded), for fields that keep
+    /// state derived from their parameters — e.g. an f16 copy of a hash table used for lookups.
+    fn after_optimizer_step(&mut self) {}
+
     /// Parameters and gradients as named groups, each with its own L2 weight decay, for the
     /// optimiser. Group names are stable (they key optimiser state and checkpoints).
     fn param_groups(&mut self) -> Vec<ParamGroupMut<'_>>;
@@ -119,6 +123,8 @@ pub trait RadianceField: Send + Sync {
             }
             g.params.copy_from_slice(values);
         }
+        drop(mine);
+        self.after_optimizer_step();
         Ok(())
     }
 }
@@ -202,10 +208,17 @@ pub fn config_from_json<C: serde::de::DeserializeOwned + Serialize + Default>(
 }
 
 /// Recursive JSON merge: keys of `patch` override those of `base`; `null` patches are ignored.
+/// An object whose `"kind"` tag differs from the base's (a serde internally tagged enum, e.g. a
+/// sampler or a learning-rate schedule) replaces the base object instead of merging into it.
 pub fn merge_json(base: &mut serde_json::Value, patch: &serde_json::Value) {
     use serde_json::Value;
     match (base, patch) {
         (_, Value::Null) => {}
+        (Value::Object(b), Value::Object(p))
+            if p.get("kind").is_some_and(|k| b.get("kind").is_some_and(|bk| bk != k)) =>
+        {
+            *b = p.clone();
+        }
         (Value::Object(b), Value::Object(p)) => {
             for (k, v) in p {
                 match b.get_mut(k) {
@@ -244,6 +257,13 @@ mod tests {
         assert_eq!(c, Cfg { a: 0, b: Inner { x: 2.5, y: vec![] } });
         let c: Cfg = config_from_json("t", &serde_json::Value::Null).unwrap();
         assert_eq!(c, Cfg::default());
+    }
+
+    #[test]
+    fn a_different_enum_tag_replaces_instead_of_merging() {
+        let mut base = json!({"s": {"kind": "a", "x": 1}, "t": {"kind": "a", "x": 1}});
+        merge_json(&mut base, &json!({"s": {"kind": "b", "y": 2}, "t": {"kind": "a", "y": 2}}));
+        assert_eq!(base, json!({"s": {"kind": "b", "y": 2}, "t": {"kind": "a", "x": 1, "y": 2}}));
     }
 
     #[test]

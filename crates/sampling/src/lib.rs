@@ -6,17 +6,22 @@
 //! * [`stratified`] — jittered (or bin-centre) samples in `[near, far]` per ray (NeRF's coarse pass).
 //! * [`sample_pdf`] — nerf-pytorch's inverse-CDF sampler for one ray, conventions included.
 //! * [`hierarchical`] — the coarse-to-fine pass over a whole packed batch.
+//! * [`OccupancyGrid`] and [`march`] — Instant-NGP's empty-space skipping: an EMA occupancy grid
+//!   fed by any density function, and constant-step ray marching that emits samples only in
+//!   occupied cells (with `dt = step_size`, see [`march`]).
 //!
 //! Interval convention: `δ_i = t_{i+1} − t_i`, and the last interval is `far − t_{N−1}` (finite;
 //! nerf-pytorch uses `1e10`). All samplers reuse the output's allocations, allocate nothing per
 //! ray, run in parallel over blocks of rays with rayon, and give results independent of the number
 //! of threads (per-ray generators derived from one seed drawn per call).
 
+mod occupancy;
 mod packed;
 mod par;
 mod pdf;
 mod stratified;
 
+pub use occupancy::{march, OccupancyGrid, OccupancyGridConfig, DENSITY_CHUNK, MAX_RESOLUTION};
 pub use packed::RaySamples;
 pub use pdf::{hierarchical, sample_pdf};
 pub use stratified::stratified;

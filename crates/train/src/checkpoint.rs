@@ -29,6 +29,8 @@ pub struct Checkpoint {
     pub fields: Vec<Vec<(String, Vec<f32>)>>,
     /// Optimiser state.
     pub adam: AdamState,
+    /// Sampler state (occupancy grid, batch sizing) by name.
+    pub sampler: Vec<(String, Vec<f32>)>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -44,6 +46,9 @@ struct Header {
     fields: Vec<(usize, String, usize)>,
     /// (group name, length) — m then v for each.
     adam: Vec<(String, usize)>,
+    /// (name, length) of sampler state tensors, stored last.
+    #[serde(default)]
+    sampler: Vec<(String, usize)>,
 }
 
 fn ck_err(path: &Path, message: impl Into<String>) -> TrainError {
@@ -68,6 +73,7 @@ impl Checkpoint {
                 .flat_map(|(i, gs)| gs.iter().map(move |(n, v)| (i, n.clone(), v.len())))
                 .collect(),
             adam: self.adam.groups.iter().map(|(n, m, _)| (n.clone(), m.len())).collect(),
+            sampler: self.sampler.iter().map(|(n, v)| (n.clone(), v.len())).collect(),
         };
         let json = serde_json::to_vec(&header).map_err(|e| ck_err(path, e.to_string()))?;
         let tmp = path.with_extension("tmp");
@@ -91,6 +97,9 @@ impl Checkpoint {
         }
         for (_, m, v) in &self.adam.groups {
             put(m).map_err(io)?;
+            put(v).map_err(io)?;
+        }
+        for (_, v) in &self.sampler {
             put(v).map_err(io)?;
         }
         let file = w.into_inner().map_err(|e| io(e.into_error()))?;
@@ -132,6 +141,10 @@ impl Checkpoint {
             let v = take(*len)?;
             groups.push((name.clone(), m, v));
         }
+        let mut sampler = Vec::new();
+        for (name, len) in &h.sampler {
+            sampler.push((name.clone(), take(*len)?));
+        }
         if pos != bytes.len() {
             return Err(ck_err(path, "trailing bytes after tensor data"));
         }
@@ -142,6 +155,7 @@ impl Checkpoint {
             config: h.config,
             fields,
             adam: AdamState { step: h.adam_step, groups },
+            sampler,
         })
     }
 }
@@ -161,6 +175,7 @@ mod tests {
             config: TrainConfig::default(),
             fields: vec![vec![("a".into(), vec![1.0, -2.0]), ("b".into(), vec![3.5])], vec![("a".into(), vec![0.25])]],
             adam: AdamState { step: 7, groups: vec![("g".into(), vec![0.1, 0.2], vec![0.3, 0.4])] },
+            sampler: vec![("occ".into(), vec![0.5; 3])],
         };
         ck.save(&p).unwrap();
         assert!(!p.with_extension("tmp").exists(), "temporary file must be renamed away");
@@ -169,6 +184,7 @@ mod tests {
         assert_eq!(back.fields, ck.fields);
         assert_eq!(back.adam.groups, ck.adam.groups);
         assert_eq!(back.adam.step, 7);
+        assert_eq!(back.sampler, ck.sampler);
         // Truncate: the error names the file.
         let bytes = std::fs::read(&p).unwrap();
         std::fs::write(&p, &bytes[..bytes.len() - 3]).unwrap();

@@ -3,6 +3,7 @@
 use nerf_data::{Background, ViewSelection};
 use nerf_optim::{AdamConfig, LrSchedule};
 use nerf_rays::PixelConvention;
+use nerf_sampling::OccupancyGridConfig;
 use serde::{Deserialize, Serialize};
 
 /// How rays are turned into samples. Field-agnostic: the hierarchical sampler's coarse (proposal)
@@ -24,13 +25,24 @@ pub enum SamplerConfig {
         /// Importance samples per ray added for the fine field (paper: 128).
         n_fine: usize,
     },
+    /// Instant-NGP: constant-step ray marching that skips cells an occupancy grid marks empty.
+    /// The grid is kept up to date from the field's density query (every `grid.update_every` steps).
+    Occupancy {
+        /// The occupancy grid.
+        #[serde(default)]
+        grid: OccupancyGridConfig,
+        /// Marching step along unit rays (world units).
+        step_size: f32,
+        /// Upper bound on samples per ray.
+        max_samples_per_ray: usize,
+    },
 }
 
 impl SamplerConfig {
     /// Number of field instances the sampler needs (hierarchical: coarse + fine).
     pub fn n_fields(&self) -> usize {
         match self {
-            SamplerConfig::Stratified { .. } => 1,
+            SamplerConfig::Stratified { .. } | SamplerConfig::Occupancy { .. } => 1,
             SamplerConfig::Hierarchical { .. } => 2,
         }
     }
@@ -47,8 +59,11 @@ pub struct TrainConfig {
     pub field_config: serde_json::Value,
     /// Sampling scheme.
     pub sampler: SamplerConfig,
-    /// Rays per training step (paper: 1024).
+    /// Rays per training step (paper: 1024); the first step's when `target_samples_per_step` is set.
     pub batch_rays: usize,
+    /// Instant-NGP's batching: when set, the number of rays per step follows the running mean of
+    /// samples per ray so that a step evaluates about this many samples (2^18 on a GPU).
+    pub target_samples_per_step: Option<usize>,
     /// Maximum number of steps.
     pub iters: u64,
     /// Optional wall-clock budget for training, seconds (training stops at whichever comes first).
@@ -88,6 +103,7 @@ impl Default for TrainConfig {
             field_config: serde_json::Value::Null,
             sampler: SamplerConfig::Hierarchical { n_coarse: 64, n_fine: 128 },
             batch_rays: 1024,
+            target_samples_per_step: None,
             iters: 200_000,
             time_budget_secs: None,
             lr: LrSchedule::Exponential { lr0: 5e-4, lr1: 5e-5, steps: 250_000 },
@@ -120,7 +136,18 @@ impl TrainConfig {
             SamplerConfig::Hierarchical { n_coarse, .. } if n_coarse < 2 => {
                 return Err("sampler.n_coarse must be at least 2".into())
             }
+            SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. } => {
+                if !(step_size.is_finite() && step_size > 0.0) {
+                    return Err(format!("sampler.step_size must be positive, got {step_size}"));
+                }
+                if max_samples_per_ray == 0 {
+                    return Err("sampler.max_samples_per_ray must be positive".into());
+                }
+            }
             _ => {}
+        }
+        if self.target_samples_per_step == Some(0) {
+            return Err("target_samples_per_step must be positive".into());
         }
         if self.downscale == 0 {
             return Err("downscale must be at least 1".into());

@@ -92,7 +92,7 @@ pub fn run(
                 message: "was written by a run with a different field, field config, sampler or seed".into(),
             });
         }
-        trainer.restore(ck.step, &ck.fields, ck.adam)?;
+        trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
         elapsed = ck.elapsed_secs;
         samples_seen = ck.samples_seen;
     }
@@ -104,6 +104,7 @@ pub fn run(
             config: t.config().clone(),
             fields: t.export_fields(),
             adam: t.adam_state(),
+            sampler: t.sampler_state(),
         }
         .save(&ck_path)
     };

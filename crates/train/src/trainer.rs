@@ -6,7 +6,7 @@ use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
 use nerf_optim::{Adam, AdamState};
 use nerf_render::{composite_backward, composite_forward, mse_loss_grad, CompositeOutputs};
-use nerf_sampling::{hierarchical, stratified, RaySamples};
+use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, RaySamples};
 
 /// Where the scene lives: what fields and samplers need to know about it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -70,7 +70,15 @@ pub struct Trainer {
     near: Vec<f32>,
     far: Vec<f32>,
     stages: Vec<Stage>,
+    /// The occupancy grid of the `Occupancy` sampler.
+    grid: Option<OccupancyGrid>,
+    /// Running mean of samples per ray (sizes batches when `target_samples_per_step` is set).
+    samples_per_ray: f32,
 }
+
+/// Bounds on the adaptive number of rays per step.
+const MIN_BATCH_RAYS: usize = 64;
+const MAX_BATCH_RAYS: usize = 1 << 20;
 
 impl Trainer {
     /// Builds the field(s) named by `config.field` from the registry.
@@ -93,7 +101,15 @@ impl Trainer {
             .map(|(f, p)| f.param_groups().iter().map(|g| format!("{p}/{}", g.name)).collect())
             .collect();
         let adam = Adam::new(config.adam.clone());
+        let grid = match &config.sampler {
+            SamplerConfig::Occupancy { grid, .. } => {
+                Some(OccupancyGrid::new(grid.clone(), bounds.aabb_min, bounds.aabb_max))
+            }
+            _ => None,
+        };
         Ok(Self {
+            grid,
+            samples_per_ray: 0.0,
             stages: (0..n).map(|_| Stage::default()).collect(),
             config,
             bounds,
@@ -131,7 +147,13 @@ impl Trainer {
     pub fn step(&mut self, data: &Dataset) -> StepStats {
         let cfg = &self.config;
         let mut rng = nerf_core::rng(cfg.seed, STREAM_STEP + self.step);
-        data.sample_rays(cfg.batch_rays, cfg.train_background, cfg.pixel_convention, false, &mut rng, &mut self.batch);
+        let n_rays = match cfg.target_samples_per_step {
+            Some(target) if self.samples_per_ray > 0.0 => {
+                ((target as f32 / self.samples_per_ray) as usize).clamp(MIN_BATCH_RAYS, MAX_BATCH_RAYS)
+            }
+            _ => cfg.batch_rays,
+        };
+        data.sample_rays(n_rays, cfg.train_background, cfg.pixel_convention, false, &mut rng, &mut self.batch);
         let n_rays = self.batch.len();
         self.near.clear();
         self.near.resize(n_rays, self.bounds.near);
@@ -143,12 +165,24 @@ impl Trainer {
         let perturb = cfg.perturb;
         let thr = cfg.transmittance_threshold;
         let b = &self.batch;
-        // Stage 0: stratified samples.
-        let n0 = match cfg.sampler {
-            SamplerConfig::Stratified { n_samples } => n_samples,
-            SamplerConfig::Hierarchical { n_coarse, .. } => n_coarse,
-        };
-        stratified(&b.origins, &b.dirs, &self.near, &self.far, n0, perturb.then_some(&mut rng), &mut self.stages[0].samples);
+        // Stage 0: stratified samples, or occupancy-grid marching (grid refreshed from the
+        // field's density first when due).
+        if let (Some(grid), SamplerConfig::Occupancy { step_size, .. }) = (self.grid.as_mut(), &cfg.sampler) {
+            if grid.due(self.step) {
+                let field = self.fields[0].as_ref();
+                grid.update(self.step, *step_size, &mut |p, s| field.density(p, s), &mut rng);
+            }
+        }
+        first_stage_samples(
+            cfg,
+            self.grid.as_ref(),
+            &b.origins,
+            &b.dirs,
+            &self.near,
+            &self.far,
+            perturb.then_some(&mut rng),
+            &mut self.stages[0].samples,
+        );
         forward_stage(self.fields[0].as_mut(), &mut self.stages[0], &b.background, thr);
         // Stage 1: importance samples from the coarse weights (detached, as in the paper).
         if let SamplerConfig::Hierarchical { n_fine, .. } = cfg.sampler {
@@ -202,6 +236,12 @@ impl Trainer {
             }
         }
         adam.step(&mut groups, lr);
+        drop(groups);
+        for f in fields.iter_mut() {
+            f.after_optimizer_step();
+        }
+        let spr = self.stages[0].samples.len() as f32 / n_rays.max(1) as f32;
+        self.samples_per_ray = if self.samples_per_ray > 0.0 { 0.9 * self.samples_per_ray + 0.1 * spr } else { spr };
         let stats = StepStats { step: self.step, loss, mse, n_samples, lr };
         self.step += 1;
         stats
@@ -229,11 +269,7 @@ impl Trainer {
             near.resize(r1 - r0, self.bounds.near);
             far.clear();
             far.resize(r1 - r0, self.bounds.far);
-            let n0 = match self.config.sampler {
-                SamplerConfig::Stratified { n_samples } => n_samples,
-                SamplerConfig::Hierarchical { n_coarse, .. } => n_coarse,
-            };
-            stratified(o, d, &near, &far, n0, None, &mut stages[0].samples);
+            first_stage_samples(&self.config, self.grid.as_ref(), o, d, &near, &far, None, &mut stages[0].samples);
             query_stage(self.fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
             if let SamplerConfig::Hierarchical { n_fine, .. } = self.config.sampler {
                 let (s0, s1) = stages.split_at_mut(1);
@@ -252,6 +288,20 @@ impl Trainer {
         self.fields.iter().map(|f| f.export_params()).collect()
     }
 
+    /// State of the sampler that a resumed run needs (occupancy-grid densities, batch sizing).
+    pub fn sampler_state(&self) -> Vec<(String, Vec<f32>)> {
+        let mut v = vec![("samples_per_ray".to_string(), vec![self.samples_per_ray])];
+        if let Some(g) = &self.grid {
+            v.push(("occupancy_density".to_string(), g.densities().to_vec()));
+        }
+        v
+    }
+
+    /// The occupancy grid, when the sampler has one.
+    pub fn occupancy_grid(&self) -> Option<&OccupancyGrid> {
+        self.grid.as_ref()
+    }
+
     /// Optimiser state (for checkpoints).
     pub fn adam_state(&self) -> AdamState {
         self.adam.state()
@@ -263,7 +313,15 @@ impl Trainer {
         step: u64,
         fields: &[Vec<(String, Vec<f32>)>],
         adam: AdamState,
+        sampler_state: &[(String, Vec<f32>)],
     ) -> Result<(), TrainError> {
+        for (name, v) in sampler_state {
+            match (name.as_str(), self.grid.as_mut()) {
+                ("samples_per_ray", _) if v.len() == 1 => self.samples_per_ray = v[0],
+                ("occupancy_density", Some(g)) => g.set_densities(v).map_err(TrainError::Config)?,
+                _ => return Err(TrainError::Config(format!("unexpected sampler state `{name}` in checkpoint"))),
+            }
+        }
         if fields.len() != self.fields.len() {
             return Err(TrainError::Config(format!(
                 "checkpoint holds {} field instances, this config needs {}",
@@ -275,8 +333,34 @@ impl Trainer {
             f.import_params(groups)?;
         }
         self.adam.load_state(adam).map_err(TrainError::Config)?;
+        for f in self.fields.iter_mut() {
+            f.after_optimizer_step();
+        }
         self.step = step;
         Ok(())
+    }
+}
+
+/// The samples the first (or only) field sees: stratified, or marched through the occupancy grid.
+#[allow(clippy::too_many_arguments)]
+fn first_stage_samples(
+    cfg: &TrainConfig,
+    grid: Option<&OccupancyGrid>,
+    origins: &[f32],
+    dirs: &[f32],
+    near: &[f32],
+    far: &[f32],
+    rng: Option<&mut nerf_core::Rng>,
+    out: &mut RaySamples,
+) {
+    match &cfg.sampler {
+        SamplerConfig::Stratified { n_samples: n } | SamplerConfig::Hierarchical { n_coarse: n, .. } => {
+            stratified(origins, dirs, near, far, *n, rng, out)
+        }
+        SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. } => {
+            let grid = grid.expect("occupancy sampler has a grid");
+            march(grid, origins, dirs, near, far, *step_size, *max_samples_per_ray, rng, out)
+        }
     }
 }
 

@@ -1,0 +1,180 @@
+//! Whole-field checks of the hash-grid field: finite differences in f64 over every parameter
+//! group, inference = training forward, config validation, parameter groups and decay.
+
+use nerf_encoding::{HashGridConfig, Precision};
+use nerf_field::{FieldContext, RadianceField};
+use nerf_field_hash::{HashNerf, HashNerfConfig};
+use rand::Rng as _;
+
+fn unit_ctx(seed: u64) -> FieldContext {
+    FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0; 3], seed }
+}
+
+fn small() -> HashNerfConfig {
+    HashNerfConfig {
+        grid: HashGridConfig {
+            n_levels: 3,
+            n_features_per_level: 2,
+            log2_hashmap_size: 6, // 64 slots: levels with (res+1)^3 > 64 are hashed
+            base_resolution: 2,
+            max_resolution: 8,
+            dense_levels: true,
+            storage: Precision::F32,
+            init_scale: 0.5,
+        },
+        sh_degree: 3,
+        geo_features: 3,
+        density_hidden: 8,
+        density_layers: 1,
+        color_hidden: 8,
+        color_layers: 2,
+        mlp_bias: true,
+        mlp_weight_decay: 1e-6,
+    }
+}
+
+/// Points whose fractional cell coordinates stay ≥ 0.05 from every face at every level, so a
+/// finite-difference step never crosses a cell boundary (where trilinear interpolation has a kink).
+fn interior_points(n: usize, res: &[u32], rng: &mut nerf_core::Rng) -> Vec<f64> {
+    let mut out = Vec::new();
+    while out.len() < 3 * n {
+        let p: [f64; 3] = [rng.gen_range(0.0..1.0), rng.gen_range(0.0..1.0), rng.gen_range(0.0..1.0)];
+        let ok = res.iter().all(|&r| {
+            p.iter().all(|&x| {
+                let f = (x * r as f64).fract();
+                (0.05..0.95).contains(&f)
+            })
+        });
+        if ok {
+            out.extend_from_slice(&p);
+        }
+    }
+    out
+}
+
+fn loss(f: &HashNerf<f64>, pos: &[f64], dirs: &[f64], a: &[f64], b: &[f64]) -> f64 {
+    let n = pos.len() / 3;
+    let (mut s, mut c) = (vec![0.0; n], vec![0.0; 3 * n]);
+    f.query_t(pos, dirs, &mut s, &mut c);
+    s.iter().zip(a).map(|(x, y)| x * y).sum::<f64>() + c.iter().zip(b).map(|(x, y)| x * y).sum::<f64>()
+}
+
+#[test]
+fn whole_field_backward_matches_finite_differences_f64() {
+    let mut f = HashNerf::<f64>::new(small(), &unit_ctx(4)).unwrap();
+    let mut rng = nerf_core::rng(9, 0);
+    let n = 7;
+    let res = f.grid().resolutions().to_vec();
+    assert!((0..3).any(|l| !f.grid().is_dense(l)) && (0..3).any(|l| f.grid().is_dense(l)), "both kinds of level");
+    let pos = interior_points(n, &res, &mut rng);
+    let mut dirs: Vec<f64> = (0..3 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    for d in dirs.chunks_mut(3) {
+        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        d.iter_mut().for_each(|x| *x /= l);
+    }
+    let a: Vec<f64> = (0..n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let b: Vec<f64> = (0..3 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let (mut s, mut c) = (vec![0.0; n], vec![0.0; 3 * n]);
+    f.forward_t(&pos, &dirs, &mut s, &mut c);
+    f.backward_t(&a, &b);
+    let g_grid = f.grid_grad().to_vec();
+    let g_mlp: Vec<Vec<f64>> = f.mlps().iter().map(|m| m.grads().to_vec()).collect();
+
+    let h = 1e-6;
+    let check = |fd: f64, g: f64, what: &str| {
+        assert!((fd - g).abs() <= 1e-7 + 1e-5 * fd.abs().max(g.abs()), "{what}: fd {fd} vs analytic {g}");
+    };
+    let mut touched = 0;
+    for i in 0..g_grid.len() {
+        let orig = f.grid().params()[i];
+        f.grid_mut().params_mut()[i] = orig + h;
+        let lp = loss(&f, &pos, &dirs, &a, &b);
+        f.grid_mut().params_mut()[i] = orig - h;
+        let lm = loss(&f, &pos, &dirs, &a, &b);
+        f.grid_mut().params_mut()[i] = orig;
+        let fd = (lp - lm) / (2.0 * h);
+        check(fd, g_grid[i], &format!("table entry {i}"));
+        touched += (g_grid[i] != 0.0) as usize;
+    }
+    assert!(touched > 20, "only {touched} table entries received gradient");
+    for m in 0..2 {
+        for i in 0..g_mlp[m].len() {
+            let orig = f.mlps()[m].params()[i];
+            f.mlps_mut()[m].params_mut()[i] = orig + h;
+            let lp = loss(&f, &pos, &dirs, &a, &b);
+            f.mlps_mut()[m].params_mut()[i] = orig - h;
+            let lm = loss(&f, &pos, &dirs, &a, &b);
+            f.mlps_mut()[m].params_mut()[i] = orig;
+            check((lp - lm) / (2.0 * h), g_mlp[m][i], &format!("mlp {m} param {i}"));
+        }
+    }
+}
+
+#[test]
+fn density_gradient_is_truncated_for_large_log_density() {
+    // σ = exp(x); for x > 15 the backward uses exp(15) (instant-ngp's trunc_exp).
+    let mut cfg = small();
+    cfg.density_layers = 0;
+    cfg.mlp_bias = true;
+    let mut f = HashNerf::<f64>::new(cfg, &unit_ctx(1)).unwrap();
+    {
+        let [d, _] = f.mlps_mut();
+        let p = d.params_mut();
+        p.iter_mut().for_each(|x| *x = 0.0);
+        let n_out = 4; // 1 + geo_features
+        let bias0 = p.len() - n_out;
+        p[bias0] = 20.0; // x = 20 for every sample
+    }
+    let pos = [0.3, 0.4, 0.6];
+    let dirs = [0.0, 0.0, 1.0];
+    let (mut s, mut c) = ([0.0], [0.0; 3]);
+    f.forward_t(&pos, &dirs, &mut s, &mut c);
+    assert!((s[0] - 20f64.exp()).abs() < 1e-6 * 20f64.exp());
+    f.backward_t(&[1.0], &[0.0; 3]);
+    let [d, _] = f.mlps();
+    let g = d.grads();
+    let bias_grad = g[g.len() - 4];
+    assert!((bias_grad - 15f64.exp()).abs() < 1e-6 * 15f64.exp(), "truncated gradient {bias_grad}");
+}
+
+#[test]
+fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 2 };
+    let mut f: Box<dyn RadianceField> = nerf_field_hash::build(&serde_json::json!({"grid": {"log2_hashmap_size": 14}}), &ctx).unwrap();
+    let mut rng = nerf_core::rng(3, 0);
+    let n = 40_000; // > one inference chunk
+    let pos: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.6..1.6)).collect();
+    let dirs: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let (mut s1, mut c1) = (vec![0.0; n], vec![0.0; 3 * n]);
+    let (mut s2, mut c2) = (vec![f32::NAN; n], vec![f32::NAN; 3 * n]);
+    let mut s3 = vec![f32::NAN; n];
+    f.forward(&pos, &dirs, &mut s1, &mut c1);
+    f.query(&pos, &dirs, &mut s2, &mut c2);
+    f.density(&pos, &mut s3);
+    let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + x.abs()));
+    assert!(close(&s1, &s2) && close(&c1, &c2) && close(&s2, &s3));
+    let groups = f.param_groups();
+    let names: Vec<_> = groups.iter().map(|g| (g.name, g.weight_decay)).collect();
+    assert_eq!(names, vec![("hash_grid", 0.0), ("density_mlp", 1e-6), ("color_mlp", 1e-6)]);
+    let total: usize = groups.iter().map(|g| g.params.len()).sum();
+    drop(groups);
+    assert_eq!(total, f.n_params());
+}
+
+#[test]
+fn default_dimensions_follow_instant_ngp() {
+    let f = HashNerf::<f32>::new(HashNerfConfig::default(), &unit_ctx(0)).unwrap();
+    let [d, c] = f.mlps();
+    assert_eq!(d.layer_shapes(), vec![(32, 64), (64, 16)], "density MLP: 32 → 64 → 16");
+    assert_eq!(c.layer_shapes(), vec![(32, 64), (64, 64), (64, 3)], "colour MLP: 16+16 → 64 → 64 → 3");
+    assert_eq!(d.n_params() + c.n_params(), 32 * 64 + 64 * 16 + 32 * 64 + 64 * 64 + 64 * 3);
+}
+
+#[test]
+fn bad_configs_are_rejected() {
+    assert!(nerf_field_hash::build(&serde_json::json!({"sh_degree": 7}), &unit_ctx(0)).is_err());
+    let e = nerf_field_hash::build(&serde_json::json!({"grid": {"levls": 3}}), &unit_ctx(0)).err().unwrap();
+    assert!(e.to_string().contains("levls"), "{e}");
+    let flat = FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0, 0.0, 1.0], seed: 0 };
+    assert!(nerf_field_hash::build(&serde_json::Value::Null, &flat).is_err());
+}
