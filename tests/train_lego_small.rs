@@ -1,6 +1,7 @@
 //! End to end on the in-repo scene: the paper's field (scaled down, `configs/demo.toml` minus
-//! the time budget) trains for a fixed number of steps and must beat a PSNR threshold on held-out
-//! views; a resumed run matches an uninterrupted one exactly.
+//! the time budget) and the hash-grid field (its registry preset) train for a fixed number of
+//! steps and must beat a PSNR threshold on held-out views; a resumed run matches an uninterrupted
+//! one exactly; the shared crates name no field.
 
 use nerf::data::{load_blender, Background, Dataset, LoadOptions, Split, ViewSelection};
 use nerf::train::{evaluate, SceneBounds, TrainConfig, Trainer};
@@ -54,12 +55,79 @@ fn paper_field_learns_the_small_lego_scene() {
     assert!(report.ssim > 0.5, "SSIM {:.3}", report.ssim);
 }
 
+/// The config `nerf train --field hash` uses: trainer defaults ← the field's registry preset.
+fn hash_config() -> TrainConfig {
+    let registry = nerf::registry();
+    let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
+    nerf::field::merge_json(&mut v, &(registry.get("hash").unwrap().train_preset)());
+    let mut c: TrainConfig = serde_json::from_value(v).unwrap();
+    c.field = "hash".into();
+    c
+}
+
+#[test]
+fn hash_field_learns_the_small_lego_scene() {
+    let train = load(Split::Train, ViewSelection::All);
+    let test = load(Split::Test, ViewSelection::Every(3));
+    let mut config = hash_config();
+    config.iters = 150;
+    let mut trainer = Trainer::new(config.clone(), &nerf::registry(), SceneBounds::of(&train)).unwrap();
+    for _ in 0..config.iters {
+        trainer.step(&train);
+    }
+    let occupied = trainer.occupancy_grid().unwrap().occupied_fraction();
+    let report = evaluate(&trainer, &test, None, |_, _| {}).unwrap();
+    println!("hash: test PSNR {:.2} dB (SSIM {:.3}), occupied cells {:.3}", report.psnr, report.ssim, occupied);
+    // Measured: 21.7 dB / SSIM 0.80 after 150 steps (`nerf train scenes/lego_100 --field hash
+    // --iters 150`). 19.5 dB leaves ~2 dB of margin and is still far above the 9.7 dB
+    // background-only image and above what the paper's field reaches in 200 steps (18 dB).
+    assert!(report.psnr > 19.5, "PSNR {:.2}", report.psnr);
+    assert!(report.ssim > 0.7, "SSIM {:.3}", report.ssim);
+    // Past warm-up the grid must have carved out empty space (the lego fills a few % of the box).
+    assert!(occupied < 0.5, "occupied fraction {occupied}");
+}
+
+#[test]
+fn shared_crates_name_no_field() {
+    // The trainer, samplers, compositing and CLI drive fields only through the trait and the
+    // registry: no dependency on a field crate and no field type named in their sources.
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for krate in ["train", "sampling", "render", "cli", "data", "rays", "metrics"] {
+        let dir = root.join("crates").join(krate);
+        let manifest = std::fs::read_to_string(dir.join("Cargo.toml")).unwrap();
+        assert!(!manifest.contains("nerf-field-"), "crates/{krate}/Cargo.toml depends on a field crate");
+        for entry in std::fs::read_dir(dir.join("src")).unwrap() {
+            let path = entry.unwrap().path();
+            let src = std::fs::read_to_string(&path).unwrap();
+            for name in ["field_freq", "field_hash", "FreqNerf", "HashNerf"] {
+                assert!(!src.contains(name), "{} names `{name}`", path.display());
+            }
+        }
+    }
+}
+
 #[test]
 fn resumed_training_matches_uninterrupted_training() {
-    let train = load(Split::Train, ViewSelection::First(4));
     let mut config = demo_config();
     config.batch_rays = 64;
     config.field_config = serde_json::json!({"width": 16, "depth": 2, "skips": [], "view_width": 8});
+    check_resume(config);
+    // The hash field with its occupancy grid (updated every 2 steps, so the grid state and the
+    // adaptive batch size must survive the checkpoint too).
+    let mut config = hash_config();
+    config.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 12, "n_levels": 4}});
+    config.target_samples_per_step = Some(2048);
+    config.batch_rays = 64;
+    config.sampler = nerf::train::SamplerConfig::Occupancy {
+        grid: nerf::sampling::OccupancyGridConfig { resolution: 16, update_every: 2, warmup_steps: 2, ..Default::default() },
+        step_size: 0.02,
+        max_samples_per_ray: 256,
+    };
+    check_resume(config);
+}
+
+fn check_resume(config: TrainConfig) {
+    let train = load(Split::Train, ViewSelection::First(4));
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
 
@@ -93,5 +161,13 @@ fn resumed_training_matches_uninterrupted_training() {
         resumed.step(&train);
     }
     assert_eq!(resumed.step_count(), 6);
-    assert_eq!(resumed.export_fields(), straight.export_fields(), "resume must be bit-exact");
+    // Compare without printing millions of numbers on failure.
+    let (a, b) = (resumed.export_fields(), straight.export_fields());
+    for (fa, fb) in a.iter().zip(&b) {
+        for ((na, va), (_, vb)) in fa.iter().zip(fb) {
+            let diff = va.iter().zip(vb).position(|(x, y)| x.to_bits() != y.to_bits());
+            assert_eq!(diff, None, "resume must be bit-exact: group {na} differs first at {diff:?}");
+        }
+    }
+    assert_eq!(a.len(), b.len());
 }

@@ -46,7 +46,8 @@ fn bench(c: &mut Criterion) {
         .map(|_| if g.gen::<f32>() < 0.05 { 100.0 } else { 0.0 })
         .collect();
     // The bits use the grid's default step size (box diagonal / 1024), which is `step`.
-    scattered.set_densities(&dens).unwrap();
+    let default_step = scattered.step_size();
+    scattered.set_densities(&dens, default_step).unwrap();
 
     for (name, grid) in [("ball", &ball), ("scattered", &scattered)] {
         let mut out = RaySamples::default();

@@ -463,9 +463,13 @@ impl OccupancyGrid {
     }
 
     /// Restores the cell densities (from [`densities`](Self::densities)) and recomputes the
-    /// occupancy bits with the last step size ([`step_size`](Self::step_size)). Errors (leaving the
-    /// grid unchanged) when the length is not `resolution³` or a value is negative or NaN.
-    pub fn set_densities(&mut self, d: &[f32]) -> Result<(), String> {
+    /// occupancy bits for marching steps of `step_size` (the sampler's step, so a restored grid
+    /// marks exactly the cells the saved one did). Errors (leaving the grid unchanged) when the
+    /// length is not `resolution³`, a value is negative or NaN, or the step is not positive.
+    pub fn set_densities(&mut self, d: &[f32], step_size: f32) -> Result<(), String> {
+        if !(step_size > 0.0 && step_size.is_finite()) {
+            return Err(format!("occupancy grid: step size must be positive, got {step_size}"));
+        }
         if d.len() != self.n_cells() {
             return Err(format!(
                 "occupancy grid: expected {} densities ({}³ cells), got {}",
@@ -481,7 +485,7 @@ impl OccupancyGrid {
             ));
         }
         self.density.copy_from_slice(d);
-        self.recompute(self.step_size);
+        self.recompute(step_size);
         Ok(())
     }
 }
@@ -534,7 +538,9 @@ fn fmin(a: f32, b: f32) -> f32 {
 /// a *safe* interval `[s0, s1)`: at least `margin` (world units) past its entry faces and before
 /// its exit faces on every axis, where the lookup of any position is certainly this cell. Steps in
 /// the safe interval are decided by the cell's bit alone (emitted in an occupied cell, skipped in
-/// bulk in an empty one, re-aligned to the step grid); the few steps outside every safe interval
+/// bulk in an empty one, re-aligned to the step grid; when the cell's whole 4³ block is empty the
+/// walk skips the block's safe interval at once and restarts from the next step's cell); the few
+/// steps outside every safe interval
 /// (within `margin` of a face) are looked up one by one. `margin` (10⁻³ cell) is far above the
 /// rounding error of positions as long as coordinates are below ~10⁴ cells in magnitude.
 #[inline(always)]
@@ -775,9 +781,10 @@ fn march_ray(
 /// `[near, far]` is clipped to the grid's box (slab test) to `[t_start, t_end)`; samples sit at
 /// `t_k = t_start + (k + u)·step_size` (`u ~ U[0,1)` per ray when `rng` is `Some`, else
 /// `u = 0.5`), `t_k < t_end`, and `t_k` is emitted when its cell is occupied, at most
-/// `max_samples` per ray. Empty cells are skipped by jumping to the cell's exit along the ray and
-/// re-aligning to the step grid, so skipping never changes where samples fall: the samples are
-/// exactly those of a dense walk restricted to occupied cells.
+/// `max_samples` per ray. Empty cells are skipped with a 3-D DDA (a whole empty 4³ block of cells
+/// in one jump) and the walk re-aligns to the step grid, so skipping never changes where samples
+/// fall: the samples are exactly those of a dense walk that looks up every step's cell (see
+/// `march_ray` in the source for the rounding argument).
 ///
 /// Output in the packed [`RaySamples`] layout (sorted `t`, positions `o + t·d`, dirs, offsets),
 /// with **`dt = step_size` for every sample** (nerfacc / Instant-NGP), *not* the

@@ -265,7 +265,7 @@ fn due_config_and_checkpoints() {
     let saved = g.densities().to_vec();
     let mut h = OccupancyGrid::new(c.clone(), [-1.0; 3], [1.0; 3]);
     assert_eq!(h.occupied_fraction(), 1.0);
-    h.set_densities(&saved).unwrap();
+    h.set_densities(&saved, step).unwrap();
     assert_eq!(h.densities(), &saved[..]);
     assert_eq!(h.occupied_fraction(), g.occupied_fraction());
     assert!(h.occupied_fraction() > 0.0 && h.occupied_fraction() < 0.35);
@@ -273,13 +273,13 @@ fn due_config_and_checkpoints() {
         assert_eq!(h.is_cell_occupied(i), g.is_cell_occupied(i));
     }
 
-    let e = h.set_densities(&saved[1..]).unwrap_err();
+    let e = h.set_densities(&saved[1..], step).unwrap_err();
     assert!(e.contains("4096") && e.contains("4095"), "{e}");
     let mut bad = saved.clone();
     bad[3] = f32::NAN;
-    assert!(h.set_densities(&bad).unwrap_err().contains("cell 3"));
+    assert!(h.set_densities(&bad, step).unwrap_err().contains("cell 3"));
     bad[3] = -1.0;
-    assert!(h.set_densities(&bad).is_err());
+    assert!(h.set_densities(&bad, step).is_err());
     assert_eq!(
         h.densities(),
         &saved[..],
@@ -683,7 +683,8 @@ fn skipping_is_exact_on_a_scattered_grid() {
         let dens: Vec<f32> = (0..n)
             .map(|_| if rng.gen::<f32>() < frac { 10.0 } else { 0.0 })
             .collect();
-        g.set_densities(&dens).unwrap();
+        let step = g.step_size();
+        g.set_densities(&dens, step).unwrap();
         let f = g.occupied_fraction();
         assert!(
             (f - frac).abs() < 0.1 * frac + 3.0 / (n as f32).sqrt(),

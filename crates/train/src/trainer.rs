@@ -102,9 +102,10 @@ impl Trainer {
             .collect();
         let adam = Adam::new(config.adam.clone());
         let grid = match &config.sampler {
-            SamplerConfig::Occupancy { grid, .. } => {
-                Some(OccupancyGrid::new(grid.clone(), bounds.aabb_min, bounds.aabb_max))
-            }
+            SamplerConfig::Occupancy { grid, .. } => Some(
+                OccupancyGrid::try_new(grid.clone(), bounds.aabb_min, bounds.aabb_max)
+                    .map_err(|e| TrainError::Config(format!("sampler.grid: {e}")))?,
+            ),
             _ => None,
         };
         Ok(Self {
@@ -316,9 +317,11 @@ impl Trainer {
         sampler_state: &[(String, Vec<f32>)],
     ) -> Result<(), TrainError> {
         for (name, v) in sampler_state {
-            match (name.as_str(), self.grid.as_mut()) {
-                ("samples_per_ray", _) if v.len() == 1 => self.samples_per_ray = v[0],
-                ("occupancy_density", Some(g)) => g.set_densities(v).map_err(TrainError::Config)?,
+            match (name.as_str(), self.grid.as_mut(), &self.config.sampler) {
+                ("samples_per_ray", _, _) if v.len() == 1 => self.samples_per_ray = v[0],
+                ("occupancy_density", Some(g), SamplerConfig::Occupancy { step_size, .. }) => {
+                    g.set_densities(v, *step_size).map_err(TrainError::Config)?
+                }
                 _ => return Err(TrainError::Config(format!("unexpected sampler state `{name}` in checkpoint"))),
             }
         }
