@@ -1,7 +1,9 @@
 //! Pipeline benchmarks of the facade: the frequency encoding forward/backward and one full
-//! training iteration of the paper's field (coarse + fine) on the in-repo scene, as samples/s.
+//! training iteration of each field — the paper's (coarse + fine) and the hash grid (occupancy
+//! marching, after its warm-up) — on the in-repo scene, side by side, as samples/s.
 //! Per-component benches live beside their crates: `cargo bench -p nerf-mlp` (MLP at width 256,
-//! GFLOP/s) and `cargo bench -p nerf-render` (compositing forward/backward).
+//! GFLOP/s), `-p nerf-render` (compositing), `-p nerf-encoding` (hash grid, SH),
+//! `-p nerf-sampling` (marching).
 //!
 //! `NERF_BENCH_SMALL=1` shrinks every size for a quick CI-sized run.
 
@@ -37,18 +39,44 @@ fn training_iteration(c: &mut Criterion) {
     let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
     let data = load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::All })
         .expect("in-repo scene loads");
+    let registry = nerf::registry();
+    let mut g = c.benchmark_group("train_step");
+    g.sample_size(10);
+
+    // The paper's field with the paper's sampler (fewer rays than the paper's 1024 to keep the
+    // bench short; the cost is linear in rays).
     let (rays, n_coarse, n_fine) = if small() { (64, 16, 16) } else { (256, 64, 128) };
     let config = TrainConfig {
         batch_rays: rays,
         sampler: SamplerConfig::Hierarchical { n_coarse, n_fine },
         ..TrainConfig::default()
     };
-    let mut trainer = Trainer::new(config, &nerf::registry(), SceneBounds::of(&data)).unwrap();
+    let mut trainer = Trainer::new(config, &registry, SceneBounds::of(&data)).unwrap();
     let samples = trainer.step(&data).n_samples; // warm up buffers; samples per step are fixed
-    let mut g = c.benchmark_group("train_step_freq_paper");
-    g.sample_size(10);
     g.throughput(Throughput::Elements(samples as u64));
-    g.bench_function(BenchmarkId::new(format!("{rays}rays_{n_coarse}+{n_fine}"), samples), |b| {
+    g.bench_function(BenchmarkId::new("freq", format!("{rays}rays_{n_coarse}+{n_fine}")), |b| {
+        b.iter(|| black_box(trainer.step(&data)))
+    });
+
+    // The hash field with its registry preset, measured after the occupancy warm-up so the grid
+    // has carved out empty space (samples per step then hover around the target).
+    let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
+    nerf::field::merge_json(&mut v, &(registry.get("hash").unwrap().train_preset)());
+    let mut config: TrainConfig = serde_json::from_value(v).unwrap();
+    config.field = "hash".into();
+    if small() {
+        config.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 15}});
+        config.target_samples_per_step = Some(1 << 13);
+    }
+    let target = config.target_samples_per_step.unwrap();
+    let warmup = if small() { 20 } else { 300 };
+    let mut trainer = Trainer::new(config, &registry, SceneBounds::of(&data)).unwrap();
+    let mut seen = 0;
+    for _ in 0..warmup {
+        seen = trainer.step(&data).n_samples;
+    }
+    g.throughput(Throughput::Elements(seen as u64));
+    g.bench_function(BenchmarkId::new("hash", format!("target_{target}_samples")), |b| {
         b.iter(|| black_box(trainer.step(&data)))
     });
     g.finish();

@@ -388,7 +388,6 @@ pub fn train_preset() -> serde_json::Value {
             "step_size": 0.005,
             "max_samples_per_ray": 1024
         },
-        "batch_rays": 4096,
         "target_samples_per_step": 65536,
         "iters": 20000,
         "train_background": "random",

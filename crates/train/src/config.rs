@@ -59,10 +59,11 @@ pub struct TrainConfig {
     pub field_config: serde_json::Value,
     /// Sampling scheme.
     pub sampler: SamplerConfig,
-    /// Rays per training step (paper: 1024); the first step's when `target_samples_per_step` is set.
+    /// Rays per training step (paper: 1024). Ignored when `target_samples_per_step` is set.
     pub batch_rays: usize,
     /// Instant-NGP's batching: when set, the number of rays per step follows the running mean of
-    /// samples per ray so that a step evaluates about this many samples (2^18 on a GPU).
+    /// samples per ray so that a step evaluates about this many samples (2^18 on a GPU); the
+    /// first step assumes the sampler's maximum samples per ray.
     pub target_samples_per_step: Option<usize>,
     /// Maximum number of steps.
     pub iters: u64,

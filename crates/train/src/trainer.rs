@@ -149,10 +149,13 @@ impl Trainer {
         let cfg = &self.config;
         let mut rng = nerf_core::rng(cfg.seed, STREAM_STEP + self.step);
         let n_rays = match cfg.target_samples_per_step {
-            Some(target) if self.samples_per_ray > 0.0 => {
-                ((target as f32 / self.samples_per_ray) as usize).clamp(MIN_BATCH_RAYS, MAX_BATCH_RAYS)
+            Some(target) => {
+                // Before any step, assume the most samples a ray can get, so that the first step
+                // (an all-occupied grid) is not hundreds of times the target.
+                let spr = if self.samples_per_ray > 0.0 { self.samples_per_ray } else { max_samples_per_ray(&cfg.sampler) as f32 };
+                ((target as f32 / spr) as usize).clamp(MIN_BATCH_RAYS, MAX_BATCH_RAYS)
             }
-            _ => cfg.batch_rays,
+            None => cfg.batch_rays,
         };
         data.sample_rays(n_rays, cfg.train_background, cfg.pixel_convention, false, &mut rng, &mut self.batch);
         let n_rays = self.batch.len();
@@ -341,6 +344,15 @@ impl Trainer {
         }
         self.step = step;
         Ok(())
+    }
+}
+
+/// Upper bound on the samples one ray can get from the sampler (all stages).
+fn max_samples_per_ray(s: &SamplerConfig) -> usize {
+    match *s {
+        SamplerConfig::Stratified { n_samples } => n_samples,
+        SamplerConfig::Hierarchical { n_coarse, n_fine } => n_coarse + n_fine,
+        SamplerConfig::Occupancy { max_samples_per_ray, .. } => max_samples_per_ray,
     }
 }
 
