@@ -70,7 +70,7 @@ fn hash_field_learns_the_small_lego_scene() {
     let train = load(Split::Train, ViewSelection::All);
     let test = load(Split::Test, ViewSelection::Every(3));
     let mut config = hash_config();
-    config.iters = 150;
+    config.iters = 200;
     let mut trainer = Trainer::new(config.clone(), &nerf::registry(), SceneBounds::of(&train)).unwrap();
     for _ in 0..config.iters {
         trainer.step(&train);
@@ -78,10 +78,10 @@ fn hash_field_learns_the_small_lego_scene() {
     let occupied = trainer.occupancy_grid().unwrap().occupied_fraction();
     let report = evaluate(&trainer, &test, None, |_, _| {}).unwrap();
     println!("hash: test PSNR {:.2} dB (SSIM {:.3}), occupied cells {:.3}", report.psnr, report.ssim, occupied);
-    // Measured: 21.7 dB / SSIM 0.80 after 150 steps (`nerf train scenes/lego_100 --field hash
-    // --iters 150`). 19.5 dB leaves ~2 dB of margin and is still far above the 9.7 dB
+    // Measured: 22.2 dB / SSIM 0.82 after 200 steps (`nerf train scenes/lego_100 --field hash
+    // --iters 200`). 20 dB leaves 2 dB of margin and is still far above the 9.7 dB
     // background-only image and above what the paper's field reaches in 200 steps (18 dB).
-    assert!(report.psnr > 19.5, "PSNR {:.2}", report.psnr);
+    assert!(report.psnr > 20.0, "PSNR {:.2}", report.psnr);
     assert!(report.ssim > 0.7, "SSIM {:.3}", report.ssim);
     // Past warm-up the grid must have carved out empty space (the lego fills a few % of the box).
     assert!(occupied < 0.5, "occupied fraction {occupied}");
