@@ -18,10 +18,10 @@
 //! the same code in `f64`. They are allocation-free (outputs are caller-owned and reused), `O(n)`
 //! per ray, and run in parallel over blocks of rays with rayon for large batches.
 
-mod par;
+
 
 use nerf_core::Real;
-use par::{cut, for_ray_blocks, SplitAt};
+use nerf_core::par::{cut, for_ray_blocks, SplitAt};
 
 /// Rays whose samples + rays total at most this many are composited on the calling thread.
 const GRAIN: usize = 16 * 1024;

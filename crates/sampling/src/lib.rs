@@ -17,7 +17,7 @@
 
 mod occupancy;
 mod packed;
-mod par;
+
 mod pdf;
 mod stratified;
 

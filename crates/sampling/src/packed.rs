@@ -1,6 +1,6 @@
 //! The packed (CSR) sample layout shared by samplers, fields and the compositor.
 
-use crate::par::{cut, for_ray_blocks, SplitAt};
+use nerf_core::par::{cut, for_ray_blocks, SplitAt};
 use rayon::prelude::*;
 
 /// All samples of a batch of rays, packed (nerfacc's layout).

@@ -380,27 +380,25 @@ fn first_stage_samples(
 }
 
 fn forward_stage(field: &mut dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
-    let n = st.samples.len();
-    st.sigma.resize(n, 0.0);
-    st.rgb.resize(3 * n, 0.0);
-    field.forward(&st.samples.positions, &st.samples.dirs, &mut st.sigma, &mut st.rgb);
-    composite_forward(
-        &st.samples.ray_offsets,
-        &st.sigma,
-        &st.rgb,
-        &st.samples.dt,
-        &st.samples.t,
-        Some(background),
-        thr,
-        &mut st.comp,
-    );
+    run_stage(st, background, thr, |p, d, s, c| field.forward(p, d, s, c));
 }
 
 fn query_stage(field: &dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
+    run_stage(st, background, thr, |p, d, s, c| field.query(p, d, s, c));
+}
+
+/// Evaluates the field on the stage's samples (`eval`: training forward or inference) and
+/// composites them.
+fn run_stage(
+    st: &mut Stage,
+    background: &[f32],
+    thr: f32,
+    eval: impl FnOnce(&[f32], &[f32], &mut [f32], &mut [f32]),
+) {
     let n = st.samples.len();
     st.sigma.resize(n, 0.0);
     st.rgb.resize(3 * n, 0.0);
-    field.query(&st.samples.positions, &st.samples.dirs, &mut st.sigma, &mut st.rgb);
+    eval(&st.samples.positions, &st.samples.dirs, &mut st.sigma, &mut st.rgb);
     composite_forward(
         &st.samples.ray_offsets,
         &st.sigma,

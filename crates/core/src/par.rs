@@ -3,19 +3,20 @@
 //! the outputs it owns. No allocation, no `unsafe`; results do not depend on the thread count.
 
 /// Output slices that can be cut at a ray boundary (`rays` rays / `samples` samples into the block).
-pub(crate) trait SplitAt: Sized + Send {
+pub trait SplitAt: Sized + Send {
+    /// Splits into the outputs of the first `rays` rays (`samples` samples) and the rest.
     fn split_at(self, rays: usize, samples: usize) -> (Self, Self);
 }
 
 /// Splits a mutable slice holding `per` values per item at item `at`.
 #[inline]
-pub(crate) fn cut<T>(s: &mut [T], at: usize, per: usize) -> (&mut [T], &mut [T]) {
+pub fn cut<T>(s: &mut [T], at: usize, per: usize) -> (&mut [T], &mut [T]) {
     s.split_at_mut(at * per)
 }
 
 /// Calls `f(first_ray, end_ray, outputs_of_those_rays)` over blocks covering `0..n_rays`, in
 /// parallel when the batch is larger than `grain` (samples + rays).
-pub(crate) fn for_ray_blocks<S, F>(offsets: &[u32], out: S, grain: usize, f: &F)
+pub fn for_ray_blocks<S, F>(offsets: &[u32], out: S, grain: usize, f: &F)
 where
     S: SplitAt,
     F: Fn(usize, usize, S) + Sync,
