@@ -33,7 +33,7 @@ pub struct FreqNerfConfig {
     pub width: usize,
     /// Trunk depth in linear layers (paper: 8).
     pub depth: usize,
-    /// Trunk layers (0-based) after which the encoded input is re-concatenated (paper: [4]).
+    /// Trunk layers (0-based) after which the encoded input is re-concatenated (paper: `[4]`).
     pub skips: Vec<usize>,
     /// Width of the view-direction branch (paper: 128 = width / 2).
     pub view_width: usize,

@@ -13,7 +13,7 @@ pub struct ViewMetrics {
     pub index: usize,
     /// Ground-truth image file.
     pub file: String,
-    /// PSNR in dB (images in [0,1]).
+    /// PSNR in dB (images in `[0, 1]`).
     pub psnr: f64,
     /// SSIM (Gaussian 11×11, σ = 1.5).
     pub ssim: f64,

@@ -3,7 +3,7 @@
 //! [`Trainer`] takes random ray batches from a [`nerf_data::Dataset`], turns them into packed
 //! samples (stratified, then optionally hierarchical through a coarse instance of the same field),
 //! queries the field(s), composites, takes the photometric MSE on every stage, back-propagates
-//! through compositing into the field(s) and steps Adam. [`run`] wraps it into a whole run with
+//! through compositing into the field(s) and steps Adam. [`run()`] wraps it into a whole run with
 //! a progress bar, a time budget, atomic checkpoints (resumable, written on Ctrl-C), evaluation on
 //! held-out views and `metrics.json`. Nothing here knows which field it drives.
 
