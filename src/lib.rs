@@ -19,14 +19,18 @@
 //! | [`field`] | nerf-field | the `RadianceField` trait, registry types |
 //! | [`field_freq`] | nerf-field-freq | the paper's NeRF field |
 //! | [`field_hash`] | nerf-field-hash | the Instant-NGP hash-grid field |
+//! | [`field_voxel`] | nerf-field-voxel | a DVGO-style dense voxel-grid field (the plug-in example) |
+//! | [`ablate`] | nerf-ablate | the ablation runner |
 //! | [`train`] | nerf-train | trainer, evaluation, checkpoints, runs |
 
+pub use nerf_ablate as ablate;
 pub use nerf_core as core;
 pub use nerf_data as data;
 pub use nerf_encoding as encoding;
 pub use nerf_field as field;
 pub use nerf_field_freq as field_freq;
 pub use nerf_field_hash as field_hash;
+pub use nerf_field_voxel as field_voxel;
 pub use nerf_metrics as metrics;
 pub use nerf_mlp as mlp;
 pub use nerf_optim as optim;
@@ -54,5 +58,6 @@ pub fn registry() -> Registry {
         train_preset: nerf_field_hash::train_preset,
         build: nerf_field_hash::build,
     });
+    r.register(nerf_field_voxel::registry_entry());
     r
 }

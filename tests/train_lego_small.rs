@@ -99,7 +99,7 @@ fn shared_crates_name_no_field() {
         for entry in std::fs::read_dir(dir.join("src")).unwrap() {
             let path = entry.unwrap().path();
             let src = std::fs::read_to_string(&path).unwrap();
-            for name in ["field_freq", "field_hash", "FreqNerf", "HashNerf"] {
+            for name in ["field_freq", "field_hash", "field_voxel", "FreqNerf", "HashNerf", "VoxelNerf"] {
                 assert!(!src.contains(name), "{} names `{name}`", path.display());
             }
         }

@@ -28,6 +28,18 @@ enum Command {
     ExportScene(ExportArgs),
     /// List the registered fields and their default configs.
     Fields,
+    /// Run an ablation file: a grid of runs with the same scenes, seeds and budget; writes
+    /// results.csv, results.md and PSNR plots (finished runs are skipped on re-run).
+    Ablate(AblateArgs),
+}
+
+#[derive(Args)]
+struct AblateArgs {
+    /// Ablation file (TOML; see examples/ablations/README.md).
+    file: PathBuf,
+    /// Output folder (default: runs/ablate/<name>).
+    #[arg(long)]
+    out: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -116,6 +128,7 @@ fn main() {
         Command::Eval(a) => cmd_eval(a),
         Command::ExportScene(a) => cmd_export(a),
         Command::Fields => cmd_fields(),
+        Command::Ablate(a) => cmd_ablate(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
@@ -249,5 +262,23 @@ fn cmd_fields() -> Result<()> {
     for e in nerf::registry().entries() {
         println!("{}: {}\n  default config: {}", e.name, e.description, (e.default_config)());
     }
+    Ok(())
+}
+
+fn cmd_ablate(a: AblateArgs) -> Result<()> {
+    let ablation = nerf::ablate::Ablation::load(&a.file)?;
+    let out = a.out.unwrap_or_else(|| ablation.default_out_dir());
+    let opts = nerf::ablate::AblateOptions { out_dir: out, verbose: true };
+    let r = nerf::ablate::run_ablation(&ablation, &nerf::registry(), &opts)?;
+    let skipped = r.runs.iter().filter(|o| o.skipped).count();
+    println!(
+        "{} runs ({} reused) -> {}, {}, {}, {}",
+        r.runs.len(),
+        skipped,
+        r.results_csv.display(),
+        r.results_md.display(),
+        r.psnr_vs_time.display(),
+        r.psnr_vs_iter.display()
+    );
     Ok(())
 }

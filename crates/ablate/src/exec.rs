@@ -1,0 +1,274 @@
+//! Running the planned runs: training to the budget with evaluation points, metrics, skipping.
+
+use crate::report::write_summary;
+use crate::spec::{Ablation, RunPlan};
+use crate::AblateError;
+use nerf_data::{load_blender, Dataset, LoadOptions, Split};
+use nerf_field::Registry;
+use nerf_train::{evaluate, SceneBounds, TrainConfig, Trainer};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// One evaluation point of a run's curve.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CurvePoint {
+    /// Steps taken.
+    pub iter: u64,
+    /// Training seconds so far (evaluation excluded).
+    pub seconds: f64,
+    /// Mean test PSNR, dB.
+    pub psnr: f64,
+    /// Mean test SSIM.
+    pub ssim: f64,
+}
+
+/// What a finished run wrote to `runs/<id>/metrics.json` (stable keys, shared with `nerf train`
+/// where they apply).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunMetrics {
+    /// Run id.
+    pub id: String,
+    /// Explicit run name.
+    pub name: String,
+    /// Scene folder.
+    pub scene: String,
+    /// Seed.
+    pub seed: u64,
+    /// Grid point: dotted key → value.
+    pub grid: serde_json::Map<String, serde_json::Value>,
+    /// Field registry name.
+    pub field: String,
+    /// Always `"cpu"` (the trainer runs on the CPU).
+    pub device: String,
+    /// Steps taken.
+    pub iterations: u64,
+    /// Training seconds (evaluation excluded).
+    pub wall_seconds: f64,
+    /// Milliseconds per training step.
+    pub ms_per_iter: f64,
+    /// Field samples processed per training second.
+    pub samples_per_sec: f64,
+    /// Final mean test PSNR, dB.
+    pub test_psnr: f64,
+    /// Final mean test SSIM.
+    pub test_ssim: f64,
+    /// Number of test views.
+    pub n_test_views: usize,
+    /// Test image width.
+    pub width: u32,
+    /// Test image height.
+    pub height: u32,
+    /// Trainable parameters (all field instances).
+    pub n_params: usize,
+    /// Peak resident memory of the process during the run, MiB (`null` where unavailable).
+    pub peak_memory_mib: Option<f64>,
+    /// Evaluation points.
+    pub curve: Vec<CurvePoint>,
+    /// See [`crate::config_hash`].
+    pub config_hash: String,
+    /// The resolved training config.
+    pub config: TrainConfig,
+}
+
+/// The outcome of one run of an ablation.
+#[derive(Clone, Debug)]
+pub struct RunOutcome {
+    /// The plan.
+    pub plan: RunPlan,
+    /// True when the run's finished `metrics.json` (same config hash) was reused.
+    pub skipped: bool,
+    /// Its metrics.
+    pub metrics: RunMetrics,
+}
+
+/// Everything an ablation produced.
+#[derive(Clone, Debug)]
+pub struct AblationReport {
+    /// Output folder.
+    pub out_dir: PathBuf,
+    /// Every run, in plan order.
+    pub runs: Vec<RunOutcome>,
+    /// `results.csv`.
+    pub results_csv: PathBuf,
+    /// `results.md`.
+    pub results_md: PathBuf,
+    /// `psnr_vs_time.png`.
+    pub psnr_vs_time: PathBuf,
+    /// `psnr_vs_iter.png`.
+    pub psnr_vs_iter: PathBuf,
+}
+
+/// Options of [`run_ablation`].
+#[derive(Clone, Debug)]
+pub struct AblateOptions {
+    /// Output folder (`runs/<id>/…` and the summary files).
+    pub out_dir: PathBuf,
+    /// Print one line per run start/finish to stderr.
+    pub verbose: bool,
+}
+
+pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> AblateError + '_ {
+    move |source| AblateError::Io { path: path.to_path_buf(), error: source }
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AblateError> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).map_err(io_err(&tmp))?;
+    std::fs::rename(&tmp, path).map_err(io_err(path))
+}
+
+/// Loads a finished run's metrics when they exist and carry `hash`.
+fn load_finished(path: &Path, hash: &str) -> Option<RunMetrics> {
+    let text = std::fs::read_to_string(path).ok()?;
+    let m: RunMetrics = serde_json::from_str(&text).ok()?;
+    (m.config_hash == hash).then_some(m)
+}
+
+/// Resets the kernel's peak-RSS counter of this process (Linux; errors ignored).
+fn reset_peak_rss() {
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+}
+
+/// Peak resident set size (VmHWM) in MiB, where the OS reports it.
+fn peak_rss_mib() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kib: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib / 1024.0)
+}
+
+/// Trains one planned run to its budget, evaluating at the schedule's points and at the end.
+pub fn train_run(
+    ablation: &Ablation,
+    plan: &RunPlan,
+    registry: &Registry,
+    train: &Dataset,
+    test: &Dataset,
+) -> Result<RunMetrics, AblateError> {
+    let terr = |source| AblateError::Train { id: plan.id.clone(), error: source };
+    let sched = &ablation.spec.eval;
+    let cfg = &plan.config;
+    reset_peak_rss();
+    let mut trainer = Trainer::new(cfg.clone(), registry, SceneBounds::of(train)).map_err(terr)?;
+    let budget = cfg.time_budget_secs.unwrap_or(f64::INFINITY);
+    let (mut elapsed, mut samples) = (0.0f64, 0u64);
+    let mut next_secs = sched.every_seconds.unwrap_or(f64::INFINITY);
+    let mut curve: Vec<CurvePoint> = Vec::new();
+    let eval_point = |t: &Trainer, elapsed: f64, curve: &mut Vec<CurvePoint>| {
+        let r = evaluate(t, test, None, |_, _| {}).map_err(terr)?;
+        curve.push(CurvePoint { iter: t.step_count(), seconds: elapsed, psnr: r.psnr, ssim: r.ssim });
+        Ok::<_, AblateError>(())
+    };
+    while trainer.step_count() < cfg.iters && elapsed < budget {
+        let t0 = Instant::now();
+        let s = trainer.step(train);
+        elapsed += t0.elapsed().as_secs_f64();
+        samples += s.n_samples as u64;
+        let done = trainer.step_count();
+        let by_iter = sched.every_iters.is_some_and(|k| done % k == 0);
+        let by_time = elapsed >= next_secs;
+        if by_time {
+            while next_secs <= elapsed {
+                next_secs += sched.every_seconds.unwrap_or(f64::INFINITY);
+            }
+        }
+        if by_iter || by_time {
+            eval_point(&trainer, elapsed, &mut curve)?;
+        }
+    }
+    if curve.last().map(|p| p.iter) != Some(trainer.step_count()) {
+        eval_point(&trainer, elapsed, &mut curve)?;
+    }
+    let last = *curve.last().expect("at least the final evaluation");
+    let iters = trainer.step_count();
+    Ok(RunMetrics {
+        id: plan.id.clone(),
+        name: plan.name.clone(),
+        scene: plan.scene.display().to_string(),
+        seed: plan.seed,
+        grid: plan.grid.iter().cloned().collect(),
+        field: cfg.field.clone(),
+        device: "cpu".into(),
+        iterations: iters,
+        wall_seconds: elapsed,
+        ms_per_iter: if iters > 0 { 1e3 * elapsed / iters as f64 } else { 0.0 },
+        samples_per_sec: if elapsed > 0.0 { samples as f64 / elapsed } else { 0.0 },
+        test_psnr: last.psnr,
+        test_ssim: last.ssim,
+        n_test_views: test.n_views(),
+        width: test.width,
+        height: test.height,
+        n_params: trainer.n_params(),
+        peak_memory_mib: peak_rss_mib(),
+        curve,
+        config_hash: plan.config_hash.clone(),
+        config: cfg.clone(),
+    })
+}
+
+/// Runs (or reuses) every run of the ablation, then rebuilds `results.csv`, `results.md`,
+/// `psnr_vs_time.png` and `psnr_vs_iter.png` under `opts.out_dir` from all runs.
+pub fn run_ablation(
+    ablation: &Ablation,
+    registry: &Registry,
+    opts: &AblateOptions,
+) -> Result<AblationReport, AblateError> {
+    let plans = ablation.plan(registry)?;
+    let out = &opts.out_dir;
+    let s = &ablation.spec;
+    let mut cache: HashMap<PathBuf, (Dataset, Dataset)> = HashMap::new();
+    let mut outcomes = Vec::with_capacity(plans.len());
+    for (k, plan) in plans.into_iter().enumerate() {
+        let dir = out.join("runs").join(&plan.id);
+        let mpath = dir.join("metrics.json");
+        if let Some(m) = load_finished(&mpath, &plan.config_hash) {
+            if opts.verbose {
+                eprintln!("[{}] {} finished before: PSNR {:.2} dB (skipped)", k + 1, plan.id, m.test_psnr);
+            }
+            outcomes.push(RunOutcome { plan, skipped: true, metrics: m });
+            continue;
+        }
+        if !cache.contains_key(&plan.scene) {
+            let load = |split, views| {
+                load_blender(&plan.scene, split, &LoadOptions { downscale: s.downscale, views })
+                    .map_err(|e| AblateError::Scene { path: plan.scene.clone(), message: e.to_string() })
+            };
+            let train = load(Split::Train, s.train_views.clone())?;
+            let test = load(Split::Test, s.test_views.clone())?;
+            cache.insert(plan.scene.clone(), (train, test));
+        }
+        let (train, test) = &cache[&plan.scene];
+        if opts.verbose {
+            eprintln!("[{}] {} ({}) starting", k + 1, plan.id, plan.config.field);
+        }
+        let m = train_run(ablation, &plan, registry, train, test)?;
+        std::fs::create_dir_all(&dir).map_err(io_err(&dir))?;
+        let mut csv = String::from("iter,seconds,psnr,ssim\n");
+        for p in &m.curve {
+            csv.push_str(&format!("{},{},{},{}\n", p.iter, p.seconds, p.psnr, p.ssim));
+        }
+        write_atomic(&dir.join("curve.csv"), csv.as_bytes())?;
+        let text = serde_json::to_string_pretty(&m).expect("metrics serialise");
+        write_atomic(&mpath, text.as_bytes())?;
+        // Summaries are built from the metrics as read back (serde_json's float parsing need not
+        // round-trip the last bit), so a re-run that reuses this file rebuilds them identically.
+        let m: RunMetrics = serde_json::from_str(&text).expect("metrics parse back");
+        if opts.verbose {
+            eprintln!(
+                "[{}] {} done: {} steps, {:.1} s, PSNR {:.2} dB, SSIM {:.4}",
+                k + 1,
+                plan.id,
+                m.iterations,
+                m.wall_seconds,
+                m.test_psnr,
+                m.test_ssim
+            );
+        }
+        outcomes.push(RunOutcome { plan, skipped: false, metrics: m });
+    }
+    let keys: Vec<String> = s.grid.keys().cloned().collect();
+    write_summary(out, &ablation.name(), &keys, outcomes)
+}

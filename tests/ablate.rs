@@ -1,0 +1,194 @@
+//! End to end: a tiny ablation (two fields × two settings, a few steps) on a reduced copy of the
+//! in-repo scene writes per-run curves and metrics, results.csv, results.md and both plots; a
+//! second invocation skips every finished run and rebuilds the same outputs; changing the budget
+//! makes the runs train again.
+
+use nerf::ablate::{read_png_rgb, run_ablation, AblateOptions, Ablation};
+use nerf::data::{load_blender, write_blender, LoadOptions, Split, ViewSelection};
+use std::path::{Path, PathBuf};
+
+/// Writes a small scene (3 training views, 1 test view, downscale 4) into `dir`.
+fn tiny_scene(dir: &Path) -> PathBuf {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    let dst = dir.join("lego_tiny");
+    for (split, n) in [(Split::Train, 3), (Split::Test, 1)] {
+        let ds = load_blender(&src, split, &LoadOptions { downscale: 4, views: ViewSelection::First(n) }).unwrap();
+        write_blender(&ds, &dst, None).unwrap();
+    }
+    dst
+}
+
+fn ablation_text(iters: u64) -> String {
+    format!(
+        r#"
+name = "tiny"
+scenes = ["lego_tiny"]
+test_views = "all"
+seeds = [0]
+[budget]
+iters = {iters}
+[eval]
+every_iters = 2
+[base]
+log_every = 1000
+[[runs]]
+name = "freq"
+config = {{ field = "freq", batch_rays = 64, field_config = {{ width = 16, depth = 2, skips = [], view_width = 8 }}, sampler = {{ kind = "hierarchical", n_coarse = 8, n_fine = 8 }} }}
+[[runs]]
+name = "hash"
+config = {{ field = "hash", target_samples_per_step = 2048, field_config = {{ grid = {{ log2_hashmap_size = 12, n_levels = 4 }} }} }}
+[grid]
+train_background = ["white", "black"]
+"#
+    )
+}
+
+fn read(p: &Path) -> String {
+    std::fs::read_to_string(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
+}
+
+#[test]
+fn tiny_ablation_end_to_end_and_skip_on_rerun() {
+    let tmp = tempfile::tempdir().unwrap();
+    tiny_scene(tmp.path());
+    let file = tmp.path().join("tiny.toml");
+    std::fs::write(&file, ablation_text(4)).unwrap();
+    let out = tmp.path().join("out");
+    let opts = AblateOptions { out_dir: out.clone(), verbose: true };
+    let registry = nerf::registry();
+
+    let ab = Ablation::load(&file).unwrap();
+    let report = run_ablation(&ab, &registry, &opts).unwrap();
+    assert_eq!(report.runs.len(), 4);
+    assert!(report.runs.iter().all(|r| !r.skipped));
+    let ids: Vec<&str> = report.runs.iter().map(|r| r.plan.id.as_str()).collect();
+    assert_eq!(
+        ids,
+        [
+            "freq__train_background=white__lego_tiny__s0",
+            "freq__train_background=black__lego_tiny__s0",
+            "hash__train_background=white__lego_tiny__s0",
+            "hash__train_background=black__lego_tiny__s0",
+        ]
+    );
+
+    // Per-run outputs.
+    let run_dirs: Vec<_> = std::fs::read_dir(out.join("runs")).unwrap().map(|e| e.unwrap().path()).collect();
+    assert_eq!(run_dirs.len(), 4);
+    for r in &report.runs {
+        let dir = out.join("runs").join(&r.plan.id);
+        let m: serde_json::Value = serde_json::from_str(&read(&dir.join("metrics.json"))).unwrap();
+        for key in [
+            "field", "device", "iterations", "wall_seconds", "ms_per_iter", "samples_per_sec", "test_psnr",
+            "test_ssim", "n_test_views", "width", "height", "config", "n_params", "peak_memory_mib", "curve",
+            "config_hash",
+        ] {
+            assert!(m.get(key).is_some(), "{}: metrics.json lacks `{key}`", r.plan.id);
+        }
+        assert_eq!(m["iterations"], 4);
+        assert_eq!(m["field"], r.plan.config.field.as_str());
+        assert_eq!(m["config"]["train_background"], r.plan.grid[0].1);
+        assert!(m["n_params"].as_u64().unwrap() > 0);
+        let curve = read(&dir.join("curve.csv"));
+        let lines: Vec<&str> = curve.lines().collect();
+        assert_eq!(lines[0], "iter,seconds,psnr,ssim");
+        let pts: Vec<Vec<f64>> =
+            lines[1..].iter().map(|l| l.split(',').map(|x| x.parse::<f64>().unwrap()).collect()).collect();
+        assert!(pts.len() >= 2, "{}: {} curve points", r.plan.id, pts.len());
+        assert_eq!(pts.iter().map(|p| p[0] as u64).collect::<Vec<_>>(), [2, 4]);
+        assert!(pts.windows(2).all(|w| w[1][1] >= w[0][1]), "training time is monotone");
+        assert!(pts.iter().all(|p| p[2].is_finite() && p[2] > 0.0 && p[3].is_finite()));
+        assert!((r.metrics.test_psnr - pts.last().unwrap()[2]).abs() < 1e-9);
+    }
+    // The hash runs honour their field_config and preset (occupancy sampler), the freq runs theirs.
+    assert_ne!(report.runs[0].metrics.n_params, report.runs[2].metrics.n_params);
+    assert!(matches!(report.runs[2].plan.config.sampler, nerf::train::SamplerConfig::Occupancy { .. }));
+
+    // results.csv
+    let csv = read(&out.join("results.csv"));
+    let rows: Vec<Vec<&str>> = csv.lines().map(|l| l.split(',').collect()).collect();
+    let header = &rows[0];
+    assert_eq!(
+        header,
+        &[
+            "id", "name", "scene", "seed", "train_background", "field", "iterations", "wall_seconds", "ms_per_iter",
+            "samples_per_sec", "n_params", "peak_memory_mib", "test_psnr", "test_ssim"
+        ]
+    );
+    assert_eq!(rows.len(), 5, "header + 4 runs:\n{csv}");
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    for (row, r) in rows[1..].iter().zip(&report.runs) {
+        assert_eq!(row.len(), header.len());
+        assert_eq!(row[col("id")], r.plan.id);
+        assert_eq!(row[col("scene")], "lego_tiny");
+        assert_eq!(row[col("iterations")], "4");
+        assert_eq!(row[col("train_background")], r.plan.grid[0].1.as_str().unwrap());
+        let psnr: f64 = row[col("test_psnr")].parse().unwrap();
+        let ssim: f64 = row[col("test_ssim")].parse().unwrap();
+        assert!(psnr.is_finite() && psnr > 0.0 && ssim.is_finite(), "{row:?}");
+        assert!(row[col("ms_per_iter")].parse::<f64>().unwrap() > 0.0);
+        assert!(row[col("samples_per_sec")].parse::<f64>().unwrap() > 0.0);
+    }
+
+    // results.md
+    let md = read(&out.join("results.md"));
+    let table: Vec<&str> = md.lines().filter(|l| l.starts_with('|')).collect();
+    assert_eq!(table.len(), 2 + 4, "{md}");
+    assert!(table[0].contains("test PSNR") && table[0].contains("ms/iter") && table[0].contains("params"));
+    assert!(table[1].starts_with("|---|"));
+    for (line, r) in table[2..].iter().zip(&report.runs) {
+        assert!(line.contains(&format!("{:.2}", r.metrics.test_psnr)), "{line}");
+        assert!(line.contains(&r.metrics.field), "{line}");
+    }
+
+    // Plots decode and are not blank.
+    for p in [&report.psnr_vs_time, &report.psnr_vs_iter] {
+        let (w, h, px) = read_png_rgb(p).unwrap_or_else(|e| panic!("{e}"));
+        assert!(w > 0 && h > 0 && px.len() == 3 * (w * h) as usize);
+        let non_white = px.chunks(3).filter(|c| *c != [255, 255, 255]).count();
+        assert!(non_white > 1000, "{}: only {non_white} drawn pixels", p.display());
+    }
+
+    // Re-run: every run is skipped and the summary is rebuilt identically.
+    let mtimes = |r: &nerf::ablate::AblationReport| -> Vec<_> {
+        r.runs
+            .iter()
+            .map(|o| std::fs::metadata(out.join("runs").join(&o.plan.id).join("metrics.json")).unwrap().modified().unwrap())
+            .collect()
+    };
+    let before = mtimes(&report);
+    let summary = |names: &[&str]| -> Vec<Vec<u8>> { names.iter().map(|n| std::fs::read(out.join(n)).unwrap()).collect() };
+    let files = ["results.csv", "results.md", "psnr_vs_time.png", "psnr_vs_iter.png"];
+    let first = summary(&files);
+    std::fs::remove_file(out.join("results.csv")).unwrap();
+    let again = run_ablation(&Ablation::load(&file).unwrap(), &registry, &opts).unwrap();
+    assert!(again.runs.iter().all(|r| r.skipped), "every finished run is skipped");
+    assert_eq!(mtimes(&again), before);
+    for ((name, a), b) in files.iter().zip(summary(&files)).zip(&first) {
+        assert!(&a == b, "{name} is not rebuilt identically");
+    }
+    for (a, b) in again.runs.iter().zip(&report.runs) {
+        assert_eq!(a.metrics, b.metrics);
+    }
+
+    // A different budget changes every config hash: the runs train again.
+    std::fs::write(&file, ablation_text(2)).unwrap();
+    let third = run_ablation(&Ablation::load(&file).unwrap(), &registry, &opts).unwrap();
+    assert!(third.runs.iter().all(|r| !r.skipped));
+    assert!(third.runs.iter().all(|r| r.metrics.iterations == 2 && r.metrics.curve.len() == 1));
+    assert!(third.runs.iter().zip(&report.runs).all(|(a, b)| a.plan.config_hash != b.plan.config_hash));
+}
+
+#[test]
+fn the_example_ablations_parse_and_plan() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/ablations");
+    for name in ["fields.toml", "hash_sweep.toml"] {
+        let a = Ablation::load(&dir.join(name)).unwrap();
+        let plans = a.plan(&nerf::registry()).unwrap();
+        assert!(!plans.is_empty(), "{name}");
+        for p in &plans {
+            assert!(p.scene.join("transforms_train.json").exists(), "{name}: {}", p.scene.display());
+            assert!(p.config.time_budget_secs.is_some(), "{name}: examples use a time budget");
+        }
+    }
+}
