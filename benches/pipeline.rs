@@ -1,6 +1,7 @@
 //! Pipeline benchmarks of the facade: the frequency encoding forward/backward and one full
-//! training iteration of each field — the paper's (coarse + fine) and the hash grid (occupancy
-//! marching, after its warm-up) — on the in-repo scene, side by side, as samples/s.
+//! training iteration of each field — the paper's (coarse + fine), the hash grid and the voxel
+//! grid (occupancy marching, after its warm-up) — on the in-repo scene, side by side in one
+//! group, as samples/s.
 //! Per-component benches live beside their crates: `cargo bench -p nerf-mlp` (MLP at width 256,
 //! GFLOP/s), `-p nerf-render` (compositing), `-p nerf-encoding` (hash grid, SH),
 //! `-p nerf-sampling` (marching).
@@ -58,27 +59,32 @@ fn training_iteration(c: &mut Criterion) {
         b.iter(|| black_box(trainer.step(&data)))
     });
 
-    // The hash field with its registry preset, measured after the occupancy warm-up so the grid
-    // has carved out empty space (samples per step then hover around the target).
-    let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
-    nerf::field::merge_json(&mut v, &(registry.get("hash").unwrap().train_preset)());
-    let mut config: TrainConfig = serde_json::from_value(v).unwrap();
-    config.field = "hash".into();
-    if small() {
-        config.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 15}});
-        config.target_samples_per_step = Some(1 << 13);
+    // The grid fields with their registry presets, measured after the occupancy warm-up so the
+    // grid has carved out empty space (samples per step then hover around the target).
+    for field in ["hash", "voxel"] {
+        let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
+        nerf::field::merge_json(&mut v, &(registry.get(field).unwrap().train_preset)());
+        let mut config: TrainConfig = serde_json::from_value(v).unwrap();
+        config.field = field.into();
+        if small() {
+            config.field_config = match field {
+                "hash" => serde_json::json!({"grid": {"log2_hashmap_size": 15}}),
+                _ => serde_json::json!({"resolution": 32}),
+            };
+            config.target_samples_per_step = Some(1 << 13);
+        }
+        let target = config.target_samples_per_step.unwrap();
+        let warmup = if small() { 20 } else { 300 };
+        let mut trainer = Trainer::new(config, &registry, SceneBounds::of(&data)).unwrap();
+        let mut seen = 0;
+        for _ in 0..warmup {
+            seen = trainer.step(&data).n_samples;
+        }
+        g.throughput(Throughput::Elements(seen as u64));
+        g.bench_function(BenchmarkId::new(field, format!("target_{target}_samples")), |b| {
+            b.iter(|| black_box(trainer.step(&data)))
+        });
     }
-    let target = config.target_samples_per_step.unwrap();
-    let warmup = if small() { 20 } else { 300 };
-    let mut trainer = Trainer::new(config, &registry, SceneBounds::of(&data)).unwrap();
-    let mut seen = 0;
-    for _ in 0..warmup {
-        seen = trainer.step(&data).n_samples;
-    }
-    g.throughput(Throughput::Elements(seen as u64));
-    g.bench_function(BenchmarkId::new("hash", format!("target_{target}_samples")), |b| {
-        b.iter(|| black_box(trainer.step(&data)))
-    });
     g.finish();
 }
 
