@@ -37,7 +37,7 @@ enum Command {
 struct AblateArgs {
     /// Ablation file (TOML; see examples/ablations/README.md).
     file: PathBuf,
-    /// Output folder (default: runs/ablate/<name>).
+    /// Output folder (default: `runs/ablate/NAME`).
     #[arg(long)]
     out: Option<PathBuf>,
 }
@@ -76,7 +76,7 @@ struct TrainArgs {
     /// Rays per training step.
     #[arg(long = "batch-rays")]
     batch_rays: Option<usize>,
-    /// Continue from <out>/checkpoint.bin.
+    /// Continue from `OUT/checkpoint.bin`.
     #[arg(long)]
     resume: bool,
     /// No progress bar.
@@ -96,7 +96,7 @@ struct EvalArgs {
     /// Test views: all, every:K, first:N (default: the run's).
     #[arg(long = "test-views")]
     test_views: Option<ViewSelection>,
-    /// Where to write renders and eval.json (default: <run>/eval).
+    /// Where to write renders and eval.json (default: `RUN/eval`).
     #[arg(long)]
     out: Option<PathBuf>,
 }
