@@ -1,0 +1,297 @@
+//! The wgpu execution path of nerf-rs (first slice): adapter selection with a clear error when
+//! none exists, feature detection, and WGSL kernels from `shaders/` — each with a CPU twin in the
+//! shared crates that tests check it against on random inputs (lavapipe in CI).
+//!
+//! Device choice: [`DevicePreference`] (`auto | cpu | gpu`), overridable with the `NERF_DEVICE`
+//! environment variable. `cpu` never touches wgpu; `auto` falls back to the CPU path when no
+//! adapter exists; `gpu` makes a missing adapter an error ([`GpuError::NoAdapter`]).
+
+pub mod layout;
+
+use std::str::FromStr;
+
+/// WGSL sources, one file per kernel family (validated by naga in the tests).
+pub mod shaders {
+    /// Volume-rendering quadrature (forward), CPU twin `nerf_render::composite_forward`.
+    pub const COMPOSITE: &str = include_str!("../../../shaders/composite.wgsl");
+    /// Every shader with its file name.
+    pub const ALL: &[(&str, &str)] = &[("composite.wgsl", COMPOSITE)];
+}
+
+/// Errors of the GPU path.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter was found (and the GPU was asked for).
+    #[error("no GPU adapter found (backends tried: {backends}); install a Vulkan/Metal/DX12 driver (e.g. Mesa's lavapipe: apt-get install mesa-vulkan-drivers) or use --device cpu")]
+    NoAdapter {
+        /// Backends that were searched.
+        backends: String,
+    },
+    /// The device could not be created.
+    #[error("could not open the GPU device `{adapter}`: {message}")]
+    Device {
+        /// Adapter name.
+        adapter: String,
+        /// wgpu's message.
+        message: String,
+    },
+    /// `NERF_DEVICE` or `--device` holds an unknown value.
+    #[error("unknown device `{0}` (expected auto, cpu or gpu)")]
+    BadPreference(String),
+    /// A buffer could not be read back.
+    #[error("GPU read-back failed: {0}")]
+    ReadBack(String),
+}
+
+/// Which execution path to use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum DevicePreference {
+    /// The GPU when an adapter exists, else the CPU.
+    #[default]
+    Auto,
+    /// Always the CPU path.
+    Cpu,
+    /// The GPU; an error when there is no adapter.
+    Gpu,
+}
+
+impl FromStr for DevicePreference {
+    type Err = GpuError;
+    fn from_str(s: &str) -> Result<Self, GpuError> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "auto" => Ok(Self::Auto),
+            "cpu" => Ok(Self::Cpu),
+            "gpu" => Ok(Self::Gpu),
+            other => Err(GpuError::BadPreference(other.to_string())),
+        }
+    }
+}
+
+impl DevicePreference {
+    /// `NERF_DEVICE` when set, else `self`.
+    pub fn with_env_override(self) -> Result<Self, GpuError> {
+        match std::env::var("NERF_DEVICE") {
+            Ok(v) if !v.trim().is_empty() => v.parse(),
+            _ => Ok(self),
+        }
+    }
+}
+
+/// What the adapter offers that the kernels can use.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct GpuFeatures {
+    /// `enable f16;` in WGSL.
+    pub shader_f16: bool,
+    /// `atomic<f32>` with `atomicAdd` (scatter-add of hash-table gradients).
+    pub float32_atomics: bool,
+    /// Subgroup builtins.
+    pub subgroups: bool,
+    /// Cooperative matrices (tensor cores from WGSL; experimental in wgpu 30).
+    pub cooperative_matrix: bool,
+}
+
+/// An opened device with its queue and what it supports. Pipelines and buffers are built once
+/// per run from it.
+pub struct GpuContext {
+    /// The device.
+    pub device: wgpu::Device,
+    /// Its queue.
+    pub queue: wgpu::Queue,
+    /// Adapter name, backend, type, driver.
+    pub info: wgpu::AdapterInfo,
+    /// Detected features (those requested from the device).
+    pub features: GpuFeatures,
+}
+
+impl GpuContext {
+    /// Opens the best adapter (high performance first), or `Ok(None)` for `Cpu`, or for `Auto`
+    /// when no adapter exists.
+    pub fn open(pref: DevicePreference) -> Result<Option<Self>, GpuError> {
+        let pref = pref.with_env_override()?;
+        if pref == DevicePreference::Cpu {
+            return Ok(None);
+        }
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            force_fallback_adapter: false,
+            compatible_surface: None,
+            apply_limit_buckets: false,
+        }));
+        let adapter = match adapter {
+            Ok(a) => a,
+            Err(_) if pref == DevicePreference::Auto => return Ok(None),
+            Err(_) => return Err(GpuError::NoAdapter { backends: "vulkan, metal, dx12".into() }),
+        };
+        let info = adapter.get_info();
+        let have = adapter.features();
+        let mut want = wgpu::Features::empty();
+        let mut features = GpuFeatures::default();
+        for (flag, slot) in [
+            (wgpu::Features::SHADER_F16, &mut features.shader_f16),
+            (wgpu::Features::SHADER_FLOAT32_ATOMIC, &mut features.float32_atomics),
+            (wgpu::Features::SUBGROUP, &mut features.subgroups),
+        ] {
+            if have.contains(flag) {
+                want |= flag;
+                *slot = true;
+            }
+        }
+        features.cooperative_matrix = have.contains(wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX);
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("nerf"),
+            required_features: want,
+            required_limits: adapter.limits(),
+            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            trace: wgpu::Trace::Off,
+        }))
+        .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
+        Ok(Some(Self { device, queue, info, features }))
+    }
+
+    /// One line describing the adapter (recorded in metrics.json by the GPU path).
+    pub fn describe(&self) -> String {
+        format!("{} ({:?}, {:?}, {})", self.info.name, self.info.backend, self.info.device_type, self.info.driver)
+    }
+
+    fn storage(&self, label: &str, data: &[u8], writable: bool) -> wgpu::Buffer {
+        use wgpu::util::DeviceExt;
+        let mut usage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST;
+        if writable {
+            usage |= wgpu::BufferUsages::COPY_SRC;
+        }
+        // Storage bindings must not be empty.
+        let data = if data.is_empty() { &[0u8; 4][..] } else { data };
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents: data, usage })
+    }
+
+    fn read_back(&self, src: &wgpu::Buffer, len_f32: usize) -> Result<Vec<f32>, GpuError> {
+        let size = (4 * len_f32.max(1)) as u64;
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("staging"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read") });
+        enc.copy_buffer_to_buffer(src, 0, &staging, 0, size);
+        let idx = self.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::Wait { submission_index: Some(idx), timeout: None })
+            .map_err(|e| GpuError::ReadBack(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| GpuError::ReadBack(e.to_string()))?
+            .map_err(|e| GpuError::ReadBack(e.to_string()))?;
+        let view = staging.get_mapped_range(..).map_err(|e| GpuError::ReadBack(format!("{e:?}")))?;
+        let out: Vec<f32> = bytemuck::cast_slice(&view[..]).to_vec();
+        drop(view);
+        staging.unmap();
+        Ok(out[..len_f32].to_vec())
+    }
+}
+
+/// Outputs of [`Compositor::forward`], read back to the host.
+#[derive(Clone, Debug, Default)]
+pub struct CompositeOutputs {
+    /// `3·n_rays`.
+    pub rgb: Vec<f32>,
+    /// `n_rays`.
+    pub opacity: Vec<f32>,
+    /// `n_rays`.
+    pub depth: Vec<f32>,
+    /// `n` samples.
+    pub weights: Vec<f32>,
+}
+
+/// The compositing kernel (`shaders/composite.wgsl`), pipeline built once.
+pub struct Compositor {
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl Compositor {
+    /// Builds the pipeline.
+    pub fn new(ctx: &GpuContext) -> Self {
+        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("composite.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::COMPOSITE.into()),
+        });
+        let pipeline = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("composite_forward"),
+            layout: None,
+            module: &module,
+            entry_point: Some("composite_forward"),
+            compilation_options: wgpu::PipelineCompilationOptions::default(),
+            cache: None,
+        });
+        Self { pipeline }
+    }
+
+    /// Composites packed samples on the device (host slices in, host vectors out: the testing and
+    /// fallback entry point; a GPU training step keeps these buffers on the device).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward(
+        &self,
+        ctx: &GpuContext,
+        ray_offsets: &[u32],
+        sigma: &[f32],
+        rgb: &[f32],
+        dt: &[f32],
+        t: &[f32],
+        background: Option<&[f32]>,
+        t_threshold: f32,
+    ) -> Result<CompositeOutputs, GpuError> {
+        use wgpu::util::DeviceExt;
+        let n_rays = ray_offsets.len().saturating_sub(1);
+        let n = sigma.len();
+        let params = layout::CompositeParams {
+            n_rays: n_rays as u32,
+            t_threshold,
+            has_background: background.is_some() as u32,
+            _pad: 0,
+        };
+        let uniform = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("params"),
+            contents: bytemuck::bytes_of(&params),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let b = |label, data: &[f32]| ctx.storage(label, bytemuck::cast_slice(data), false);
+        let offsets = ctx.storage("offsets", bytemuck::cast_slice(ray_offsets), false);
+        let (s, c, d, tt) = (b("sigma", sigma), b("rgb", rgb), b("dt", dt), b("t", t));
+        let bg = b("background", background.unwrap_or(&[]));
+        // Outputs start poisoned (NaN) so a kernel that skips a slot cannot pass the tests.
+        let poison = |len: usize| vec![f32::NAN; len.max(1)];
+        let o_rgb = ctx.storage("out_rgb", bytemuck::cast_slice(&poison(3 * n_rays)), true);
+        let o_op = ctx.storage("out_opacity", bytemuck::cast_slice(&poison(n_rays)), true);
+        let o_depth = ctx.storage("out_depth", bytemuck::cast_slice(&poison(n_rays)), true);
+        let o_w = ctx.storage("weights", bytemuck::cast_slice(&poison(n)), true);
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = [&uniform, &offsets, &s, &c, &d, &tt, &bg, &o_rgb, &o_op, &o_depth, &o_w]
+            .iter()
+            .enumerate()
+            .map(|(i, buf)| wgpu::BindGroupEntry { binding: i as u32, resource: buf.as_entire_binding() })
+            .collect();
+        let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("composite"),
+            layout: &self.pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("composite") });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("composite"), timestamp_writes: None });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.dispatch_workgroups((n_rays as u32).div_ceil(64).max(1), 1, 1);
+        }
+        ctx.queue.submit([enc.finish()]);
+        Ok(CompositeOutputs {
+            rgb: ctx.read_back(&o_rgb, 3 * n_rays)?,
+            opacity: ctx.read_back(&o_op, n_rays)?,
+            depth: ctx.read_back(&o_depth, n_rays)?,
+            weights: ctx.read_back(&o_w, n)?,
+        })
+    }
+}

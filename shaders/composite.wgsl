@@ -1,0 +1,63 @@
+// Volume-rendering quadrature over packed samples (forward), one invocation per ray.
+// CPU twin: nerf_render::composite_forward (crates/render). Buffer layouts: crates/gpu/src/layout.rs.
+//
+// α_i = 1 − exp(−σ_i δ_i); T_i = Π_{j<i}(1 − α_j); w_i = T_i α_i;
+// rgb = Σ w_i c_i + (1 − Σ w_i)·bg; opacity = Σ w_i; depth = Σ w_i t_i.
+// Compositing stops (weights 0) once T falls below `t_threshold` (0 disables), as the CPU twin.
+
+struct Params {
+    n_rays: u32,
+    t_threshold: f32,
+    has_background: u32,
+    _pad: u32,
+}
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> ray_offsets: array<u32>;   // n_rays + 1
+@group(0) @binding(2) var<storage, read> sigma: array<f32>;         // n
+@group(0) @binding(3) var<storage, read> rgb: array<f32>;           // 3n
+@group(0) @binding(4) var<storage, read> dt: array<f32>;            // n
+@group(0) @binding(5) var<storage, read> t: array<f32>;             // n
+@group(0) @binding(6) var<storage, read> background: array<f32>;    // 3·n_rays (ignored unless has_background)
+@group(0) @binding(7) var<storage, read_write> out_rgb: array<f32>; // 3·n_rays
+@group(0) @binding(8) var<storage, read_write> out_opacity: array<f32>;
+@group(0) @binding(9) var<storage, read_write> out_depth: array<f32>;
+@group(0) @binding(10) var<storage, read_write> weights: array<f32>; // n
+
+@compute @workgroup_size(64)
+fn composite_forward(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let r = gid.x;
+    if (r >= params.n_rays) {
+        return;
+    }
+    let s0 = ray_offsets[r];
+    let s1 = ray_offsets[r + 1u];
+    var trans = 1.0;
+    var acc = vec3<f32>(0.0);
+    var opacity = 0.0;
+    var depth = 0.0;
+    var stopped = false;
+    for (var k = s0; k < s1; k = k + 1u) {
+        if (stopped || (params.t_threshold > 0.0 && trans < params.t_threshold)) {
+            stopped = true;
+            weights[k] = 0.0;
+            continue;
+        }
+        let em1 = exp(-sigma[k] * dt[k]) - 1.0;   // exp(−σδ) − 1 = −α
+        let w = trans * (-em1);
+        weights[k] = w;
+        acc = acc + w * vec3<f32>(rgb[3u * k], rgb[3u * k + 1u], rgb[3u * k + 2u]);
+        opacity = opacity + w;
+        depth = depth + w * t[k];
+        trans = trans * (1.0 + em1);
+    }
+    if (params.has_background != 0u) {
+        let bg = vec3<f32>(background[3u * r], background[3u * r + 1u], background[3u * r + 2u]);
+        acc = acc + (1.0 - opacity) * bg;
+    }
+    out_rgb[3u * r] = acc.x;
+    out_rgb[3u * r + 1u] = acc.y;
+    out_rgb[3u * r + 2u] = acc.z;
+    out_opacity[r] = opacity;
+    out_depth[r] = depth;
+}
