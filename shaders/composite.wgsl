@@ -61,3 +61,61 @@ fn composite_forward(@builtin(global_invocation_id) gid: vec3<u32>) {
     out_opacity[r] = opacity;
     out_depth[r] = depth;
 }
+
+// ---- backward ------------------------------------------------------------------------------
+// CPU twin: nerf_render::composite_backward. With g_i = d_rgb·(c_i − bg) + d_opacity + d_depth·t_i
+// (bg = 0 without background) the loss gradient is
+//   dσ_k = δ_k (g_k T_{k+1} − Σ_{i>k} w_i g_i),   dc_k = d_rgb · w_k,
+// using the forward's weights; samples after an early stop get zero gradient.
+
+@group(0) @binding(11) var<storage, read> d_ray_rgb: array<f32>;      // 3·n_rays
+@group(0) @binding(12) var<storage, read> d_opacity: array<f32>;      // n_rays (zeros = none)
+@group(0) @binding(13) var<storage, read> d_depth: array<f32>;        // n_rays (zeros = none)
+@group(0) @binding(14) var<storage, read_write> d_sigma: array<f32>;  // n
+@group(0) @binding(15) var<storage, read_write> d_sample_rgb: array<f32>; // 3n
+
+fn grad_weight(k: u32, r: u32, drgb: vec3<f32>, bg: vec3<f32>) -> f32 {
+    let c = vec3<f32>(rgb[3u * k], rgb[3u * k + 1u], rgb[3u * k + 2u]);
+    return dot(drgb, c - bg) + d_opacity[r] + d_depth[r] * t[k];
+}
+
+@compute @workgroup_size(64)
+fn composite_backward(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let r = gid.x;
+    if (r >= params.n_rays) {
+        return;
+    }
+    let s0 = ray_offsets[r];
+    let s1 = ray_offsets[r + 1u];
+    let drgb = vec3<f32>(d_ray_rgb[3u * r], d_ray_rgb[3u * r + 1u], d_ray_rgb[3u * r + 2u]);
+    var bg = vec3<f32>(0.0);
+    if (params.has_background != 0u) {
+        bg = vec3<f32>(background[3u * r], background[3u * r + 1u], background[3u * r + 2u]);
+    }
+    // Total Σ w_i g_i, then one forward sweep with the running prefix.
+    var total = 0.0;
+    for (var k = s0; k < s1; k = k + 1u) {
+        total = total + weights[k] * grad_weight(k, r, drgb, bg);
+    }
+    var trans = 1.0;
+    var prefix = 0.0;
+    var stopped = false;
+    for (var k = s0; k < s1; k = k + 1u) {
+        if (stopped || (params.t_threshold > 0.0 && trans < params.t_threshold)) {
+            stopped = true;
+            d_sigma[k] = 0.0;
+            d_sample_rgb[3u * k] = 0.0;
+            d_sample_rgb[3u * k + 1u] = 0.0;
+            d_sample_rgb[3u * k + 2u] = 0.0;
+            continue;
+        }
+        let g = grad_weight(k, r, drgb, bg);
+        let w = weights[k];
+        prefix = prefix + w * g;
+        trans = trans * exp(-sigma[k] * dt[k]);   // T_{k+1}
+        d_sigma[k] = dt[k] * (g * trans - (total - prefix));
+        d_sample_rgb[3u * k] = drgb.x * w;
+        d_sample_rgb[3u * k + 1u] = drgb.y * w;
+        d_sample_rgb[3u * k + 2u] = drgb.z * w;
+    }
+}

@@ -12,7 +12,8 @@ use std::str::FromStr;
 
 /// WGSL sources, one file per kernel family (validated by naga in the tests).
 pub mod shaders {
-    /// Volume-rendering quadrature (forward), CPU twin `nerf_render::composite_forward`.
+    /// Volume-rendering quadrature, forward and backward; CPU twins `nerf_render::composite_forward`
+    /// and `nerf_render::composite_backward`.
     pub const COMPOSITE: &str = include_str!("../../../shaders/composite.wgsl");
     /// Every shader with its file name.
     pub const ALL: &[(&str, &str)] = &[("composite.wgsl", COMPOSITE)];
@@ -208,9 +209,19 @@ pub struct CompositeOutputs {
     pub weights: Vec<f32>,
 }
 
-/// The compositing kernel (`shaders/composite.wgsl`), pipeline built once.
+/// Gradients of [`Compositor::backward`], read back to the host.
+#[derive(Clone, Debug, Default)]
+pub struct CompositeGrads {
+    /// dL/dσ per sample (`n`).
+    pub d_sigma: Vec<f32>,
+    /// dL/dc per sample (`3·n`).
+    pub d_rgb: Vec<f32>,
+}
+
+/// The compositing kernels (`shaders/composite.wgsl`), pipelines built once.
 pub struct Compositor {
     pipeline: wgpu::ComputePipeline,
+    backward: wgpu::ComputePipeline,
 }
 
 impl Compositor {
@@ -220,15 +231,68 @@ impl Compositor {
             label: Some("composite.wgsl"),
             source: wgpu::ShaderSource::Wgsl(shaders::COMPOSITE.into()),
         });
-        let pipeline = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("composite_forward"),
-            layout: None,
-            module: &module,
-            entry_point: Some("composite_forward"),
-            compilation_options: wgpu::PipelineCompilationOptions::default(),
-            cache: None,
-        });
-        Self { pipeline }
+        let make = |entry: &str| {
+            ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: None,
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: wgpu::PipelineCompilationOptions::default(),
+                cache: None,
+            })
+        };
+        Self { pipeline: make("composite_forward"), backward: make("composite_backward") }
+    }
+
+    /// Gradients w.r.t. σ and the sample colours from the ray gradients, given the forward's
+    /// `weights` (as [`Compositor::forward`] returns them).
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward(
+        &self,
+        ctx: &GpuContext,
+        ray_offsets: &[u32],
+        sigma: &[f32],
+        rgb: &[f32],
+        dt: &[f32],
+        t: &[f32],
+        background: Option<&[f32]>,
+        t_threshold: f32,
+        weights: &[f32],
+        d_ray_rgb: &[f32],
+        d_opacity: Option<&[f32]>,
+        d_depth: Option<&[f32]>,
+    ) -> Result<CompositeGrads, GpuError> {
+        let n_rays = ray_offsets.len().saturating_sub(1);
+        let n = sigma.len();
+        let zeros = vec![0.0f32; n_rays];
+        let b = |label, data: &[f32]| ctx.storage(label, bytemuck::cast_slice(data), false);
+        let inputs = [
+            b("sigma", sigma),
+            b("rgb", rgb),
+            b("dt", dt),
+            b("t", t),
+            b("background", background.unwrap_or(&[])),
+            b("weights", weights),
+            b("d_ray_rgb", d_ray_rgb),
+            b("d_opacity", d_opacity.unwrap_or(&zeros)),
+            b("d_depth", d_depth.unwrap_or(&zeros)),
+        ];
+        let poison = |len: usize| vec![f32::NAN; len.max(1)];
+        let d_s = ctx.storage("d_sigma", bytemuck::cast_slice(&poison(n)), true);
+        let d_c = ctx.storage("d_sample_rgb", bytemuck::cast_slice(&poison(3 * n)), true);
+        let uniform = params_buffer(ctx, n_rays, t_threshold, background.is_some());
+        let offsets = ctx.storage("offsets", bytemuck::cast_slice(ray_offsets), false);
+        let [s, c, d, tt, bg, w, drgb, dop, ddep] = &inputs;
+        let bound: [(u32, &wgpu::Buffer); 13] = [
+            (0, &uniform), (1, &offsets), (2, s), (3, c), (4, d), (5, tt), (6, bg), (10, w),
+            (11, drgb), (12, dop), (13, ddep), (14, &d_s), (15, &d_c),
+        ];
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = bound
+            .iter()
+            .map(|(i, buf)| wgpu::BindGroupEntry { binding: *i, resource: buf.as_entire_binding() })
+            .collect();
+        dispatch(ctx, &self.backward, &entries, n_rays);
+        Ok(CompositeGrads { d_sigma: ctx.read_back(&d_s, n)?, d_rgb: ctx.read_back(&d_c, 3 * n)? })
     }
 
     /// Composites packed samples on the device (host slices in, host vectors out: the testing and
@@ -245,20 +309,9 @@ impl Compositor {
         background: Option<&[f32]>,
         t_threshold: f32,
     ) -> Result<CompositeOutputs, GpuError> {
-        use wgpu::util::DeviceExt;
         let n_rays = ray_offsets.len().saturating_sub(1);
         let n = sigma.len();
-        let params = layout::CompositeParams {
-            n_rays: n_rays as u32,
-            t_threshold,
-            has_background: background.is_some() as u32,
-            _pad: 0,
-        };
-        let uniform = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("params"),
-            contents: bytemuck::bytes_of(&params),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
+        let uniform = params_buffer(ctx, n_rays, t_threshold, background.is_some());
         let b = |label, data: &[f32]| ctx.storage(label, bytemuck::cast_slice(data), false);
         let offsets = ctx.storage("offsets", bytemuck::cast_slice(ray_offsets), false);
         let (s, c, d, tt) = (b("sigma", sigma), b("rgb", rgb), b("dt", dt), b("t", t));
@@ -274,19 +327,7 @@ impl Compositor {
             .enumerate()
             .map(|(i, buf)| wgpu::BindGroupEntry { binding: i as u32, resource: buf.as_entire_binding() })
             .collect();
-        let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("composite"),
-            layout: &self.pipeline.get_bind_group_layout(0),
-            entries: &entries,
-        });
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("composite") });
-        {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("composite"), timestamp_writes: None });
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &group, &[]);
-            pass.dispatch_workgroups((n_rays as u32).div_ceil(64).max(1), 1, 1);
-        }
-        ctx.queue.submit([enc.finish()]);
+        dispatch(ctx, &self.pipeline, &entries, n_rays);
         Ok(CompositeOutputs {
             rgb: ctx.read_back(&o_rgb, 3 * n_rays)?,
             opacity: ctx.read_back(&o_op, n_rays)?,
@@ -294,4 +335,36 @@ impl Compositor {
             weights: ctx.read_back(&o_w, n)?,
         })
     }
+}
+
+fn params_buffer(ctx: &GpuContext, n_rays: usize, t_threshold: f32, has_background: bool) -> wgpu::Buffer {
+    use wgpu::util::DeviceExt;
+    let params = layout::CompositeParams {
+        n_rays: n_rays as u32,
+        t_threshold,
+        has_background: has_background as u32,
+        _pad: 0,
+    };
+    ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("params"),
+        contents: bytemuck::bytes_of(&params),
+        usage: wgpu::BufferUsages::UNIFORM,
+    })
+}
+
+/// One dispatch of `pipeline` over `n_rays` invocations (workgroups of 64) with group 0 bound.
+fn dispatch(ctx: &GpuContext, pipeline: &wgpu::ComputePipeline, entries: &[wgpu::BindGroupEntry<'_>], n_rays: usize) {
+    let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: None,
+        layout: &pipeline.get_bind_group_layout(0),
+        entries,
+    });
+    let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: None });
+    {
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: None, timestamp_writes: None });
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &group, &[]);
+        pass.dispatch_workgroups((n_rays as u32).div_ceil(64).max(1), 1, 1);
+    }
+    ctx.queue.submit([enc.finish()]);
 }
