@@ -227,3 +227,14 @@ pub(crate) fn ray_geometry(
         ri[k] = r as u32;
     }
 }
+
+/// Checks the per-ray inputs every sampler takes (`3·n` origins and directions, `n` near and far
+/// distances) and returns the number of rays. Mismatched lengths are programmer errors: panics.
+pub(crate) fn check_rays(origins: &[f32], dirs: &[f32], near: &[f32], far: &[f32]) -> usize {
+    let n_rays = near.len();
+    assert_eq!(far.len(), n_rays, "near and far must have one value per ray");
+    assert_eq!(origins.len(), 3 * n_rays, "origins must hold 3·n_rays values");
+    assert_eq!(dirs.len(), 3 * n_rays, "dirs must hold 3·n_rays values");
+    n_rays
+}
+

@@ -27,18 +27,7 @@ pub fn stratified(
     rng: Option<&mut nerf_core::Rng>,
     out: &mut RaySamples,
 ) {
-    let n_rays = near.len();
-    assert_eq!(
-        far.len(),
-        n_rays,
-        "near and far must have one value per ray"
-    );
-    assert_eq!(
-        origins.len(),
-        3 * n_rays,
-        "origins must hold 3·n_rays values"
-    );
-    assert_eq!(dirs.len(), 3 * n_rays, "dirs must hold 3·n_rays values");
+    let n_rays = crate::packed::check_rays(origins, dirs, near, far);
     let seed = rng.map(|r| r.gen::<u64>());
 
     out.ray_offsets.clear();
