@@ -6,18 +6,19 @@
 //! environment variable. `cpu` never touches wgpu; `auto` falls back to the CPU path when no
 //! adapter exists; `gpu` makes a missing adapter an error ([`GpuError::NoAdapter`]).
 
+pub mod encoding;
+pub mod kernel;
 pub mod layout;
+pub mod linear;
+pub mod mlp;
+pub mod optim;
+pub mod rng;
+pub mod sampling;
+pub mod shaders;
+
+pub use kernel::{groups_1d, Kernel};
 
 use std::str::FromStr;
-
-/// WGSL sources, one file per kernel family (validated by naga in the tests).
-pub mod shaders {
-    /// Volume-rendering quadrature, forward and backward; CPU twins `nerf_render::composite_forward`
-    /// and `nerf_render::composite_backward`.
-    pub const COMPOSITE: &str = include_str!("../../../shaders/composite.wgsl");
-    /// Every shader with its file name.
-    pub const ALL: &[(&str, &str)] = &[("composite.wgsl", COMPOSITE)];
-}
 
 /// Errors of the GPU path.
 #[derive(Debug, thiserror::Error)]
@@ -138,12 +139,22 @@ impl GpuContext {
                 *slot = true;
             }
         }
-        features.cooperative_matrix = have.contains(wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX);
+        features.cooperative_matrix = have.contains(wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX)
+            && std::env::var_os("NERF_NO_COOP").is_none();
+        if features.cooperative_matrix {
+            want |= wgpu::Features::EXPERIMENTAL_COOPERATIVE_MATRIX;
+        }
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("nerf"),
             required_features: want,
             required_limits: adapter.limits(),
-            experimental_features: wgpu::ExperimentalFeatures::disabled(),
+            // SAFETY: experimental features are only enabled to use cooperative matrices, whose
+            // kernels are validated against the plain-WGSL path in the tests (docs/gpu.md).
+            experimental_features: if features.cooperative_matrix {
+                unsafe { wgpu::ExperimentalFeatures::enabled() }
+            } else {
+                wgpu::ExperimentalFeatures::disabled()
+            },
             memory_hints: wgpu::MemoryHints::Performance,
             trace: wgpu::Trace::Off,
         }))
@@ -229,7 +240,7 @@ impl Compositor {
     pub fn new(ctx: &GpuContext) -> Self {
         let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("composite.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::COMPOSITE.into()),
+            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::COMPOSITE).into()),
         });
         let make = |entry: &str| {
             ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
