@@ -11,6 +11,8 @@ pub mod kernel;
 pub mod layout;
 pub mod linear;
 pub mod mlp;
+pub mod occupancy;
+pub mod pdf;
 pub mod optim;
 pub mod rng;
 pub mod sampling;
@@ -40,6 +42,9 @@ pub enum GpuError {
     /// `NERF_DEVICE` or `--device` holds an unknown value.
     #[error("unknown device `{0}` (expected auto, cpu or gpu)")]
     BadPreference(String),
+    /// A configuration the GPU kernels do not support (the message says which limit).
+    #[error("not supported on the GPU path: {0}")]
+    Unsupported(String),
     /// A buffer could not be read back.
     #[error("GPU read-back failed: {0}")]
     ReadBack(String),
