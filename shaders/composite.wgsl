@@ -5,6 +5,8 @@
 // rgb = Σ w_i c_i + (1 − Σ w_i)·bg; opacity = Σ w_i; depth = Σ w_i t_i.
 // Compositing stops (weights 0) once T falls below `t_threshold` (0 disables), as the CPU twin.
 
+// The number of rays is read on the device from counters[0] (slot COUNTER_N_RAYS); params.n_rays is
+// the capacity the buffers were sized for (the launch size).
 struct Params {
     n_rays: u32,
     t_threshold: f32,
@@ -23,11 +25,12 @@ struct Params {
 @group(0) @binding(8) var<storage, read_write> out_opacity: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_depth: array<f32>;
 @group(0) @binding(10) var<storage, read_write> weights: array<f32>; // n
+@group(0) @binding(16) var<storage, read> counters: array<u32>;     // [0] = n_rays
 
 @compute @workgroup_size(64)
-fn composite_forward(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let r = gid.x;
-    if (r >= params.n_rays) {
+fn composite_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let r = linear_id(gid, nwg, 64u);
+    if (r >= min(counters[0], params.n_rays)) {
         return;
     }
     let s0 = ray_offsets[r];
@@ -80,9 +83,9 @@ fn grad_weight(k: u32, r: u32, drgb: vec3<f32>, bg: vec3<f32>) -> f32 {
 }
 
 @compute @workgroup_size(64)
-fn composite_backward(@builtin(global_invocation_id) gid: vec3<u32>) {
-    let r = gid.x;
-    if (r >= params.n_rays) {
+fn composite_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let r = linear_id(gid, nwg, 64u);
+    if (r >= min(counters[0], params.n_rays)) {
         return;
     }
     let s0 = ray_offsets[r];

@@ -32,6 +32,8 @@ pub const MLP_FUSED: &str = wgsl!("mlp_fused.wgsl");
 pub const LINEAR: &str = wgsl!("linear.wgsl");
 /// Tiled linear layers on cooperative matrices (f16 in, f32 accumulate).
 pub const LINEAR_COOP: &str = wgsl!("linear_coop.wgsl");
+/// Training-step glue: photometric loss and adaptive batch size.
+pub const TRAIN: &str = wgsl!("train.wgsl");
 /// Adam update.
 pub const ADAM: &str = wgsl!("adam.wgsl");
 /// Inverse-transform (hierarchical) sampling.
@@ -51,6 +53,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("linear.wgsl", LINEAR),
     ("linear_coop.wgsl", LINEAR_COOP),
     ("adam.wgsl", ADAM),
+    ("train.wgsl", TRAIN),
     ("pdf.wgsl", PDF),
 ];
 

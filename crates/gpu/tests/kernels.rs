@@ -74,11 +74,11 @@ fn batch(seed: u64, n_rays: usize) -> (Vec<u32>, Vec<f32>, Vec<f32>, Vec<f32>, V
 #[test]
 fn composite_kernel_matches_its_cpu_twin() {
     let Some(ctx) = context() else { return };
-    let k = Compositor::new(&ctx);
     for (seed, thr, with_bg) in [(1u64, 0.0f32, true), (2, 1e-3, true), (3, 0.0, false), (4, 0.05, true)] {
         let (offsets, sigma, rgb, dt, t, bg) = batch(seed, 1000);
         let bg_opt = with_bg.then_some(&bg[..]);
-        let gpu = k.forward(&ctx, &offsets, &sigma, &rgb, &dt, &t, bg_opt, thr).unwrap();
+        let k = Compositor::new(&ctx, 1000, thr, with_bg);
+        let gpu = k.forward(&ctx, &offsets, &sigma, &rgb, &dt, &t, bg_opt).unwrap();
         let mut cpu = nerf_render::CompositeOutputs::<f32>::default();
         nerf_render::composite_forward(&offsets, &sigma, &rgb, &dt, &t, bg_opt, thr, &mut cpu);
         let close = |what: &str, a: &[f32], b: &[f32], tol: f32| {
@@ -99,8 +99,8 @@ fn composite_kernel_matches_its_cpu_twin() {
 #[test]
 fn composite_kernel_handles_an_empty_batch() {
     let Some(ctx) = context() else { return };
-    let k = Compositor::new(&ctx);
-    let out = k.forward(&ctx, &[0, 0, 0], &[], &[], &[], &[], Some(&[0.5; 6]), 0.0).unwrap();
+    let k = Compositor::new(&ctx, 2, 0.0, true);
+    let out = k.forward(&ctx, &[0, 0, 0], &[], &[], &[], &[], Some(&[0.5; 6])).unwrap();
     assert_eq!(out.rgb, vec![0.5; 6]);
     assert_eq!(out.opacity, vec![0.0; 2]);
 }
@@ -108,7 +108,6 @@ fn composite_kernel_handles_an_empty_batch() {
 #[test]
 fn composite_backward_kernel_matches_its_cpu_twin() {
     let Some(ctx) = context() else { return };
-    let k = Compositor::new(&ctx);
     for (seed, thr, with_bg, all_grads) in [(5u64, 0.0f32, true, true), (6, 1e-3, true, true), (7, 0.0, false, false), (8, 0.05, true, true)] {
         let (offsets, sigma, rgb, dt, t, bg) = batch(seed, 800);
         let n_rays = offsets.len() - 1;
@@ -123,8 +122,9 @@ fn composite_backward_kernel_matches_its_cpu_twin() {
         let n = sigma.len();
         let (mut ds, mut dc) = (vec![f32::NAN; n], vec![f32::NAN; 3 * n]);
         nerf_render::composite_backward(&offsets, &sigma, &rgb, &dt, &t, bg_opt, &cpu, &d_rgb, dop, ddep, &mut ds, &mut dc);
+        let k = Compositor::new(&ctx, n_rays, thr, with_bg);
         let gpu = k
-            .backward(&ctx, &offsets, &sigma, &rgb, &dt, &t, bg_opt, thr, &cpu.weights, &d_rgb, dop, ddep)
+            .backward(&ctx, &offsets, &sigma, &rgb, &dt, &t, bg_opt, &cpu.weights, &d_rgb, dop, ddep)
             .unwrap();
         // The GPU sums prefix-wise (total − prefix) where the CPU keeps a suffix sum; with ≤ 40
         // samples of |w·g| ≤ ~4 the difference stays ~1e-6 absolute; δ ≤ 0.2 scales it down.
@@ -134,5 +134,46 @@ fn composite_backward_kernel_matches_its_cpu_twin() {
                 assert!((x - y).abs() <= 5e-5 * (1.0 + y.abs()), "{what}[{i}]: gpu {x} vs cpu {y} (seed {seed})");
             }
         }
+    }
+}
+
+#[test]
+fn loss_kernel_matches_mse_loss_grad() {
+    let Some(ctx) = context() else { return };
+    let glue = nerf_gpu::TrainGlue::new(&ctx, 5000, nerf_gpu::composite::BatchParams::default());
+    for (seed, n) in [(11u64, 1usize), (12, 777), (13, 5000)] {
+        let mut rng = nerf_core::rng(seed, 0);
+        let pred: Vec<f32> = (0..3 * n).map(|_| rng.gen()).collect();
+        let target: Vec<f32> = (0..3 * n).map(|_| rng.gen()).collect();
+        let mut d_cpu = vec![0.0; 3 * n];
+        let mse = nerf_render::mse_loss_grad(&pred, &target, &mut d_cpu);
+        let (d_gpu, sq) = glue.loss(&ctx, &pred, &target).unwrap();
+        for (i, (a, b)) in d_gpu.iter().zip(&d_cpu).enumerate() {
+            assert!((a - b).abs() <= 1e-6 * (1.0 + b.abs()), "d_pred[{i}]: {a} vs {b}");
+        }
+        let gpu_mse = sq.iter().map(|&x| x as f64).sum::<f64>() / (3 * n) as f64;
+        assert!((gpu_mse - mse as f64).abs() <= 1e-5 * mse as f64, "{gpu_mse} vs {mse}");
+    }
+}
+
+#[test]
+fn batch_sizing_kernel_follows_the_cpu_rule() {
+    let Some(ctx) = context() else { return };
+    let bp = nerf_gpu::composite::BatchParams { target_samples: 1 << 16, min_rays: 64, max_rays: 1 << 14, _pad: 0 };
+    let glue = nerf_gpu::TrainGlue::new(&ctx, 1 << 14, bp);
+    let counters = ctx.upload("counters", &[1000u32, 50_000]);
+    let spr = ctx.upload("spr", &[0.0f32]);
+    let mut mean = 0.0f32;
+    for (n_rays, n_samples) in [(1000u32, 50_000u32), (1310, 20_000), (4000, 1_000), (16384, 0)] {
+        ctx.write(&counters, 0, &[n_rays, n_samples]);
+        let mut enc = ctx.encoder("batch");
+        glue.record_next_batch(&ctx, &mut enc, &counters, &spr);
+        ctx.queue.submit([enc.finish()]);
+        let s = n_samples as f32 / n_rays as f32;
+        mean = if mean > 0.0 { 0.9 * mean + 0.1 * s } else { s };
+        let want = ((bp.target_samples as f32 / mean.max(1e-6)) as u32).clamp(bp.min_rays, bp.max_rays);
+        let got = ctx.read_u32(&counters, 1).unwrap()[0];
+        assert_eq!(got, want, "after ({n_rays}, {n_samples})");
+        assert!((ctx.read_f32(&spr, 1).unwrap()[0] - mean).abs() <= 1e-5 * mean.max(1.0));
     }
 }

@@ -1,0 +1,64 @@
+// Training-step glue on the device: the photometric loss and its gradient, and the adaptive batch
+// size (rays per step from a target number of samples per step). CPU twins:
+// nerf_render::mse_loss_grad and nerf_train's batch sizing (Trainer::step).
+
+struct LossParams {
+    capacity_rays: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+@group(0) @binding(0) var<uniform> lp: LossParams;
+@group(0) @binding(1) var<storage, read> counters: array<u32>;       // [0] = n_rays
+@group(0) @binding(2) var<storage, read> pred: array<f32>;           // 3·n_rays
+@group(0) @binding(3) var<storage, read> target_rgb: array<f32>;     // 3·n_rays
+@group(0) @binding(4) var<storage, read_write> d_pred: array<f32>;   // 3·n_rays
+@group(0) @binding(5) var<storage, read_write> ray_sq_err: array<f32>; // n_rays: Σ_c (pred − target)²
+
+// MSE over all 3·n_rays values: L = Σ e² / (3 n), dL/dpred = 2 e / (3 n). The per-ray squared
+// errors are kept so the host can read the loss every N steps without a reduction kernel.
+@compute @workgroup_size(64)
+fn mse_loss(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let r = linear_id(gid, nwg, 64u);
+    let n = min(counters[0], lp.capacity_rays);
+    if (r >= n) {
+        return;
+    }
+    let scale = 2.0 / f32(3u * n);
+    var sq = 0.0;
+    for (var c = 0u; c < 3u; c = c + 1u) {
+        let e = pred[3u * r + c] - target_rgb[3u * r + c];
+        d_pred[3u * r + c] = scale * e;
+        sq = sq + e * e;
+    }
+    ray_sq_err[r] = sq;
+}
+
+struct BatchParams {
+    target_samples: u32,
+    min_rays: u32,
+    max_rays: u32,
+    _pad: u32,
+}
+
+@group(0) @binding(0) var<uniform> bp: BatchParams;
+@group(0) @binding(1) var<storage, read_write> batch_counters: array<u32>;  // [0] n_rays, [1] n_samples
+@group(0) @binding(2) var<storage, read_write> samples_per_ray: array<f32>; // [0] running mean (0 = none yet)
+
+// After a step: running mean of samples per ray (0.9 / 0.1 EMA, the first step sets it), then the
+// next step's ray count = clamp(target / mean, min_rays, max_rays). One invocation.
+@compute @workgroup_size(1)
+fn next_batch() {
+    let n_rays = max(batch_counters[0], 1u);
+    let spr = f32(batch_counters[1]) / f32(n_rays);
+    var m = samples_per_ray[0];
+    if (m > 0.0) {
+        m = 0.9 * m + 0.1 * spr;
+    } else {
+        m = spr;
+    }
+    samples_per_ray[0] = m;
+    let want = f32(bp.target_samples) / max(m, 1e-6);
+    batch_counters[0] = u32(clamp(want, f32(bp.min_rays), f32(bp.max_rays)));
+}
