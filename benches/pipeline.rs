@@ -53,10 +53,10 @@ fn training_iteration(c: &mut Criterion) {
         ..TrainConfig::default()
     };
     let mut trainer = Trainer::new(config, &registry, SceneBounds::of(&data)).unwrap();
-    let samples = trainer.step(&data).n_samples; // warm up buffers; samples per step are fixed
+    let samples = trainer.step(&data).unwrap().n_samples; // warm up buffers; samples per step are fixed
     g.throughput(Throughput::Elements(samples as u64));
     g.bench_function(BenchmarkId::new("freq", format!("{rays}rays_{n_coarse}+{n_fine}")), |b| {
-        b.iter(|| black_box(trainer.step(&data)))
+        b.iter(|| black_box(trainer.step(&data).unwrap()))
     });
 
     // The grid fields with their registry presets, measured after the occupancy warm-up so the
@@ -78,11 +78,11 @@ fn training_iteration(c: &mut Criterion) {
         let mut trainer = Trainer::new(config, &registry, SceneBounds::of(&data)).unwrap();
         let mut seen = 0;
         for _ in 0..warmup {
-            seen = trainer.step(&data).n_samples;
+            seen = trainer.step(&data).unwrap().n_samples;
         }
         g.throughput(Throughput::Elements(seen as u64));
         g.bench_function(BenchmarkId::new(field, format!("target_{target}_samples")), |b| {
-            b.iter(|| black_box(trainer.step(&data)))
+            b.iter(|| black_box(trainer.step(&data).unwrap()))
         });
     }
     g.finish();

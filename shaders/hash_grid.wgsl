@@ -1,1 +1,212 @@
-// placeholder: kernels being written
+// Multiresolution hash encoding (Instant-NGP), forward and parameter backward.
+// CPU twin: nerf_encoding::HashGrid (crates/encoding/src/hash_grid.rs); host side:
+// nerf_gpu::encoding::GpuHashGrid. Same level resolutions, dense/hashed levels, spatial hash
+// (x·1 ⊕ y·2654435761 ⊕ z·805459861) & (T−1), corner order (bit 0 = +x, bit 1 = +y, bit 2 = +z),
+// trilinear weights and summation order as the CPU.
+//
+// Layouts (row-major, exactly the CPU's):
+//   counters   array<u32>; counters[1] = n samples (nerf_gpu::layout::COUNTER_N_SAMPLES)
+//   positions  [n][3] f32 in WORLD units; normalised as nerf-field-hash does:
+//              clamp((p − aabb_min)·inv_extent, 0, 1), NaN → 0 (Rust's f32::max maps NaN to 0)
+//   params     [n_params] f32 = HashGrid::params(): level l starts at levels[l].y (in floats),
+//              slot-major within a level: feature j of slot s is params[off + s·F + j]
+//   features   [n][L·F] f32, level-major (sample i, level l, feature j at (i·L + l)·F + j)
+//   d_features [n][L·F] f32 (same layout); grads: same layout as params, ACCUMULATED
+//
+// Launch: workgroups (x, y) = groups_1d(capacity, WG), z = L. One invocation per (sample, level):
+// a workgroup reads a single level's table (cache locality, as tiny-cuda-nn). Invocations with
+// i >= n return.
+//
+// `Feat` holds the F features of one slot as one vector load: f32 (F = 1), vec2 (F = 2),
+// vec4 (F = 4 and 8, two per slot for F = 8). The host rewrites the alias line below for F ≠ 2
+// (GpuHashGrid::new). The backward entry points add with atomic<f32> (hash_backward_atomic, needs
+// SHADER_FLOAT32_ATOMIC; the host strips the marked section when the adapter lacks it) or with a
+// compare-and-swap loop on atomic<u32> (hash_backward_cas).
+
+alias Feat = vec2<f32>;
+
+// F (features per level).
+override FEATS: u32 = 2u;
+// Feat vectors per slot (F / components of Feat).
+override VEC_PER_SLOT: u32 = 1u;
+override WG: u32 = 128u;
+
+struct Params {
+    aabb_min: vec3<f32>,
+    n_levels: u32,
+    inv_extent: vec3<f32>,
+    _pad: u32,
+    // Per level: x = resolution, y = offset of the level in params (floats), z = 1 when dense,
+    // w = T − 1 (hash mask).
+    levels: array<vec4<u32>, 64>,
+}
+
+@group(0) @binding(0) var<uniform> P: Params;
+@group(0) @binding(1) var<storage, read> counters: array<u32>;
+@group(0) @binding(2) var<storage, read> positions: array<f32>;
+@group(0) @binding(3) var<storage, read> table: array<Feat>;
+@group(0) @binding(4) var<storage, read_write> features: array<Feat>;
+@group(0) @binding(5) var<storage, read> d_features: array<f32>;
+@group(0) @binding(6) var<storage, read_write> grads_cas: array<atomic<u32>>;
+
+// The 8 corners of a sample's cell at one level: slot indices within the level and weights.
+struct Cell {
+    slot: array<u32, 8>,
+    w: array<f32, 8>,
+}
+
+fn is_nan(v: f32) -> bool {
+    // Bit test: WGSL lets compilers assume x == x for floats.
+    return (bitcast<u32>(v) & 0x7fffffffu) > 0x7f800000u;
+}
+
+// Position i normalised to [0, 1]³ as nerf-field-hash does.
+fn unit_position(i: u32) -> vec3<f32> {
+    let p = vec3<f32>(positions[3u * i], positions[3u * i + 1u], positions[3u * i + 2u]);
+    var x = (p - P.aabb_min) * P.inv_extent;
+    for (var a = 0u; a < 3u; a++) {
+        x[a] = select(clamp(x[a], 0.0, 1.0), 0.0, is_nan(x[a]));
+    }
+    return x;
+}
+
+fn cell(x: vec3<f32>, lv: vec4<u32>) -> Cell {
+    let res = lv.x;
+    let res_f = f32(res);
+    var v: vec3<u32>;
+    var f: vec3<f32>;
+    for (var a = 0u; a < 3u; a++) {
+        let p = x[a] * res_f;
+        let vi = min(u32(p), res - 1u);
+        v[a] = vi;
+        f[a] = p - f32(vi);
+    }
+    var c: Cell;
+    if (lv.z != 0u) {
+        let s = res + 1u;
+        let base = v.x + s * (v.y + s * v.z);
+        for (var k = 0u; k < 8u; k++) {
+            c.slot[k] = base + (k & 1u) + ((k >> 1u) & 1u) * s + (k >> 2u) * s * s;
+        }
+    } else {
+        let hx = array<u32, 2>(v.x, v.x + 1u);
+        let hy = array<u32, 2>(v.y * 2654435761u, (v.y + 1u) * 2654435761u);
+        let hz = array<u32, 2>(v.z * 805459861u, (v.z + 1u) * 805459861u);
+        for (var k = 0u; k < 8u; k++) {
+            c.slot[k] = (hx[k & 1u] ^ hy[(k >> 1u) & 1u] ^ hz[k >> 2u]) & lv.w;
+        }
+    }
+    let ax = array<f32, 2>(1.0 - f.x, f.x);
+    let ay = array<f32, 2>(1.0 - f.y, f.y);
+    let az = array<f32, 2>(1.0 - f.z, f.z);
+    for (var k = 0u; k < 8u; k++) {
+        c.w[k] = ax[k & 1u] * ay[(k >> 1u) & 1u] * az[k >> 2u];
+    }
+    return c;
+}
+
+// Samples of this step, bounded by what the bound buffers hold.
+fn n_samples(out_len: u32, per_sample: u32) -> u32 {
+    return min(counters[1], min(arrayLength(&positions) / 3u, out_len / per_sample));
+}
+
+@compute @workgroup_size(WG)
+fn hash_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let l = gid.z;
+    let nl = P.n_levels;
+    if (i >= n_samples(arrayLength(&features), nl * VEC_PER_SLOT) || l >= nl) {
+        return;
+    }
+    let lv = P.levels[l];
+    let c = cell(unit_position(i), lv);
+    let base = lv.y / (FEATS / VEC_PER_SLOT);
+    let out = (i * nl + l) * VEC_PER_SLOT;
+    for (var v = 0u; v < VEC_PER_SLOT; v++) {
+        var acc = Feat(0.0);
+        for (var k = 0u; k < 8u; k++) {
+            acc += c.w[k] * table[base + c.slot[k] * VEC_PER_SLOT + v];
+        }
+        features[out + v] = acc;
+    }
+}
+
+// d_features of (sample i, level l), or false when they are all zero (nothing to add).
+struct Grad {
+    g: array<f32, 8>,
+    any: bool,
+}
+
+fn load_grad(i: u32, l: u32) -> Grad {
+    var r: Grad;
+    r.any = false;
+    let o = (i * P.n_levels + l) * FEATS;
+    for (var j = 0u; j < FEATS; j++) {
+        r.g[j] = d_features[o + j];
+        r.any = r.any || r.g[j] != 0.0;
+    }
+    return r;
+}
+
+fn add_cas(idx: u32, v: f32) {
+    var old = atomicLoad(&grads_cas[idx]);
+    loop {
+        let r = atomicCompareExchangeWeak(&grads_cas[idx], old, bitcast<u32>(bitcast<f32>(old) + v));
+        if (r.exchanged) {
+            break;
+        }
+        old = r.old_value;
+    }
+}
+
+@compute @workgroup_size(WG)
+fn hash_backward_cas(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let l = gid.z;
+    if (i >= n_samples(arrayLength(&d_features), P.n_levels * FEATS) || l >= P.n_levels) {
+        return;
+    }
+    let g = load_grad(i, l);
+    if (!g.any) {
+        return;
+    }
+    let lv = P.levels[l];
+    let c = cell(unit_position(i), lv);
+    for (var k = 0u; k < 8u; k++) {
+        let o = lv.y + c.slot[k] * FEATS;
+        for (var j = 0u; j < FEATS; j++) {
+            let d = c.w[k] * g.g[j];
+            if (d != 0.0) {
+                add_cas(o + j, d);
+            }
+        }
+    }
+}
+
+//#begin f32-atomics
+@group(0) @binding(7) var<storage, read_write> grads_f32: array<atomic<f32>>;
+
+@compute @workgroup_size(WG)
+fn hash_backward_atomic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let l = gid.z;
+    if (i >= n_samples(arrayLength(&d_features), P.n_levels * FEATS) || l >= P.n_levels) {
+        return;
+    }
+    let g = load_grad(i, l);
+    if (!g.any) {
+        return;
+    }
+    let lv = P.levels[l];
+    let c = cell(unit_position(i), lv);
+    for (var k = 0u; k < 8u; k++) {
+        let o = lv.y + c.slot[k] * FEATS;
+        for (var j = 0u; j < FEATS; j++) {
+            let d = c.w[k] * g.g[j];
+            if (d != 0.0) {
+                atomicAdd(&grads_f32[o + j], d);
+            }
+        }
+    }
+}
+//#end f32-atomics

@@ -1,1 +1,107 @@
-// placeholder: kernels being written
+// Training rays drawn on the device from the training images (one invocation per ray).
+// CPU twin: nerf_gpu::sampling::ray_batch_cpu (built on nerf_rays::Camera::ray_at and nerf_data's
+// compositing rule). Host side: crates/gpu/src/sampling.rs (GpuImages, GpuRayGen, GpuRays).
+//
+// Ray r < n_rays = min(counters[0], capacity) picks, with the counter-based generator of
+// common.wgsl (streams = the RAY_STREAM_* constants of sampling.rs):
+//   view = rand_u32(seed, 0x52410001, r) % n_views
+//   col  = rand_u32(seed, 0x52410002, r) % width,  row = rand_u32(seed, 0x52410003, r) % height
+//   (u, v) = (col + off, row + off), off = 0.5 (pixel centres) or 0 (integer convention);
+//   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
+// Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays).
+// Background: white, black, or (random) rand_f32(seed, 0x52410006 + c, r) per channel c.
+// Target: rgb·a + (1 − a)·bg (straight alpha, as nerf_data).
+//
+// Layouts: cameras = array<Cam> (one per view, see Cam); pixels = one u32 per pixel, RGBA8
+// (r | g<<8 | b<<16 | a<<24, value/255) when format == 1, or two u32 per pixel, RGBA16
+// (r | g<<16, b | a<<16, value/65535) when format == 2; pixel (col, row) of a view is pixel
+// `pixel_offset + row·width + col`. Outputs: origins, dirs (unit), target, background: [R][3] f32.
+
+const WG: u32 = 64u;
+
+struct RayGenParams {
+    seed: u32,
+    background: u32,   // 0 white, 1 black, 2 random
+    jitter: u32,       // 1: sub-pixel jitter
+    pixel_offset: f32, // 0.5 (centre) or 0 (integer)
+}
+
+struct ImagesInfo {
+    n_views: u32,
+    format: u32,       // 1 RGBA8, 2 RGBA16
+    _p0: u32,
+    _p1: u32,
+}
+
+// Camera-to-world 3×4 rows (rotation row a, then position a), intrinsics and size.
+struct Cam {
+    r0: vec4<f32>,
+    r1: vec4<f32>,
+    r2: vec4<f32>,
+    intr: vec4<f32>,   // fx, fy, cx, cy
+    size: vec4<u32>,   // width, height, pixel_offset, unused
+}
+
+@group(0) @binding(0) var<uniform> P: RayGenParams;
+@group(0) @binding(1) var<uniform> I: ImagesInfo;
+@group(0) @binding(2) var<storage, read> counters: array<u32>;
+@group(0) @binding(3) var<storage, read> cams: array<Cam>;
+@group(0) @binding(4) var<storage, read> pixels: array<u32>;
+@group(0) @binding(5) var<storage, read_write> out_origins: array<f32>;
+@group(0) @binding(6) var<storage, read_write> out_dirs: array<f32>;
+@group(0) @binding(7) var<storage, read_write> out_target: array<f32>;
+@group(0) @binding(8) var<storage, read_write> out_background: array<f32>;
+
+fn texel(pix: u32) -> vec4<f32> {
+    if (I.format == 1u) {
+        let w = pixels[pix];
+        return vec4<f32>(f32(w & 255u), f32((w >> 8u) & 255u), f32((w >> 16u) & 255u), f32(w >> 24u)) / 255.0;
+    }
+    let a = pixels[2u * pix];
+    let b = pixels[2u * pix + 1u];
+    return vec4<f32>(f32(a & 65535u), f32(a >> 16u), f32(b & 65535u), f32(b >> 16u)) / 65535.0;
+}
+
+@compute @workgroup_size(WG)
+fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let r = linear_id(gid, nwg, WG);
+    let n = min(counters[0], arrayLength(&out_origins) / 3u);
+    if (r >= n) {
+        return;
+    }
+    let view = rand_u32(P.seed, 0x52410001u, r) % I.n_views;
+    let cam = cams[view];
+    let w = cam.size.x;
+    let h = cam.size.y;
+    let col = rand_u32(P.seed, 0x52410002u, r) % w;
+    let row = rand_u32(P.seed, 0x52410003u, r) % h;
+    var u = f32(col) + P.pixel_offset;
+    var v = f32(row) + P.pixel_offset;
+    if (P.jitter != 0u) {
+        u = u - 0.5 + rand_f32(P.seed, 0x52410004u, r);
+        v = v - 0.5 + rand_f32(P.seed, 0x52410005u, r);
+    }
+    let dc = vec3<f32>((u - cam.intr.z) / cam.intr.x, -(v - cam.intr.w) / cam.intr.y, -1.0);
+    let dw = vec3<f32>(
+        cam.r0.x * dc.x + cam.r0.y * dc.y + cam.r0.z * dc.z,
+        cam.r1.x * dc.x + cam.r1.y * dc.y + cam.r1.z * dc.z,
+        cam.r2.x * dc.x + cam.r2.y * dc.y + cam.r2.z * dc.z,
+    );
+    let dir = dw * (1.0 / sqrt(dot(dw, dw)));
+    var bg = vec3<f32>(1.0);
+    if (P.background == 1u) {
+        bg = vec3<f32>(0.0);
+    } else if (P.background == 2u) {
+        bg = vec3<f32>(rand_f32(P.seed, 0x52410006u, r), rand_f32(P.seed, 0x52410007u, r), rand_f32(P.seed, 0x52410008u, r));
+    }
+    let px = texel(cam.size.z + row * w + col);
+    let a = px.w;
+    let tgt = px.xyz * a + (1.0 - a) * bg;
+    let o = vec3<f32>(cam.r0.w, cam.r1.w, cam.r2.w);
+    for (var c = 0u; c < 3u; c = c + 1u) {
+        out_origins[3u * r + c] = o[c];
+        out_dirs[3u * r + c] = dir[c];
+        out_target[3u * r + c] = tgt[c];
+        out_background[3u * r + c] = bg[c];
+    }
+}

@@ -62,3 +62,49 @@ fn next_batch() {
     let want = f32(bp.target_samples) / max(m, 1e-6);
     batch_counters[0] = u32(clamp(want, f32(bp.min_rays), f32(bp.max_rays)));
 }
+
+@group(0) @binding(3) var<storage, read_write> seen: array<u32>;            // [lo, hi] samples so far
+
+// Adds this stage's n_samples (counters[1]) to the 64-bit running total. One invocation.
+@compute @workgroup_size(1)
+fn count_samples() {
+    let n = batch_counters[1];
+    let lo = seen[0] + n;
+    if (lo < seen[0]) {
+        seen[1] = seen[1] + 1u;
+    }
+    seen[0] = lo;
+}
+
+// counters[0] from the running mean alone (after rendering or a resume reused the counters);
+// leaves counters[0] as it is while no step has set the mean. One invocation.
+@compute @workgroup_size(1)
+fn batch_from_mean() {
+    let m = samples_per_ray[0];
+    if (m > 0.0) {
+        let want = f32(bp.target_samples) / m;
+        batch_counters[0] = u32(clamp(want, f32(bp.min_rays), f32(bp.max_rays)));
+    }
+}
+
+struct ChunkParams {
+    offset: u32,
+    size: u32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+@group(0) @binding(0) var<uniform> cp: ChunkParams;
+@group(0) @binding(6) var<storage, read> src_counters: array<u32>;
+
+// counters[1] = the part of src_counters[1] items that falls in [offset, offset + size): how many
+// items a chunked launch (e.g. the occupancy-grid density query) handles. One invocation.
+@compute @workgroup_size(1)
+fn chunk_count() {
+    let m = src_counters[1];
+    var c = 0u;
+    if (m > cp.offset) {
+        c = min(m - cp.offset, cp.size);
+    }
+    batch_counters[1] = c;
+}

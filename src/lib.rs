@@ -31,6 +31,7 @@ pub use nerf_field as field;
 pub use nerf_field_freq as field_freq;
 pub use nerf_field_hash as field_hash;
 pub use nerf_field_voxel as field_voxel;
+pub use nerf_gpu as gpu;
 pub use nerf_metrics as metrics;
 pub use nerf_mlp as mlp;
 pub use nerf_optim as optim;

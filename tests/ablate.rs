@@ -54,7 +54,7 @@ fn tiny_ablation_end_to_end_and_skip_on_rerun() {
     let file = tmp.path().join("tiny.toml");
     std::fs::write(&file, ablation_text(4)).unwrap();
     let out = tmp.path().join("out");
-    let opts = AblateOptions { out_dir: out.clone(), verbose: true };
+    let opts = AblateOptions { out_dir: out.clone(), verbose: true, device: nerf::gpu::DevicePreference::Cpu };
     let registry = nerf::registry();
 
     let ab = Ablation::load(&file).unwrap();

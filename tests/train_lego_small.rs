@@ -32,7 +32,7 @@ fn paper_field_learns_the_small_lego_scene() {
     config.iters = 200;
     let mut trainer = Trainer::new(config.clone(), &nerf::registry(), SceneBounds::of(&train)).unwrap();
     for _ in 0..config.iters {
-        trainer.step(&train);
+        trainer.step(&train).unwrap();
     }
     let report = evaluate(&trainer, &test, None, |_, _| {}).unwrap();
 
@@ -73,7 +73,7 @@ fn hash_field_learns_the_small_lego_scene() {
     config.iters = 200;
     let mut trainer = Trainer::new(config.clone(), &nerf::registry(), SceneBounds::of(&train)).unwrap();
     for _ in 0..config.iters {
-        trainer.step(&train);
+        trainer.step(&train).unwrap();
     }
     let occupied = trainer.occupancy_grid().unwrap().occupied_fraction();
     let report = evaluate(&trainer, &test, None, |_, _| {}).unwrap();
@@ -133,12 +133,12 @@ fn check_resume(config: TrainConfig) {
 
     let mut straight = Trainer::new(config.clone(), &registry, bounds).unwrap();
     for _ in 0..6 {
-        straight.step(&train);
+        straight.step(&train).unwrap();
     }
 
     let mut first = Trainer::new(config.clone(), &registry, bounds).unwrap();
     for _ in 0..3 {
-        first.step(&train);
+        first.step(&train).unwrap();
     }
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("checkpoint.bin");
@@ -147,9 +147,9 @@ fn check_resume(config: TrainConfig) {
         elapsed_secs: 0.0,
         samples_seen: 0,
         config: config.clone(),
-        fields: first.export_fields(),
-        adam: first.adam_state(),
-        sampler: first.sampler_state(),
+        fields: first.export_fields().unwrap(),
+        adam: first.adam_state().unwrap(),
+        sampler: first.sampler_state().unwrap(),
     }
     .save(&path)
     .unwrap();
@@ -158,11 +158,11 @@ fn check_resume(config: TrainConfig) {
     let mut resumed = Trainer::new(config, &registry, bounds).unwrap();
     resumed.restore(ck.step, &ck.fields, ck.adam, &ck.sampler).unwrap();
     for _ in 0..3 {
-        resumed.step(&train);
+        resumed.step(&train).unwrap();
     }
     assert_eq!(resumed.step_count(), 6);
     // Compare without printing millions of numbers on failure.
-    let (a, b) = (resumed.export_fields(), straight.export_fields());
+    let (a, b) = (resumed.export_fields().unwrap(), straight.export_fields().unwrap());
     for (fa, fb) in a.iter().zip(&b) {
         for ((na, va), (_, vb)) in fa.iter().zip(fb) {
             let diff = va.iter().zip(vb).position(|(x, y)| x.to_bits() != y.to_bits());

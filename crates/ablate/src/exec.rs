@@ -5,7 +5,7 @@ use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
 use nerf_data::{load_blender, Dataset, LoadOptions, Split};
 use nerf_field::Registry;
-use nerf_train::{evaluate, SceneBounds, TrainConfig, Trainer};
+use nerf_train::{evaluate, make_trainer, SceneBounds, TrainConfig, Trainer};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -107,6 +107,9 @@ pub struct AblateOptions {
     pub out_dir: PathBuf,
     /// Print one line per run start/finish to stderr.
     pub verbose: bool,
+    /// Device of every run (`auto` / `cpu` / `gpu`, as `nerf train --device`). A finished run is
+    /// reused only when it ran on the same kind of device.
+    pub device: nerf_gpu::DevicePreference,
 }
 
 pub(crate) fn io_err(path: &Path) -> impl FnOnce(std::io::Error) -> AblateError + '_ {
@@ -147,14 +150,16 @@ pub fn train_run(
     registry: &Registry,
     train: &Dataset,
     test: &Dataset,
+    device: nerf_gpu::DevicePreference,
 ) -> Result<RunMetrics, AblateError> {
     let terr = |source| AblateError::Train { id: plan.id.clone(), error: source };
     let sched = &ablation.spec.eval;
     let cfg = &plan.config;
     reset_peak_rss();
-    let mut trainer = Trainer::new(cfg.clone(), registry, SceneBounds::of(train)).map_err(terr)?;
+    let trainer = make_trainer(cfg, registry, SceneBounds::of(train), device).map_err(terr);
+    let mut trainer = trainer?;
     let budget = cfg.time_budget_secs.unwrap_or(f64::INFINITY);
-    let (mut elapsed, mut samples) = (0.0f64, 0u64);
+    let mut elapsed = 0.0f64;
     let mut next_secs = sched.every_seconds.unwrap_or(f64::INFINITY);
     let mut curve: Vec<CurvePoint> = Vec::new();
     let eval_point = |t: &Trainer, elapsed: f64, curve: &mut Vec<CurvePoint>| {
@@ -162,11 +167,13 @@ pub fn train_run(
         curve.push(CurvePoint { iter: t.step_count(), seconds: elapsed, psnr: r.psnr, ssim: r.ssim });
         Ok::<_, AblateError>(())
     };
+    // The clock runs over segments between evaluations (excluded). GPU steps are queued, so a
+    // segment ends with `finish()` (wait for the device) before the clock is read.
+    let mut seg_base = 0.0f64;
+    let mut seg = Instant::now();
     while trainer.step_count() < cfg.iters && elapsed < budget {
-        let t0 = Instant::now();
-        let s = trainer.step(train);
-        elapsed += t0.elapsed().as_secs_f64();
-        samples += s.n_samples as u64;
+        trainer.step(train).map_err(terr)?;
+        elapsed = seg_base + seg.elapsed().as_secs_f64();
         let done = trainer.step_count();
         let by_iter = sched.every_iters.is_some_and(|k| done % k == 0);
         let by_time = elapsed >= next_secs;
@@ -176,14 +183,21 @@ pub fn train_run(
             }
         }
         if by_iter || by_time {
+            trainer.finish().map_err(terr)?;
+            elapsed = seg_base + seg.elapsed().as_secs_f64();
             eval_point(&trainer, elapsed, &mut curve)?;
+            seg_base = elapsed;
+            seg = Instant::now();
         }
     }
+    trainer.finish().map_err(terr)?;
     if curve.last().map(|p| p.iter) != Some(trainer.step_count()) {
+        elapsed = elapsed.max(seg_base + seg.elapsed().as_secs_f64());
         eval_point(&trainer, elapsed, &mut curve)?;
     }
     let last = *curve.last().expect("at least the final evaluation");
     let iters = trainer.step_count();
+    let samples = trainer.samples_seen().map_err(terr)?;
     Ok(RunMetrics {
         id: plan.id.clone(),
         name: plan.name.clone(),
@@ -191,7 +205,10 @@ pub fn train_run(
         seed: plan.seed,
         grid: plan.grid.iter().cloned().collect(),
         field: cfg.field.clone(),
-        device: "cpu".into(),
+        device: match trainer.adapter() {
+            Some(a) => format!("gpu: {a}"),
+            None => "cpu".into(),
+        },
         iterations: iters,
         wall_seconds: elapsed,
         ms_per_iter: if iters > 0 { 1e3 * elapsed / iters as f64 } else { 0.0 },
@@ -224,7 +241,12 @@ pub fn run_ablation(
     for (k, plan) in plans.into_iter().enumerate() {
         let dir = out.join("runs").join(&plan.id);
         let mpath = dir.join("metrics.json");
-        if let Some(m) = load_finished(&mpath, &plan.config_hash) {
+        let same_device = |m: &RunMetrics| match opts.device {
+            nerf_gpu::DevicePreference::Cpu => m.device == "cpu",
+            nerf_gpu::DevicePreference::Gpu => m.device.starts_with("gpu"),
+            nerf_gpu::DevicePreference::Auto => true,
+        };
+        if let Some(m) = load_finished(&mpath, &plan.config_hash).filter(same_device) {
             if opts.verbose {
                 eprintln!("[{}] {} finished before: PSNR {:.2} dB (skipped)", k + 1, plan.id, m.test_psnr);
             }
@@ -244,7 +266,7 @@ pub fn run_ablation(
         if opts.verbose {
             eprintln!("[{}] {} ({}) starting", k + 1, plan.id, plan.config.field);
         }
-        let m = train_run(ablation, &plan, registry, train, test)?;
+        let m = train_run(ablation, &plan, registry, train, test, opts.device)?;
         std::fs::create_dir_all(&dir).map_err(io_err(&dir))?;
         let mut csv = String::from("iter,seconds,psnr,ssim\n");
         for p in &m.curve {

@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use nerf::data::{load_blender, write_blender, LoadOptions, Split, ViewSelection};
 use nerf::field::merge_json;
-use nerf::train::{run, Checkpoint, RunOptions, TrainConfig, TrainError, Trainer, SceneBounds};
+use nerf::train::{make_trainer, run, Checkpoint, RunOptions, SceneBounds, TrainConfig, TrainError};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 
@@ -40,6 +40,10 @@ struct AblateArgs {
     /// Output folder (default: `runs/ablate/NAME`).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Where every run trains: auto (a hardware GPU when present), cpu, or gpu (any adapter,
+    /// error without one). NERF_DEVICE overrides it.
+    #[arg(long, default_value = "auto")]
+    device: nerf::gpu::DevicePreference,
 }
 
 #[derive(Args)]
@@ -85,6 +89,11 @@ struct TrainArgs {
     /// Do not write rendered test views.
     #[arg(long = "no-renders")]
     no_renders: bool,
+    /// Where to train: auto (a hardware GPU when present and the field has a GPU twin, else the
+    /// CPU), cpu, or gpu (any adapter, incl. a software one; error without one). NERF_DEVICE
+    /// overrides it.
+    #[arg(long, default_value = "auto")]
+    device: nerf::gpu::DevicePreference,
 }
 
 #[derive(Args)]
@@ -99,6 +108,9 @@ struct EvalArgs {
     /// Where to write renders and eval.json (default: `RUN/eval`).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Where to render: auto, cpu or gpu (as `train --device`).
+    #[arg(long, default_value = "auto")]
+    device: nerf::gpu::DevicePreference,
 }
 
 #[derive(Args)]
@@ -212,6 +224,7 @@ fn cmd_train(a: TrainArgs) -> Result<()> {
     opts.progress = !a.quiet;
     opts.write_renders = !a.no_renders;
     opts.scene = a.scene.display().to_string();
+    opts.device = a.device;
     let stop = opts.stop.clone();
     ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
     let s = run(config, &nerf::registry(), &train, &test, &opts)?;
@@ -233,12 +246,12 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
     let test = load_blender(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views })?;
-    let mut trainer = Trainer::new(ck.config.clone(), &nerf::registry(), SceneBounds::of(&test))?;
+    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&test), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |_, _| {})?;
     let text = serde_json::to_string_pretty(&serde_json::json!({
-        "field": ck.config.field, "iterations": ck.step, "test_psnr": report.psnr, "test_ssim": report.ssim,
+        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "test_psnr": report.psnr, "test_ssim": report.ssim,
         "n_test_views": report.views.len(), "width": test.width, "height": test.height, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
@@ -268,7 +281,7 @@ fn cmd_fields() -> Result<()> {
 fn cmd_ablate(a: AblateArgs) -> Result<()> {
     let ablation = nerf::ablate::Ablation::load(&a.file)?;
     let out = a.out.unwrap_or_else(|| ablation.default_out_dir());
-    let opts = nerf::ablate::AblateOptions { out_dir: out, verbose: true };
+    let opts = nerf::ablate::AblateOptions { out_dir: out, verbose: true, device: a.device };
     let r = nerf::ablate::run_ablation(&ablation, &nerf::registry(), &opts)?;
     let skipped = r.runs.iter().filter(|o| o.skipped).count();
     println!(

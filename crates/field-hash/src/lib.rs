@@ -11,6 +11,8 @@
 //! β = (0.9, 0.99), ε = 1e-15, L2 1e-6 on the MLP weights only, step decay): see
 //! [`train_preset`].
 
+pub mod gpu;
+
 use nerf_core::Real;
 use nerf_encoding::{Encoding, HashGrid, HashGridConfig, ShConfig, SphericalHarmonics};
 use nerf_field::{config_from_json, FieldContext, FieldError, ParamGroupMut, RadianceField};
@@ -91,6 +93,7 @@ struct Scratch<T: Real> {
 pub struct HashNerf<T: Real> {
     config: HashNerfConfig,
     aabb_min: [T; 3],
+    aabb_max: [f32; 3],
     inv_extent: [T; 3],
     grid: HashGrid<T>,
     grid_grad: Vec<T>,
@@ -151,6 +154,7 @@ impl<T: Real> HashNerf<T> {
         Ok(Self {
             config,
             aabb_min: ctx.aabb_min.map(|v| T::c(v as f64)),
+            aabb_max: ctx.aabb_max,
             inv_extent: inv,
             grid,
             grid_grad,
@@ -326,6 +330,13 @@ impl RadianceField for HashNerf<f32> {
     }
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]) {
         self.backward_t(d_sigma, d_rgb)
+    }
+    fn to_gpu(
+        &self,
+        ctx: &nerf_field::GpuContext,
+        capacity: usize,
+    ) -> Option<Result<Box<dyn nerf_field::GpuRadianceField>, FieldError>> {
+        Some(gpu::GpuHashNerf::new(self, ctx, capacity).map(|f| Box::new(f) as Box<dyn nerf_field::GpuRadianceField>))
     }
     fn zero_grad(&mut self) {
         use rayon::prelude::*;

@@ -38,7 +38,7 @@ fn voxel_field_learns_the_small_lego_scene() {
     let t0 = std::time::Instant::now();
     let mut trainer = Trainer::new(config.clone(), &registry, SceneBounds::of(&train)).unwrap();
     for _ in 0..config.iters {
-        trainer.step(&train);
+        trainer.step(&train).unwrap();
     }
     let train_s = t0.elapsed().as_secs_f64();
     let report = evaluate(&trainer, &test, None, |_, _| {}).unwrap();

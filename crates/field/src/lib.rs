@@ -13,6 +13,9 @@
 
 use serde::{Deserialize, Serialize};
 
+pub mod gpu;
+pub use gpu::{GpuParamGroup, GpuRadianceField, GpuSamples};
+pub use nerf_gpu::{GpuContext, GpuError};
 pub use nerf_optim::ParamGroupMut;
 
 /// Scene information a field may need when it is built: the region it must represent and the seed.
@@ -91,6 +94,14 @@ pub trait RadianceField: Send + Sync {
     /// Called after every optimiser step (and after parameters are loaded), for fields that keep
     /// state derived from their parameters — e.g. an f16 copy of a hash table used for lookups.
     fn after_optimizer_step(&mut self) {}
+
+    /// A twin of this field on a wgpu device, starting from the current parameters, with buffers
+    /// for `capacity` samples per launch; `None` when the field has no GPU implementation (the
+    /// trainer then uses the CPU path, or reports it when the GPU was asked for).
+    fn to_gpu(&self, ctx: &GpuContext, capacity: usize) -> Option<Result<Box<dyn GpuRadianceField>, FieldError>> {
+        let _ = (ctx, capacity);
+        None
+    }
 
     /// Parameters and gradients as named groups, each with its own L2 weight decay, for the
     /// optimiser. Group names are stable (they key optimiser state and checkpoints).

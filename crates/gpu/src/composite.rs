@@ -267,6 +267,9 @@ pub struct BatchParams {
 pub struct TrainGlue {
     loss: Kernel,
     next_batch: Kernel,
+    count: Kernel,
+    from_mean: Kernel,
+    chunk: Kernel,
     loss_params: wgpu::Buffer,
     batch_params: wgpu::Buffer,
     capacity_rays: usize,
@@ -283,6 +286,9 @@ impl TrainGlue {
         Self {
             loss: Kernel::from_module(ctx, &module, "mse_loss", &[]),
             next_batch: Kernel::from_module(ctx, &module, "next_batch", &[]),
+            count: Kernel::from_module(ctx, &module, "count_samples", &[]),
+            from_mean: Kernel::from_module(ctx, &module, "batch_from_mean", &[]),
+            chunk: Kernel::from_module(ctx, &module, "chunk_count", &[]),
             loss_params: ctx.uniform("loss params", &LossParams { capacity_rays: capacity_rays as u32, _pad: [0; 3] }),
             batch_params: ctx.uniform("batch params", &batch),
             capacity_rays,
@@ -314,6 +320,28 @@ impl TrainGlue {
     /// running mean in `samples_per_ray[0]` and the next step's `counters[0]`.
     pub fn record_next_batch(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, counters: &wgpu::Buffer, samples_per_ray: &wgpu::Buffer) {
         self.next_batch.record(ctx, enc, &[(0, &self.batch_params), (1, counters), (2, samples_per_ray)], [1, 1, 1]);
+    }
+
+    /// Records `seen += counters[1]` (a 64-bit total in two u32: `[lo, hi]`).
+    pub fn record_count(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, counters: &wgpu::Buffer, seen: &wgpu::Buffer) {
+        self.count.record(ctx, enc, &[(1, counters), (3, seen)], [1, 1, 1]);
+    }
+
+    /// Records `counters[0] = clamp(target / samples_per_ray[0])` when the mean is set (after
+    /// rendering reused the counters, or after a resume).
+    pub fn record_batch_from_mean(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, counters: &wgpu::Buffer, samples_per_ray: &wgpu::Buffer) {
+        self.from_mean.record(ctx, enc, &[(0, &self.batch_params), (1, counters), (2, samples_per_ray)], [1, 1, 1]);
+    }
+
+    /// A uniform for [`TrainGlue::record_chunk_count`]: the chunk `[offset, offset + size)`.
+    pub fn chunk_uniform(ctx: &GpuContext, offset: usize, size: usize) -> wgpu::Buffer {
+        ctx.uniform("chunk", &[offset as u32, size as u32, 0, 0])
+    }
+
+    /// Records `dst[1] = clamp(src[1] − offset, 0, size)` with the chunk of `chunk` (made by
+    /// [`TrainGlue::chunk_uniform`]): the item count of one chunk of a chunked launch.
+    pub fn record_chunk_count(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, chunk: &wgpu::Buffer, src: &wgpu::Buffer, dst: &wgpu::Buffer) {
+        self.chunk.record(ctx, enc, &[(0, chunk), (1, dst), (6, src)], [1, 1, 1]);
     }
 
     /// Host convenience: the loss kernel on host slices; returns (`d_pred`, per-ray squared error).

@@ -13,3 +13,7 @@ pub struct CompositeParams {
     /// Padding to 16 bytes (uniform layout).
     pub _pad: u32,
 }
+/// Slot of the `counters` buffer holding the number of rays of the step.
+pub const COUNTER_N_RAYS: usize = 0;
+/// Slot of the `counters` buffer holding the number of packed samples of the step.
+pub const COUNTER_N_SAMPLES: usize = 1;

@@ -8,6 +8,7 @@
 
 pub mod composite;
 pub mod encoding;
+pub mod glue;
 pub mod kernel;
 pub mod layout;
 pub mod linear;
@@ -55,12 +56,13 @@ pub enum GpuError {
 /// Which execution path to use.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum DevicePreference {
-    /// The GPU when an adapter exists, else the CPU.
+    /// The GPU when an adapter exists, else the CPU. (The trainer's `auto` also skips software
+    /// adapters such as lavapipe, which are slower than its CPU path.)
     #[default]
     Auto,
     /// Always the CPU path.
     Cpu,
-    /// The GPU; an error when there is no adapter.
+    /// The GPU (any adapter, software ones included); an error when there is none.
     Gpu,
 }
 
@@ -169,6 +171,11 @@ impl GpuContext {
         Ok(Some(Self { device, queue, info, features }))
     }
 
+    /// Whether the adapter is a software rasteriser running on the CPU (lavapipe, WARP, …).
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
     /// One line describing the adapter (recorded in metrics.json by the GPU path).
     pub fn describe(&self) -> String {
         format!("{} ({:?}, {:?}, {})", self.info.name, self.info.backend, self.info.device_type, self.info.driver)
@@ -176,3 +183,7 @@ impl GpuContext {
 
 }
 
+
+/// The wgpu version the kernels are written against, re-exported so fields and the trainer name
+/// the same types.
+pub use wgpu;

@@ -1,1 +1,776 @@
-//! (being written)
+//! Wide MLPs on the GPU (the NeRF paper's 8×256 trunk and any other [`MlpConfig`]), layer by layer.
+//!
+//! [`GpuMlp`] is the device twin of [`nerf_mlp::Mlp`]: the same parameter layout (layer by layer,
+//! `W` `out × fan_in` row-major then `b`), the same skip semantics (layer `i ∈ skips` reads
+//! `[input, h_{i−1}]`; `W`'s first `input_dim` columns multiply the input) and the same activations.
+//! Two implementations of every product:
+//! - plain WGSL (`shaders/linear.wgsl`): 64×64 output tiles through workgroup memory, 16-deep K
+//!   steps, 4×4 outputs per invocation, bias + activation (forward) and `act'` (backward) fused
+//!   into the epilogues; `dW += dZᵀ·X` split over the samples into a partial buffer reduced by a
+//!   second kernel (deterministic, no atomics); the skip concatenation is read from two sources.
+//! - cooperative matrices (`shaders/linear_coop.wgsl`, tensor cores): 16×16×16 f16 products with
+//!   f32 accumulation, on f16 copies of the activations and weights padded to multiples of 16
+//!   (owned by the [`GpuMlp`]); the f32 tape and outputs keep the same layout as the plain path.
+//!
+//! Buffers (all `f32`, row-major, caller-owned unless noted):
+//! - `input` `[capacity][input_dim]`, `output` `[capacity][output_dim]`, `d_output` like `output`,
+//!   `d_input` like `input`;
+//! - `params` / `grads` `[n_params()]` in the CPU layout; backward ACCUMULATES into `grads`;
+//! - `tape` `[capacity][tape_floats_per_sample()]`: per sample, the post-activations of every layer
+//!   (hidden layers, then the output) side by side;
+//! - `counters` (`array<u32>`): slot [`crate::layout::COUNTER_N_SAMPLES`] holds `n`, the number of
+//!   samples of the step (`n ≤ capacity`).
+
+use crate::kernel::{groups_1d, Kernel};
+use crate::{shaders, GpuContext, GpuError};
+use nerf_mlp::{Activation, MlpConfig};
+
+/// Uniform `Params` of `shaders/linear.wgsl` and `shaders/linear_coop.wgsl` (field meanings there).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct LinearParams {
+    /// Fan-out of the layer.
+    pub n_out: u32,
+    /// Fan-in of the layer (including the skip input).
+    pub k_in: u32,
+    /// Leading input columns read from the network input.
+    pub ka: u32,
+    /// Activation code of the layer ([`act_code`]).
+    pub act: u32,
+    /// Row stride of the network input.
+    pub a_stride: u32,
+    /// Row stride of the hidden source.
+    pub b_stride: u32,
+    /// Column offset of the hidden source.
+    pub b_off: u32,
+    /// Row stride of the destination.
+    pub dst_stride: u32,
+    /// Column offset of the destination.
+    pub dst_off: u32,
+    /// Row stride of the second output / of `d_output`.
+    pub out_stride: u32,
+    /// Bit flags: 1 write work, 2 write out, 4 bias, 8 accumulate d_input.
+    pub flags: u32,
+    /// Offset of `W` in the parameter buffer.
+    pub w_off: u32,
+    /// Offset of `b` in the parameter buffer.
+    pub bias_off: u32,
+    /// Rows per split of the weight-gradient product.
+    pub chunk: u32,
+    /// First column computed by `backward_data`.
+    pub c_lo: u32,
+    /// Activation code of the previous layer.
+    pub prev_act: u32,
+}
+
+const FLAG_WORK: u32 = 1;
+const FLAG_OUT: u32 = 2;
+const FLAG_BIAS: u32 = 4;
+const FLAG_DINPUT: u32 = 8;
+/// Output tile edge of the plain kernels.
+const TILE: usize = 64;
+/// Workgroup size of the 1-D kernels.
+const WG: u32 = 256;
+
+/// The WGSL code of an activation (`act_apply` / `act_grad` in the shaders).
+pub fn act_code(a: Activation) -> u32 {
+    match a {
+        Activation::None => 0,
+        Activation::Relu => 1,
+        Activation::Sigmoid => 2,
+        Activation::Tanh => 3,
+        Activation::Softplus => 4,
+        Activation::Exp => 5,
+    }
+}
+
+/// One linear layer's shape and parameter offsets (the CPU twin's layout).
+#[derive(Clone, Debug)]
+struct LayerInfo {
+    fan_in: usize,
+    out: usize,
+    /// Leading input columns from the network input (`input_dim` for layer 0 and skip layers).
+    ka: usize,
+    w_off: usize,
+    b_off: Option<usize>,
+    act: Activation,
+    /// Column offset of this layer's output in a tape row.
+    tape_off: usize,
+}
+
+/// Per-layer uniforms of the plain path.
+struct PlainLayer {
+    fwd: wgpu::Buffer,
+    inf: wgpu::Buffer,
+    /// Backward uniforms `[without d_input, with d_input]`.
+    bwd: [wgpu::Buffer; 2],
+}
+
+/// Plain-path kernels and scratch.
+struct Plain {
+    forward: Kernel,
+    backward_data: Kernel,
+    backward_weight: Kernel,
+    reduce: Kernel,
+    output_grad: Kernel,
+    layers: Vec<PlainLayer>,
+    out_grad_u: wgpu::Buffer,
+    /// Inference ping-pong `[capacity][2·hidden]`.
+    scratch: wgpu::Buffer,
+    dz: [wgpu::Buffer; 2],
+    partial: wgpu::Buffer,
+}
+
+/// A multilayer perceptron on the GPU: kernels compiled and scratch sized for `capacity` samples
+/// once in [`GpuMlp::new`]; `record_*` only record into the caller's encoder.
+pub struct GpuMlp {
+    config: MlpConfig,
+    layers: Vec<LayerInfo>,
+    n_params: usize,
+    capacity: usize,
+    tape_stride: usize,
+    n_splits: usize,
+    chunk: usize,
+    plain: Option<Plain>,
+    coop: Option<coop::Coop>,
+    dummy: wgpu::Buffer,
+}
+
+/// Rows per split of the weight-gradient product for a capacity (≥ 64 splits on large batches).
+fn split_chunk(capacity: usize) -> usize {
+    (capacity.div_ceil(64)).next_multiple_of(16).max(256)
+}
+
+impl GpuMlp {
+    /// Builds the kernels for `config` and scratch for up to `capacity` samples per call.
+    /// `use_coop` selects the cooperative-matrix path (needs `ctx.features.cooperative_matrix`
+    /// and `shader_f16`; an error otherwise).
+    pub fn new(ctx: &GpuContext, config: &MlpConfig, capacity: usize, use_coop: bool) -> Result<Self, GpuError> {
+        config.validate().map_err(|e| GpuError::Unsupported(e.to_string()))?;
+        if use_coop && !(ctx.features.cooperative_matrix && ctx.features.shader_f16) {
+            return Err(GpuError::Unsupported(format!(
+                "cooperative-matrix MLP asked for, but the adapter {} lacks cooperative matrices or f16",
+                ctx.describe()
+            )));
+        }
+        let mut layers = Vec::with_capacity(config.hidden_layers + 1);
+        let (mut off, mut prev, mut tape_off) = (0usize, config.input_dim, 0usize);
+        for i in 0..=config.hidden_layers {
+            let last = i == config.hidden_layers;
+            let skip = config.skips.contains(&i);
+            let fan_in = if i == 0 { config.input_dim } else { prev + if skip { config.input_dim } else { 0 } };
+            let out = if last { config.output_dim } else { config.hidden_dim };
+            let w_off = off;
+            off += out * fan_in;
+            let b_off = config.bias.then(|| {
+                off += out;
+                off - out
+            });
+            let act = if last { config.output_activation } else { config.hidden_activation };
+            let ka = if i == 0 || skip { config.input_dim } else { 0 };
+            layers.push(LayerInfo { fan_in, out, ka, w_off, b_off, act, tape_off });
+            tape_off += out;
+            prev = out;
+        }
+        let tape_stride = tape_off;
+        let max_words = u32::MAX as usize / 4;
+        if off > max_words || capacity.saturating_mul(tape_stride) > max_words {
+            return Err(GpuError::Unsupported(format!(
+                "MLP of {off} parameters with a tape of {capacity}×{tape_stride} floats exceeds 32-bit indexing"
+            )));
+        }
+        let chunk = split_chunk(capacity);
+        let n_splits = capacity.div_ceil(chunk).max(1);
+        let mut me = Self {
+            config: config.clone(),
+            layers,
+            n_params: off,
+            capacity,
+            tape_stride,
+            n_splits,
+            chunk,
+            plain: None,
+            coop: None,
+            dummy: ctx.zeros("linear dummy", 4),
+        };
+        if use_coop {
+            me.coop = Some(coop::Coop::new(ctx, &me)?);
+        } else {
+            me.plain = Some(me.build_plain(ctx));
+        }
+        Ok(me)
+    }
+
+    fn build_plain(&self, ctx: &GpuContext) -> Plain {
+        let src = shaders::with_common(shaders::LINEAR);
+        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("linear.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(src.into()),
+        });
+        let k = |e: &str| Kernel::from_module(ctx, &module, e, &[]);
+        let cfg = &self.config;
+        let h = cfg.hidden_dim;
+        let nl = self.layers.len();
+        let mut ls = Vec::with_capacity(nl);
+        for (i, l) in self.layers.iter().enumerate() {
+            let last = i + 1 == nl;
+            let bias = if l.b_off.is_some() { FLAG_BIAS } else { 0 };
+            let prev = (i > 0).then(|| &self.layers[i - 1]);
+            let base = LinearParams {
+                n_out: l.out as u32,
+                k_in: l.fan_in as u32,
+                ka: l.ka as u32,
+                act: act_code(l.act),
+                a_stride: cfg.input_dim as u32,
+                w_off: l.w_off as u32,
+                bias_off: l.b_off.unwrap_or(0) as u32,
+                chunk: self.chunk as u32,
+                ..Default::default()
+            };
+            let fwd = LinearParams {
+                b_stride: self.tape_stride as u32,
+                b_off: prev.map_or(0, |p| p.tape_off) as u32,
+                dst_stride: self.tape_stride as u32,
+                dst_off: l.tape_off as u32,
+                out_stride: cfg.output_dim as u32,
+                flags: bias | FLAG_WORK | if last { FLAG_OUT } else { 0 },
+                ..base
+            };
+            let inf = LinearParams {
+                b_stride: (2 * h) as u32,
+                b_off: if i == 0 { 0 } else { ((i - 1) % 2 * h) as u32 },
+                dst_stride: (2 * h) as u32,
+                dst_off: (i % 2 * h) as u32,
+                out_stride: cfg.output_dim as u32,
+                flags: bias | if last { FLAG_OUT } else { FLAG_WORK },
+                ..base
+            };
+            let bwd = |with_dinput: bool| LinearParams {
+                b_stride: self.tape_stride as u32,
+                b_off: prev.map_or(0, |p| p.tape_off) as u32,
+                dst_stride: (l.fan_in - l.ka) as u32,
+                flags: bias | if with_dinput { FLAG_DINPUT } else { 0 },
+                c_lo: if with_dinput { 0 } else { l.ka as u32 },
+                prev_act: prev.map_or(0, |p| act_code(p.act)),
+                ..base
+            };
+            ls.push(PlainLayer {
+                fwd: ctx.uniform("linear fwd", &fwd),
+                inf: ctx.uniform("linear inf", &inf),
+                bwd: [ctx.uniform("linear bwd", &bwd(false)), ctx.uniform("linear bwd+dx", &bwd(true))],
+            });
+        }
+        let lastl = &self.layers[nl - 1];
+        let og = LinearParams {
+            n_out: lastl.out as u32,
+            act: act_code(lastl.act),
+            b_stride: self.tape_stride as u32,
+            b_off: lastl.tape_off as u32,
+            out_stride: cfg.output_dim as u32,
+            ..Default::default()
+        };
+        let maxw = self.layers.iter().map(|l| l.out).max().unwrap_or(1);
+        let max_partial = self.layers.iter().map(|l| l.out * (l.fan_in + 1)).max().unwrap_or(1);
+        let cap = self.capacity.max(1);
+        Plain {
+            forward: k("forward"),
+            backward_data: k("backward_data"),
+            backward_weight: k("backward_weight"),
+            reduce: k("reduce_grads"),
+            output_grad: k("output_grad"),
+            layers: ls,
+            out_grad_u: ctx.uniform("linear output_grad", &og),
+            scratch: ctx.zeros("linear inference scratch", 4 * cap * 2 * h.max(1)),
+            dz: [ctx.zeros("linear dz a", 4 * cap * maxw), ctx.zeros("linear dz b", 4 * cap * maxw)],
+            partial: ctx.zeros("linear dW partial", 4 * self.n_splits * max_partial),
+        }
+    }
+
+    /// Number of parameters (length of the params / grads buffers).
+    pub fn n_params(&self) -> usize {
+        self.n_params
+    }
+
+    /// Floats per sample of the tape (Σ of the layer widths).
+    pub fn tape_floats_per_sample(&self) -> usize {
+        self.tape_stride
+    }
+
+    /// The sample capacity given to [`GpuMlp::new`].
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &MlpConfig {
+        &self.config
+    }
+
+    /// Whether this instance runs on cooperative matrices.
+    pub fn uses_coop(&self) -> bool {
+        self.coop.is_some()
+    }
+
+    fn check_capacity(&self, capacity: usize) {
+        assert!(
+            capacity <= self.capacity,
+            "GpuMlp: launch capacity {capacity} exceeds the capacity {} given to new",
+            self.capacity
+        );
+    }
+
+    /// Groups of a row-tiled product: rows over x/y, `col_tiles` over z.
+    fn row_groups(capacity: usize, rows_per_tile: usize, col_tiles: usize) -> [u32; 3] {
+        let g = groups_1d(capacity, rows_per_tile as u32);
+        [g[0], g[1], col_tiles.max(1) as u32]
+    }
+
+    /// Records the forward of `n = counters[1]` samples: `output = mlp(input)` and the tape that
+    /// [`GpuMlp::record_backward`] needs. Launched for `capacity` (≤ the capacity of `new`).
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_forward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        tape: &wgpu::Buffer,
+        capacity: usize,
+    ) {
+        self.check_capacity(capacity);
+        if let Some(c) = &self.coop {
+            return c.record_forward(self, ctx, enc, counters, input, params, output, Some(tape), capacity);
+        }
+        let p = self.plain.as_ref().expect("plain path");
+        for (l, u) in self.layers.iter().zip(&p.layers) {
+            p.forward.record(
+                ctx,
+                enc,
+                &[(0, &u.fwd), (1, counters), (2, input), (3, tape), (4, params), (5, output)],
+                Self::row_groups(capacity, TILE, l.out.div_ceil(TILE)),
+            );
+        }
+    }
+
+    /// Records inference only (no tape; the [`GpuMlp`] owns the scratch): `output = mlp(input)`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_inference(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        capacity: usize,
+    ) {
+        self.check_capacity(capacity);
+        if let Some(c) = &self.coop {
+            return c.record_forward(self, ctx, enc, counters, input, params, output, None, capacity);
+        }
+        let p = self.plain.as_ref().expect("plain path");
+        for (l, u) in self.layers.iter().zip(&p.layers) {
+            p.forward.record(
+                ctx,
+                enc,
+                &[(0, &u.inf), (1, counters), (2, input), (3, &p.scratch), (4, params), (5, output)],
+                Self::row_groups(capacity, TILE, l.out.div_ceil(TILE)),
+            );
+        }
+    }
+
+    /// Records the backward from `d_output`: ACCUMULATES the parameter gradients into `grads` and,
+    /// when `d_input` is given, OVERWRITES it with dL/d(input). `input`, `params` and `tape` must
+    /// be those of the forward.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        tape: &wgpu::Buffer,
+        d_output: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        d_input: Option<&wgpu::Buffer>,
+        capacity: usize,
+    ) {
+        self.check_capacity(capacity);
+        if let Some(d) = d_input {
+            enc.clear_buffer(d, 0, None);
+        }
+        if let Some(c) = &self.coop {
+            return c.record_backward(self, ctx, enc, counters, input, params, tape, d_output, grads, d_input, capacity);
+        }
+        let p = self.plain.as_ref().expect("plain path");
+        let nl = self.layers.len();
+        let last = &self.layers[nl - 1];
+        p.output_grad.record(
+            ctx,
+            enc,
+            &[(0, &p.out_grad_u), (1, counters), (2, d_output), (3, tape), (4, &p.dz[0])],
+            groups_1d(capacity * last.out, WG),
+        );
+        let mut cur = 0;
+        for i in (0..nl).rev() {
+            let l = &self.layers[i];
+            let u = &p.layers[i].bwd[d_input.is_some() as usize];
+            let kc = l.fan_in + l.b_off.is_some() as usize;
+            p.backward_weight.record(
+                ctx,
+                enc,
+                &[(0, u), (1, counters), (2, &p.dz[cur]), (3, input), (4, tape), (5, &p.partial)],
+                [kc.div_ceil(TILE) as u32, l.out.div_ceil(TILE) as u32, capacity.div_ceil(self.chunk).max(1) as u32],
+            );
+            p.reduce.record(ctx, enc, &[(0, u), (1, counters), (2, &p.partial), (3, grads)], groups_1d(l.out * kc, WG));
+            let c_lo = if d_input.is_some() { 0 } else { l.ka };
+            if c_lo < l.fan_in {
+                let dx = d_input.unwrap_or(&self.dummy);
+                p.backward_data.record(
+                    ctx,
+                    enc,
+                    &[(0, u), (1, counters), (2, &p.dz[cur]), (3, params), (4, &p.dz[1 - cur]), (5, tape), (6, dx)],
+                    Self::row_groups(capacity, TILE, (l.fan_in - c_lo).div_ceil(TILE)),
+                );
+            }
+            cur = 1 - cur;
+        }
+    }
+
+    /// Host convenience for tests: uploads, runs forward (with a tape) or inference for `n`
+    /// samples and reads back `(output, tape)` (tape empty for inference).
+    pub fn run_forward(&self, ctx: &GpuContext, input: &[f32], params: &[f32], n: usize, with_tape: bool) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
+        assert_eq!(input.len(), n * self.config.input_dim, "GpuMlp::run_forward: input length");
+        assert_eq!(params.len(), self.n_params, "GpuMlp::run_forward: params length");
+        let counters = ctx.upload("counters", &[n as u32, n as u32]);
+        let inp = ctx.upload("input", input);
+        let par = ctx.upload("params", params);
+        let out = ctx.upload("output", &vec![f32::NAN; n * self.config.output_dim]);
+        let tape = ctx.upload("tape", &vec![f32::NAN; n * self.tape_stride]);
+        let mut enc = ctx.encoder("run_forward");
+        if with_tape {
+            self.record_forward(ctx, &mut enc, &counters, &inp, &par, &out, &tape, n);
+        } else {
+            self.record_inference(ctx, &mut enc, &counters, &inp, &par, &out, n);
+        }
+        ctx.queue.submit([enc.finish()]);
+        let o = ctx.read_f32(&out, n * self.config.output_dim)?;
+        let t = if with_tape { ctx.read_f32(&tape, n * self.tape_stride)? } else { Vec::new() };
+        Ok((o, t))
+    }
+
+    /// Host convenience for tests: forward then backward for `n` samples; `grads` is accumulated
+    /// in place; returns `d_input` when `want_d_input`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn run_backward(
+        &self,
+        ctx: &GpuContext,
+        input: &[f32],
+        params: &[f32],
+        d_output: &[f32],
+        grads: &mut [f32],
+        n: usize,
+        want_d_input: bool,
+    ) -> Result<Option<Vec<f32>>, GpuError> {
+        assert_eq!(d_output.len(), n * self.config.output_dim, "GpuMlp::run_backward: d_output length");
+        assert_eq!(grads.len(), self.n_params, "GpuMlp::run_backward: grads length");
+        let counters = ctx.upload("counters", &[n as u32, n as u32]);
+        let inp = ctx.upload("input", input);
+        let par = ctx.upload("params", params);
+        let out = ctx.zeros("output", 4 * n * self.config.output_dim);
+        let tape = ctx.zeros("tape", 4 * n * self.tape_stride);
+        let dout = ctx.upload("d_output", d_output);
+        let g = ctx.upload("grads", grads);
+        let dx = ctx.upload("d_input", &vec![f32::NAN; n * self.config.input_dim]);
+        let mut enc = ctx.encoder("run_backward");
+        self.record_forward(ctx, &mut enc, &counters, &inp, &par, &out, &tape, n);
+        self.record_backward(ctx, &mut enc, &counters, &inp, &par, &tape, &dout, &g, want_d_input.then_some(&dx), n);
+        ctx.queue.submit([enc.finish()]);
+        grads.copy_from_slice(&ctx.read_f32(&g, self.n_params)?);
+        Ok(if want_d_input { Some(ctx.read_f32(&dx, n * self.config.input_dim)?) } else { None })
+    }
+}
+
+/// The cooperative-matrix implementation (`shaders/linear_coop.wgsl`).
+mod coop {
+    use super::{act_code, GpuMlp, FLAG_BIAS, FLAG_DINPUT, FLAG_OUT, FLAG_WORK, WG};
+    use crate::kernel::{groups_1d, Kernel};
+    use crate::{shaders, GpuContext, GpuError};
+
+    /// Writes the f16 copy of the hidden activations.
+    const FLAG_H16: u32 = 16;
+
+    /// Uniform `CP` of `shaders/linear_coop.wgsl`.
+    #[repr(C)]
+    #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+    struct CoopParams {
+        n_out: u32,
+        k_in: u32,
+        ka: u32,
+        act: u32,
+        np: u32,
+        kp: u32,
+        xp: u32,
+        hp: u32,
+        w16_off: u32,
+        h_src: u32,
+        h_dst: u32,
+        flags: u32,
+        t_stride: u32,
+        t_off: u32,
+        t_prev_off: u32,
+        out_dim: u32,
+        w_off: u32,
+        bias_off: u32,
+        chunk: u32,
+        c_lo: u32,
+        prev_act: u32,
+        kcp: u32,
+        in_dim: u32,
+        _pad: u32,
+    }
+
+    fn r16(x: usize) -> usize {
+        x.next_multiple_of(16)
+    }
+
+    struct CoopLayer {
+        np: usize,
+        kp: usize,
+        kcp: usize,
+        xp: usize,
+        w16: wgpu::Buffer,
+        fwd: wgpu::Buffer,
+        inf: wgpu::Buffer,
+        bwd: [wgpu::Buffer; 2],
+    }
+
+    pub(super) struct Coop {
+        convert_input: Kernel,
+        convert_weights: Kernel,
+        forward: Kernel,
+        output_grad: Kernel,
+        backward_data: Kernel,
+        backward_weight: Kernel,
+        reduce: Kernel,
+        layers: Vec<CoopLayer>,
+        xp: usize,
+        in_u: wgpu::Buffer,
+        out_grad_u: wgpu::Buffer,
+        x16: wgpu::Buffer,
+        x16_inf: wgpu::Buffer,
+        h16: wgpu::Buffer,
+        h16_inf: wgpu::Buffer,
+        w16: wgpu::Buffer,
+        dz16: [wgpu::Buffer; 2],
+        partial: wgpu::Buffer,
+        ones: wgpu::Buffer,
+    }
+
+    impl Coop {
+        pub(super) fn new(ctx: &GpuContext, m: &GpuMlp) -> Result<Self, GpuError> {
+            let src = shaders::with_common(shaders::LINEAR_COOP);
+            let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("linear_coop.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(src.into()),
+            });
+            let k = |e: &str| Kernel::from_module(ctx, &module, e, &[]);
+            let cfg = &m.config;
+            let xp = r16(cfg.input_dim);
+            let hp = r16(cfg.hidden_dim);
+            let rows = m.capacity.next_multiple_of(32).max(32);
+            let nl = m.layers.len();
+            let mut layers = Vec::with_capacity(nl);
+            let mut w16_off = 0usize;
+            for (i, l) in m.layers.iter().enumerate() {
+                let last = i + 1 == nl;
+                let lxp = if l.ka > 0 { xp } else { 0 };
+                let np = r16(l.out);
+                let kp = lxp + if i > 0 { hp } else { 0 };
+                let kcp = kp + if l.b_off.is_some() { 16 } else { 0 };
+                let bias = if l.b_off.is_some() { FLAG_BIAS } else { 0 };
+                let prev = (i > 0).then(|| &m.layers[i - 1]);
+                let base = CoopParams {
+                    n_out: l.out as u32,
+                    k_in: l.fan_in as u32,
+                    ka: l.ka as u32,
+                    act: act_code(l.act),
+                    np: np as u32,
+                    kp: kp as u32,
+                    xp: lxp as u32,
+                    hp: hp as u32,
+                    w16_off: w16_off as u32,
+                    t_stride: m.tape_stride as u32,
+                    t_off: l.tape_off as u32,
+                    t_prev_off: prev.map_or(0, |p| p.tape_off) as u32,
+                    out_dim: cfg.output_dim as u32,
+                    w_off: l.w_off as u32,
+                    bias_off: l.b_off.unwrap_or(0) as u32,
+                    chunk: m.chunk as u32,
+                    prev_act: prev.map_or(0, |p| act_code(p.act)),
+                    kcp: kcp as u32,
+                    in_dim: cfg.input_dim as u32,
+                    ..Default::default()
+                };
+                let layer_h = |j: usize| (j * rows * hp) as u32;
+                let fwd = CoopParams {
+                    h_src: if i > 0 { layer_h(i - 1) } else { 0 },
+                    h_dst: if last { 0 } else { layer_h(i) },
+                    flags: bias | FLAG_WORK | if last { FLAG_OUT } else { FLAG_H16 },
+                    ..base
+                };
+                let inf = CoopParams {
+                    h_src: if i > 0 { layer_h((i - 1) % 2) } else { 0 },
+                    h_dst: layer_h(i % 2),
+                    flags: bias | if last { FLAG_OUT } else { FLAG_H16 },
+                    ..base
+                };
+                let bwd = |dx: bool| CoopParams {
+                    h_src: if i > 0 { layer_h(i - 1) } else { 0 },
+                    flags: bias | if dx { FLAG_DINPUT } else { 0 },
+                    c_lo: if dx { 0 } else { lxp as u32 },
+                    ..base
+                };
+                layers.push(CoopLayer {
+                    np,
+                    kp,
+                    kcp,
+                    xp: lxp,
+                    w16: ctx.uniform("coop w16", &CoopParams { ..base }),
+                    fwd: ctx.uniform("coop fwd", &fwd),
+                    inf: ctx.uniform("coop inf", &inf),
+                    bwd: [ctx.uniform("coop bwd", &bwd(false)), ctx.uniform("coop bwd+dx", &bwd(true))],
+                });
+                w16_off += np * kp;
+            }
+            let lastl = &m.layers[nl - 1];
+            let og = CoopParams {
+                n_out: lastl.out as u32,
+                act: act_code(lastl.act),
+                np: r16(lastl.out) as u32,
+                t_stride: m.tape_stride as u32,
+                t_off: lastl.tape_off as u32,
+                out_dim: cfg.output_dim as u32,
+                ..Default::default()
+            };
+            let inp = CoopParams { xp: xp as u32, in_dim: cfg.input_dim as u32, ..Default::default() };
+            let max_np = layers.iter().map(|l| l.np).max().unwrap_or(16);
+            let max_partial = layers.iter().map(|l| l.np * l.kcp).max().unwrap_or(16);
+            let mut ones = [half::f16::ZERO; 256];
+            for r in 0..16 {
+                ones[r * 16] = half::f16::ONE;
+            }
+            let f16b = |n: usize| 2 * n;
+            Ok(Self {
+                convert_input: k("convert_input"),
+                convert_weights: k("convert_weights"),
+                forward: k("forward"),
+                output_grad: k("output_grad"),
+                backward_data: k("backward_data"),
+                backward_weight: k("backward_weight"),
+                reduce: k("reduce_grads"),
+                layers,
+                xp,
+                in_u: ctx.uniform("coop input", &inp),
+                out_grad_u: ctx.uniform("coop output_grad", &og),
+                x16: ctx.zeros("coop x16", f16b(rows * xp)),
+                x16_inf: ctx.zeros("coop x16 inference", f16b(rows * xp)),
+                h16: ctx.zeros("coop h16", f16b(cfg.hidden_layers.max(1) * rows * hp)),
+                h16_inf: ctx.zeros("coop h16 inference", f16b(2 * rows * hp)),
+                w16: ctx.zeros("coop w16", f16b(w16_off)),
+                dz16: [ctx.zeros("coop dz16 a", f16b(rows * max_np)), ctx.zeros("coop dz16 b", f16b(rows * max_np))],
+                partial: ctx.zeros("coop dW partial", 4 * m.n_splits * max_partial),
+                ones: ctx.upload("coop ones", &ones),
+            })
+        }
+
+        fn record_weights(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, params: &wgpu::Buffer) {
+            for l in &self.layers {
+                self.convert_weights.record(ctx, enc, &[(0, &l.w16), (2, params), (3, &self.w16)], groups_1d(l.np * l.kp, WG));
+            }
+        }
+
+        #[allow(clippy::too_many_arguments)]
+        pub(super) fn record_forward(
+            &self,
+            m: &GpuMlp,
+            ctx: &GpuContext,
+            enc: &mut wgpu::CommandEncoder,
+            counters: &wgpu::Buffer,
+            input: &wgpu::Buffer,
+            params: &wgpu::Buffer,
+            output: &wgpu::Buffer,
+            tape: Option<&wgpu::Buffer>,
+            capacity: usize,
+        ) {
+            let rows = capacity.next_multiple_of(32).max(32);
+            let (x16, h16) = if tape.is_some() { (&self.x16, &self.h16) } else { (&self.x16_inf, &self.h16_inf) };
+            self.record_weights(ctx, enc, params);
+            self.convert_input.record(ctx, enc, &[(0, &self.in_u), (1, counters), (2, input), (3, x16)], groups_1d(rows * self.xp, WG));
+            let dst = tape.unwrap_or(&m.dummy);
+            for l in &self.layers {
+                let u = if tape.is_some() { &l.fwd } else { &l.inf };
+                self.forward.record(
+                    ctx,
+                    enc,
+                    &[(0, u), (1, counters), (2, x16), (3, h16), (4, &self.w16), (5, params), (6, dst), (7, output)],
+                    GpuMlp::row_groups(capacity, 32, l.np.div_ceil(32)),
+                );
+            }
+        }
+
+        #[allow(clippy::too_many_arguments)]
+        pub(super) fn record_backward(
+            &self,
+            m: &GpuMlp,
+            ctx: &GpuContext,
+            enc: &mut wgpu::CommandEncoder,
+            counters: &wgpu::Buffer,
+            _input: &wgpu::Buffer,
+            params: &wgpu::Buffer,
+            tape: &wgpu::Buffer,
+            d_output: &wgpu::Buffer,
+            grads: &wgpu::Buffer,
+            d_input: Option<&wgpu::Buffer>,
+            capacity: usize,
+        ) {
+            let rows = capacity.next_multiple_of(32).max(32);
+            self.record_weights(ctx, enc, params);
+            let nl = self.layers.len();
+            self.output_grad.record(
+                ctx,
+                enc,
+                &[(0, &self.out_grad_u), (1, counters), (2, d_output), (3, tape), (4, &self.dz16[0])],
+                groups_1d(rows * self.layers[nl - 1].np, WG),
+            );
+            let mut cur = 0;
+            for i in (0..nl).rev() {
+                let l = &self.layers[i];
+                let ml = &m.layers[i];
+                let u = &l.bwd[d_input.is_some() as usize];
+                self.backward_weight.record(
+                    ctx,
+                    enc,
+                    &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.x16), (4, &self.h16), (5, &self.ones), (6, &self.partial)],
+                    [l.kcp.div_ceil(32) as u32, l.np.div_ceil(32) as u32, capacity.div_ceil(m.chunk).max(1) as u32],
+                );
+                let kc = ml.fan_in + ml.b_off.is_some() as usize;
+                self.reduce.record(ctx, enc, &[(0, u), (1, counters), (2, &self.partial), (3, grads)], groups_1d(ml.out * kc, WG));
+                let c_lo = if d_input.is_some() { 0 } else { l.xp };
+                if c_lo < l.kp {
+                    let dx = d_input.unwrap_or(&m.dummy);
+                    self.backward_data.record(
+                        ctx,
+                        enc,
+                        &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.w16), (4, &self.dz16[1 - cur]), (5, tape), (6, dx)],
+                        GpuMlp::row_groups(capacity, 32, (l.kp - c_lo).div_ceil(32)),
+                    );
+                }
+                cur = 1 - cur;
+            }
+        }
+    }
+}

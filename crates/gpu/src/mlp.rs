@@ -1,1 +1,396 @@
-//! (being written)
+//! Fully fused small MLPs on the GPU (tiny-cuda-nn's "fully fused MLP"), the device twin of
+//! [`nerf_mlp::Mlp`]: one workgroup pushes a tile of [`TILE`] samples through every layer with the
+//! activations kept in workgroup memory (`shaders/mlp_fused.wgsl` documents the kernels, the tape
+//! layout and the atomics per sample).
+//!
+//! Parameters and gradients are caller-owned f32 storage buffers in exactly the CPU layout (layer by
+//! layer: `W` `out × fan_in` row-major, then `b`), so [`nerf_mlp::Mlp::params`] uploads as is. The
+//! number of samples of a call is read on the device from `counters[COUNTER_N_SAMPLES]` (slot 1);
+//! launches are sized for a host-known `capacity ≥ n`. Every `record_*` only records into the caller's
+//! encoder (no submission, no read-back, no buffer creation besides its bind groups).
+
+use crate::kernel::Kernel;
+use crate::{groups_1d, shaders, GpuContext, GpuError};
+use nerf_mlp::{Activation, MlpConfig};
+
+/// Samples per workgroup tile (the tape is tiled in blocks of this many samples).
+pub const TILE: usize = 32;
+/// Widest supported layer (input, hidden and output widths).
+pub const MAX_WIDTH: usize = 64;
+/// Samples per weight-gradient workgroup at full capacity (atomics per sample ≈ n_params / this).
+const WGRAD_SAMPLES_PER_GROUP: usize = 1024;
+/// Upper bound on weight-gradient workgroups per layer.
+const MAX_WGRAD_GROUPS: usize = 4096;
+/// Workgroup memory the largest kernel needs (`d_s`, `h_s` of mlp_wgrad).
+const WORKGROUP_BYTES: u32 = 4 * (2 * 2112);
+
+/// Mode bit of [`MlpParams::mode`]: the forward stores the tape.
+const MODE_TAPE: u32 = 1;
+/// Mode bit of [`MlpParams::mode`]: the backward writes `d_input`.
+const MODE_DX: u32 = 2;
+
+/// `MlpParams` of `shaders/mlp_fused.wgsl` (uniform, static per instance and mode).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct MlpParams {
+    /// Number of linear layers (`hidden_layers + 1`).
+    pub n_layers: u32,
+    /// Floats per input sample.
+    pub input_dim: u32,
+    /// Floats per output sample.
+    pub output_dim: u32,
+    /// Tape floats per sample.
+    pub fps: u32,
+    /// Bit 0: the forward stores the tape; bit 1: the backward writes `d_input`.
+    pub mode: u32,
+    /// Padding to 32 bytes.
+    pub _pad: [u32; 3],
+}
+
+/// `MlpLayer` of `shaders/mlp_fused.wgsl`: one linear layer (storage buffer, static).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct MlpLayerDesc {
+    /// Fan-in.
+    pub fan_in: u32,
+    /// Fan-out.
+    pub out: u32,
+    /// Offset of `W` in the parameter buffer.
+    pub w_off: u32,
+    /// Offset of `b` (0 without bias).
+    pub b_off: u32,
+    /// Activation code (0 none, 1 relu, 2 sigmoid, 3 tanh, 4 softplus, 5 exp).
+    pub act: u32,
+    /// Tape floats per sample before this layer's activated output.
+    pub a_pre: u32,
+    /// Tape floats per sample before this layer's pre-activation gradient.
+    pub d_pre: u32,
+    /// 1 when the layer has a bias.
+    pub has_bias: u32,
+}
+
+fn act_code(a: Activation) -> u32 {
+    match a {
+        Activation::None => 0,
+        Activation::Relu => 1,
+        Activation::Sigmoid => 2,
+        Activation::Tanh => 3,
+        Activation::Softplus => 4,
+        Activation::Exp => 5,
+    }
+}
+
+/// The `atomic<f32>` variant of the gradient block of `mlp_fused.wgsl` (replaces the CAS loop).
+const F32_ATOMIC_BLOCK: &str = "@group(0) @binding(9) var<storage, read_write> grads: array<atomic<f32>>;
+fn grad_add(i: u32, v: f32) {
+    atomicAdd(&grads[i], v);
+}
+";
+
+/// The WGSL source of the fused-MLP kernels (without `common.wgsl`) for one gradient-atomics path:
+/// `f32_atomics = false` is the file as is (compare-and-swap on `atomic<u32>`), `true` swaps in
+/// `atomic<f32>` + `atomicAdd` (needs `SHADER_FLOAT32_ATOMIC`).
+pub fn source(f32_atomics: bool) -> String {
+    let src = shaders::MLP_FUSED;
+    if !f32_atomics {
+        return src.to_string();
+    }
+    let (begin, end) = ("// GRAD_ATOMIC_BEGIN\n", "// GRAD_ATOMIC_END");
+    let b = src.find(begin).expect("mlp_fused.wgsl: GRAD_ATOMIC_BEGIN marker") + begin.len();
+    let e = src.find(end).expect("mlp_fused.wgsl: GRAD_ATOMIC_END marker");
+    format!("{}{}{}", &src[..b], F32_ATOMIC_BLOCK, &src[e..])
+}
+
+/// A small MLP (every width ≤ [`MAX_WIDTH`], any number of layers, no skips) as fused GPU kernels.
+/// Built once per config; parameters, gradients and activations live in caller-owned buffers.
+pub struct FusedMlp {
+    config: MlpConfig,
+    layers: Vec<MlpLayerDesc>,
+    n_params: usize,
+    fps: usize,
+    f32_atomics: bool,
+    layer_buf: wgpu::Buffer,
+    /// Uniforms for mode 0 (inference, backward without d_input), MODE_TAPE, MODE_DX.
+    u_plain: wgpu::Buffer,
+    u_tape: wgpu::Buffer,
+    u_dx: wgpu::Buffer,
+    /// Bound in place of the tape (inference) and of d_input (backward without it); never written.
+    dummy: wgpu::Buffer,
+    forward: Kernel,
+    backward: Kernel,
+    wgrad: Kernel,
+}
+
+impl FusedMlp {
+    /// Builds the kernels for `config`, using `atomic<f32>` gradient atomics when the adapter has them
+    /// and the compare-and-swap fallback otherwise.
+    pub fn new(ctx: &GpuContext, config: &MlpConfig) -> Result<Self, GpuError> {
+        Self::with_atomics(ctx, config, ctx.features.float32_atomics)
+    }
+
+    /// As [`FusedMlp::new`] with the gradient-atomics path chosen explicitly (`true`: `atomic<f32>`,
+    /// an error on adapters without `SHADER_FLOAT32_ATOMIC`; `false`: compare-and-swap loop).
+    pub fn with_atomics(ctx: &GpuContext, config: &MlpConfig, f32_atomics: bool) -> Result<Self, GpuError> {
+        config
+            .validate()
+            .map_err(|e| GpuError::Unsupported(format!("fused MLP: invalid config: {e}")))?;
+        if !config.skips.is_empty() {
+            return Err(GpuError::Unsupported(format!(
+                "fused MLP: skip connections ({:?}) are not supported by the fused kernels",
+                config.skips
+            )));
+        }
+        for (what, w) in [
+            ("input_dim", config.input_dim),
+            ("output_dim", config.output_dim),
+            ("hidden_dim", if config.hidden_layers > 0 { config.hidden_dim } else { 0 }),
+        ] {
+            if w > MAX_WIDTH {
+                return Err(GpuError::Unsupported(format!(
+                    "fused MLP: {what} = {w} exceeds the fused kernels' limit of {MAX_WIDTH}"
+                )));
+            }
+        }
+        if f32_atomics && !ctx.features.float32_atomics {
+            return Err(GpuError::Unsupported(
+                "fused MLP: atomic<f32> gradients requested but the adapter lacks SHADER_FLOAT32_ATOMIC".into(),
+            ));
+        }
+        let limit = ctx.device.limits().max_compute_workgroup_storage_size;
+        if limit < WORKGROUP_BYTES {
+            return Err(GpuError::Unsupported(format!(
+                "fused MLP: needs {WORKGROUP_BYTES} bytes of workgroup memory, the adapter offers {limit}"
+            )));
+        }
+
+        let nl = config.hidden_layers + 1;
+        let widths: Vec<usize> =
+            (0..nl).map(|i| if i + 1 == nl { config.output_dim } else { config.hidden_dim }).collect();
+        let total: usize = widths.iter().sum();
+        let mut layers = Vec::with_capacity(nl);
+        let (mut off, mut prev, mut pre) = (0usize, config.input_dim, 0usize);
+        for (i, &out) in widths.iter().enumerate() {
+            let w_off = off;
+            off += out * prev;
+            let b_off = if config.bias {
+                off += out;
+                off - out
+            } else {
+                0
+            };
+            let act = if i + 1 == nl { config.output_activation } else { config.hidden_activation };
+            layers.push(MlpLayerDesc {
+                fan_in: prev as u32,
+                out: out as u32,
+                w_off: w_off as u32,
+                b_off: b_off as u32,
+                act: act_code(act),
+                a_pre: pre as u32,
+                d_pre: (total + pre) as u32,
+                has_bias: config.bias as u32,
+            });
+            pre += out;
+            prev = out;
+        }
+        let fps = 2 * total;
+        let params = |mode| MlpParams {
+            n_layers: nl as u32,
+            input_dim: config.input_dim as u32,
+            output_dim: config.output_dim as u32,
+            fps: fps as u32,
+            mode,
+            _pad: [0; 3],
+        };
+        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("mlp_fused.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::with_common(&source(f32_atomics)).into()),
+        });
+        Ok(Self {
+            config: config.clone(),
+            n_params: off,
+            fps,
+            f32_atomics,
+            layer_buf: ctx.upload("mlp layers", &layers),
+            layers,
+            u_plain: ctx.uniform("mlp params", &params(0)),
+            u_tape: ctx.uniform("mlp params (tape)", &params(MODE_TAPE)),
+            u_dx: ctx.uniform("mlp params (d_input)", &params(MODE_DX)),
+            dummy: ctx.zeros("mlp dummy", 16),
+            forward: Kernel::from_module(ctx, &module, "mlp_forward", &[]),
+            backward: Kernel::from_module(ctx, &module, "mlp_backward", &[]),
+            wgrad: Kernel::from_module(ctx, &module, "mlp_wgrad", &[]),
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &MlpConfig {
+        &self.config
+    }
+
+    /// Number of parameters (equals [`nerf_mlp::Mlp::n_params`] for the same config).
+    pub fn n_params(&self) -> usize {
+        self.n_params
+    }
+
+    /// The layer table the kernels use (shapes, offsets, activation codes, tape offsets).
+    pub fn layers(&self) -> &[MlpLayerDesc] {
+        &self.layers
+    }
+
+    /// Whether the weight gradients use `atomic<f32>` (else the compare-and-swap loop).
+    pub fn uses_f32_atomics(&self) -> bool {
+        self.f32_atomics
+    }
+
+    /// Floats of tape per sample: the caller allocates `capacity · tape_floats_per_sample()` floats.
+    /// (Every layer's activated output and, written by the backward, its pre-activation gradient.)
+    pub fn tape_floats_per_sample(&self) -> usize {
+        self.fps
+    }
+
+    fn check(&self, what: &str, buf: &wgpu::Buffer, floats: usize) {
+        assert!(
+            buf.size() >= 4 * floats as u64,
+            "FusedMlp: {what} buffer has {} bytes, needs {} (capacity × width)",
+            buf.size(),
+            4 * floats
+        );
+    }
+
+    fn check_common(&self, input: &wgpu::Buffer, params: &wgpu::Buffer, capacity: usize) {
+        self.check("input", input, capacity * self.config.input_dim);
+        self.check("params", params, self.n_params);
+    }
+
+    fn tile_groups(capacity: usize) -> [u32; 3] {
+        groups_1d(capacity, TILE as u32)
+    }
+
+    /// Records inference: `output [n][output_dim] = mlp(input [n][input_dim])`, n = `counters[1]` ≤
+    /// `capacity`. Writes only the first n rows of `output`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_inference(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        capacity: usize,
+    ) {
+        self.check_common(input, params, capacity);
+        self.check("output", output, capacity * self.config.output_dim);
+        self.forward.record(
+            ctx,
+            enc,
+            &[
+                (0, &self.u_plain),
+                (1, &self.layer_buf),
+                (2, counters),
+                (3, input),
+                (4, params),
+                (5, output),
+                (6, &self.dummy),
+            ],
+            Self::tile_groups(capacity),
+        );
+    }
+
+    /// Records the training forward: as [`FusedMlp::record_inference`] and stores what the backward
+    /// needs in `tape` (at least `capacity · tape_floats_per_sample()` floats).
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_forward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        tape: &wgpu::Buffer,
+        capacity: usize,
+    ) {
+        self.check_common(input, params, capacity);
+        self.check("output", output, capacity * self.config.output_dim);
+        self.check("tape", tape, capacity * self.fps);
+        self.forward.record(
+            ctx,
+            enc,
+            &[
+                (0, &self.u_tape),
+                (1, &self.layer_buf),
+                (2, counters),
+                (3, input),
+                (4, params),
+                (5, output),
+                (6, tape),
+            ],
+            Self::tile_groups(capacity),
+        );
+    }
+
+    /// Number of weight-gradient workgroups per layer for `capacity` samples.
+    fn wgrad_groups(capacity: usize) -> u32 {
+        capacity.div_ceil(WGRAD_SAMPLES_PER_GROUP).clamp(1, MAX_WGRAD_GROUPS) as u32
+    }
+
+    /// Records the backward of the last [`FusedMlp::record_forward`] (same `counters`, `input`,
+    /// `params`, `tape`): `d_output [n][output_dim]` is dL/d(activated output). ACCUMULATES dL/dparams
+    /// into `grads` (+=, CPU layout) and writes dL/dinput `[n][input_dim]` into `d_input` when given.
+    /// Two dispatches: the fused backward (fills the tape's gradient half), then the split-K weight
+    /// gradients.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        tape: &wgpu::Buffer,
+        d_output: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        d_input: Option<&wgpu::Buffer>,
+        capacity: usize,
+    ) {
+        self.check_common(input, params, capacity);
+        self.check("tape", tape, capacity * self.fps);
+        self.check("d_output", d_output, capacity * self.config.output_dim);
+        self.check("grads", grads, self.n_params);
+        if let Some(d) = d_input {
+            self.check("d_input", d, capacity * self.config.input_dim);
+        }
+        let (uniform, dx) = match d_input {
+            Some(d) => (&self.u_dx, d),
+            None => (&self.u_plain, &self.dummy),
+        };
+        self.backward.record(
+            ctx,
+            enc,
+            &[
+                (0, uniform),
+                (1, &self.layer_buf),
+                (2, counters),
+                (4, params),
+                (6, tape),
+                (7, d_output),
+                (8, dx),
+            ],
+            Self::tile_groups(capacity),
+        );
+        self.wgrad.record(
+            ctx,
+            enc,
+            &[
+                (0, &self.u_plain),
+                (1, &self.layer_buf),
+                (2, counters),
+                (3, input),
+                (6, tape),
+                (9, grads),
+            ],
+            [Self::wgrad_groups(capacity), self.layers.len() as u32, 1],
+        );
+    }
+}

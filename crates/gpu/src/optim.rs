@@ -1,1 +1,256 @@
-//! (being written)
+//! Adam on the device (`shaders/adam.wgsl`), matching [`nerf_optim::Adam`] step for step.
+//!
+//! The trainer concatenates every parameter group of every field into ONE flat `f32` parameter
+//! buffer and one gradient buffer of the same layout; [`GpuAdam`] owns the first/second moment
+//! buffers (same layout) and updates all groups in one dispatch, zeroing the gradients as it goes
+//! (so the next step's backward can accumulate with `+=` without a clearing pass).
+//!
+//! The step count lives on the host: [`GpuAdam::record_step`] increments it and rewrites a small
+//! uniform (with [`GpuContext::write`]) holding the learning rate and both bias corrections,
+//! computed in `f64` exactly as the CPU does. Because queued writes land before the next
+//! submission, record at most ONE step per submission.
+
+use crate::kernel::{groups_1d, Kernel};
+use crate::{shaders, GpuContext, GpuError};
+use nerf_optim::{AdamConfig, AdamState};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+const WG: u32 = 256;
+
+/// One parameter group inside the flat parameter buffer.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GpuParamGroup {
+    /// Name (the key of the group in [`AdamState`], as the CPU optimiser uses it).
+    pub name: String,
+    /// Index of the group's first parameter in the flat buffer.
+    pub offset: usize,
+    /// Number of parameters.
+    pub len: usize,
+    /// L2 weight decay added to the gradient (`g += wd·p`, torch's `weight_decay`).
+    pub weight_decay: f32,
+    /// Multiplies the learning rate of this group (1 matches the CPU optimiser).
+    pub lr_scale: f32,
+}
+
+impl GpuParamGroup {
+    /// A group with `lr_scale = 1`.
+    pub fn new(name: impl Into<String>, offset: usize, len: usize, weight_decay: f32) -> Self {
+        Self { name: name.into(), offset, len, weight_decay, lr_scale: 1.0 }
+    }
+}
+
+/// `AdamParams` of `shaders/adam.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+struct AdamParams {
+    total: u32,
+    n_groups: u32,
+    beta1: f32,
+    beta2: f32,
+    one_minus_beta1: f32,
+    one_minus_beta2: f32,
+    eps: f32,
+    step_size: f32,
+    inv_sqrt_bc2: f32,
+    _pad: [u32; 3],
+}
+
+/// `Group` of `shaders/adam.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+struct GroupDesc {
+    offset: u32,
+    len: u32,
+    start: u32,
+    weight_decay: f32,
+    lr_scale: f32,
+    _pad: [u32; 3],
+}
+
+/// Adam over one flat parameter buffer with named groups; owns the moment buffers.
+pub struct GpuAdam {
+    cfg: AdamConfig,
+    groups: Vec<GpuParamGroup>,
+    /// Length of the parameter buffer the moments cover (`max(offset + len)`).
+    extent: usize,
+    total: usize,
+    step: AtomicU64,
+    m: wgpu::Buffer,
+    v: wgpu::Buffer,
+    group_buf: wgpu::Buffer,
+    uniform: wgpu::Buffer,
+    kernel: Kernel,
+}
+
+impl GpuAdam {
+    /// Builds the optimiser for `groups` (non-empty groups must not overlap; any order; empty
+    /// groups are kept for [`GpuAdam::state`] but cost nothing). Moments start at zero, step 0.
+    /// Errors on overlapping groups, non-finite weight decay or learning-rate scale, or a buffer
+    /// larger than `u32` indices allow.
+    pub fn new(ctx: &GpuContext, cfg: &AdamConfig, groups: &[GpuParamGroup]) -> Result<Self, GpuError> {
+        let mut order: Vec<usize> = (0..groups.len()).filter(|&i| groups[i].len > 0).collect();
+        order.sort_by_key(|&i| groups[i].offset);
+        for w in order.windows(2) {
+            let (a, b) = (&groups[w[0]], &groups[w[1]]);
+            if a.offset + a.len > b.offset {
+                return Err(GpuError::Unsupported(format!(
+                    "Adam: parameter groups {:?} ({}..{}) and {:?} ({}..{}) overlap",
+                    a.name,
+                    a.offset,
+                    a.offset + a.len,
+                    b.name,
+                    b.offset,
+                    b.offset + b.len
+                )));
+            }
+        }
+        for g in groups {
+            if !(g.weight_decay.is_finite() && g.lr_scale.is_finite()) {
+                return Err(GpuError::Unsupported(format!(
+                    "Adam: group {:?} has a non-finite weight decay ({}) or lr scale ({})",
+                    g.name, g.weight_decay, g.lr_scale
+                )));
+            }
+        }
+        let extent = groups.iter().map(|g| g.offset + g.len).max().unwrap_or(0);
+        if extent > u32::MAX as usize {
+            return Err(GpuError::Unsupported(format!("Adam: {extent} parameters exceed u32 indices")));
+        }
+        let mut descs = Vec::with_capacity(order.len());
+        let mut start = 0usize;
+        for &i in &order {
+            let g = &groups[i];
+            descs.push(GroupDesc {
+                offset: g.offset as u32,
+                len: g.len as u32,
+                start: start as u32,
+                weight_decay: g.weight_decay,
+                lr_scale: g.lr_scale,
+                _pad: [0; 3],
+            });
+            start += g.len;
+        }
+        let total = start;
+        let params = AdamParams {
+            total: total as u32,
+            n_groups: descs.len() as u32,
+            beta1: cfg.beta1,
+            beta2: cfg.beta2,
+            one_minus_beta1: 1.0 - cfg.beta1,
+            one_minus_beta2: 1.0 - cfg.beta2,
+            eps: cfg.eps,
+            ..Default::default()
+        };
+        let kernel = Kernel::new(ctx, &shaders::with_common(shaders::ADAM), "adam_step", &[("WG", WG as f64)]);
+        Ok(Self {
+            cfg: cfg.clone(),
+            groups: groups.to_vec(),
+            extent,
+            total,
+            step: AtomicU64::new(0),
+            m: ctx.zeros("adam.m", 4 * extent),
+            v: ctx.zeros("adam.v", 4 * extent),
+            group_buf: ctx.upload("adam.groups", &descs),
+            uniform: ctx.uniform("adam.params", &params),
+            kernel,
+        })
+    }
+
+    /// The hyper-parameters.
+    pub fn config(&self) -> &AdamConfig {
+        &self.cfg
+    }
+
+    /// The groups as given to [`GpuAdam::new`].
+    pub fn groups(&self) -> &[GpuParamGroup] {
+        &self.groups
+    }
+
+    /// Length (in `f32`) the parameter, gradient and moment buffers must have at least.
+    pub fn extent(&self) -> usize {
+        self.extent
+    }
+
+    /// Steps recorded so far (or loaded with [`GpuAdam::load_state`]).
+    pub fn step_count(&self) -> u64 {
+        self.step.load(Ordering::Relaxed)
+    }
+
+    /// The first- and second-moment buffers (`extent` f32 each, parameter layout).
+    pub fn moments(&self) -> (&wgpu::Buffer, &wgpu::Buffer) {
+        (&self.m, &self.v)
+    }
+
+    /// Records one Adam step with learning rate `lr` on every group of `params` (updated in place)
+    /// from `grads` (set to zero afterwards). Increments the step count and rewrites the step
+    /// uniform, so at most one step may be recorded per submission.
+    pub fn record_step(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, params: &wgpu::Buffer, grads: &wgpu::Buffer, lr: f32) {
+        let step = self.step.fetch_add(1, Ordering::Relaxed) + 1;
+        // Exactly nerf_optim::Adam::step's arithmetic (f64, then rounded to f32).
+        let t = step as f64;
+        let bc1 = 1.0 - (self.cfg.beta1 as f64).powf(t);
+        let bc2 = 1.0 - (self.cfg.beta2 as f64).powf(t);
+        let step_size = (lr as f64 / bc1) as f32;
+        let inv_sqrt_bc2 = (1.0 / bc2.sqrt()) as f32;
+        // `step_size` and `inv_sqrt_bc2` are the 8th and 9th words of AdamParams.
+        ctx.write(&self.uniform, 7 * 4, &[step_size, inv_sqrt_bc2]);
+        if self.total == 0 {
+            return;
+        }
+        self.kernel.record(
+            ctx,
+            enc,
+            &[(0, &self.uniform), (1, &self.group_buf), (2, params), (3, grads), (4, &self.m), (5, &self.v)],
+            groups_1d(self.total, WG),
+        );
+    }
+
+    /// Reads the moments back into an [`AdamState`] (one entry per group, in the order given to
+    /// [`GpuAdam::new`]) for a checkpoint. Waits for the queue.
+    pub fn state(&self, ctx: &GpuContext) -> Result<AdamState, GpuError> {
+        let m = ctx.read_f32(&self.m, self.extent)?;
+        let v = ctx.read_f32(&self.v, self.extent)?;
+        Ok(AdamState {
+            step: self.step_count(),
+            groups: self
+                .groups
+                .iter()
+                .map(|g| (g.name.clone(), m[g.offset..g.offset + g.len].to_vec(), v[g.offset..g.offset + g.len].to_vec()))
+                .collect(),
+        })
+    }
+
+    /// Loads a checkpoint (from [`GpuAdam::state`] or [`nerf_optim::Adam::state`]): the step count,
+    /// and the moments of every group whose name and length match; other groups get zero moments
+    /// (as the CPU optimiser gives a group it has no state for). Fails, leaving the optimiser
+    /// unchanged, when a group's `m` and `v` lengths differ, a name repeats, or a moment is not
+    /// finite (or `v` negative) — the CPU's rules.
+    pub fn load_state(&self, ctx: &GpuContext, s: &AdamState) -> Result<(), GpuError> {
+        for (i, (name, m, v)) in s.groups.iter().enumerate() {
+            let bad = |what: &str| Err(GpuError::Unsupported(format!("Adam state: group {name:?} {what}")));
+            if m.len() != v.len() {
+                return bad(&format!("has {} first moments but {} second moments", m.len(), v.len()));
+            }
+            if s.groups[..i].iter().any(|(n, _, _)| n == name) {
+                return bad("appears more than once");
+            }
+            if m.iter().any(|x| !x.is_finite()) || v.iter().any(|x| !x.is_finite() || *x < 0.0) {
+                return bad("has non-finite or negative moments");
+            }
+        }
+        let mut m = vec![0.0f32; self.extent];
+        let mut v = vec![0.0f32; self.extent];
+        for g in &self.groups {
+            if let Some((_, gm, gv)) = s.groups.iter().find(|(n, gm, _)| *n == g.name && gm.len() == g.len) {
+                m[g.offset..g.offset + g.len].copy_from_slice(gm);
+                v[g.offset..g.offset + g.len].copy_from_slice(gv);
+            }
+        }
+        if self.extent > 0 {
+            ctx.write(&self.m, 0, &m);
+            ctx.write(&self.v, 0, &v);
+        }
+        self.step.store(s.step, Ordering::Relaxed);
+        Ok(())
+    }
+}

@@ -34,6 +34,8 @@ pub const LINEAR: &str = wgsl!("linear.wgsl");
 pub const LINEAR_COOP: &str = wgsl!("linear_coop.wgsl");
 /// Training-step glue: photometric loss and adaptive batch size.
 pub const TRAIN: &str = wgsl!("train.wgsl");
+/// Glue between a field's density network, σ activation and colour network (hash and paper fields).
+pub const FIELD_GLUE: &str = wgsl!("field_glue.wgsl");
 /// Adam update.
 pub const ADAM: &str = wgsl!("adam.wgsl");
 /// Inverse-transform (hierarchical) sampling.
@@ -54,6 +56,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("linear_coop.wgsl", LINEAR_COOP),
     ("adam.wgsl", ADAM),
     ("train.wgsl", TRAIN),
+    ("field_glue.wgsl", FIELD_GLUE),
     ("pdf.wgsl", PDF),
 ];
 

@@ -55,7 +55,7 @@ pub fn evaluate(
     let mut views = Vec::with_capacity(data.n_views());
     for i in 0..data.n_views() {
         data.view_rays(i, bg, conv, &mut batch);
-        trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth);
+        trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
         let gt = &batch.target;
         let psnr = nerf_metrics::psnr(&rgb, gt);
         let ssim = nerf_metrics::ssim(&rgb, gt, w, h);

@@ -10,13 +10,14 @@
 pub mod checkpoint;
 pub mod config;
 pub mod eval;
+mod gpu;
 pub mod run;
 pub mod trainer;
 
 pub use checkpoint::Checkpoint;
 pub use config::{SamplerConfig, TrainConfig};
 pub use eval::{evaluate, EvalReport, ViewMetrics};
-pub use run::{run, RunOptions, RunSummary};
+pub use run::{make_trainer, run, RunOptions, RunSummary};
 pub use trainer::{SceneBounds, StepStats, Trainer};
 
 use std::path::PathBuf;
@@ -49,6 +50,9 @@ pub enum TrainError {
         /// What is wrong.
         message: String,
     },
+    /// The GPU path failed (no adapter, a field without a GPU twin, a failed read-back).
+    #[error("GPU: {0}")]
+    Gpu(String),
     /// Training was interrupted (Ctrl-C); the state was saved.
     #[error("interrupted at step {step}; checkpoint saved to {checkpoint} (resume with --resume)")]
     Interrupted {

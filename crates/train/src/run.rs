@@ -30,6 +30,9 @@ pub struct RunOptions {
     pub write_renders: bool,
     /// Scene name recorded in metrics.json.
     pub scene: String,
+    /// Where the step runs: `auto` (the GPU when an adapter exists and the field has a GPU twin,
+    /// else the CPU), `cpu`, or `gpu` (an error without an adapter). `NERF_DEVICE` overrides it.
+    pub device: nerf_gpu::DevicePreference,
 }
 
 impl RunOptions {
@@ -42,6 +45,7 @@ impl RunOptions {
             stop: Arc::new(AtomicBool::new(false)),
             write_renders: true,
             scene: String::new(),
+            device: nerf_gpu::DevicePreference::Auto,
         }
     }
 }
@@ -79,7 +83,7 @@ pub fn run(
     let out = &opts.out_dir;
     std::fs::create_dir_all(out).map_err(io_err(out))?;
     let ck_path = out.join("checkpoint.bin");
-    let mut trainer = Trainer::new(config.clone(), registry, SceneBounds::of(train))?;
+    let mut trainer = make_trainer(&config, registry, SceneBounds::of(train), opts.device)?;
     let (mut elapsed, mut samples_seen) = (0.0f64, 0u64);
     if opts.resume && ck_path.exists() {
         let ck = Checkpoint::load(&ck_path)?;
@@ -96,15 +100,16 @@ pub fn run(
         elapsed = ck.elapsed_secs;
         samples_seen = ck.samples_seen;
     }
-    let save = |t: &Trainer, elapsed: f64, samples_seen: u64| {
+    let base_samples = samples_seen;
+    let save = |t: &Trainer, elapsed: f64| -> Result<(), TrainError> {
         Checkpoint {
             step: t.step_count(),
             elapsed_secs: elapsed,
-            samples_seen,
+            samples_seen: base_samples + t.samples_seen()?,
             config: t.config().clone(),
-            fields: t.export_fields(),
-            adam: t.adam_state(),
-            sampler: t.sampler_state(),
+            fields: t.export_fields()?,
+            adam: t.adam_state()?,
+            sampler: t.sampler_state()?,
         }
         .save(&ck_path)
     };
@@ -131,28 +136,33 @@ pub fn run(
     let mut last_loss = f32::NAN;
     while trainer.step_count() < config.iters && elapsed < budget {
         if opts.stop.load(Ordering::SeqCst) {
-            save(&trainer, elapsed, samples_seen)?;
+            save(&trainer, elapsed)?;
             pb.abandon_with_message("interrupted");
             return Err(TrainError::Interrupted { step: trainer.step_count(), checkpoint: ck_path });
         }
-        let s = trainer.step(train);
-        samples_seen += s.n_samples as u64;
+        let s = trainer.step(train)?;
         elapsed = base_elapsed + start.elapsed().as_secs_f64();
-        last_loss = s.loss;
+        if s.loss.is_finite() {
+            last_loss = s.loss;
+        }
         pb.inc(1);
         let done = trainer.step_count();
-        if done % config.log_every.max(1) == 0 || done == config.iters {
+        if (done % config.log_every.max(1) == 0 || done == config.iters) && s.loss.is_finite() {
             let psnr = nerf_metrics::mse_to_psnr(s.mse as f64);
             pb.set_message(format!("loss {:.5} psnr {:.2} lr {:.2e}", s.loss, psnr, s.lr));
             let line = json!({"step": done, "elapsed_secs": elapsed, "loss": s.loss, "train_psnr": psnr, "lr": s.lr});
             writeln!(history, "{line}").map_err(io_err(&hist_path))?;
         }
         if config.checkpoint_every > 0 && done % config.checkpoint_every == 0 {
-            save(&trainer, elapsed, samples_seen)?;
+            save(&trainer, elapsed)?;
         }
     }
+    // GPU steps are queued: wait for them so the clock counts the work, not its submission.
+    trainer.finish()?;
+    elapsed = base_elapsed + start.elapsed().as_secs_f64();
+    samples_seen += trainer.samples_seen()?;
     pb.finish_with_message(format!("trained {} steps in {:.1}s", trainer.step_count(), elapsed));
-    save(&trainer, elapsed, samples_seen)?;
+    save(&trainer, elapsed)?;
 
     let epb = if opts.progress { ProgressBar::new(test.n_views() as u64) } else { ProgressBar::hidden() };
     epb.set_style(ProgressStyle::with_template("eval {bar:30} {pos}/{len} views").expect("valid template"));
@@ -166,8 +176,8 @@ pub fn run(
     let iters = trainer.step_count();
     let metrics = json!({
         "field": config.field,
-        "device": "cpu",
-        "adapter": serde_json::Value::Null,
+        "device": trainer.device(),
+        "adapter": trainer.adapter(),
         "scene": opts.scene,
         "iterations": iters,
         "wall_seconds": elapsed,
@@ -189,4 +199,30 @@ pub fn run(
     let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
     write_atomic(&out.join("metrics.json"), text.as_bytes())?;
     Ok(RunSummary { metrics, eval: report, iterations: iters })
+}
+
+/// A trainer on the device `pref` asks for: `cpu`; `gpu` (any adapter; an error without one or
+/// without a GPU twin of the field); `auto`: a hardware GPU when one exists and the field has a
+/// GPU twin, else the CPU (with a notice on stderr when only the twin is missing).
+pub fn make_trainer(
+    config: &TrainConfig,
+    registry: &Registry,
+    bounds: SceneBounds,
+    pref: nerf_gpu::DevicePreference,
+) -> Result<Trainer, TrainError> {
+    use nerf_gpu::{DevicePreference, GpuContext};
+    let pref = pref.with_env_override().map_err(|e| TrainError::Gpu(e.to_string()))?;
+    let ctx = GpuContext::open(pref).map_err(|e| TrainError::Gpu(e.to_string()))?;
+    match ctx {
+        None => Trainer::new(config.clone(), registry, bounds),
+        // A software adapter (lavapipe) is slower than the rayon path: `auto` skips it.
+        Some(ctx) if pref == DevicePreference::Auto && ctx.is_software() => Trainer::new(config.clone(), registry, bounds),
+        Some(ctx) => match Trainer::new_on(config.clone(), registry, bounds, Some(std::sync::Arc::new(ctx))) {
+            Err(TrainError::Gpu(msg)) if pref == DevicePreference::Auto && msg.contains("no GPU implementation") => {
+                eprintln!("note: {msg}; training on the CPU");
+                Trainer::new(config.clone(), registry, bounds)
+            }
+            other => other,
+        },
+    }
 }

@@ -74,6 +74,10 @@ pub struct Trainer {
     grid: Option<OccupancyGrid>,
     /// Running mean of samples per ray (sizes batches when `target_samples_per_step` is set).
     samples_per_ray: f32,
+    /// Field samples evaluated by this trainer's steps (not counting restored ones).
+    samples_seen: u64,
+    /// The GPU execution path, when the trainer runs on a device.
+    gpu: Option<crate::gpu::GpuEngine>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -111,6 +115,8 @@ impl Trainer {
         Ok(Self {
             grid,
             samples_per_ray: 0.0,
+            samples_seen: 0,
+            gpu: None,
             stages: (0..n).map(|_| Stage::default()).collect(),
             config,
             bounds,
@@ -124,6 +130,53 @@ impl Trainer {
         })
     }
 
+    /// As [`Trainer::new`], on `device` when given: every field instance is moved to the GPU
+    /// (its `to_gpu` twin, same initial parameters) and the whole step runs there. Errors when the
+    /// field has no GPU implementation.
+    pub fn new_on(
+        config: TrainConfig,
+        registry: &Registry,
+        bounds: SceneBounds,
+        device: Option<std::sync::Arc<nerf_gpu::GpuContext>>,
+    ) -> Result<Self, TrainError> {
+        let mut t = Self::new(config, registry, bounds)?;
+        if let Some(ctx) = device {
+            t.gpu = Some(crate::gpu::GpuEngine::new(ctx, &t.config, bounds, &t.fields, &t.group_names)?);
+        }
+        Ok(t)
+    }
+
+    /// `"gpu"` when the step runs on a wgpu device, else `"cpu"`.
+    pub fn device(&self) -> &'static str {
+        if self.gpu.is_some() {
+            "gpu"
+        } else {
+            "cpu"
+        }
+    }
+
+    /// The adapter the GPU path runs on (name, backend, type, driver).
+    pub fn adapter(&self) -> Option<String> {
+        self.gpu.as_ref().map(|g| g.describe())
+    }
+
+    /// Waits until every queued GPU step has finished (no-op on the CPU).
+    pub fn finish(&self) -> Result<(), TrainError> {
+        match &self.gpu {
+            Some(g) => g.finish(),
+            None => Ok(()),
+        }
+    }
+
+    /// Field samples evaluated by the steps of this trainer (restored steps not included). On the
+    /// GPU this reads a device counter (a small read-back).
+    pub fn samples_seen(&self) -> Result<u64, TrainError> {
+        match &self.gpu {
+            Some(g) => g.samples_seen(),
+            None => Ok(self.samples_seen),
+        }
+    }
+
     /// The run's config.
     pub fn config(&self) -> &TrainConfig {
         &self.config
@@ -134,7 +187,8 @@ impl Trainer {
         self.step
     }
 
-    /// The fields being trained (coarse first when hierarchical; the last one renders the image).
+    /// The CPU fields (coarse first when hierarchical; the last one renders the image). On the GPU
+    /// path these hold the initial parameters; use [`Trainer::export_fields`] for the trained ones.
     pub fn fields(&self) -> &[Box<dyn RadianceField>] {
         &self.fields
     }
@@ -145,7 +199,20 @@ impl Trainer {
     }
 
     /// Takes one optimisation step on a random batch of rays from `data`.
-    pub fn step(&mut self, data: &Dataset) -> StepStats {
+    ///
+    /// On the GPU the step is recorded and submitted without waiting; the loss is read back only
+    /// every `log_every` steps (and on the last step), otherwise [`StepStats::loss`] and
+    /// [`StepStats::mse`] are NaN and [`StepStats::n_samples`] is the last value read.
+    pub fn step(&mut self, data: &Dataset) -> Result<StepStats, TrainError> {
+        if let Some(g) = self.gpu.as_mut() {
+            let s = g.step(data, &self.config, self.step)?;
+            self.step += 1;
+            return Ok(s);
+        }
+        Ok(self.cpu_step(data))
+    }
+
+    fn cpu_step(&mut self, data: &Dataset) -> StepStats {
         let cfg = &self.config;
         let mut rng = nerf_core::rng(cfg.seed, STREAM_STEP + self.step);
         let n_rays = match cfg.target_samples_per_step {
@@ -247,12 +314,13 @@ impl Trainer {
         let spr = self.stages[0].samples.len() as f32 / n_rays.max(1) as f32;
         self.samples_per_ray = if self.samples_per_ray > 0.0 { 0.9 * self.samples_per_ray + 0.1 * spr } else { spr };
         let stats = StepStats { step: self.step, loss, mse, n_samples, lr };
+        self.samples_seen += n_samples as u64;
         self.step += 1;
         stats
     }
 
-    /// Renders rays (inference, deterministic sampling) in chunks of `render_chunk_rays`.
-    /// Outputs: rgb `3·n`, opacity `n`, depth `n`.
+    /// Renders rays (inference, deterministic sampling) in chunks of `render_chunk_rays`, on the
+    /// trainer's device. Outputs: rgb `3·n`, opacity `n`, depth `n`.
     pub fn render_rays(
         &self,
         origins: &[f32],
@@ -261,7 +329,10 @@ impl Trainer {
         rgb: &mut [f32],
         opacity: &mut [f32],
         depth: &mut [f32],
-    ) {
+    ) -> Result<(), TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.render_rays(&self.config, origins, dirs, background, rgb, opacity, depth);
+        }
         let n = origins.len() / 3;
         let chunk = self.config.render_chunk_rays;
         let mut stages: Vec<Stage> = (0..self.fields.len()).map(|_| Stage::default()).collect();
@@ -285,30 +356,40 @@ impl Trainer {
             opacity[r0..r1].copy_from_slice(&last.comp.opacity);
             depth[r0..r1].copy_from_slice(&last.comp.depth);
         }
+        Ok(())
     }
 
-    /// Parameters of every field instance (for checkpoints).
-    pub fn export_fields(&self) -> Vec<Vec<(String, Vec<f32>)>> {
-        self.fields.iter().map(|f| f.export_params()).collect()
+    /// Parameters of every field instance (for checkpoints; read back from the device on the GPU).
+    pub fn export_fields(&self) -> Result<Vec<Vec<(String, Vec<f32>)>>, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.export_fields();
+        }
+        Ok(self.fields.iter().map(|f| f.export_params()).collect())
     }
 
     /// State of the sampler that a resumed run needs (occupancy-grid densities, batch sizing).
-    pub fn sampler_state(&self) -> Vec<(String, Vec<f32>)> {
+    pub fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.sampler_state();
+        }
         let mut v = vec![("samples_per_ray".to_string(), vec![self.samples_per_ray])];
         if let Some(g) = &self.grid {
             v.push(("occupancy_density".to_string(), g.densities().to_vec()));
         }
-        v
+        Ok(v)
     }
 
-    /// The occupancy grid, when the sampler has one.
+    /// The occupancy grid of the CPU path, when the sampler has one.
     pub fn occupancy_grid(&self) -> Option<&OccupancyGrid> {
         self.grid.as_ref()
     }
 
-    /// Optimiser state (for checkpoints).
-    pub fn adam_state(&self) -> AdamState {
-        self.adam.state()
+    /// Optimiser state (for checkpoints; read back from the device on the GPU).
+    pub fn adam_state(&self) -> Result<AdamState, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.adam_state();
+        }
+        Ok(self.adam.state())
     }
 
     /// Restores parameters, optimiser state and the step counter from a checkpoint.
@@ -319,6 +400,11 @@ impl Trainer {
         adam: AdamState,
         sampler_state: &[(String, Vec<f32>)],
     ) -> Result<(), TrainError> {
+        if let Some(g) = self.gpu.as_mut() {
+            g.restore(fields, &adam, sampler_state)?;
+            self.step = step;
+            return Ok(());
+        }
         for (name, v) in sampler_state {
             match (name.as_str(), self.grid.as_mut(), &self.config.sampler) {
                 ("samples_per_ray", _, _) if v.len() == 1 => self.samples_per_ray = v[0],

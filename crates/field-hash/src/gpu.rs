@@ -1,0 +1,132 @@
+//! The hash-grid field on a wgpu device: the same composition as the CPU [`HashNerf`] — hash
+//! encoding ([`GpuHashGrid`]), density MLP ([`FusedMlp`]), spherical harmonics
+//! ([`GpuSphericalHarmonics`]), colour MLP — joined by [`FieldGlue`]. Parameters start as the CPU
+//! field's and live in three device buffers with the CPU groups' layouts.
+
+use crate::{HashNerf, GROUP_NAMES};
+use nerf_field::gpu::wgpu;
+use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
+use nerf_gpu::encoding::{GpuHashGrid, GpuSphericalHarmonics};
+use nerf_gpu::glue::{FieldGlue, SigmaActivation};
+use nerf_gpu::mlp::FusedMlp;
+use nerf_gpu::GpuContext;
+
+/// [`HashNerf`] on the GPU.
+pub struct GpuHashNerf {
+    groups: Vec<GpuParamGroup>,
+    grid: GpuHashGrid,
+    sh: GpuSphericalHarmonics,
+    density: FusedMlp,
+    color: FusedMlp,
+    glue: FieldGlue,
+    capacity: usize,
+    enc: wgpu::Buffer,
+    dout: wgpu::Buffer,
+    sh_out: wgpu::Buffer,
+    color_in: wgpu::Buffer,
+    density_tape: wgpu::Buffer,
+    color_tape: wgpu::Buffer,
+    d_color_in: wgpu::Buffer,
+    d_dout: wgpu::Buffer,
+    d_enc: wgpu::Buffer,
+}
+
+fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
+    FieldError::InvalidConfig { field: "hash".into(), message: e.to_string() }
+}
+
+impl GpuHashNerf {
+    /// The GPU twin of `field` with buffers for `capacity` samples per launch.
+    pub fn new(field: &HashNerf<f32>, ctx: &GpuContext, capacity: usize) -> Result<Self, FieldError> {
+        let cfg = &field.config;
+        let capacity = capacity.max(1);
+        let aabb_min = field.aabb_min;
+        let grid = GpuHashGrid::new(ctx, &cfg.grid, aabb_min, field.aabb_max).map_err(gpu_err)?;
+        let sh = GpuSphericalHarmonics::new(ctx, field.sh.config()).map_err(gpu_err)?;
+        let density = FusedMlp::new(ctx, &field.density.config).map_err(gpu_err)?;
+        let color = FusedMlp::new(ctx, &field.color.config).map_err(gpu_err)?;
+        let (dd, enc_dim, sh_dim) = (field.dout_dim(), field.enc_dim(), field.sh_dim());
+        let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp, capacity);
+        let wd = cfg.mlp_weight_decay;
+        let values = [field.grid.params(), field.density.params(), field.color.params()];
+        let groups = GROUP_NAMES
+            .iter()
+            .zip(values)
+            .zip([0.0, wd, wd])
+            .map(|((name, v), weight_decay)| GpuParamGroup {
+                name: name.to_string(),
+                len: v.len(),
+                weight_decay,
+                params: ctx.upload(name, v),
+                grads: ctx.zeros(name, 4 * v.len()),
+            })
+            .collect();
+        let f = |n: usize| 4 * n * capacity;
+        Ok(Self {
+            groups,
+            enc: ctx.zeros("hash enc", f(enc_dim)),
+            dout: ctx.zeros("density out", f(dd)),
+            sh_out: ctx.zeros("sh", f(sh_dim)),
+            color_in: ctx.zeros("color in", f(glue.color_in_dim)),
+            density_tape: ctx.zeros("density tape", f(density.tape_floats_per_sample())),
+            color_tape: ctx.zeros("color tape", f(color.tape_floats_per_sample())),
+            d_color_in: ctx.zeros("d color in", f(glue.color_in_dim)),
+            d_dout: ctx.zeros("d density out", f(dd)),
+            d_enc: ctx.zeros("d enc", f(enc_dim)),
+            glue,
+            grid,
+            sh,
+            density,
+            color,
+            capacity,
+        })
+    }
+}
+
+impl GpuRadianceField for GpuHashNerf {
+    fn kind(&self) -> &'static str {
+        "hash"
+    }
+
+    fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    fn groups(&self) -> &[GpuParamGroup] {
+        &self.groups
+    }
+
+    fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer) {
+        let cap = self.capacity;
+        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
+        self.density.record_inference(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, cap);
+        self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma);
+    }
+
+    fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
+        let cap = self.capacity;
+        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
+        self.density.record_inference(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, cap);
+        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
+        self.color.record_inference(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, cap);
+    }
+
+    fn record_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
+        let cap = self.capacity;
+        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
+        self.density.record_forward(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, cap);
+        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
+        self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, &self.color_tape, cap);
+    }
+
+    fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {
+        let cap = self.capacity;
+        let g = &self.groups;
+        self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[2].params, &self.color_tape, d_rgb, &g[2].grads, Some(&self.d_color_in), cap);
+        self.glue.record_backward(ctx, enc, s.counters, &self.dout, &self.d_color_in, d_sigma, &self.d_dout);
+        self.density.record_backward(ctx, enc, s.counters, &self.enc, &g[1].params, &self.density_tape, &self.d_dout, &g[1].grads, Some(&self.d_enc), cap);
+        self.grid.record_backward(ctx, enc, s.counters, s.positions, &self.d_enc, &g[0].grads, cap);
+    }
+}

@@ -1,0 +1,119 @@
+//! [`FieldGlue`]: the kernels of `shaders/field_glue.wgsl` that join a field's density network, its
+//! σ activation and its colour network (used by the hash-grid and the paper's field).
+
+use crate::kernel::{groups_1d, Kernel};
+use crate::{shaders, GpuContext};
+
+/// How σ is made from the density network's first output `x`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SigmaActivation {
+    /// `σ = exp(min(x, 80))`, gradient `exp(min(x, 15))` (Instant-NGP's truncated exp).
+    TruncExp,
+    /// `σ = max(x, 0)` (the paper).
+    Relu,
+}
+
+/// `GlueParams` of `shaders/field_glue.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct GlueParams {
+    /// Density-network outputs per sample.
+    pub dd: u32,
+    /// Direction-encoding values per sample.
+    pub dir_dim: u32,
+    /// Launch capacity (samples).
+    pub capacity: u32,
+    /// First density output that feeds the colour network (0: all of them, 1: all but σ's).
+    pub feat_start: u32,
+    /// 0 = truncated exp, 1 = ReLU.
+    pub act: u32,
+    /// Padding.
+    pub _pad: [u32; 3],
+}
+
+/// The glue kernels for one field shape.
+pub struct FieldGlue {
+    assemble: Kernel,
+    density_only: Kernel,
+    backward: Kernel,
+    params: wgpu::Buffer,
+    capacity: usize,
+    /// Width of the colour network's input (`dd − feat_start + dir_dim`).
+    pub color_in_dim: usize,
+}
+
+impl FieldGlue {
+    /// Kernels for `dd` density outputs, `dir_dim` direction features, colour input from output
+    /// `feat_start` on.
+    pub fn new(ctx: &GpuContext, dd: usize, dir_dim: usize, feat_start: usize, act: SigmaActivation, capacity: usize) -> Self {
+        assert!(feat_start < dd.max(1) || dd == 0);
+        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("field_glue.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::FIELD_GLUE).into()),
+        });
+        let p = GlueParams {
+            dd: dd as u32,
+            dir_dim: dir_dim as u32,
+            capacity: capacity as u32,
+            feat_start: feat_start as u32,
+            act: match act {
+                SigmaActivation::TruncExp => 0,
+                SigmaActivation::Relu => 1,
+            },
+            _pad: [0; 3],
+        };
+        Self {
+            assemble: Kernel::from_module(ctx, &module, "assemble", &[]),
+            density_only: Kernel::from_module(ctx, &module, "density_only", &[]),
+            backward: Kernel::from_module(ctx, &module, "backward_glue", &[]),
+            params: ctx.uniform("glue", &p),
+            capacity,
+            color_in_dim: dd - feat_start + dir_dim,
+        }
+    }
+
+    /// σ and the colour input from the density outputs and the direction encoding.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_assemble(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        dout: &wgpu::Buffer,
+        dir_enc: &wgpu::Buffer,
+        sigma: &wgpu::Buffer,
+        color_in: &wgpu::Buffer,
+    ) {
+        self.assemble.record(
+            ctx,
+            enc,
+            &[(0, &self.params), (1, counters), (2, dout), (3, dir_enc), (4, sigma), (5, color_in)],
+            groups_1d(self.capacity, 64),
+        );
+    }
+
+    /// σ only.
+    pub fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, counters: &wgpu::Buffer, dout: &wgpu::Buffer, sigma: &wgpu::Buffer) {
+        self.density_only.record(ctx, enc, &[(0, &self.params), (1, counters), (2, dout), (4, sigma)], groups_1d(self.capacity, 64));
+    }
+
+    /// dL/d(density outputs) from dL/dσ and dL/d(colour input); `dout` is the forward's.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        dout: &wgpu::Buffer,
+        d_color_in: &wgpu::Buffer,
+        d_sigma: &wgpu::Buffer,
+        d_dout: &wgpu::Buffer,
+    ) {
+        self.backward.record(
+            ctx,
+            enc,
+            &[(0, &self.params), (1, counters), (2, dout), (6, d_color_in), (7, d_sigma), (8, d_dout)],
+            groups_1d(self.capacity, 64),
+        );
+    }
+}

@@ -1,0 +1,286 @@
+//! The GPU encodings (hash grid forward/backward, spherical harmonics, frequency) against their
+//! CPU twins in `nerf-encoding` on random inputs, outputs poisoned with NaN so that a skipped slot
+//! fails, launches with `capacity > n` so that the device-side sample count is honoured. Runs on
+//! any adapter (lavapipe in CI); prints a notice and skips where no adapter exists.
+
+use nerf_encoding::{
+    Encoding, FrequencyEncoding, FrequencyEncodingConfig, HashGrid, HashGridConfig, Precision, ShConfig,
+    SphericalHarmonics,
+};
+use nerf_gpu::encoding::{AtomicMode, GpuFrequencyEncoding, GpuHashGrid, GpuSphericalHarmonics};
+use nerf_gpu::layout::COUNTER_N_SAMPLES;
+use nerf_gpu::{DevicePreference, GpuContext};
+use rand::Rng as _;
+
+fn context() -> Option<GpuContext> {
+    match GpuContext::open(DevicePreference::Auto) {
+        Ok(Some(c)) => {
+            eprintln!("GPU tests on {}", c.describe());
+            Some(c)
+        }
+        Ok(None) => {
+            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+/// A counters buffer with `n` samples (and a different ray count, which the encodings must ignore).
+fn counters(ctx: &GpuContext, n: usize) -> wgpu::Buffer {
+    let mut c = [0u32; 4];
+    c[COUNTER_N_SAMPLES] = n as u32;
+    c[1 - COUNTER_N_SAMPLES] = 7_777;
+    ctx.upload("counters", &c)
+}
+
+fn poisoned(ctx: &GpuContext, len: usize) -> wgpu::Buffer {
+    ctx.upload("poisoned", &vec![f32::NAN; len])
+}
+
+/// Runs `record` in its own submission and reads `len` floats of `out`.
+fn run_and_read(ctx: &GpuContext, out: &wgpu::Buffer, len: usize, record: impl FnOnce(&mut wgpu::CommandEncoder)) -> Vec<f32> {
+    let mut enc = ctx.encoder("test");
+    record(&mut enc);
+    ctx.queue.submit([enc.finish()]);
+    ctx.read_f32(out, len).unwrap()
+}
+
+/// `out[..n·dim]` matches `cpu` within `tol(i)` and `out[n·dim..]` kept its NaN poison.
+fn check(what: &str, gpu: &[f32], cpu: &[f32], tol: impl Fn(usize) -> f32) {
+    assert!(gpu.len() >= cpu.len());
+    let (mut worst, mut worst_rel) = (0.0f32, 0.0f32);
+    for (i, (g, c)) in gpu.iter().zip(cpu).enumerate() {
+        worst = worst.max((g - c).abs());
+        worst_rel = worst_rel.max((g - c).abs() / tol(i));
+        assert!(g.is_finite(), "{what}[{i}] not written (poison survived): {g}");
+        assert!((g - c).abs() <= tol(i), "{what}[{i}]: gpu {g} vs cpu {c}");
+    }
+    eprintln!("{what}: max |gpu − cpu| = {worst:e} ({worst_rel:.3} of the tolerance)");
+    for (i, g) in gpu.iter().enumerate().skip(cpu.len()) {
+        assert!(g.is_nan(), "{what}[{i}] beyond n was written: {g}");
+    }
+}
+
+/// Small grids covering dense and hashed levels and F = 1, 2, 4, 8 (init U(−1, 1) so that every
+/// parameter matters at f32 resolution).
+fn grid_configs() -> Vec<HashGridConfig> {
+    let c = |n_levels, f, log2, base, max, dense| HashGridConfig {
+        n_levels,
+        n_features_per_level: f,
+        log2_hashmap_size: log2,
+        base_resolution: base,
+        max_resolution: max,
+        dense_levels: dense,
+        storage: Precision::F32,
+        init_scale: 1.0,
+    };
+    vec![
+        c(6, 2, 12, 4, 64, true),
+        c(5, 1, 10, 3, 40, false),
+        c(4, 4, 13, 6, 96, true),
+        c(3, 8, 9, 2, 30, true),
+    ]
+}
+
+const AABB_MIN: [f32; 3] = [-1.5, -0.25, 2.0];
+const AABB_MAX: [f32; 3] = [1.5, 2.75, 2.5];
+
+/// `n` world positions: uniform in (and a little beyond) the box, on its faces, on the grid's
+/// cell boundaries, and a few non-finite ones.
+fn positions(seed: u64, n: usize, res: &[u32]) -> Vec<f32> {
+    let mut r = nerf_core::rng(seed, 0);
+    let mut p = Vec::with_capacity(3 * n);
+    for i in 0..n {
+        for a in 0..3 {
+            let (lo, hi) = (AABB_MIN[a], AABB_MAX[a]);
+            let e = hi - lo;
+            let v = match (i + a) % 6 {
+                0 | 1 => lo + r.gen::<f32>() * e,
+                2 => lo + (r.gen::<f32>() * 1.2 - 0.1) * e,
+                3 => {
+                    let l = r.gen_range(0..res.len());
+                    lo + (r.gen_range(0..=res[l]) as f32 / res[l] as f32) * e
+                }
+                4 => [lo, hi][r.gen_range(0..2)],
+                _ => lo + r.gen::<f32>() * e,
+            };
+            p.push(v);
+        }
+    }
+    // Non-finite inputs map like the CPU's clamp (NaN → 0, ±∞ → the faces).
+    if n > 10 {
+        p[3] = f32::NAN;
+        p[7] = f32::INFINITY;
+        p[11] = f32::NEG_INFINITY;
+    }
+    p
+}
+
+/// Normalisation of nerf-field-hash: ((p − min)·(1/extent)).max(0).min(1) in f32 (max/min, not
+/// clamp: NaN must map to 0 as in the field).
+#[allow(clippy::manual_clamp)]
+fn normalise(p: &[f32]) -> Vec<f32> {
+    let inv: [f32; 3] = std::array::from_fn(|a| 1.0 / (AABB_MAX[a] - AABB_MIN[a]));
+    p.chunks_exact(3)
+        .flat_map(|q| [0, 1, 2].map(|a| ((q[a] - AABB_MIN[a]) * inv[a]).max(0.0).min(1.0)))
+        .collect()
+}
+
+#[test]
+fn hash_grid_mirrors_the_cpu_layout_and_rejects_bad_input() {
+    let Some(ctx) = context() else { return };
+    for cfg in grid_configs() {
+        let cpu = HashGrid::<f32>::zeros(&cfg).unwrap();
+        let gpu = GpuHashGrid::new(&ctx, &cfg, AABB_MIN, AABB_MAX).unwrap();
+        assert_eq!(gpu.n_params(), cpu.n_params());
+        assert_eq!(gpu.output_dim(), Encoding::<f32>::output_dim(&cpu));
+        assert_eq!(gpu.level_offsets(), cpu.level_offsets());
+        assert_eq!(gpu.resolutions(), cpu.resolutions());
+        assert!((0..cpu.n_levels()).all(|l| gpu.is_dense(l) == cpu.is_dense(l)));
+    }
+    let bad = HashGridConfig { n_features_per_level: 3, ..HashGridConfig::default() };
+    let e = GpuHashGrid::new(&ctx, &bad, AABB_MIN, AABB_MAX).err().unwrap().to_string();
+    assert!(e.contains("n_features_per_level"), "{e}");
+    let cfg = &grid_configs()[0];
+    let e = GpuHashGrid::new(&ctx, cfg, [0.0; 3], [1.0, 0.0, 1.0]).err().unwrap().to_string();
+    assert!(e.contains("axis 1"), "{e}");
+    let mut g = GpuHashGrid::new(&ctx, cfg, [0.0; 3], [1.0; 3]).unwrap();
+    let e = g.set_aabb(&ctx, [0.0; 3], [1.0, 1.0, f32::NAN]).unwrap_err().to_string();
+    assert!(e.contains("axis 2"), "{e}");
+    let e = GpuSphericalHarmonics::new(&ctx, &ShConfig { degree: 5 }).err().unwrap().to_string();
+    assert!(e.contains("degree"), "{e}");
+    let big = FrequencyEncodingConfig { n_frequencies: 200, include_input: true };
+    let e = GpuFrequencyEncoding::new(&ctx, 3, &big).err().unwrap().to_string();
+    assert!(e.contains("n_frequencies"), "{e}");
+}
+
+#[test]
+fn hash_grid_forward_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    for (ci, cfg) in grid_configs().into_iter().enumerate() {
+        let grid = HashGrid::<f32>::new(&cfg, &mut nerf_core::rng(100 + ci as u64, 0));
+        let l = grid.n_levels();
+        assert!((0..l).any(|k| !grid.is_dense(k)), "config {ci} has no hashed level");
+        // Start with a unit box and move it: set_aabb must take effect.
+        let mut gpu = GpuHashGrid::new(&ctx, &cfg, [0.0; 3], [1.0; 3]).unwrap();
+        gpu.set_aabb(&ctx, AABB_MIN, AABB_MAX).unwrap();
+        let od = gpu.output_dim();
+        let params = ctx.upload("params", grid.params());
+        for (n, extra) in [(1500usize, 37usize), (1, 0), (0, 5)] {
+            let cap = n + extra;
+            let pos = positions(200 + ci as u64 + n as u64, cap, grid.resolutions());
+            let mut cpu = vec![0.0f32; n * od];
+            grid.forward(&normalise(&pos[..3 * n]), &mut cpu);
+            let (cnt, pos_b, out) = (counters(&ctx, n), ctx.upload("positions", &pos), poisoned(&ctx, cap * od));
+            let got = run_and_read(&ctx, &out, cap * od, |enc| gpu.record_forward(&ctx, enc, &cnt, &pos_b, &params, &out, cap));
+            // The cell, slots and weights are computed with the same f32 operations; only the
+            // 8-term weighted sum may be contracted to FMAs (|params| ≤ 1: a few ulp of 1).
+            check(&format!("config {ci} n {n} features"), &got, &cpu, |_| 2e-6);
+        }
+    }
+}
+
+#[test]
+fn hash_grid_backward_matches_its_cpu_twin_with_both_atomic_paths() {
+    let Some(ctx) = context() else { return };
+    if !ctx.features.float32_atomics {
+        eprintln!("NOTICE: adapter without SHADER_FLOAT32_ATOMIC: only the compare-and-swap path runs");
+    }
+    for (ci, cfg) in grid_configs().into_iter().enumerate() {
+        let grid = HashGrid::<f32>::new(&cfg, &mut nerf_core::rng(300 + ci as u64, 0));
+        let np = grid.n_params();
+        let od = Encoding::<f32>::output_dim(&grid);
+        let (n, cap) = (1200usize, 1300usize);
+        let pos = positions(400 + ci as u64, cap, grid.resolutions());
+        let mut r = nerf_core::rng(500 + ci as u64, 1);
+        // Random upstream gradients (every 7th sample all zero), also in the rows past n that the
+        // kernel must not read.
+        let d: Vec<f32> = (0..cap * od)
+            .map(|k| if (k / od) % 7 == 3 { 0.0 } else { r.gen_range(-1.0f32..1.0) })
+            .collect();
+        let prefill: Vec<f32> = (0..np).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+        let xn = normalise(&pos[..3 * n]);
+        let mut cpu = prefill.clone();
+        grid.backward(&xn, &d[..n * od], &mut cpu, None);
+        // Scale of each sum: |prefill| + Σ w·|d| (the CPU backward of |d|; weights are ≥ 0).
+        let mut mag: Vec<f32> = prefill.iter().map(|v| v.abs()).collect();
+        let d_abs: Vec<f32> = d[..n * od].iter().map(|v| v.abs()).collect();
+        grid.backward(&xn, &d_abs, &mut mag, None);
+        let touched = cpu.iter().zip(&prefill).filter(|(a, b)| a != b).count();
+        assert!(touched > np / 20 && touched > 100, "config {ci}: only {touched} of {np} slots get gradient");
+        let mut modes = vec![AtomicMode::CompareExchange];
+        if ctx.features.float32_atomics {
+            modes.push(AtomicMode::Auto);
+        }
+        for mode in modes {
+            let gpu = GpuHashGrid::with_atomics(&ctx, &cfg, AABB_MIN, AABB_MAX, mode).unwrap();
+            assert_eq!(gpu.uses_float_atomics(), mode == AtomicMode::Auto);
+            let (cnt, pos_b, d_b) = (counters(&ctx, n), ctx.upload("positions", &pos), ctx.upload("d_features", &d));
+            let grads = ctx.upload("grads", &prefill);
+            let got = run_and_read(&ctx, &grads, np, |enc| gpu.record_backward(&ctx, enc, &cnt, &pos_b, &d_b, &grads, cap));
+            // f32 sums in another (atomic) order on both sides: ≤ (terms per slot ≲ 40)·2^-24·scale.
+            check(&format!("config {ci} {mode:?} grads"), &got, &cpu, |i| 4e-6 * mag[i]);
+        }
+    }
+}
+
+#[test]
+fn spherical_harmonics_match_their_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let mut r = nerf_core::rng(600, 0);
+    let (n, cap) = (2000usize, 2100usize);
+    // Unit directions (the field's input), plus non-unit ones for the polynomials as written.
+    let dirs: Vec<f32> = (0..cap)
+        .flat_map(|i| {
+            let v: [f32; 3] = std::array::from_fn(|_| r.gen_range(-1.5f32..1.5));
+            let s = if i % 3 == 0 { 1.0 } else { 1.0 / (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3) };
+            v.map(|c| c * s)
+        })
+        .collect();
+    for degree in 1..=4 {
+        let cfg = ShConfig { degree };
+        let cpu_enc = SphericalHarmonics::new(&cfg);
+        let gpu = GpuSphericalHarmonics::new(&ctx, &cfg).unwrap();
+        let od = gpu.output_dim();
+        assert_eq!(od, (degree * degree) as usize);
+        let mut cpu = vec![0.0f32; n * od];
+        cpu_enc.forward(&dirs[..3 * n], &mut cpu);
+        let (cnt, d_b, out) = (counters(&ctx, n), ctx.upload("dirs", &dirs), poisoned(&ctx, cap * od));
+        let got = run_and_read(&ctx, &out, cap * od, |enc| gpu.record_forward(&ctx, enc, &cnt, &d_b, &out, cap));
+        // Same products in the same order; FMA contraction of the sums of squares: a few ulp of
+        // the largest term (|terms| ≲ 3·1.5³).
+        check(&format!("sh degree {degree}"), &got, &cpu, |i| 1e-6 * (1.0 + 4.0 * cpu[i].abs().max(1.0)));
+    }
+}
+
+#[test]
+fn frequency_encoding_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let mut r = nerf_core::rng(700, 0);
+    let cases = [
+        (3usize, FrequencyEncodingConfig::nerf_position()),
+        (3, FrequencyEncodingConfig::nerf_direction()),
+        (3, FrequencyEncodingConfig { n_frequencies: 6, include_input: false }),
+        (2, FrequencyEncodingConfig { n_frequencies: 12, include_input: true }),
+    ];
+    for (ci, (d, cfg)) in cases.into_iter().enumerate() {
+        let (n, cap) = (700usize, 750usize);
+        // World-scale inputs (|x| ≤ 4, so 2^11·x reaches 8192) with exact special values.
+        let specials = [0.0f32, 1.5, -1.5, 1.0, -4.0, std::f32::consts::PI];
+        let x: Vec<f32> = (0..cap * d)
+            .map(|k| if k % 17 == 0 { specials[(k / 17) % specials.len()] } else { r.gen_range(-4.0f32..4.0) })
+            .collect();
+        let cpu_enc = FrequencyEncoding::new(d, &cfg);
+        let gpu = GpuFrequencyEncoding::new(&ctx, d, &cfg).unwrap();
+        let od = gpu.output_dim();
+        assert_eq!(od, Encoding::<f32>::output_dim(&cpu_enc));
+        let mut cpu = vec![0.0f32; n * od];
+        cpu_enc.forward(&x[..n * d], &mut cpu);
+        let (cnt, x_b, out) = (counters(&ctx, n), ctx.upload("x", &x), poisoned(&ctx, cap * od));
+        let got = run_and_read(&ctx, &out, cap * od, |enc| gpu.record_forward(&ctx, enc, &cnt, &x_b, &out, cap));
+        // The reduced argument is within ~1e-7 of the exact one (Cody–Waite, |k| ≤ 1304) and the
+        // GPU's sin/cos on [−π, π] within ~4e-7 (NVIDIA's hardware approximation): 2e-6 absolute.
+        check(&format!("frequency case {ci}"), &got, &cpu, |_| 2e-6);
+    }
+}

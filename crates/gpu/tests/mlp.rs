@@ -1,0 +1,253 @@
+//! The fused-MLP kernels (`shaders/mlp_fused.wgsl`, `nerf_gpu::mlp::FusedMlp`) against their CPU twin
+//! `nerf_mlp::Mlp<f32>` on random inputs and weights: inference, training forward, backward (gradients
+//! accumulated onto random pre-filled grads, d_input), both gradient-atomic paths, outputs poisoned
+//! with NaN so that a skipped slot fails, and slots past n left untouched.
+
+use nerf_gpu::mlp::{self, FusedMlp};
+use nerf_gpu::{shaders, DevicePreference, GpuContext, GpuError};
+use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
+use rand::Rng as _;
+
+fn context() -> Option<GpuContext> {
+    match GpuContext::open(DevicePreference::Auto) {
+        Ok(Some(c)) => {
+            eprintln!("GPU tests on {}", c.describe());
+            Some(c)
+        }
+        Ok(None) => {
+            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+fn cfg(input: usize, hidden: usize, layers: usize, output: usize, ha: Activation, oa: Activation, bias: bool) -> MlpConfig {
+    MlpConfig {
+        input_dim: input,
+        output_dim: output,
+        hidden_dim: hidden,
+        hidden_layers: layers,
+        hidden_activation: ha,
+        output_activation: oa,
+        skips: vec![],
+        bias,
+    }
+}
+
+/// The configurations under test: instant-ngp's density and colour nets, odd sizes with bias and
+/// every activation, a single linear layer and a deep narrow net.
+fn configs() -> Vec<(&'static str, MlpConfig)> {
+    use Activation::*;
+    vec![
+        ("density 32→64→16", cfg(32, 64, 1, 16, Relu, None, false)),
+        ("colour 32→64→64→3", cfg(32, 64, 2, 3, Relu, Sigmoid, false)),
+        ("odd tanh/softplus", cfg(7, 16, 2, 5, Tanh, Softplus, true)),
+        ("odd softplus/exp", cfg(7, 16, 1, 5, Softplus, Exp, true)),
+        ("linear only", cfg(13, 0, 0, 9, Relu, Tanh, true)),
+        ("deep 64 wide", cfg(64, 64, 4, 64, Sigmoid, None, true)),
+    ]
+}
+
+fn random(rng: &mut nerf_core::Rng, len: usize, scale: f32) -> Vec<f32> {
+    (0..len).map(|_| (2.0 * rng.gen::<f32>() - 1.0) * scale).collect()
+}
+
+/// |gpu − cpu| ≤ rel·|cpu| + abs_frac·max|cpu| for every element (and both finite).
+fn assert_close(what: &str, gpu: &[f32], cpu: &[f32], rel: f32, abs_frac: f32) {
+    assert_eq!(gpu.len(), cpu.len(), "{what}: lengths");
+    let scale = cpu.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+    for (i, (g, c)) in gpu.iter().zip(cpu).enumerate() {
+        assert!(g.is_finite(), "{what}[{i}]: gpu {g} (cpu {c})");
+        let tol = rel * c.abs() + abs_frac * scale;
+        assert!((g - c).abs() <= tol, "{what}[{i}]: gpu {g} vs cpu {c} (tol {tol})");
+    }
+}
+
+struct Run {
+    inference: Vec<f32>,
+    forward: Vec<f32>,
+    grads: Vec<f32>,
+    d_input: Option<Vec<f32>>,
+}
+
+/// Runs inference, the training forward and the backward on the device for n samples in buffers of
+/// `capacity`; checks that nothing past n is written (poison stays NaN).
+#[allow(clippy::too_many_arguments)]
+fn run_gpu(
+    ctx: &GpuContext,
+    net: &FusedMlp,
+    n: usize,
+    capacity: usize,
+    input: &[f32],
+    params: &[f32],
+    grads0: &[f32],
+    d_output: &[f32],
+    with_dx: bool,
+) -> Run {
+    let c = net.config();
+    let (din, dout) = (c.input_dim, c.output_dim);
+    let nan = |len: usize| vec![f32::NAN; len];
+    let mut inp = input.to_vec();
+    inp.resize(capacity * din, 0.0);
+    let mut dout_v = d_output.to_vec();
+    dout_v.resize(capacity * dout, 0.0);
+    let counters = ctx.upload("counters", &[0u32, n as u32]);
+    let input_b = ctx.upload("input", &inp);
+    let params_b = ctx.upload("params", params);
+    let out_inf = ctx.upload("out inference", &nan(capacity * dout));
+    let out_fwd = ctx.upload("out forward", &nan(capacity * dout));
+    let tape = ctx.upload("tape", &nan(capacity * net.tape_floats_per_sample()));
+    let d_out_b = ctx.upload("d_output", &dout_v);
+    let grads_b = ctx.upload("grads", grads0);
+    let d_in_b = ctx.upload("d_input", &nan(capacity * din));
+    let mut enc = ctx.encoder("mlp test");
+    net.record_inference(ctx, &mut enc, &counters, &input_b, &params_b, &out_inf, capacity);
+    net.record_forward(ctx, &mut enc, &counters, &input_b, &params_b, &out_fwd, &tape, capacity);
+    net.record_backward(
+        ctx,
+        &mut enc,
+        &counters,
+        &input_b,
+        &params_b,
+        &tape,
+        &d_out_b,
+        &grads_b,
+        with_dx.then_some(&d_in_b),
+        capacity,
+    );
+    ctx.queue.submit([enc.finish()]);
+    let read = |b, len| ctx.read_f32(b, len).unwrap();
+    let (inference, forward) = (read(&out_inf, capacity * dout), read(&out_fwd, capacity * dout));
+    let d_input = read(&d_in_b, capacity * din);
+    for (what, v, w) in [("inference", &inference, dout), ("forward", &forward, dout), ("d_input", &d_input, din)] {
+        assert!(v[n * w..].iter().all(|x| x.is_nan()), "{what}: slots past n = {n} were written");
+    }
+    if !with_dx {
+        assert!(d_input.iter().all(|x| x.is_nan()), "d_input written although not requested");
+    }
+    Run {
+        inference: inference[..n * dout].to_vec(),
+        forward: forward[..n * dout].to_vec(),
+        grads: read(&grads_b, params.len()),
+        d_input: with_dx.then(|| d_input[..n * din].to_vec()),
+    }
+}
+
+/// Every config, several sizes (0, 1, not a multiple of the tile, several tiles per weight-gradient
+/// workgroup), both atomic paths where available.
+#[test]
+fn fused_mlp_matches_the_cpu_mlp() {
+    let Some(ctx) = context() else { return };
+    let paths: Vec<bool> = if ctx.features.float32_atomics { vec![true, false] } else { vec![false] };
+    if !ctx.features.float32_atomics {
+        eprintln!("NOTICE: adapter without SHADER_FLOAT32_ATOMIC: only the compare-and-swap path is tested");
+    }
+    let mut seed = 100u64;
+    for (name, config) in configs() {
+        for &f32_atomics in &paths {
+            let net = FusedMlp::with_atomics(&ctx, &config, f32_atomics).unwrap();
+            assert_eq!(net.uses_f32_atomics(), f32_atomics);
+            for (n, extra) in [(0usize, 5usize), (1, 0), (33, 7), (517, 0), (2100, 300)] {
+                seed += 1;
+                let mut rng = nerf_core::rng(seed, 0);
+                let mut cpu = Mlp::<f32>::new(config.clone(), &mut rng);
+                assert_eq!(net.n_params(), cpu.n_params(), "{name}: n_params");
+                let input = random(&mut rng, n * config.input_dim, 2.0);
+                let d_output = random(&mut rng, n * config.output_dim, 1.0);
+                let grads0 = random(&mut rng, cpu.n_params(), 1.0);
+                let with_dx = n != 517;
+                let gpu = run_gpu(&ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx);
+                let what = format!("{name} (n = {n}, f32 atomics {f32_atomics})");
+                // Inference and the training forward run the same code: bit-identical.
+                assert_eq!(
+                    gpu.inference.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    gpu.forward.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    "{what}: inference != forward"
+                );
+                if n == 0 {
+                    assert_eq!(gpu.grads, grads0, "{what}: n = 0 changed the gradients");
+                    continue;
+                }
+                let mut tape = MlpTape::default();
+                let out = cpu.forward(n, &input, &mut tape).to_vec();
+                // f32 dot products of ≤ 64 terms summed in another order (and GPU exp/log/tanh).
+                assert_close(&format!("{what}: output"), &gpu.forward, &out, 1e-4, 1e-5);
+                cpu.grads_mut().copy_from_slice(&grads0);
+                let mut d_in = vec![0.0f32; n * config.input_dim];
+                cpu.backward(n, &input, &mut tape, &d_output, Some(&mut d_in));
+                // Gradients are sums over up to 2100 samples in a different order (tiles, split-K,
+                // atomics): relative 1e-3 plus 1e-4 of the largest entry.
+                assert_close(&format!("{what}: grads"), &gpu.grads, cpu.grads(), 1e-3, 1e-4);
+                if let Some(d) = &gpu.d_input {
+                    // Back-propagated through every layer: f32 rounding of each dot product compounds.
+                    assert_close(&format!("{what}: d_input"), d, &d_in, 1e-3, 1e-5);
+                }
+            }
+        }
+    }
+}
+
+/// Large activations: tanh/sigmoid/exp saturate like the CPU (no NaN from exp overflow in tanh).
+#[test]
+fn saturating_activations_stay_finite() {
+    let Some(ctx) = context() else { return };
+    let config = cfg(4, 8, 1, 2, Activation::Tanh, Activation::Sigmoid, true);
+    let net = FusedMlp::new(&ctx, &config).unwrap();
+    let mut rng = nerf_core::rng(7, 0);
+    let mut cpu = Mlp::<f32>::new(config.clone(), &mut rng);
+    cpu.params_mut().iter_mut().for_each(|p| *p *= 200.0);
+    let n = 40;
+    let input = random(&mut rng, n * 4, 50.0);
+    let d_output = random(&mut rng, n * 2, 1.0);
+    let grads0 = vec![0.0f32; cpu.n_params()];
+    let gpu = run_gpu(&ctx, &net, n, n, &input, cpu.params(), &grads0, &d_output, true);
+    let mut tape = MlpTape::default();
+    let out = cpu.forward(n, &input, &mut tape).to_vec();
+    assert_close("saturated output", &gpu.forward, &out, 1e-4, 1e-5);
+    cpu.backward(n, &input, &mut tape, &d_output, None);
+    // Saturated units have derivatives ~0 in both; the rest as in the main test.
+    assert_close("saturated grads", &gpu.grads, cpu.grads(), 1e-3, 1e-4);
+}
+
+/// Configs the fused kernels cannot run give `GpuError::Unsupported` naming the problem.
+#[test]
+fn unsupported_configs_are_rejected_with_a_clear_error() {
+    let Some(ctx) = context() else { return };
+    use Activation::*;
+    let mut skip = cfg(32, 64, 3, 3, Relu, None, true);
+    skip.skips = vec![2];
+    for (config, needle) in [
+        (cfg(32, 128, 2, 3, Relu, None, false), "hidden_dim = 128"),
+        (cfg(65, 64, 1, 3, Relu, None, false), "input_dim = 65"),
+        (cfg(32, 64, 1, 100, Relu, None, false), "output_dim = 100"),
+        (skip, "skip"),
+        (cfg(0, 64, 1, 3, Relu, None, false), "input_dim must be positive"),
+    ] {
+        match FusedMlp::new(&ctx, &config) {
+            Err(GpuError::Unsupported(m)) => assert!(m.contains(needle), "{m:?} should mention {needle:?}"),
+            Err(e) => panic!("unexpected error {e}"),
+            Ok(_) => panic!("{config:?} was accepted"),
+        }
+    }
+    // A hidden_dim beyond the limit is fine when there are no hidden layers (it is unused).
+    assert!(FusedMlp::new(&ctx, &cfg(8, 500, 0, 4, Relu, None, true)).is_ok());
+    if !ctx.features.float32_atomics {
+        let e = FusedMlp::with_atomics(&ctx, &cfg(8, 8, 1, 4, Relu, None, true), true).err().unwrap();
+        assert!(e.to_string().contains("SHADER_FLOAT32_ATOMIC"), "{e}");
+    }
+}
+
+/// Both gradient-atomic variants of the source validate with naga (no GPU needed), and they differ
+/// exactly in the atomic type.
+#[test]
+fn both_atomic_variants_validate_with_naga() {
+    for f32_atomics in [false, true] {
+        let src = shaders::with_common(&mlp::source(f32_atomics));
+        assert_eq!(src.contains("array<atomic<f32>>"), f32_atomics);
+        assert_eq!(src.contains("array<atomic<u32>>"), !f32_atomics);
+        let module = naga::front::wgsl::parse_str(&src).unwrap_or_else(|e| panic!("{}", e.emit_to_string(&src)));
+        let mut v = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all());
+        v.validate(&module).unwrap_or_else(|e| panic!("f32 atomics {f32_atomics}: {e:?}"));
+    }
+}

@@ -1,0 +1,195 @@
+//! `GpuAdam` against its CPU twin `nerf_optim::Adam` (runs on any adapter: lavapipe in CI; prints
+//! a notice and returns where no adapter exists).
+
+use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
+use nerf_gpu::{DevicePreference, GpuContext};
+use nerf_optim::{Adam, AdamConfig, ParamGroupMut};
+use rand::Rng as _;
+
+fn context() -> Option<GpuContext> {
+    match GpuContext::open(DevicePreference::Auto) {
+        Ok(Some(c)) => {
+            eprintln!("GPU tests on {}", c.describe());
+            Some(c)
+        }
+        Ok(None) => {
+            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+/// Largest |a − b| / max(|b|, 1e-3) over two slices.
+fn max_rel(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| (x - y).abs() / y.abs().max(1e-3)).fold(0.0, |m, e| if e.is_nan() { f32::INFINITY } else { m.max(e) })
+}
+
+/// Layout with a hole between groups (never touched) and groups given out of offset order.
+fn layout(sizes: &[usize], wds: &[f32]) -> (Vec<GpuParamGroup>, usize) {
+    let mut groups = vec![];
+    let mut off = 3; // a few leading parameters that belong to no group
+    for (i, (&n, &wd)) in sizes.iter().zip(wds).enumerate() {
+        groups.push(GpuParamGroup::new(format!("g{i}"), off, n, wd));
+        off += n + 5;
+    }
+    groups.reverse();
+    (groups, off)
+}
+
+fn run_case(ctx: &GpuContext, seed: u64, cfg: AdamConfig, sizes: &[usize], wds: &[f32], steps: usize) {
+    let mut rng = nerf_core::rng(seed, 0);
+    let (groups, extent) = layout(sizes, wds);
+    let adam = GpuAdam::new(ctx, &cfg, &groups).unwrap();
+    assert_eq!(adam.extent(), extent - 5);
+    let extent = adam.extent();
+    let mut p: Vec<f32> = (0..extent).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+    let p_buf = ctx.upload("params", &p);
+    let g_buf = ctx.zeros("grads", 4 * extent);
+    let mut cpu = Adam::new(cfg);
+    for step in 0..steps {
+        // Random gradients, some tiny, some large, some exactly zero.
+        let g: Vec<f32> = (0..extent)
+            .map(|i| match (i + step) % 4 {
+                0 => rng.gen_range(-1.0f32..1.0),
+                1 => rng.gen_range(-1e-4f32..1e-4),
+                2 => rng.gen_range(-50.0f32..50.0),
+                _ => 0.0,
+            })
+            .collect();
+        ctx.write(&g_buf, 0, &g);
+        let lr = 1e-2 * (1.0 + step as f32);
+        let mut enc = ctx.encoder("adam");
+        adam.record_step(ctx, &mut enc, &p_buf, &g_buf, lr);
+        ctx.queue.submit([enc.finish()]);
+        // CPU: each group's slice of the flat buffers, in the groups' order.
+        let mut g_cpu = g.clone();
+        let mut order: Vec<&GpuParamGroup> = groups.iter().collect();
+        order.sort_by_key(|g| g.offset);
+        let mut cpu_groups: Vec<ParamGroupMut<'_>> = vec![];
+        let (mut prest, mut grest) = (&mut p[..], &mut g_cpu[..]);
+        let mut pos = 0;
+        for grp in order {
+            let (_, pr) = prest.split_at_mut(grp.offset - pos);
+            let (_, gr) = grest.split_at_mut(grp.offset - pos);
+            let (pg, pr) = pr.split_at_mut(grp.len);
+            let (gg, gr) = gr.split_at_mut(grp.len);
+            cpu_groups.push(ParamGroupMut { name: &grp.name, params: pg, grads: gg, weight_decay: grp.weight_decay });
+            prest = pr;
+            grest = gr;
+            pos = grp.offset + grp.len;
+        }
+        cpu.step(&mut cpu_groups, lr);
+        drop(cpu_groups);
+        let p_gpu = ctx.read_f32(&p_buf, extent).unwrap();
+        // Same f32 formula; only FMA contraction / sqrt rounding on the device differ (1 ulp per op),
+        // compounded over a few steps.
+        let e = max_rel(&p_gpu, &p);
+        assert!(e < 1e-6, "seed {seed} step {step}: params rel. error {e}");
+        let g_gpu = ctx.read_f32(&g_buf, extent).unwrap();
+        for grp in &groups {
+            assert!(g_gpu[grp.offset..grp.offset + grp.len].iter().all(|&x| x == 0.0), "grads of {} not zeroed", grp.name);
+        }
+        // Parameters and gradients outside every group are untouched.
+        assert_eq!(g_gpu[..3], g[..3]);
+        for w in [&p_gpu[..3], &p[..3]] {
+            assert!(w.iter().all(|x| x.is_finite()));
+        }
+        assert_eq!(p_gpu[..3], p[..3]);
+    }
+    assert_eq!(adam.step_count(), steps as u64);
+    // Moments match the CPU state too.
+    let s_gpu = adam.state(ctx).unwrap();
+    let s_cpu = cpu.state();
+    assert_eq!(s_gpu.step, s_cpu.step);
+    for (name, m, v) in &s_cpu.groups {
+        let (_, gm, gv) = s_gpu.groups.iter().find(|(n, _, _)| n == name).unwrap();
+        assert!(max_rel(gm, m) < 1e-6 && max_rel(gv, v) < 1e-6, "moments of {name}");
+    }
+}
+
+#[test]
+fn adam_matches_the_cpu_over_several_steps_with_weight_decay_groups() {
+    let Some(ctx) = context() else { return };
+    run_case(&ctx, 1, AdamConfig::default(), &[1000, 37, 4096], &[0.0, 1e-2, 1e-6], 5);
+    run_case(&ctx, 2, AdamConfig::instant_ngp(), &[70_000, 1], &[0.0, 0.1], 4);
+    run_case(&ctx, 3, AdamConfig { beta1: 0.5, beta2: 0.9, eps: 1e-3 }, &[513, 0, 300], &[1e-3, 0.0, 0.0], 3);
+}
+
+#[test]
+fn state_round_trips_through_the_cpu_optimiser() {
+    let Some(ctx) = context() else { return };
+    let mut rng = nerf_core::rng(9, 0);
+    let cfg = AdamConfig::instant_ngp();
+    let groups = vec![GpuParamGroup::new("a", 0, 100, 0.0), GpuParamGroup::new("b", 100, 30, 1e-2)];
+    // A CPU optimiser takes 3 steps; its state is loaded into the GPU one.
+    let mut p: Vec<f32> = (0..130).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+    let mut cpu = Adam::new(cfg.clone());
+    for _ in 0..3 {
+        let mut g: Vec<f32> = (0..130).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+        let (pa, pb) = p.split_at_mut(100);
+        let (ga, gb) = g.split_at_mut(100);
+        cpu.step(
+            &mut [
+                ParamGroupMut { name: "a", params: pa, grads: ga, weight_decay: 0.0 },
+                ParamGroupMut { name: "b", params: pb, grads: gb, weight_decay: 1e-2 },
+            ],
+            1e-2,
+        );
+    }
+    let adam = GpuAdam::new(&ctx, &cfg, &groups).unwrap();
+    adam.load_state(&ctx, &cpu.state()).unwrap();
+    assert_eq!(adam.step_count(), 3);
+    let p_buf = ctx.upload("p", &p);
+    let mut g: Vec<f32> = (0..130).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+    let g_buf = ctx.upload("g", &g);
+    let mut enc = ctx.encoder("adam");
+    adam.record_step(&ctx, &mut enc, &p_buf, &g_buf, 1e-2);
+    ctx.queue.submit([enc.finish()]);
+    {
+        let (pa, pb) = p.split_at_mut(100);
+        let (ga, gb) = g.split_at_mut(100);
+        cpu.step(
+            &mut [
+                ParamGroupMut { name: "a", params: pa, grads: ga, weight_decay: 0.0 },
+                ParamGroupMut { name: "b", params: pb, grads: gb, weight_decay: 1e-2 },
+            ],
+            1e-2,
+        );
+    }
+    let e = max_rel(&ctx.read_f32(&p_buf, 130).unwrap(), &p);
+    assert!(e < 1e-6, "after loading the CPU state: rel. error {e}");
+    let s = adam.state(&ctx).unwrap();
+    assert_eq!(s.step, 4);
+    assert_eq!(s.groups.len(), 2);
+    // A fresh GPU optimiser (no state) gives a different step: the loaded moments mattered.
+    let fresh = GpuAdam::new(&ctx, &cfg, &groups).unwrap();
+    let p2 = ctx.upload("p2", &p);
+    let g2 = ctx.upload("g2", &vec![0.5f32; 130]);
+    let p3 = ctx.upload("p3", &p);
+    let g3 = ctx.upload("g3", &vec![0.5f32; 130]);
+    let mut enc = ctx.encoder("adam");
+    fresh.record_step(&ctx, &mut enc, &p2, &g2, 1e-2);
+    ctx.queue.submit([enc.finish()]);
+    let mut enc = ctx.encoder("adam");
+    adam.record_step(&ctx, &mut enc, &p3, &g3, 1e-2);
+    ctx.queue.submit([enc.finish()]);
+    assert_ne!(ctx.read_f32(&p2, 130).unwrap(), ctx.read_f32(&p3, 130).unwrap());
+}
+
+#[test]
+fn bad_groups_and_bad_states_are_rejected() {
+    let Some(ctx) = context() else { return };
+    let cfg = AdamConfig::default();
+    let e = GpuAdam::new(&ctx, &cfg, &[GpuParamGroup::new("a", 0, 10, 0.0), GpuParamGroup::new("b", 9, 4, 0.0)]).err().unwrap();
+    assert!(e.to_string().contains("overlap") && e.to_string().contains("\"a\""), "{e}");
+    let e = GpuAdam::new(&ctx, &cfg, &[GpuParamGroup::new("a", 0, 10, f32::NAN)]).err().unwrap();
+    assert!(e.to_string().contains("\"a\""), "{e}");
+    let adam = GpuAdam::new(&ctx, &cfg, &[GpuParamGroup::new("w", 0, 3, 0.0)]).unwrap();
+    let bad = nerf_optim::AdamState { step: 2, groups: vec![("w".into(), vec![0.0; 3], vec![0.0; 2])] };
+    assert!(adam.load_state(&ctx, &bad).unwrap_err().to_string().contains("\"w\""));
+    let nan = nerf_optim::AdamState { step: 2, groups: vec![("w".into(), vec![f32::NAN; 3], vec![0.0; 3])] };
+    assert!(adam.load_state(&ctx, &nan).is_err());
+    assert_eq!(adam.step_count(), 0);
+}

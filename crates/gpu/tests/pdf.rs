@@ -1,0 +1,255 @@
+//! `GpuStratified` / `GpuHierarchical` against their CPU twins `nerf_sampling::{stratified,
+//! hierarchical}` (runs on any adapter: lavapipe in CI; prints a notice and returns where no
+//! adapter exists). Without jitter the CPU functions are compared directly; with jitter the CPU
+//! cannot be handed the kernels' `u`, so a host twin below (the CPU's formulas, and the CPU's own
+//! `sample_pdf`, fed the same `u` as the kernels) is compared, after checking that the twin equals
+//! the CPU function when both take deterministic `u`.
+
+use nerf_gpu::pdf::{hierarchical_u, stratified_u, GpuHierarchical, GpuStratified, PackedOut};
+use nerf_gpu::{DevicePreference, GpuContext};
+use nerf_sampling::{hierarchical, sample_pdf, stratified, RaySamples};
+use rand::Rng as _;
+
+fn context() -> Option<GpuContext> {
+    match GpuContext::open(DevicePreference::Auto) {
+        Ok(Some(c)) => {
+            eprintln!("GPU tests on {}", c.describe());
+            Some(c)
+        }
+        Ok(None) => {
+            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+fn rays(seed: u64, n: usize) -> (Vec<f32>, Vec<f32>) {
+    let mut rng = nerf_core::rng(seed, 0);
+    let o: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-2.0f32..2.0)).collect();
+    let mut d = vec![0.0f32; 3 * n];
+    for r in 0..n {
+        let v: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-1.0f32..1.0));
+        let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3);
+        for c in 0..3 {
+            d[3 * r + c] = v[c] / l;
+        }
+    }
+    (o, d)
+}
+
+struct Out {
+    offsets: wgpu::Buffer,
+    positions: wgpu::Buffer,
+    dirs: wgpu::Buffer,
+    t: wgpu::Buffer,
+    dt: wgpu::Buffer,
+}
+
+/// Output buffers poisoned with NaN (and u32::MAX offsets) so a skipped slot fails.
+fn out_buffers(ctx: &GpuContext, rays: usize, samples: usize) -> Out {
+    let nan = |k: usize| ctx.upload("out", &vec![f32::NAN; k.max(1)]);
+    Out { offsets: ctx.upload("offsets", &vec![u32::MAX; rays + 1]), positions: nan(3 * samples), dirs: nan(3 * samples), t: nan(samples), dt: nan(samples) }
+}
+
+impl Out {
+    fn packed(&self) -> PackedOut<'_> {
+        PackedOut { offsets: &self.offsets, positions: &self.positions, dirs: &self.dirs, t: &self.t, dt: &self.dt }
+    }
+    fn read(&self, ctx: &GpuContext, n_rays: usize) -> RaySamples {
+        let offsets = ctx.read_u32(&self.offsets, n_rays + 1).unwrap();
+        let s = *offsets.last().unwrap() as usize;
+        RaySamples {
+            n_rays,
+            positions: ctx.read_f32(&self.positions, 3 * s).unwrap(),
+            dirs: ctx.read_f32(&self.dirs, 3 * s).unwrap(),
+            t: ctx.read_f32(&self.t, s).unwrap(),
+            dt: ctx.read_f32(&self.dt, s).unwrap(),
+            ray_indices: vec![],
+            ray_offsets: offsets,
+        }
+    }
+}
+
+/// |a − b| ≤ tol·(1 + |b|) everywhere (NaN fails).
+fn close(what: &str, a: &[f32], b: &[f32], tol: f32) {
+    assert_eq!(a.len(), b.len(), "{what}: lengths");
+    for (i, (x, y)) in a.iter().zip(b).enumerate() {
+        assert!((x - y).abs() <= tol * (1.0 + y.abs()), "{what}[{i}]: gpu {x} cpu {y}");
+    }
+}
+
+/// Offsets equal; t, dt, positions, dirs within `tol` (f32 rounding of the same formulas: the
+/// device may contract a·b + c into an FMA and its division is within 2.5 ulp).
+fn same_samples(what: &str, g: &RaySamples, c: &RaySamples, tol: f32) {
+    assert_eq!(g.ray_offsets, c.ray_offsets, "{what}: offsets");
+    close(&format!("{what} t"), &g.t, &c.t, tol);
+    close(&format!("{what} dt"), &g.dt, &c.dt, 4.0 * tol);
+    close(&format!("{what} positions"), &g.positions, &c.positions, tol);
+    assert_eq!(g.dirs, c.dirs, "{what}: dirs are copies");
+}
+
+/// The CPU `stratified` for given `u(r, k)` (its formulas, in its order).
+fn stratified_twin(o: &[f32], d: &[f32], near: f32, far: f32, n: usize, u: impl Fn(usize, usize) -> f32) -> RaySamples {
+    let n_rays = o.len() / 3;
+    let mut s = RaySamples { n_rays, ray_offsets: vec![0], ..Default::default() };
+    for r in 0..n_rays {
+        let step = (far - near) / n as f32;
+        let ts: Vec<f32> = (0..n).map(|i| (near + (i as f32 + u(r, i)) * step).min(near + (i + 1) as f32 * step)).collect();
+        push_ray(&mut s, o, d, r, &ts, far);
+    }
+    s
+}
+
+fn push_ray(s: &mut RaySamples, o: &[f32], d: &[f32], r: usize, ts: &[f32], far: f32) {
+    for (i, &t) in ts.iter().enumerate() {
+        let next = if i + 1 < ts.len() { ts[i + 1] } else { far };
+        s.t.push(t);
+        s.dt.push((next - t).max(0.0));
+        for c in 0..3 {
+            s.positions.push(o[3 * r + c] + t * d[3 * r + c]);
+            s.dirs.push(d[3 * r + c]);
+        }
+        s.ray_indices.push(r as u32);
+    }
+    s.ray_offsets.push(s.t.len() as u32);
+}
+
+fn run_stratified(ctx: &GpuContext, k: &GpuStratified, o: &[f32], d: &[f32], jitter: Option<u32>) -> (RaySamples, u32) {
+    let n_rays = o.len() / 3;
+    let cap = n_rays + 3; // capacity above n_rays: the extra invocations must do nothing
+    let out = out_buffers(ctx, cap, cap * k.n_samples());
+    let counters = ctx.upload("counters", &[n_rays as u32, u32::MAX]);
+    let (ob, db) = (ctx.upload("o", o), ctx.upload("d", d));
+    let mut enc = ctx.encoder("stratified");
+    k.record(ctx, &mut enc, &counters, &ob, &db, jitter, &out.packed(), cap);
+    ctx.queue.submit([enc.finish()]);
+    (out.read(ctx, n_rays), ctx.read_u32(&counters, 2).unwrap()[1])
+}
+
+#[test]
+fn stratified_matches_the_cpu() {
+    let Some(ctx) = context() else { return };
+    for (seed, n_rays, n) in [(1u64, 257usize, 64usize), (2, 1, 1), (3, 0, 8), (4, 600, 7)] {
+        let (o, d) = rays(seed, n_rays);
+        let (near, far) = (2.0f32, 6.0f32);
+        let k = GpuStratified::new(&ctx, n, near, far).unwrap();
+        // Bin centres: the CPU function itself.
+        let mut cpu = RaySamples::default();
+        stratified(&o, &d, &vec![near; n_rays], &vec![far; n_rays], n, None, &mut cpu);
+        let (gpu, count) = run_stratified(&ctx, &k, &o, &d, None);
+        assert_eq!(count as usize, n_rays * n);
+        same_samples("centres", &gpu, &cpu, 2e-6);
+        // The twin reproduces the CPU with u = 0.5 ...
+        let twin = stratified_twin(&o, &d, near, far, n, |_, _| 0.5);
+        assert_eq!(twin.t, cpu.t);
+        assert_eq!(twin.dt, cpu.dt);
+        // ... and, with the kernel's u, the jittered kernel.
+        let s = 100 + seed as u32;
+        let (gpu, _) = run_stratified(&ctx, &k, &o, &d, Some(s));
+        let twin = stratified_twin(&o, &d, near, far, n, |r, i| stratified_u(s, n, r, i));
+        same_samples("jittered", &gpu, &twin, 2e-6);
+        if n_rays > 0 && n > 1 {
+            assert_ne!(gpu.t, cpu.t, "jitter moved the samples");
+        }
+    }
+    // An empty interval gives no samples (as the CPU).
+    let (o, d) = rays(5, 10);
+    let k = GpuStratified::new(&ctx, 4, 3.0, 3.0).unwrap();
+    let (gpu, count) = run_stratified(&ctx, &k, &o, &d, Some(1));
+    assert_eq!(count, 0);
+    assert_eq!(gpu.ray_offsets, vec![0; 11]);
+    assert!(GpuStratified::new(&ctx, 0, 2.0, 6.0).is_err());
+}
+
+/// A random coarse batch: per ray 0..=max_n sorted t in [2, 6] and weights (some rays all zero).
+fn coarse(seed: u64, n_rays: usize, max_n: usize) -> (RaySamples, Vec<f32>) {
+    let mut rng = nerf_core::rng(seed, 1);
+    let mut s = RaySamples { n_rays, ray_offsets: vec![0], ..Default::default() };
+    let mut w = vec![];
+    for _ in 0..n_rays {
+        let k = if rng.gen::<f32>() < 0.15 { rng.gen_range(0..4) } else { rng.gen_range(0..=max_n) };
+        let mut ts: Vec<f32> = (0..k).map(|_| rng.gen_range(2.0f32..6.0)).collect();
+        ts.sort_by(f32::total_cmp);
+        let zero = rng.gen::<f32>() < 0.1;
+        for t in ts {
+            s.t.push(t);
+            w.push(if zero || rng.gen::<f32>() < 0.3 { 0.0 } else { rng.gen::<f32>().powi(3) });
+        }
+        s.ray_offsets.push(s.t.len() as u32);
+    }
+    (s, w)
+}
+
+/// The CPU `hierarchical` for given u (its steps, with the CPU's own `sample_pdf`).
+fn hierarchical_twin(c: &RaySamples, w: &[f32], o: &[f32], d: &[f32], far: f32, n_fine: usize, jitter: Option<u32>) -> RaySamples {
+    let mut s = RaySamples { n_rays: c.n_rays, ray_offsets: vec![0], ..Default::default() };
+    for r in 0..c.n_rays {
+        let range = c.ray_range(r);
+        let (ct, cw) = (&c.t[range.clone()], &w[range]);
+        let n_c = ct.len();
+        let mut ts = ct.to_vec();
+        if n_c >= 3 && n_fine > 0 {
+            let bins: Vec<f32> = (0..n_c - 1).map(|i| 0.5 * (ct[i] + ct[i + 1])).collect();
+            let u: Vec<f32> = (0..n_fine).map(|k| hierarchical_u(jitter, n_fine, r, k)).collect();
+            let mut fine = vec![0.0f32; n_fine];
+            sample_pdf(&bins, &cw[1..n_c - 1], &u, &mut fine);
+            fine.sort_by(f32::total_cmp);
+            ts.extend_from_slice(&fine);
+            ts.sort_by(f32::total_cmp); // coarse-first on ties is the same multiset of values
+        }
+        push_ray(&mut s, o, d, r, &ts, far);
+    }
+    s
+}
+
+#[test]
+fn hierarchical_matches_the_cpu() {
+    let Some(ctx) = context() else { return };
+    let far = 6.0f32;
+    for (seed, n_rays, max_n, n_fine) in [(1u64, 300usize, 40usize, 16usize), (2, 1, 5, 1), (3, 0, 4, 8), (4, 64, 64, 128), (5, 50, 10, 0)] {
+        let (c, w) = coarse(seed, n_rays, max_n);
+        let (o, d) = rays(seed + 10, n_rays);
+        let k = GpuHierarchical::new(&ctx, n_fine, far).unwrap();
+        let cap_rays = n_rays + 2;
+        let cap = k.capacity_samples(cap_rays, c.len());
+        let bufs = (
+            ctx.upload("counters_in", &[n_rays as u32, c.len() as u32]),
+            ctx.upload("c_off", &c.ray_offsets),
+            ctx.upload("c_t", &c.t),
+            ctx.upload("c_w", &w),
+            ctx.upload("o", &o),
+            ctx.upload("d", &d),
+        );
+        let run = |jitter: Option<u32>| {
+            let out = out_buffers(&ctx, cap_rays, cap);
+            let counters_out = ctx.upload("counters_out", &[u32::MAX; 2]);
+            let mut enc = ctx.encoder("hierarchical");
+            k.record(&ctx, &mut enc, &bufs.0, &bufs.1, &bufs.2, &bufs.3, &bufs.4, &bufs.5, jitter, &counters_out, &out.packed(), cap_rays);
+            ctx.queue.submit([enc.finish()]);
+            let s = out.read(&ctx, n_rays);
+            let co = ctx.read_u32(&counters_out, 2).unwrap();
+            assert_eq!(co, vec![n_rays as u32, s.len() as u32]);
+            s
+        };
+        // Deterministic u: the CPU function itself.
+        let mut cpu = RaySamples::default();
+        hierarchical(&c, &w, &o, &d, &vec![far; n_rays], n_fine, None, &mut cpu);
+        let gpu = run(None);
+        same_samples(&format!("seed {seed} linspace"), &gpu, &cpu, 1e-5);
+        // The twin equals the CPU with linspace u ...
+        let twin = hierarchical_twin(&c, &w, &o, &d, far, n_fine, None);
+        assert_eq!(twin.ray_offsets, cpu.ray_offsets);
+        close("twin", &twin.t, &cpu.t, 1e-6);
+        // ... and matches the jittered kernel.
+        let s = 7 + seed as u32;
+        let gpu = run(Some(s));
+        let twin = hierarchical_twin(&c, &w, &o, &d, far, n_fine, Some(s));
+        same_samples(&format!("seed {seed} jittered"), &gpu, &twin, 1e-5);
+        // Sorted within each ray.
+        for r in 0..n_rays {
+            let t = &gpu.t[gpu.ray_range(r)];
+            assert!(t.windows(2).all(|p| p[0] <= p[1]), "ray {r} not sorted");
+        }
+    }
+}

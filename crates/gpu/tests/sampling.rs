@@ -1,0 +1,533 @@
+//! Ray generation, prefix sums and occupancy-grid marching on the device against their CPU twins
+//! (`ray_batch_cpu`, a host running sum, `nerf_sampling::march`), outputs poisoned before each
+//! kernel. Runs on any adapter (lavapipe in CI); prints a notice and returns where none exists.
+
+use std::path::PathBuf;
+
+use nerf_data::{Background, Dataset, Split};
+use nerf_gpu::rng::rand_f32;
+use nerf_gpu::sampling::{
+    ray_batch_cpu, GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples, GpuScan, MarchConfig, PixelFormat, MARCH_STREAM_U,
+};
+use nerf_gpu::{shaders, DevicePreference, GpuContext};
+use nerf_rays::{Aabb, Camera, Intrinsics, PixelConvention};
+use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples};
+use rand::Rng as _;
+
+fn context() -> Option<GpuContext> {
+    match GpuContext::open(DevicePreference::Auto) {
+        Ok(Some(c)) => {
+            eprintln!("GPU tests on {}", c.describe());
+            Some(c)
+        }
+        Ok(None) => {
+            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
+            None
+        }
+        Err(e) => panic!("{e}"),
+    }
+}
+
+#[test]
+fn sampling_shaders_validate_with_naga() {
+    for (name, src) in [("rays", shaders::RAYS), ("march", shaders::MARCH), ("scan", shaders::SCAN)] {
+        let src = &shaders::with_common(src);
+        let module = naga::front::wgsl::parse_str(src).unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(src)));
+        let mut v = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all());
+        v.validate(&module).unwrap_or_else(|e| panic!("{name}: {e:?}"));
+    }
+}
+
+fn submit(ctx: &GpuContext, enc: wgpu::CommandEncoder) {
+    ctx.queue.submit([enc.finish()]);
+}
+
+// ---------------------------------------------------------------------------------------------
+// Prefix sums
+
+#[test]
+fn scan_matches_a_host_running_sum() {
+    let Some(ctx) = context() else { return };
+    let mut rng = nerf_core::rng(11, 0);
+    for (case, &len) in [0usize, 1, 255, 256, 257, 1023, 1024, 1025, 100_000, 1_100_000].iter().enumerate() {
+        let scan = GpuScan::new(&ctx, len);
+        assert_eq!(scan.len(), len);
+        // Mostly small values, a few large ones (sums wrap like u32).
+        let input: Vec<u32> = (0..len).map(|_| if rng.gen::<f32>() < 0.01 { rng.gen() } else { rng.gen_range(0..300) }).collect();
+        let expect = |n: usize| {
+            let mut out = Vec::with_capacity(len + 1);
+            let mut acc = 0u32;
+            out.push(0);
+            for (i, &x) in input.iter().enumerate() {
+                if i < n {
+                    acc = acc.wrapping_add(x);
+                }
+                out.push(acc);
+            }
+            out
+        };
+        let inp = ctx.upload("in", &input);
+        // Fixed length, total copied into counters[1].
+        let out = ctx.upload("out", &vec![0xDEAD_BEEFu32; len + 1]);
+        let counters = ctx.upload("counters", &[7u32, 0xDEAD_BEEF, 9, 9]);
+        let mut enc = ctx.encoder("scan");
+        scan.record(&ctx, &mut enc, &inp, &out, None, Some((&counters, 1)));
+        submit(&ctx, enc);
+        let got = ctx.read_u32(&out, len + 1).unwrap();
+        let want = expect(len);
+        assert_eq!(got, want, "len {len}");
+        let c = ctx.read_u32(&counters, 4).unwrap();
+        assert_eq!(c, vec![7, want[len], 9, 9], "len {len}: total slot");
+        // Dynamic length: only counters[2] inputs are read.
+        let n = [0, len / 2, len, len + 5][case % 4];
+        let counters = ctx.upload("counters", &[0u32, 0, n as u32, 0]);
+        let out = ctx.upload("out", &vec![0xDEAD_BEEFu32; len + 1]);
+        let mut enc = ctx.encoder("scan");
+        scan.record(&ctx, &mut enc, &inp, &out, Some((&counters, 2)), None);
+        submit(&ctx, enc);
+        assert_eq!(ctx.read_u32(&out, len + 1).unwrap(), expect(n.min(len)), "len {len}, dynamic n {n}");
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Ray generation
+
+/// A synthetic dataset: cameras on a sphere looking at the origin, random RGBA images whose values
+/// are k/255 (or k/65535 when `sixteen`), alpha 0, 1 or in between.
+fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset {
+    let mut rng = nerf_core::rng(seed, 0);
+    let q = if sixteen { 65535.0f32 } else { 255.0 };
+    let mut cameras = vec![];
+    let mut images = vec![];
+    for _ in 0..n_views {
+        let p = loop {
+            let v: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-1.0f32..1.0));
+            let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            if l > 0.2 && l < 1.0 {
+                break v.map(|x| 4.0 * x / l);
+            }
+        };
+        let norm = |v: [f32; 3]| {
+            let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            v.map(|x| x / l)
+        };
+        let cross = |a: [f32; 3], b: [f32; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+        let z = norm(p);
+        let x = norm(cross([0.0, 0.0, 1.0], z));
+        let y = cross(z, x);
+        let c2w = [[x[0], y[0], z[0], p[0]], [x[1], y[1], z[1], p[1]], [x[2], y[2], z[2], p[2]], [0.0, 0.0, 0.0, 1.0]];
+        let k = Intrinsics::from_fov_x(w, h, rng.gen_range(0.5..1.0));
+        cameras.push(Camera::from_c2w(k, &c2w).unwrap());
+        let mut img = Vec::with_capacity(4 * (w * h) as usize);
+        for _ in 0..w * h {
+            for _ in 0..3 {
+                img.push(rng.gen_range(0..=q as u32) as f32 / q);
+            }
+            let a = match rng.gen_range(0..3) {
+                0 => 0.0,
+                1 => 1.0,
+                _ => rng.gen_range(0..=q as u32) as f32 / q,
+            };
+            img.push(a);
+        }
+        images.push(img);
+    }
+    Dataset {
+        root: PathBuf::from("synthetic"),
+        split: Split::Train,
+        width: w,
+        height: h,
+        cameras,
+        images,
+        file_paths: vec![],
+        near: 2.0,
+        far: 6.0,
+        aabb: Aabb::cube(1.5),
+    }
+}
+
+#[test]
+fn ray_generation_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let cases = [
+        (1u32, Background::Random, PixelConvention::Center, false, false, 777usize),
+        (2, Background::White, PixelConvention::Center, false, true, 1000),
+        (3, Background::Black, PixelConvention::Integer, true, false, 1),
+        (4, Background::Random, PixelConvention::Integer, true, true, 5000), // n past the capacity
+        (5, Background::White, PixelConvention::Center, true, false, 0),
+    ];
+    let cap = 1000;
+    for (seed, bg, conv, jitter, sixteen, n) in cases {
+        let ds = dataset(seed as u64, 3, 13, 7, sixteen);
+        let images = GpuImages::new(&ctx, &ds).unwrap();
+        assert_eq!(images.n_views(), 3);
+        assert_eq!(images.format(), if sixteen { PixelFormat::Rgba16 } else { PixelFormat::Rgba8 });
+        let gen = GpuRayGen::new(&ctx, bg, conv, jitter);
+        let nan = vec![f32::NAN; 3 * cap];
+        let rays = GpuRays {
+            origins: ctx.upload("o", &nan),
+            dirs: ctx.upload("d", &nan),
+            target: ctx.upload("t", &nan),
+            background: ctx.upload("b", &nan),
+            capacity: cap,
+        };
+        let counters = ctx.upload("counters", &[n as u32, 0]);
+        gen.set_seed(&ctx, seed * 7919);
+        let mut enc = ctx.encoder("rays");
+        gen.record(&ctx, &mut enc, &counters, &images, &rays);
+        submit(&ctx, enc);
+        let m = n.min(cap);
+        let cpu = ray_batch_cpu(&ds, seed * 7919, m, bg, conv, jitter);
+        let read = |b: &wgpu::Buffer| ctx.read_f32(b, 3 * cap).unwrap();
+        let (o, d, t, b) = (read(&rays.origins), read(&rays.dirs), read(&rays.target), read(&rays.background));
+        for i in 0..3 * cap {
+            if i < 3 * m {
+                // Origins are copied and random backgrounds use the same 24-bit numbers: exact.
+                assert_eq!(o[i], cpu.origins[i], "seed {seed}: origin {i}");
+                assert_eq!(b[i], cpu.background[i], "seed {seed}: background {i}");
+                // Directions: division, 3×3 product and normalisation (a few f32 ulps, FMA).
+                assert!((d[i] - cpu.dirs[i]).abs() <= 4e-6, "seed {seed}: dir {i}: {} vs {}", d[i], cpu.dirs[i]);
+                // Targets: u8/255 or u16/65535 decoding and the compositing rule (a few ulps).
+                assert!((t[i] - cpu.target[i]).abs() <= 2e-6, "seed {seed}: target {i}: {} vs {}", t[i], cpu.target[i]);
+            } else {
+                assert!(o[i].is_nan() && d[i].is_nan() && t[i].is_nan() && b[i].is_nan(), "seed {seed}: slot {i} past n written");
+            }
+        }
+        if m > 100 {
+            // The batch covers every view and differing pixels (a stuck index would pass the
+            // comparison only if the twin were stuck too).
+            for v in 0..3 {
+                assert!(cpu.view_ids.contains(&v), "seed {seed}: view {v} never drawn");
+            }
+            let distinct: std::collections::HashSet<_> = cpu.pixel_ids.iter().collect();
+            assert!(distinct.len() > 50, "seed {seed}: {} distinct pixels", distinct.len());
+            if bg == Background::Random {
+                assert!(b[..3 * m].iter().any(|&x| x < 0.5) && b[..3 * m].iter().any(|&x| x > 0.5));
+            }
+        }
+    }
+}
+
+#[test]
+fn image_upload_rejects_bad_datasets() {
+    let Some(ctx) = context() else { return };
+    let mut ds = dataset(9, 2, 4, 3, false);
+    ds.images[1].pop();
+    let e = GpuImages::new(&ctx, &ds).err().expect("short image accepted").to_string();
+    assert!(e.contains("synthetic") && e.contains("image 1"), "{e}");
+    ds.cameras.clear();
+    ds.images.clear();
+    let e = GpuImages::new(&ctx, &ds).err().expect("empty dataset accepted").to_string();
+    assert!(e.contains("no training views"), "{e}");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Marching
+
+/// A grid whose occupied cells are a ball plus random noise in the x < 0 half (so that the x > 0
+/// half has empty 4³ blocks next to occupied ones).
+fn grid(seed: u32, res: u32, min: [f32; 3], max: [f32; 3]) -> OccupancyGrid {
+    let cfg = OccupancyGridConfig { resolution: res, ..Default::default() };
+    let mut g = OccupancyGrid::new(cfg, min, max);
+    g.fill_from(0.01, &mut |p, s| {
+        for (k, s) in s.iter_mut().enumerate() {
+            let q = &p[3 * k..3 * k + 3];
+            let r2 = (q[0] - 0.3).powi(2) + (q[1] + 0.1).powi(2) + q[2].powi(2);
+            let h = nerf_gpu::rng::rand_u32(seed, q[0].to_bits() ^ q[1].to_bits().rotate_left(11), q[2].to_bits());
+            let noise = q[0] < 0.0 && h % 100 < 8;
+            *s = if r2 < 0.36 || noise { 50.0 } else { 0.0 };
+        }
+    });
+    let f = g.occupied_fraction();
+    assert!(f > 0.02 && f < 0.5, "occupied fraction {f}");
+    g
+}
+
+/// The grid's bits in the u32 layout the marcher reads.
+fn bitfield(g: &OccupancyGrid) -> Vec<u32> {
+    let n = g.resolution().pow(3);
+    let mut w = vec![0u32; n.div_ceil(32)];
+    for i in 0..n {
+        if g.is_cell_occupied(i) {
+            w[i / 32] |= 1 << (i % 32);
+        }
+    }
+    w
+}
+
+/// Rays: most from outside towards points near the box, some that miss, some axis-parallel, some
+/// starting inside the box.
+fn rays(seed: u64, n: usize) -> (Vec<f32>, Vec<f32>) {
+    let mut rng = nerf_core::rng(seed, 1);
+    let (mut o, mut d) = (vec![], vec![]);
+    for i in 0..n {
+        let kind = i % 10;
+        let mut orig: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-1.0f32..1.0));
+        let dir: [f32; 3] = match kind {
+            0 => {
+                // Axis-parallel (two zero components), origin inside the slab of the others.
+                let a = rng.gen_range(0..3);
+                orig[a] = if rng.gen() { -3.0 } else { 3.0 };
+                let mut v = [0.0; 3];
+                v[a] = -orig[a].signum();
+                v
+            }
+            1 | 2 => std::array::from_fn(|_| rng.gen_range(-1.0f32..1.0)), // origin inside the box
+            _ => {
+                let l = (orig.iter().map(|x| x * x).sum::<f32>()).sqrt().max(1e-3);
+                let dist = rng.gen_range(2.5f32..4.0);
+                orig = orig.map(|x| x / l * dist);
+                let spread = if kind == 3 { 3.0 } else { 1.2 }; // kind 3 often misses
+                let target: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-spread..spread));
+                std::array::from_fn(|a| target[a] - orig[a])
+            }
+        };
+        let l = dir.iter().map(|x| x * x).sum::<f32>().sqrt();
+        o.extend(orig);
+        d.extend(dir.map(|x| x / l));
+    }
+    (o, d)
+}
+
+/// Reference dense walk (every step looked up, the CPU's rule) with a given `u` per ray.
+#[allow(clippy::too_many_arguments)]
+fn dense_walk(g: &OccupancyGrid, o: &[f32], d: &[f32], near: f32, far: f32, step: f32, max: usize, u: &dyn Fn(usize) -> f32) -> (Vec<u32>, Vec<f32>) {
+    let (lo, hi) = g.aabb();
+    let res = g.resolution();
+    let inv: [f32; 3] = std::array::from_fn(|a| res as f32 / (hi[a] - lo[a]));
+    let mut offsets = vec![0u32];
+    let mut ts = vec![];
+    for r in 0..o.len() / 3 {
+        let (oo, dd) = (&o[3 * r..3 * r + 3], &d[3 * r..3 * r + 3]);
+        let (mut a0, mut a1, mut hit) = (f32::NEG_INFINITY, f32::INFINITY, true);
+        for a in 0..3 {
+            if dd[a] == 0.0 {
+                hit &= oo[a] >= lo[a] && oo[a] <= hi[a];
+            } else {
+                let iv = 1.0 / dd[a];
+                let (x, y) = ((lo[a] - oo[a]) * iv, (hi[a] - oo[a]) * iv);
+                a0 = a0.max(x.min(y));
+                a1 = a1.min(x.max(y));
+            }
+        }
+        let (t0, t1) = (near.max(a0), far.min(a1));
+        if hit && far > near && t1 > t0 {
+            let ur = u(r);
+            let mut k = 0;
+            let mut n = 0;
+            loop {
+                let t = t0 + (k as f32 + ur) * step;
+                if t >= t1 || n >= max {
+                    break;
+                }
+                let mut idx = 0;
+                for a in (0..3).rev() {
+                    let gc = (oo[a] + t * dd[a] - lo[a]) * inv[a];
+                    idx = idx * res + (gc as usize).min(res - 1);
+                }
+                if g.is_cell_occupied(idx) {
+                    ts.push(t);
+                    n += 1;
+                }
+                k += 1;
+            }
+        }
+        offsets.push(ts.len() as u32);
+    }
+    (offsets, ts)
+}
+
+struct GpuOut {
+    offsets: Vec<u32>,
+    n_samples: u32,
+    positions: Vec<f32>,
+    dirs: Vec<f32>,
+    t: Vec<f32>,
+    dt: Vec<f32>,
+}
+
+/// Runs the marcher on `n` of `cap_rays` rays with poisoned outputs.
+#[allow(clippy::too_many_arguments)]
+fn run_gpu(ctx: &GpuContext, m: &GpuMarcher, bits: &[u32], o: &[f32], d: &[f32], n: usize, seed: u32, jitter: bool) -> GpuOut {
+    let (cr, cs) = (m.capacity_rays(), m.capacity_samples());
+    let nan = |k: usize| vec![f32::NAN; k];
+    let out = GpuSamples {
+        offsets: ctx.upload("offsets", &vec![u32::MAX; cr + 1]),
+        positions: ctx.upload("positions", &nan(3 * cs)),
+        dirs: ctx.upload("dirs", &nan(3 * cs)),
+        t: ctx.upload("t", &nan(cs)),
+        dt: ctx.upload("dt", &nan(cs)),
+        capacity_rays: cr,
+        capacity_samples: cs,
+    };
+    let counters = ctx.upload("counters", &[n as u32, u32::MAX]);
+    let bits = ctx.upload("bits", bits);
+    let (ob, db) = (ctx.upload("o", o), ctx.upload("d", d));
+    m.set_seed(ctx, seed, jitter);
+    let mut enc = ctx.encoder("march");
+    m.record(ctx, &mut enc, &counters, &bits, &ob, &db, &out);
+    submit(ctx, enc);
+    GpuOut {
+        offsets: ctx.read_u32(&out.offsets, cr + 1).unwrap(),
+        n_samples: ctx.read_u32(&counters, 2).unwrap()[1],
+        positions: ctx.read_f32(&out.positions, 3 * cs).unwrap(),
+        dirs: ctx.read_f32(&out.dirs, 3 * cs).unwrap(),
+        t: ctx.read_f32(&out.t, cs).unwrap(),
+        dt: ctx.read_f32(&out.dt, cs).unwrap(),
+    }
+}
+
+/// Compares the GPU's samples of rays `0..n` with reference offsets / t. A ray may differ only by
+/// samples whose position lies within 1e-3 cells of a cell face (f32 rounding of `o + t·d`, where
+/// the device may fuse the multiply-add, decides the cell there); at most 1 % of the rays.
+/// Also checks positions, dirs and dt of every sample, and that nothing past the count is written.
+#[allow(clippy::too_many_arguments)]
+fn compare(g: &OccupancyGrid, gpu: &GpuOut, ref_off: &[u32], ref_t: &[f32], o: &[f32], d: &[f32], step: f32, n: usize, what: &str) {
+    let (lo, hi) = g.aabb();
+    let res = g.resolution() as f32;
+    let near_face = |t: f32, r: usize| {
+        (0..3).any(|a| {
+            let gc = (o[3 * r + a] + t * d[3 * r + a] - lo[a]) * res / (hi[a] - lo[a]);
+            (gc - gc.round()).abs() < 1e-3
+        })
+    };
+    let total = gpu.offsets[n] as usize;
+    assert_eq!(gpu.n_samples as usize, total, "{what}: counters[1]");
+    let mut mismatched = 0;
+    for r in 0..n {
+        let gr = gpu.offsets[r] as usize..gpu.offsets[r + 1] as usize;
+        let cr = ref_off[r] as usize..ref_off[r + 1] as usize;
+        let (gt, ct) = (&gpu.t[gr.clone()], &ref_t[cr]);
+        let same = gt.len() == ct.len() && gt.iter().zip(ct).all(|(a, b)| (a - b).abs() <= 1e-5 * b.abs().max(1.0));
+        if !same {
+            mismatched += 1;
+            // Every sample in only one of the lists must sit at a face.
+            for (x, y) in [(gt, ct), (ct, gt)] {
+                for &t in x {
+                    if !y.iter().any(|&s| (s - t).abs() <= 1e-5 * t.abs().max(1.0)) {
+                        assert!(near_face(t, r), "{what}: ray {r}: sample t = {t} not in the reference\n gpu {gt:?}\n ref {ct:?}");
+                    }
+                }
+            }
+        }
+        for k in gr {
+            assert_eq!(gpu.dt[k], step, "{what}: dt");
+            for a in 0..3 {
+                assert_eq!(gpu.dirs[3 * k + a], d[3 * r + a], "{what}: dirs");
+                let p = o[3 * r + a] + gpu.t[k] * d[3 * r + a];
+                assert!((gpu.positions[3 * k + a] - p).abs() <= 1e-5 * p.abs().max(1.0), "{what}: position");
+            }
+        }
+    }
+    assert!(mismatched <= n / 100, "{what}: {mismatched} of {n} rays differ");
+    if mismatched > 0 {
+        eprintln!("{what}: {mismatched} rays differ at cell faces only");
+    }
+    for k in total..gpu.t.len() {
+        assert!(gpu.t[k].is_nan() && gpu.dt[k].is_nan() && gpu.positions[3 * k].is_nan(), "{what}: sample {k} past the count written");
+    }
+}
+
+#[test]
+fn marching_without_jitter_matches_the_cpu_march() {
+    let Some(ctx) = context() else { return };
+    for (seed, res, n_rays, max_samples) in [(1u32, 32u32, 2000usize, 1024usize), (2, 30, 1500, 1024), (3, 16, 1000, 5), (4, 64, 500, 2)] {
+        let (lo, hi) = ([-1.5f32, -1.2, -1.0], [1.5f32, 1.3, 1.1]);
+        let g = grid(seed, res, lo, hi);
+        let step = 3.0f32.sqrt() * 3.0 / [256.0, 200.0, 128.0, 512.0][seed as usize - 1];
+        let (near, far) = (0.3f32, 6.0f32);
+        let (o, d) = rays(seed as u64, n_rays);
+        let mut cpu = RaySamples::default();
+        march(&g, &o, &d, &vec![near; n_rays], &vec![far; n_rays], step, max_samples, None, &mut cpu);
+        assert!(cpu.len() > n_rays, "seed {seed}: too few samples ({}) to be a test", cpu.len());
+        let empty = (0..n_rays).filter(|&r| cpu.ray_len(r) == 0).count();
+        assert!(empty > 0 && empty < n_rays / 2, "seed {seed}: {empty} empty rays");
+        // The reference dense walk is the CPU march (checks the reference used with jitter below).
+        let (ref_off, ref_t) = dense_walk(&g, &o, &d, near, far, step, max_samples, &|_| 0.5);
+        assert_eq!(ref_off, cpu.ray_offsets, "seed {seed}: dense walk vs march");
+        assert_eq!(ref_t, cpu.t, "seed {seed}: dense walk vs march");
+
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: max_samples as u32 };
+        // Capacity above what is needed; fewer rays than the capacity (the rest must get offsets = total).
+        let cap_rays = n_rays + 37;
+        let m = GpuMarcher::new(&ctx, cfg, cap_rays, cpu.len() + 100).unwrap();
+        let gpu = run_gpu(&ctx, &m, &bitfield(&g), &[o.clone(), vec![0.0; 111]].concat(), &[d.clone(), vec![1.0; 111]].concat(), n_rays, 5, false);
+        assert_eq!(gpu.offsets[0], 0);
+        compare(&g, &gpu, &cpu.ray_offsets, &cpu.t, &o, &d, step, n_rays, &format!("seed {seed}"));
+        for r in n_rays..=cap_rays {
+            assert_eq!(gpu.offsets[r], gpu.offsets[n_rays], "seed {seed}: offsets past n_rays");
+        }
+    }
+}
+
+#[test]
+fn marching_with_jitter_matches_a_dense_walk_with_the_same_offsets() {
+    let Some(ctx) = context() else { return };
+    for (seed, res) in [(21u32, 32u32), (22, 24)] {
+        let (lo, hi) = ([-1.5f32; 3], [1.5f32; 3]);
+        let g = grid(seed, res, lo, hi);
+        let step = 0.013f32;
+        let (near, far) = (2.0f32, 6.0f32);
+        let n_rays = 1500;
+        let (o, d) = rays(seed as u64, n_rays);
+        let useed = seed * 1_000_003;
+        let (ref_off, ref_t) = dense_walk(&g, &o, &d, near, far, step, 1024, &|r| rand_f32(useed, MARCH_STREAM_U, r as u32));
+        assert!(ref_t.len() > n_rays);
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: 1024 };
+        let m = GpuMarcher::new(&ctx, cfg, n_rays, ref_t.len()).unwrap();
+        let gpu = run_gpu(&ctx, &m, &bitfield(&g), &o, &d, n_rays, useed, true);
+        compare(&g, &gpu, &ref_off, &ref_t, &o, &d, step, n_rays, &format!("jitter seed {seed}"));
+        // Jitter moves samples off the u = 0.5 grid: a different sample set than without it.
+        let (_, t_half) = dense_walk(&g, &o, &d, near, far, step, 1024, &|_| 0.5);
+        let shared = gpu.t[..gpu.n_samples as usize].iter().zip(&t_half).filter(|(a, b)| a == b).count();
+        assert!(shared < t_half.len() / 10, "jittered samples coincide with unjittered ones ({shared})");
+    }
+}
+
+#[test]
+fn marching_clips_to_the_sample_capacity() {
+    let Some(ctx) = context() else { return };
+    let (lo, hi) = ([-1.5f32; 3], [1.5f32; 3]);
+    let g = grid(31, 32, lo, hi);
+    let step = 0.02f32;
+    let n_rays = 800;
+    let (o, d) = rays(31, n_rays);
+    let (ref_off, ref_t) = dense_walk(&g, &o, &d, 0.0, 6.0, step, 1024, &|_| 0.5);
+    let total = ref_t.len();
+    let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: 32, step_size: step, near: 0.0, far: 6.0, max_samples_per_ray: 1024 };
+    let bits = bitfield(&g);
+    for cap in [total / 3, total - 1, 1] {
+        let m = GpuMarcher::new(&ctx, cfg, n_rays, cap).unwrap();
+        let gpu = run_gpu(&ctx, &m, &bits, &o, &d, n_rays, 0, false);
+        assert_eq!(gpu.n_samples as usize, cap, "cap {cap}: counters[1]");
+        for (r, &x) in ref_off.iter().enumerate() {
+            assert_eq!(gpu.offsets[r], x.min(cap as u32), "cap {cap}: offset {r}");
+        }
+        // The kept samples are the first `cap` of the unclipped batch, the straddling ray's prefix included.
+        for (k, &t) in ref_t.iter().enumerate().take(cap) {
+            assert!((gpu.t[k] - t).abs() <= 1e-5 * t.abs().max(1.0), "cap {cap}: t[{k}]");
+            assert_eq!(gpu.dt[k], step);
+        }
+    }
+    // No rays at all: every offset 0, no samples.
+    let m = GpuMarcher::new(&ctx, cfg, 64, 1000).unwrap();
+    let gpu = run_gpu(&ctx, &m, &bits, &o[..192], &d[..192], 0, 0, false);
+    assert_eq!(gpu.n_samples, 0);
+    assert!(gpu.offsets.iter().all(|&x| x == 0));
+    assert!(gpu.t.iter().all(|x| x.is_nan()));
+}
+
+#[test]
+fn marcher_rejects_bad_configurations() {
+    let Some(ctx) = context() else { return };
+    let good = MarchConfig { aabb_min: [-1.0; 3], aabb_max: [1.0; 3], resolution: 16, step_size: 0.01, near: 0.0, far: 5.0, max_samples_per_ray: 64 };
+    assert!(GpuMarcher::new(&ctx, good, 10, 10).is_ok());
+    for (bad, word) in [
+        (MarchConfig { resolution: 0, ..good }, "resolution"),
+        (MarchConfig { step_size: 0.0, ..good }, "step"),
+        (MarchConfig { aabb_max: [1.0, -1.0, 1.0], ..good }, "box"),
+    ] {
+        let e = GpuMarcher::new(&ctx, bad, 10, 10).err().expect("accepted").to_string();
+        assert!(e.contains(word), "{e}");
+    }
+}

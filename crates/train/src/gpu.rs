@@ -1,0 +1,599 @@
+//! The GPU execution path of the [`Trainer`](crate::Trainer): the same step as the CPU path —
+//! random rays from the training images, sampling, field forward, compositing, loss, backward,
+//! Adam, occupancy-grid updates — recorded into one command buffer per step and submitted without
+//! waiting. Nothing is read back during training except the loss every `log_every` steps.
+//!
+//! Device buffers are sized once, from the config: `capacity_rays` rays and `capacity_samples`
+//! samples per stage. The number of rays and samples of a step live in a `counters` buffer
+//! (`[n_rays, n_samples]`) written by the kernels themselves (batch sizing, marching).
+
+use crate::config::{SamplerConfig, TrainConfig};
+use crate::trainer::{SceneBounds, StepStats};
+use crate::TrainError;
+use nerf_data::{Background, Dataset};
+use nerf_field::{GpuRadianceField, GpuSamples, RadianceField};
+use nerf_gpu::composite::{BatchParams, CompositeTargets, PackedBuffers};
+use nerf_gpu::occupancy::GpuOccupancyGrid;
+use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
+use nerf_gpu::pdf::{GpuHierarchical, GpuStratified, PackedOut};
+use nerf_gpu::sampling::{GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples as PackedSamples, MarchConfig};
+use nerf_gpu::{wgpu, Compositor, GpuContext, TrainGlue};
+use nerf_optim::AdamState;
+use std::cell::Cell;
+use std::sync::Arc;
+
+fn gerr(e: nerf_gpu::GpuError) -> TrainError {
+    TrainError::Gpu(e.to_string())
+}
+
+/// Bounds on the adaptive number of rays per step (as the CPU path).
+const MIN_BATCH_RAYS: usize = 64;
+const MAX_BATCH_RAYS: usize = 1 << 20;
+/// RNG streams of the device kernels (seeds are per step).
+const SEED_MIX: u64 = 0x9E37_79B9_7F4A_7C15;
+
+/// Buffers of one sampling stage (one field instance), sized for the capacities.
+struct Stage {
+    counters: wgpu::Buffer,
+    /// The packed layout: offsets, positions, dirs, t, dt.
+    packed: PackedSamples,
+    sigma: wgpu::Buffer,
+    rgb: wgpu::Buffer,
+    weights: wgpu::Buffer,
+    ray_rgb: wgpu::Buffer,
+    opacity: wgpu::Buffer,
+    depth: wgpu::Buffer,
+    d_ray_rgb: wgpu::Buffer,
+    sq_err: wgpu::Buffer,
+    d_sigma: wgpu::Buffer,
+    d_rgb: wgpu::Buffer,
+}
+
+impl Stage {
+    fn new(ctx: &GpuContext, rays: usize, samples: usize) -> Self {
+        let f = |label: &str, n: usize| ctx.zeros(label, 4 * n);
+        Self {
+            counters: f("counters", 4),
+            packed: PackedSamples::new(ctx, rays, samples),
+            sigma: f("sigma", samples),
+            rgb: f("rgb", 3 * samples),
+            weights: f("weights", samples),
+            ray_rgb: f("ray rgb", 3 * rays),
+            opacity: f("opacity", rays),
+            depth: f("depth", rays),
+            d_ray_rgb: f("d ray rgb", 3 * rays),
+            sq_err: f("sq err", rays),
+            d_sigma: f("d sigma", samples),
+            d_rgb: f("d rgb", 3 * samples),
+        }
+    }
+
+    fn packed_out(&self) -> PackedOut<'_> {
+        let p = &self.packed;
+        PackedOut { offsets: &p.offsets, positions: &p.positions, dirs: &p.dirs, t: &p.t, dt: &p.dt }
+    }
+
+    fn samples(&self) -> GpuSamples<'_> {
+        GpuSamples {
+            counters: &self.counters,
+            positions: &self.packed.positions,
+            dirs: &self.packed.dirs,
+            capacity: self.packed.capacity_samples,
+        }
+    }
+}
+
+/// The occupancy-grid sampler's state.
+struct Occupancy {
+    grid: GpuOccupancyGrid,
+    marcher: GpuMarcher,
+    step_size: f32,
+    /// Buffers of the grid update (cell points, chosen cells, σ, counters).
+    points: wgpu::Buffer,
+    cells: wgpu::Buffer,
+    sigma: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    /// The density query runs in chunks of the field's capacity: one chunk's points, σ, counters
+    /// and per-chunk uniforms.
+    chunk_points: wgpu::Buffer,
+    chunk_sigma: wgpu::Buffer,
+    chunk_counters: wgpu::Buffer,
+    chunk_dirs: wgpu::Buffer,
+    chunks: Vec<(usize, usize, wgpu::Buffer)>,
+}
+
+enum Sampler {
+    Occupancy(Box<Occupancy>),
+    Stratified(GpuStratified),
+    Hierarchical(GpuStratified, GpuHierarchical),
+}
+
+/// The GPU twin of the CPU trainer's state.
+pub(crate) struct GpuEngine {
+    ctx: Arc<GpuContext>,
+    fields: Vec<Box<dyn GpuRadianceField>>,
+    /// One optimiser per parameter group (the groups live in separate buffers).
+    adams: Vec<Vec<GpuAdam>>,
+    group_names: Vec<Vec<String>>,
+    images: Option<(usize, u32, u32, GpuImages)>,
+    raygen: GpuRayGen,
+    sampler: Sampler,
+    compositor: Compositor,
+    glue: TrainGlue,
+    rays: GpuRays,
+    stages: Vec<Stage>,
+    /// Running mean of samples per ray (`[0]`), device side.
+    spr: wgpu::Buffer,
+    /// Samples evaluated so far: `[lo, hi]` u32, device side.
+    seen: wgpu::Buffer,
+    capacity_rays: usize,
+    capacity_samples: usize,
+    /// Rays of the first step (before the running mean exists).
+    first_rays: usize,
+    adaptive: bool,
+    bounds: SceneBounds,
+    last_n_samples: Cell<usize>,
+}
+
+impl GpuEngine {
+    /// Moves the CPU fields to the device and builds every kernel and buffer of a step.
+    pub(crate) fn new(
+        ctx: Arc<GpuContext>,
+        config: &TrainConfig,
+        bounds: SceneBounds,
+        cpu_fields: &[Box<dyn RadianceField>],
+        group_names: &[Vec<String>],
+    ) -> Result<Self, TrainError> {
+        let (capacity_rays, capacity_samples) = capacities(config);
+
+        let stage_samples = |i: usize| match config.sampler {
+            SamplerConfig::Hierarchical { n_coarse, n_fine } if i == 1 => capacity_rays * (n_coarse + n_fine),
+            _ => capacity_samples,
+        };
+        let mut fields = Vec::with_capacity(cpu_fields.len());
+        for (i, f) in cpu_fields.iter().enumerate() {
+            match f.to_gpu(&ctx, stage_samples(i)) {
+                Some(g) => fields.push(g?),
+                None => {
+                    return Err(TrainError::Gpu(format!(
+                        "field `{}` has no GPU implementation (use --device cpu)",
+                        f.kind()
+                    )))
+                }
+            }
+        }
+        let mut adams = Vec::with_capacity(fields.len());
+        for (f, names) in fields.iter().zip(group_names) {
+            let mut per = Vec::new();
+            for (g, name) in f.groups().iter().zip(names) {
+                let group = GpuParamGroup::new(name.clone(), 0, g.len, g.weight_decay);
+                per.push(GpuAdam::new(&ctx, &config.adam, &[group]).map_err(gerr)?);
+            }
+            adams.push(per);
+        }
+        let n_stages = config.sampler.n_fields();
+        let stages: Vec<Stage> = (0..n_stages).map(|i| Stage::new(&ctx, capacity_rays, stage_samples(i))).collect();
+        let sampler = match &config.sampler {
+            SamplerConfig::Occupancy { grid, step_size, max_samples_per_ray } => {
+                let g = GpuOccupancyGrid::new(&ctx, grid, (bounds.aabb_min, bounds.aabb_max)).map_err(gerr)?;
+                let n_cells = g.n_cells();
+                let mc = MarchConfig {
+                    aabb_min: bounds.aabb_min,
+                    aabb_max: bounds.aabb_max,
+                    resolution: g.resolution() as u32,
+                    step_size: *step_size,
+                    near: bounds.near,
+                    far: bounds.far,
+                    max_samples_per_ray: *max_samples_per_ray as u32,
+                };
+                let marcher = GpuMarcher::new(&ctx, mc, capacity_rays, capacity_samples).map_err(gerr)?;
+                Sampler::Occupancy(Box::new(Occupancy {
+                    marcher,
+                    step_size: *step_size,
+                    points: ctx.zeros("occupancy points", 12 * n_cells),
+                    cells: ctx.zeros("occupancy cells", 4 * n_cells),
+                    sigma: ctx.zeros("occupancy sigma", 4 * n_cells),
+                    counters: ctx.zeros("occupancy counters", 16),
+                    chunk_points: ctx.zeros("chunk points", 12 * capacity_samples),
+                    chunk_sigma: ctx.zeros("chunk sigma", 4 * capacity_samples),
+                    chunk_counters: ctx.zeros("chunk counters", 16),
+                    chunk_dirs: ctx.zeros("chunk dirs", 12 * capacity_samples),
+                    chunks: (0..n_cells)
+                        .step_by(capacity_samples)
+                        .map(|o| {
+                            let size = capacity_samples.min(n_cells - o);
+                            (o, size, TrainGlue::chunk_uniform(&ctx, o, size))
+                        })
+                        .collect(),
+                    grid: g,
+                }))
+            }
+            SamplerConfig::Stratified { n_samples } => {
+                Sampler::Stratified(GpuStratified::new(&ctx, *n_samples, bounds.near, bounds.far).map_err(gerr)?)
+            }
+            SamplerConfig::Hierarchical { n_coarse, n_fine } => Sampler::Hierarchical(
+                GpuStratified::new(&ctx, *n_coarse, bounds.near, bounds.far).map_err(gerr)?,
+                GpuHierarchical::new(&ctx, *n_fine, bounds.far).map_err(gerr)?,
+            ),
+        };
+        let max_rays = capacity_rays.min(MAX_BATCH_RAYS);
+        let batch = BatchParams {
+            target_samples: config.target_samples_per_step.unwrap_or(0) as u32,
+            min_rays: MIN_BATCH_RAYS.min(max_rays) as u32,
+            max_rays: max_rays as u32,
+            _pad: 0,
+        };
+        let first_rays = match config.target_samples_per_step {
+            Some(t) => (t / max_samples_per_ray(&config.sampler).max(1)).clamp(MIN_BATCH_RAYS, max_rays),
+            None => capacity_rays,
+        };
+        for st in &stages {
+            ctx.write(&st.counters, 0, &[first_rays as u32, 0u32]);
+        }
+        Ok(Self {
+            first_rays,
+            raygen: GpuRayGen::new(&ctx, config.train_background, config.pixel_convention, false),
+            compositor: Compositor::new(&ctx, capacity_rays, config.transmittance_threshold, true),
+            glue: TrainGlue::new(&ctx, capacity_rays, batch),
+            rays: GpuRays::new(&ctx, capacity_rays),
+            spr: ctx.upload("samples per ray", &[0.0f32]),
+            seen: ctx.upload("samples seen", &[0u32, 0u32]),
+            group_names: group_names.to_vec(),
+            images: None,
+            fields,
+            adams,
+            sampler,
+            stages,
+            capacity_rays,
+            capacity_samples,
+            adaptive: config.target_samples_per_step.is_some(),
+            bounds,
+            last_n_samples: Cell::new(0),
+            ctx,
+        })
+    }
+
+    pub(crate) fn describe(&self) -> String {
+        self.ctx.describe()
+    }
+
+    /// Records and submits one training step; reads the loss back when `step + 1` is a logging
+    /// step or the last one.
+    pub(crate) fn step(&mut self, data: &Dataset, cfg: &TrainConfig, step: u64) -> Result<StepStats, TrainError> {
+        let key = (data.n_views(), data.width, data.height);
+        if self.images.as_ref().map(|(n, w, h, _)| (*n, *w, *h)) != Some(key) {
+            let imgs = GpuImages::new(&self.ctx, data).map_err(gerr)?;
+            self.images = Some((key.0, key.1, key.2, imgs));
+        }
+        let ctx = self.ctx.clone();
+        let ctx = &*ctx;
+        let seed = |stream: u64| {
+            let x = cfg.seed.wrapping_mul(SEED_MIX) ^ (step.wrapping_add(1)).wrapping_mul(0xD1B5_4A32_D192_ED03) ^ stream;
+            (x ^ (x >> 32)) as u32
+        };
+        let lr = cfg.lr.lr(step);
+        let mut enc = ctx.encoder("train step");
+        let (_, _, _, images) = self.images.as_ref().expect("uploaded above");
+        let s0 = &self.stages[0];
+        // Occupancy-grid refresh from the field's density when due.
+        if let Sampler::Occupancy(o) = &self.sampler {
+            if o.grid.due(step) {
+                o.grid.record_choose(ctx, &mut enc, step, seed(1), &o.points, &o.cells, &o.counters);
+                // σ at the chosen points, a field-capacity chunk at a time.
+                for (offset, size, uniform) in &o.chunks {
+                    enc.copy_buffer_to_buffer(&o.points, 12 * *offset as u64, &o.chunk_points, 0, 12 * *size as u64);
+                    self.glue.record_chunk_count(ctx, &mut enc, uniform, &o.counters, &o.chunk_counters);
+                    let s = GpuSamples {
+                        counters: &o.chunk_counters,
+                        positions: &o.chunk_points,
+                        dirs: &o.chunk_dirs,
+                        capacity: self.capacity_samples,
+                    };
+                    self.fields[0].record_density(ctx, &mut enc, s, &o.chunk_sigma);
+                    enc.copy_buffer_to_buffer(&o.chunk_sigma, 0, &o.sigma, 4 * *offset as u64, 4 * *size as u64);
+                }
+                o.grid.record_apply(ctx, &mut enc, &o.cells, &o.sigma, o.step_size);
+            }
+        }
+        self.raygen.set_seed(ctx, seed(2));
+        self.raygen.record(ctx, &mut enc, &s0.counters, images, &self.rays);
+        let perturb = cfg.perturb;
+        self.record_first_stage(ctx, &mut enc, perturb.then(|| seed(3)));
+        self.record_stage_forward(ctx, &mut enc, 0, true);
+        if let Sampler::Hierarchical(_, h) = &self.sampler {
+            let (a, b) = self.stages.split_at(1);
+            self.record_fine(ctx, &mut enc, h, &a[0], &b[0], perturb.then(|| seed(4)));
+            self.record_stage_forward(ctx, &mut enc, 1, true);
+        }
+        // Loss on every stage, backward through compositing into each field, Adam.
+        for (i, st) in self.stages.iter().enumerate() {
+            self.glue.record_loss(ctx, &mut enc, &st.counters, &st.ray_rgb, &self.rays.target, &st.d_ray_rgb, &st.sq_err);
+            let pb = self.packed(st);
+            self.compositor.record_backward(ctx, &mut enc, &pb, &st.weights, &st.d_ray_rgb, None, None, &st.d_sigma, &st.d_rgb);
+            self.fields[i].record_backward(ctx, &mut enc, st.samples(), &st.d_sigma, &st.d_rgb);
+        }
+        for (f, adams) in self.fields.iter().zip(&self.adams) {
+            for (g, adam) in f.groups().iter().zip(adams) {
+                adam.record_step(ctx, &mut enc, &g.params, &g.grads, lr);
+            }
+        }
+        // Samples seen, batch size of the next step (from this step's first stage).
+        let last = self.stages.len() - 1;
+        for st in &self.stages {
+            self.glue.record_count(ctx, &mut enc, &st.counters, &self.seen);
+        }
+        if self.adaptive {
+            self.glue.record_next_batch(ctx, &mut enc, &self.stages[0].counters, &self.spr);
+        }
+        ctx.queue.submit([enc.finish()]);
+        let done = step + 1;
+        let read = done % cfg.log_every.max(1) == 0 || done == cfg.iters;
+        let (mut loss, mut mse, mut n_samples) = (f32::NAN, f32::NAN, self.last_n_samples.get());
+        if read {
+            let (mut l, mut total) = (0.0f64, 0usize);
+            for (i, st) in self.stages.iter().enumerate() {
+                let c = ctx.read_u32(&st.counters, 2).map_err(gerr)?;
+                let n_rays = (c[0] as usize).min(self.capacity_rays);
+                let sq = ctx.read_f32(&st.sq_err, n_rays).map_err(gerr)?;
+                let m = sq.iter().map(|&x| x as f64).sum::<f64>() / (3 * n_rays.max(1)) as f64;
+                l += m;
+                total += c[1] as usize;
+                if i == last {
+                    mse = m as f32;
+                }
+            }
+            loss = l as f32;
+            n_samples = total;
+            self.last_n_samples.set(total);
+        }
+        Ok(StepStats { step, loss, mse, n_samples, lr })
+    }
+
+    fn packed<'a>(&'a self, st: &'a Stage) -> PackedBuffers<'a> {
+        PackedBuffers {
+            counters: &st.counters,
+            offsets: &st.packed.offsets,
+            sigma: &st.sigma,
+            rgb: &st.rgb,
+            dt: &st.packed.dt,
+            t: &st.packed.t,
+            background: &self.rays.background,
+        }
+    }
+
+    /// Samples of the first (or only) stage from the current rays.
+    fn record_first_stage(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, jitter_seed: Option<u32>) {
+        let s0 = &self.stages[0];
+        match &self.sampler {
+            Sampler::Occupancy(o) => {
+                o.marcher.set_seed(ctx, jitter_seed.unwrap_or(0), jitter_seed.is_some());
+                o.marcher.record(ctx, enc, &s0.counters, o.grid.bitfield(), &self.rays.origins, &self.rays.dirs, &s0.packed)
+            }
+            Sampler::Stratified(s) | Sampler::Hierarchical(s, _) => s.record(
+                ctx,
+                enc,
+                &s0.counters,
+                &self.rays.origins,
+                &self.rays.dirs,
+                jitter_seed,
+                &s0.packed_out(),
+                self.capacity_rays,
+            ),
+        }
+    }
+
+    /// The fine stage's samples from the coarse stage's weights (written to `fine.counters`).
+    fn record_fine(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        h: &GpuHierarchical,
+        coarse: &Stage,
+        fine: &Stage,
+        jitter_seed: Option<u32>,
+    ) {
+        h.record(
+            ctx,
+            enc,
+            &coarse.counters,
+            &coarse.packed.offsets,
+            &coarse.packed.t,
+            &coarse.weights,
+            &self.rays.origins,
+            &self.rays.dirs,
+            jitter_seed,
+            &fine.counters,
+            &fine.packed_out(),
+            self.capacity_rays,
+        );
+    }
+
+    /// Field forward (training or inference) and compositing of stage `i`.
+    fn record_stage_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, i: usize, train: bool) {
+        let st = &self.stages[i];
+        let s = st.samples();
+        if train {
+            self.fields[i].record_forward(ctx, enc, s, &st.sigma, &st.rgb);
+        } else {
+            self.fields[i].record_query(ctx, enc, s, &st.sigma, &st.rgb);
+        }
+        let out = CompositeTargets { rgb: &st.ray_rgb, opacity: &st.opacity, depth: &st.depth, weights: &st.weights };
+        self.compositor.record_forward(ctx, enc, &self.packed(st), &out);
+    }
+
+    /// Renders host rays on the device in chunks of at most the ray capacity (deterministic
+    /// sampling, inference). A chunk whose samples overflow the sample capacity is split.
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn render_rays(
+        &self,
+        _cfg: &TrainConfig,
+        origins: &[f32],
+        dirs: &[f32],
+        background: &[f32],
+        rgb: &mut [f32],
+        opacity: &mut [f32],
+        depth: &mut [f32],
+    ) -> Result<(), TrainError> {
+        let ctx = &*self.ctx;
+        let n = origins.len() / 3;
+        let mut r0 = 0;
+        let mut chunk = self.capacity_rays;
+        while r0 < n {
+            let r1 = (r0 + chunk).min(n);
+            let m = r1 - r0;
+            ctx.write(&self.rays.origins, 0, &origins[3 * r0..3 * r1]);
+            ctx.write(&self.rays.dirs, 0, &dirs[3 * r0..3 * r1]);
+            ctx.write(&self.rays.background, 0, &background[3 * r0..3 * r1]);
+            for st in &self.stages {
+                ctx.write(&st.counters, 0, &[m as u32, 0u32]);
+            }
+            let mut enc = ctx.encoder("render");
+            self.record_first_stage(ctx, &mut enc, None);
+            self.record_stage_forward(ctx, &mut enc, 0, false);
+            if let Sampler::Hierarchical(_, h) = &self.sampler {
+                let (a, b) = self.stages.split_at(1);
+                self.record_fine(ctx, &mut enc, h, &a[0], &b[0], None);
+                self.record_stage_forward(ctx, &mut enc, 1, false);
+            }
+            ctx.queue.submit([enc.finish()]);
+            // The marcher clips at the sample capacity (counters[1] = capacity then): split the
+            // chunk and render it again.
+            if let Sampler::Occupancy(_) = &self.sampler {
+                let c = ctx.read_u32(&self.stages[0].counters, 2).map_err(gerr)?;
+                if c[1] as usize >= self.capacity_samples && m > 1 {
+                    chunk = (m / 2).max(1);
+                    continue;
+                }
+            }
+            let last = self.stages.last().expect("a stage");
+            let c = ctx.read_f32(&last.ray_rgb, 3 * m).map_err(gerr)?;
+            rgb[3 * r0..3 * r1].copy_from_slice(&c);
+            opacity[r0..r1].copy_from_slice(&ctx.read_f32(&last.opacity, m).map_err(gerr)?);
+            depth[r0..r1].copy_from_slice(&ctx.read_f32(&last.depth, m).map_err(gerr)?);
+            r0 = r1;
+        }
+        self.reset_batch();
+        Ok(())
+    }
+
+    /// Puts the training batch size back into the counters (rendering and resuming reuse them):
+    /// the first step's size, then — when batches are sized by samples — the size the running
+    /// mean gives.
+    fn reset_batch(&self) {
+        let ctx = &*self.ctx;
+        for st in &self.stages {
+            ctx.write(&st.counters, 0, &[self.first_rays as u32, 0u32]);
+        }
+        if self.adaptive {
+            let mut enc = ctx.encoder("batch from mean");
+            self.glue.record_batch_from_mean(ctx, &mut enc, &self.stages[0].counters, &self.spr);
+            ctx.queue.submit([enc.finish()]);
+        }
+    }
+
+    pub(crate) fn finish(&self) -> Result<(), TrainError> {
+        self.ctx.wait().map_err(gerr)
+    }
+
+    pub(crate) fn samples_seen(&self) -> Result<u64, TrainError> {
+        let v = self.ctx.read_u32(&self.seen, 2).map_err(gerr)?;
+        Ok(v[0] as u64 | ((v[1] as u64) << 32))
+    }
+
+    pub(crate) fn export_fields(&self) -> Result<Vec<Vec<(String, Vec<f32>)>>, TrainError> {
+        self.fields.iter().map(|f| f.export_params(&self.ctx).map_err(gerr)).collect()
+    }
+
+    pub(crate) fn adam_state(&self) -> Result<AdamState, TrainError> {
+        let mut groups = Vec::new();
+        let mut step = 0;
+        for adams in &self.adams {
+            for a in adams {
+                let s = a.state(&self.ctx).map_err(gerr)?;
+                step = s.step;
+                groups.extend(s.groups);
+            }
+        }
+        Ok(AdamState { step, groups })
+    }
+
+    pub(crate) fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {
+        let spr = self.ctx.read_f32(&self.spr, 1).map_err(gerr)?;
+        let mut v = vec![("samples_per_ray".to_string(), spr)];
+        if let Sampler::Occupancy(o) = &self.sampler {
+            v.push(("occupancy_density".to_string(), o.grid.download(&self.ctx).map_err(gerr)?));
+        }
+        Ok(v)
+    }
+
+    pub(crate) fn restore(
+        &mut self,
+        fields: &[Vec<(String, Vec<f32>)>],
+        adam: &AdamState,
+        sampler_state: &[(String, Vec<f32>)],
+    ) -> Result<(), TrainError> {
+        if fields.len() != self.fields.len() {
+            return Err(TrainError::Config(format!(
+                "checkpoint holds {} field instances, this config needs {}",
+                fields.len(),
+                self.fields.len()
+            )));
+        }
+        for (f, groups) in self.fields.iter().zip(fields) {
+            f.import_params(&self.ctx, groups)?;
+        }
+        for (adams, names) in self.adams.iter().zip(&self.group_names) {
+            for (a, name) in adams.iter().zip(names) {
+                let groups = adam.groups.iter().filter(|(n, _, _)| n == name).cloned().collect();
+                a.load_state(&self.ctx, &AdamState { step: adam.step, groups }).map_err(gerr)?;
+            }
+        }
+        for (name, v) in sampler_state {
+            match (name.as_str(), &self.sampler) {
+                ("samples_per_ray", _) if v.len() == 1 => {
+                    self.ctx.write(&self.spr, 0, v);
+                    self.reset_batch();
+                }
+                ("occupancy_density", Sampler::Occupancy(o)) => {
+                    let (lo, hi) = o.grid.aabb();
+                    let mut g = nerf_sampling::OccupancyGrid::try_new(o.grid.config().clone(), lo, hi).map_err(TrainError::Config)?;
+                    g.set_densities(v, o.step_size).map_err(TrainError::Config)?;
+                    o.grid.upload_from(&self.ctx, &g).map_err(gerr)?
+                }
+                _ => return Err(TrainError::Config(format!("unexpected sampler state `{name}` in checkpoint"))),
+            }
+        }
+        let _ = self.bounds;
+        Ok(())
+    }
+}
+
+/// Upper bound on the samples one ray can get from the first stage.
+fn max_samples_per_ray(s: &SamplerConfig) -> usize {
+    match *s {
+        SamplerConfig::Stratified { n_samples } => n_samples,
+        SamplerConfig::Hierarchical { n_coarse, .. } => n_coarse,
+        SamplerConfig::Occupancy { max_samples_per_ray, .. } => max_samples_per_ray,
+    }
+}
+
+/// `(rays, samples per stage)` the buffers are sized for.
+fn capacities(config: &TrainConfig) -> (usize, usize) {
+    match (config.target_samples_per_step, &config.sampler) {
+        (Some(target), _) => {
+            // Rays: enough for ≥ 4 samples per ray on average; samples: twice the target, so a
+            // step whose rays find more than the running mean predicted still fits.
+            let rays = (target / 4).clamp(MIN_BATCH_RAYS, MAX_BATCH_RAYS);
+            (rays, 2 * target)
+        }
+        (None, s) => {
+            let rays = config.batch_rays.max(1);
+            (rays, rays * max_samples_per_ray(s))
+        }
+    }
+}
+
+#[allow(dead_code)]
+fn background_is_random(b: Background) -> bool {
+    matches!(b, Background::Random)
+}

@@ -1,0 +1,93 @@
+// Glue between the parts of a field of the form "density network → (σ, features) → colour network
+// on [features, direction encoding]" — the Instant-NGP field (crates/field-hash) and the paper's
+// field (crates/field-freq). One invocation per sample, n = counters[1]. CPU twins: the fields'
+// forward_t / backward_t / query_t (each GPU field is compared with its CPU field in its crate).
+//
+//   x = dout[k·dd]  (the density network's first output)
+//   σ = exp(min(x, 80))            (act = 0, Instant-NGP; backward: exp(min(x, 15)), truncated exp)
+//   σ = max(x, 0)                  (act = 1, the paper)
+//   colour input = [dout[feat_start .. dd], dir_enc[0 .. dir_dim]]
+//   backward: d_dout[j] = d_color_in[j − feat_start] for j ≥ feat_start, else 0; d_dout[0] += dσ·σ'(x)
+
+struct GlueParams {
+    dd: u32,
+    dir_dim: u32,
+    capacity: u32,
+    feat_start: u32,
+    act: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+@group(0) @binding(0) var<uniform> gp: GlueParams;
+@group(0) @binding(1) var<storage, read> counters: array<u32>;
+@group(0) @binding(2) var<storage, read> dout: array<f32>;             // n·dd
+@group(0) @binding(3) var<storage, read> dir_enc: array<f32>;          // n·dir_dim
+@group(0) @binding(4) var<storage, read_write> sigma: array<f32>;      // n
+@group(0) @binding(5) var<storage, read_write> color_in: array<f32>;   // n·(dd − feat_start + dir_dim)
+@group(0) @binding(6) var<storage, read> d_color_in: array<f32>;       // n·(dd − feat_start + dir_dim)
+@group(0) @binding(7) var<storage, read> d_sigma: array<f32>;          // n
+@group(0) @binding(8) var<storage, read_write> d_dout: array<f32>;     // n·dd
+
+fn n_samples() -> u32 {
+    return min(counters[1], gp.capacity);
+}
+
+fn activate(x: f32) -> f32 {
+    if (gp.act == 0u) {
+        return exp(min(x, 80.0));
+    }
+    return max(x, 0.0);
+}
+
+fn activation_grad(x: f32) -> f32 {
+    if (gp.act == 0u) {
+        return exp(min(x, 15.0));
+    }
+    return select(0.0, 1.0, x > 0.0);
+}
+
+@compute @workgroup_size(64)
+fn assemble(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let k = linear_id(gid, nwg, 64u);
+    if (k >= n_samples()) {
+        return;
+    }
+    let nf = gp.dd - gp.feat_start;
+    let w = nf + gp.dir_dim;
+    sigma[k] = activate(dout[k * gp.dd]);
+    for (var j = 0u; j < nf; j = j + 1u) {
+        color_in[k * w + j] = dout[k * gp.dd + gp.feat_start + j];
+    }
+    for (var j = 0u; j < gp.dir_dim; j = j + 1u) {
+        color_in[k * w + nf + j] = dir_enc[k * gp.dir_dim + j];
+    }
+}
+
+@compute @workgroup_size(64)
+fn density_only(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let k = linear_id(gid, nwg, 64u);
+    if (k >= n_samples()) {
+        return;
+    }
+    sigma[k] = activate(dout[k * gp.dd]);
+}
+
+@compute @workgroup_size(64)
+fn backward_glue(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let k = linear_id(gid, nwg, 64u);
+    if (k >= n_samples()) {
+        return;
+    }
+    let nf = gp.dd - gp.feat_start;
+    let w = nf + gp.dir_dim;
+    for (var j = 0u; j < gp.dd; j = j + 1u) {
+        var g = 0.0;
+        if (j >= gp.feat_start) {
+            g = d_color_in[k * w + j - gp.feat_start];
+        }
+        d_dout[k * gp.dd + j] = g;
+    }
+    d_dout[k * gp.dd] = d_dout[k * gp.dd] + d_sigma[k] * activation_grad(dout[k * gp.dd]);
+}
