@@ -28,7 +28,7 @@ fn device() -> Option<Arc<GpuContext>> {
     }
 }
 
-/// The hash field's registry preset, scaled to what lavapipe runs in seconds: a 2^14-sample batch
+/// The hash field's registry preset, scaled to what lavapipe runs in seconds: a 2^13-sample batch
 /// and a 32³ occupancy grid warmed up for 64 steps.
 fn small_hash_config(iters: u64) -> TrainConfig {
     let registry = nerf::registry();
@@ -38,7 +38,7 @@ fn small_hash_config(iters: u64) -> TrainConfig {
     c.field = "hash".into();
     c.iters = iters;
     c.log_every = 50;
-    c.target_samples_per_step = Some(1 << 14);
+    c.target_samples_per_step = Some(1 << 13);
     c.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 15}});
     c.sampler = SamplerConfig::Occupancy {
         grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every: 16, warmup_steps: 64, ..Default::default() },
@@ -52,25 +52,29 @@ fn small_hash_config(iters: u64) -> TrainConfig {
 fn gpu_and_cpu_training_reach_the_same_psnr() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::All);
-    let test = load(Split::Test, ViewSelection::Every(3));
-    let config = small_hash_config(300);
+    let test = load(Split::Test, ViewSelection::Every(5));
+    let config = small_hash_config(250);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let mut psnr = Vec::new();
     for dev in [None, Some(ctx)] {
+        let t0 = std::time::Instant::now();
         let mut t = Trainer::new_on(config.clone(), &registry, bounds, dev).unwrap();
         for _ in 0..config.iters {
             t.step(&train).unwrap();
         }
+        t.finish().unwrap();
+        eprintln!("{}: trained in {:.1} s", t.device(), t0.elapsed().as_secs_f64());
         let r = evaluate(&t, &test, None, |_, _| {}).unwrap();
         println!("{}: {:.2} dB, SSIM {:.3}, {} samples", t.device(), r.psnr, r.ssim, t.samples_seen().unwrap());
         psnr.push(r.psnr);
     }
     // The two paths draw different random rays and jitter (rayon's streams vs the kernels' PCG
     // hash) and sum in a different order, so they are two samples of the same training, not the
-    // same numbers. Measured here: CPU and GPU within 0.5 dB of each other at ~24 dB.
-    // 1.5 dB of tolerance still catches a broken kernel, which lands far lower.
-    assert!(psnr[0] > 20.0, "CPU PSNR {:.2}", psnr[0]);
+    // same numbers. Measured on lavapipe: CPU 19.56 dB, GPU 20.11 dB after 250 steps (and 22.30
+    // vs 22.08 dB after 300 steps of 2^14 samples). 1.5 dB of tolerance still catches a broken
+    // kernel, which stays near the 9.7 dB background-only image.
+    assert!(psnr[0] > 18.0, "CPU PSNR {:.2}", psnr[0]);
     assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
 }
 

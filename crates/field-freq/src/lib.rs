@@ -15,6 +15,8 @@
 //! [feature, γ(d)] (256+27) ─► colour: Linear(283,128)+ReLU ─► Linear(128,3)+sigmoid ─► rgb
 //! ```
 
+pub mod gpu;
+
 use nerf_core::Real;
 use nerf_encoding::{Encoding, FrequencyEncoding, FrequencyEncodingConfig};
 use nerf_field::{config_from_json, FieldContext, FieldError, ParamGroupMut, RadianceField};
@@ -314,6 +316,13 @@ impl RadianceField for FreqNerf<f32> {
         for m in self.networks_mut() {
             m.zero_grad();
         }
+    }
+    fn to_gpu(
+        &self,
+        ctx: &nerf_field::GpuContext,
+        capacity: usize,
+    ) -> Option<Result<Box<dyn nerf_field::GpuRadianceField>, FieldError>> {
+        Some(gpu::GpuFreqNerf::new(self, ctx, capacity).map(|f| Box::new(f) as Box<dyn nerf_field::GpuRadianceField>))
     }
     fn param_groups(&mut self) -> Vec<ParamGroupMut<'_>> {
         let wd = self.config.weight_decay;

@@ -111,3 +111,94 @@ pub trait GpuRadianceField: Send {
         Ok(())
     }
 }
+
+/// Conformance check of a GPU twin against its CPU field (used by each field's tests): on `n`
+/// random samples in the box (random unit directions), density, query and training forward must
+/// match within `tol` (relative to the largest value) and the parameter gradients of a backward
+/// pass with random upstream gradients within `grad_tol`; export/import must round-trip.
+/// Panics with the first mismatch.
+pub fn check_gpu_twin(
+    cpu: &mut dyn crate::RadianceField,
+    ctx: &GpuContext,
+    aabb: ([f32; 3], [f32; 3]),
+    n: usize,
+    seed: u64,
+    tol: f32,
+    grad_tol: f32,
+) {
+    use rand::Rng as _;
+    let capacity = n + 37;
+    let gpu = cpu.to_gpu(ctx, capacity).expect("the field has a GPU twin").expect("the twin builds");
+    let mut rng = nerf_core::rng(seed, 0);
+    let (lo, hi) = aabb;
+    let pos: Vec<f32> = (0..3 * n).map(|i| rng.gen_range(lo[i % 3]..hi[i % 3])).collect();
+    let dirs: Vec<f32> = (0..n)
+        .flat_map(|_| {
+            let d = [rng.gen_range(-1.0f32..1.0), rng.gen_range(-1.0f32..1.0), rng.gen_range(0.1f32..1.0)];
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            d.map(|x| x / l)
+        })
+        .collect();
+    let close = |what: &str, gpu: &[f32], cpu: &[f32], tol: f32| {
+        assert_eq!(gpu.len(), cpu.len(), "{what}");
+        let scale = cpu.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-6);
+        for (i, (a, b)) in gpu.iter().zip(cpu).enumerate() {
+            assert!(a.is_finite(), "{what}[{i}] not written: {a}");
+            assert!((a - b).abs() <= tol * scale, "{what}[{i}]: gpu {a} vs cpu {b} (scale {scale})");
+        }
+    };
+    let pad = |v: &[f32], len: usize| {
+        let mut p = v.to_vec();
+        p.resize(len, 0.0);
+        p
+    };
+    let counters = ctx.upload("counters", &[0u32, n as u32]);
+    let positions = ctx.upload("positions", &pad(&pos, 3 * capacity));
+    let d = ctx.upload("dirs", &pad(&dirs, 3 * capacity));
+    let s = GpuSamples { counters: &counters, positions: &positions, dirs: &d, capacity };
+    let sigma = ctx.upload("sigma", &vec![f32::NAN; capacity]);
+    let rgb = ctx.upload("rgb", &vec![f32::NAN; 3 * capacity]);
+    let run = |f: &dyn Fn(&mut wgpu::CommandEncoder)| {
+        let mut enc = ctx.encoder("twin");
+        f(&mut enc);
+        ctx.queue.submit([enc.finish()]);
+    };
+
+    run(&|enc| gpu.record_query(ctx, enc, s, &sigma, &rgb));
+    let (mut cs, mut cc) = (vec![0.0; n], vec![0.0; 3 * n]);
+    cpu.query(&pos, &dirs, &mut cs, &mut cc);
+    close("query sigma", &ctx.read_f32(&sigma, n).unwrap(), &cs, tol);
+    close("query rgb", &ctx.read_f32(&rgb, 3 * n).unwrap(), &cc, tol);
+
+    ctx.write(&sigma, 0, &vec![f32::NAN; capacity]);
+    run(&|enc| gpu.record_density(ctx, enc, s, &sigma));
+    let mut ds = vec![0.0; n];
+    cpu.density(&pos, &mut ds);
+    close("density", &ctx.read_f32(&sigma, n).unwrap(), &ds, tol);
+
+    let d_sigma: Vec<f32> = (0..n).map(|_| rng.gen_range(-0.1f32..0.1)).collect();
+    let d_rgb: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+    let dsb = ctx.upload("d_sigma", &pad(&d_sigma, capacity));
+    let drb = ctx.upload("d_rgb", &pad(&d_rgb, 3 * capacity));
+    run(&|enc| {
+        gpu.record_forward(ctx, enc, s, &sigma, &rgb);
+        gpu.record_backward(ctx, enc, s, &dsb, &drb);
+    });
+    cpu.zero_grad();
+    cpu.forward(&pos, &dirs, &mut cs, &mut cc);
+    cpu.backward(&d_sigma, &d_rgb);
+    close("forward sigma", &ctx.read_f32(&sigma, n).unwrap(), &cs, tol);
+    close("forward rgb", &ctx.read_f32(&rgb, 3 * n).unwrap(), &cc, tol);
+    let groups = cpu.param_groups();
+    assert_eq!(groups.len(), gpu.groups().len());
+    for (g, cg) in gpu.groups().iter().zip(groups) {
+        assert_eq!(g.name, cg.name);
+        close(&format!("grad {}", g.name), &ctx.read_f32(&g.grads, g.len).unwrap(), cg.grads, grad_tol);
+    }
+    let exported = gpu.export_params(ctx).unwrap();
+    assert_eq!(exported, cpu.export_params());
+    gpu.import_params(ctx, &exported).unwrap();
+    let mut bad = exported.clone();
+    bad[0].1.pop();
+    assert!(gpu.import_params(ctx, &bad).is_err());
+}

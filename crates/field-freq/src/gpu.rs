@@ -1,0 +1,129 @@
+//! The paper's field on a wgpu device: the same composition as the CPU [`FreqNerf`] — frequency
+//! encodings of position and direction ([`GpuFrequencyEncoding`]), the 8×256 trunk with its skip
+//! and the view branch as tiled layer-by-layer networks ([`GpuMlp`], on cooperative matrices
+//! where the adapter offers them), joined by [`FieldGlue`] (σ = ReLU of the first trunk output,
+//! colour input = [feature, γ(d)]). Parameters start as the CPU field's, one buffer per group.
+
+use crate::{FreqNerf, GROUP_NAMES};
+use nerf_field::gpu::wgpu;
+use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
+use nerf_gpu::encoding::GpuFrequencyEncoding;
+use nerf_gpu::glue::{FieldGlue, SigmaActivation};
+use nerf_gpu::linear::GpuMlp;
+use nerf_gpu::GpuContext;
+
+/// [`FreqNerf`] on the GPU.
+pub struct GpuFreqNerf {
+    groups: Vec<GpuParamGroup>,
+    pos_enc: GpuFrequencyEncoding,
+    dir_enc: GpuFrequencyEncoding,
+    trunk: GpuMlp,
+    color: GpuMlp,
+    glue: FieldGlue,
+    capacity: usize,
+    pos: wgpu::Buffer,
+    dir: wgpu::Buffer,
+    head: wgpu::Buffer,
+    color_in: wgpu::Buffer,
+    trunk_tape: wgpu::Buffer,
+    color_tape: wgpu::Buffer,
+    d_color_in: wgpu::Buffer,
+    d_head: wgpu::Buffer,
+}
+
+fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
+    FieldError::InvalidConfig { field: "freq".into(), message: e.to_string() }
+}
+
+impl GpuFreqNerf {
+    /// The GPU twin of `field` with buffers for `capacity` samples per launch. The networks use
+    /// cooperative matrices (f16 in, f32 accumulate) when the adapter has them, unless
+    /// `NERF_NO_COOP` is set.
+    pub fn new(field: &FreqNerf<f32>, ctx: &GpuContext, capacity: usize) -> Result<Self, FieldError> {
+        let capacity = capacity.max(1);
+        let coop = ctx.features.cooperative_matrix && ctx.features.shader_f16;
+        let pos_enc = GpuFrequencyEncoding::new(ctx, 3, field.pos_enc.config()).map_err(gpu_err)?;
+        let dir_enc = GpuFrequencyEncoding::new(ctx, 3, field.dir_enc.config()).map_err(gpu_err)?;
+        let trunk = GpuMlp::new(ctx, &field.trunk.config, capacity, coop).map_err(gpu_err)?;
+        let color = GpuMlp::new(ctx, &field.color.config, capacity, coop).map_err(gpu_err)?;
+        let (pd, dd, w) = (field.pos_dim(), field.dir_dim(), field.config.width);
+        let glue = FieldGlue::new(ctx, 1 + w, dd, 1, SigmaActivation::Relu, capacity);
+        let wd = field.config.weight_decay;
+        let groups = GROUP_NAMES
+            .iter()
+            .zip([field.trunk.params(), field.color.params()])
+            .map(|(name, v)| GpuParamGroup {
+                name: name.to_string(),
+                len: v.len(),
+                weight_decay: wd,
+                params: ctx.upload(name, v),
+                grads: ctx.zeros(name, 4 * v.len()),
+            })
+            .collect();
+        let f = |n: usize| 4 * n * capacity;
+        Ok(Self {
+            groups,
+            pos: ctx.zeros("pos enc", f(pd)),
+            dir: ctx.zeros("dir enc", f(dd)),
+            head: ctx.zeros("trunk out", f(1 + w)),
+            color_in: ctx.zeros("color in", f(glue.color_in_dim)),
+            trunk_tape: ctx.zeros("trunk tape", f(trunk.tape_floats_per_sample())),
+            color_tape: ctx.zeros("color tape", f(color.tape_floats_per_sample())),
+            d_color_in: ctx.zeros("d color in", f(glue.color_in_dim)),
+            d_head: ctx.zeros("d trunk out", f(1 + w)),
+            glue,
+            pos_enc,
+            dir_enc,
+            trunk,
+            color,
+            capacity,
+        })
+    }
+}
+
+impl GpuRadianceField for GpuFreqNerf {
+    fn kind(&self) -> &'static str {
+        "freq"
+    }
+
+    fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    fn groups(&self) -> &[GpuParamGroup] {
+        &self.groups
+    }
+
+    fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer) {
+        let cap = self.capacity;
+        self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
+        self.trunk.record_inference(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, cap);
+        self.glue.record_density(ctx, enc, s.counters, &self.head, sigma);
+    }
+
+    fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
+        let cap = self.capacity;
+        self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
+        self.trunk.record_inference(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, cap);
+        self.dir_enc.record_forward(ctx, enc, s.counters, s.dirs, &self.dir, cap);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in);
+        self.color.record_inference(ctx, enc, s.counters, &self.color_in, &self.groups[1].params, rgb, cap);
+    }
+
+    fn record_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
+        let cap = self.capacity;
+        self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
+        self.trunk.record_forward(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, &self.trunk_tape, cap);
+        self.dir_enc.record_forward(ctx, enc, s.counters, s.dirs, &self.dir, cap);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in);
+        self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[1].params, rgb, &self.color_tape, cap);
+    }
+
+    fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {
+        let cap = self.capacity;
+        let g = &self.groups;
+        self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[1].params, &self.color_tape, d_rgb, &g[1].grads, Some(&self.d_color_in), cap);
+        self.glue.record_backward(ctx, enc, s.counters, &self.head, &self.d_color_in, d_sigma, &self.d_head);
+        self.trunk.record_backward(ctx, enc, s.counters, &self.pos, &g[0].params, &self.trunk_tape, &self.d_head, &g[0].grads, None, cap);
+    }
+}

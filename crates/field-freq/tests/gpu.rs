@@ -1,0 +1,29 @@
+//! The GPU twin of the paper's field against the CPU field on random samples (density, query,
+//! training forward, parameter gradients, export/import) with the plain-WGSL networks, and with
+//! cooperative matrices where the adapter has them (the H100; f16 tolerances). Prints a notice
+//! and returns where no adapter exists.
+
+use nerf_field::gpu::check_gpu_twin;
+use nerf_field::GpuContext;
+use nerf_field_freq::{FreqNerf, FreqNerfConfig};
+use nerf_gpu::{DevicePreference, GpuError};
+
+#[test]
+fn gpu_paper_field_matches_the_cpu_field() {
+    let ctx = match GpuContext::open(DevicePreference::Gpu) {
+        Ok(Some(c)) => c,
+        Ok(None) | Err(GpuError::NoAdapter { .. }) => return eprintln!("NOTICE: no GPU adapter; skipping"),
+        Err(e) => panic!("{e}"),
+    };
+    // The paper's layout at a width lavapipe runs quickly (skip, feature head, view branch).
+    let cfg = FreqNerfConfig { width: 64, depth: 4, skips: vec![2], view_width: 32, ..Default::default() };
+    let mut cpu = FreqNerf::<f32>::new(cfg, 5).unwrap();
+    let aabb = ([-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]);
+    if ctx.features.cooperative_matrix {
+        // f16 operands (~1e-3 relative each), and ReLU masks that flip near zero.
+        eprintln!("cooperative matrices: checking the f16 path");
+        check_gpu_twin(&mut cpu, &ctx, aabb, 500, 4, 2e-2, 1e-1);
+    } else {
+        check_gpu_twin(&mut cpu, &ctx, aabb, 500, 4, 1e-4, 2e-3);
+    }
+}
