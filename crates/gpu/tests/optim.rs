@@ -83,10 +83,11 @@ fn run_case(ctx: &GpuContext, seed: u64, cfg: AdamConfig, sizes: &[usize], wds: 
         cpu.step(&mut cpu_groups, lr);
         drop(cpu_groups);
         let p_gpu = ctx.read_f32(&p_buf, extent).unwrap();
-        // Same f32 formula; only FMA contraction / sqrt rounding on the device differ (1 ulp per op),
-        // compounded over a few steps.
+        // Same f32 formula; only FMA contraction and the device's sqrt and division differ
+        // (Vulkan allows 2.5 ulp for division and sqrt; the H100 measured 2.0e-6 relative after
+        // one step), compounded over a few steps.
         let e = max_rel(&p_gpu, &p);
-        assert!(e < 1e-6, "seed {seed} step {step}: params rel. error {e}");
+        assert!(e < 1e-5, "seed {seed} step {step}: params rel. error {e}");
         let g_gpu = ctx.read_f32(&g_buf, extent).unwrap();
         for grp in &groups {
             assert!(g_gpu[grp.offset..grp.offset + grp.len].iter().all(|&x| x == 0.0), "grads of {} not zeroed", grp.name);

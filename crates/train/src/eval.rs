@@ -31,6 +31,10 @@ pub struct EvalReport {
     pub ssim: f64,
     /// Seconds spent rendering and scoring.
     pub seconds: f64,
+    /// Seconds spent rendering alone (ray generation excluded; on the GPU including the upload of
+    /// the rays and the read-back of the image).
+    #[serde(default)]
+    pub render_seconds: f64,
 }
 
 /// Renders every view of `data` with the trainer's fields on `data`'s evaluation background,
@@ -53,9 +57,12 @@ pub fn evaluate(
     let mut opacity = vec![0.0f32; w * h];
     let mut depth = vec![0.0f32; w * h];
     let mut views = Vec::with_capacity(data.n_views());
+    let mut render_seconds = 0.0;
     for i in 0..data.n_views() {
         data.view_rays(i, bg, conv, &mut batch);
+        let t = std::time::Instant::now();
         trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
+        render_seconds += t.elapsed().as_secs_f64();
         let gt = &batch.target;
         let psnr = nerf_metrics::psnr(&rgb, gt);
         let ssim = nerf_metrics::ssim(&rgb, gt, w, h);
@@ -74,5 +81,6 @@ pub fn evaluate(
         ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
         views,
         seconds: t0.elapsed().as_secs_f64(),
+        render_seconds,
     })
 }

@@ -189,6 +189,7 @@ pub fn run(
         "test_ssim": report.ssim,
         "n_test_views": report.views.len(),
         "eval_seconds": report.seconds,
+        "render_fps": if report.render_seconds > 0.0 { report.views.len() as f64 / report.render_seconds } else { 0.0 },
         "width": test.width,
         "height": test.height,
         "n_params": trainer.n_params(),
