@@ -64,6 +64,10 @@ pub struct RunMetrics {
     pub n_params: usize,
     /// Peak resident memory of the process during the run, MiB (`null` where unavailable).
     pub peak_memory_mib: Option<f64>,
+    /// Test views rendered per second in the last evaluation (rendering alone, at the test views'
+    /// resolution, on the run's device).
+    #[serde(default)]
+    pub render_fps: f64,
     /// Evaluation points.
     pub curve: Vec<CurvePoint>,
     /// See [`crate::config_hash`].
@@ -162,9 +166,13 @@ pub fn train_run(
     let mut elapsed = 0.0f64;
     let mut next_secs = sched.every_seconds.unwrap_or(f64::INFINITY);
     let mut curve: Vec<CurvePoint> = Vec::new();
+    let render_fps = std::cell::Cell::new(0.0f64);
     let eval_point = |t: &Trainer, elapsed: f64, curve: &mut Vec<CurvePoint>| {
         let r = evaluate(t, test, None, |_, _| {}).map_err(terr)?;
         curve.push(CurvePoint { iter: t.step_count(), seconds: elapsed, psnr: r.psnr, ssim: r.ssim });
+        if r.render_seconds > 0.0 {
+            render_fps.set(r.views.len() as f64 / r.render_seconds);
+        }
         Ok::<_, AblateError>(())
     };
     // The clock runs over segments between evaluations (excluded). GPU steps are queued, so a
@@ -220,6 +228,7 @@ pub fn train_run(
         height: test.height,
         n_params: trainer.n_params(),
         peak_memory_mib: peak_rss_mib(),
+        render_fps: render_fps.get(),
         curve,
         config_hash: plan.config_hash.clone(),
         config: cfg.clone(),
