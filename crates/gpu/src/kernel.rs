@@ -196,6 +196,48 @@ impl GpuContext {
         Ok(out)
     }
 
+    /// Reads the first `len` 32-bit words of several buffers with one copy and one wait (rendering
+    /// reads colour, opacity, depth and the counters of a chunk this way).
+    pub fn read_words(&self, parts: &[(&wgpu::Buffer, usize)]) -> Result<Vec<Vec<u32>>, GpuError> {
+        let total: usize = parts.iter().map(|(_, n)| n).sum();
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("staging"),
+            size: (4 * total.max(1)) as u64,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.encoder("read");
+        let mut offset = 0u64;
+        for (buf, n) in parts {
+            if *n > 0 {
+                enc.copy_buffer_to_buffer(buf, 0, &staging, offset, (4 * n) as u64);
+            }
+            offset += (4 * n) as u64;
+        }
+        let idx = self.queue.submit([enc.finish()]);
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::Wait { submission_index: Some(idx), timeout: None })
+            .map_err(|e| GpuError::ReadBack(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| GpuError::ReadBack(e.to_string()))?
+            .map_err(|e| GpuError::ReadBack(e.to_string()))?;
+        let view = staging.get_mapped_range(..).map_err(|e| GpuError::ReadBack(format!("{e:?}")))?;
+        let words: &[u32] = bytemuck::cast_slice(&view[..4 * total]);
+        let mut out = Vec::with_capacity(parts.len());
+        let mut at = 0;
+        for (_, n) in parts {
+            out.push(words[at..at + n].to_vec());
+            at += n;
+        }
+        drop(view);
+        staging.unmap();
+        Ok(out)
+    }
+
     /// Reads `len` f32 values.
     pub fn read_f32(&self, src: &wgpu::Buffer, len: usize) -> Result<Vec<f32>, GpuError> {
         self.read::<f32>(src, len)

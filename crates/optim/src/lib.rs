@@ -76,7 +76,7 @@ pub struct Adam {
 }
 
 /// Exported optimiser state for checkpoints: the step count and `(name, m, v)` per group.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct AdamState {
     /// Number of steps taken.
     pub step: u64,

@@ -10,7 +10,7 @@
 use crate::config::{SamplerConfig, TrainConfig};
 use crate::trainer::{SceneBounds, StepStats};
 use crate::TrainError;
-use nerf_data::{Background, Dataset};
+use nerf_data::Dataset;
 use nerf_field::{GpuRadianceField, GpuSamples, RadianceField};
 use nerf_gpu::composite::{BatchParams, CompositeTargets, PackedBuffers};
 use nerf_gpu::occupancy::GpuOccupancyGrid;
@@ -133,6 +133,8 @@ pub(crate) struct GpuEngine {
     adaptive: bool,
     bounds: SceneBounds,
     last_n_samples: Cell<usize>,
+    /// Rays per rendering chunk that last fitted the sample capacity.
+    render_chunk: Cell<usize>,
 }
 
 impl GpuEngine {
@@ -249,6 +251,7 @@ impl GpuEngine {
             adaptive: config.target_samples_per_step.is_some(),
             bounds,
             last_n_samples: Cell::new(0),
+            render_chunk: Cell::new(capacity_rays),
             ctx,
         })
     }
@@ -437,7 +440,8 @@ impl GpuEngine {
         let ctx = &*self.ctx;
         let n = origins.len() / 3;
         let mut r0 = 0;
-        let mut chunk = self.capacity_rays;
+        // Rays per chunk: the last size that fitted the sample capacity (halved on overflow).
+        let mut chunk = self.render_chunk.get();
         while r0 < n {
             let r1 = (r0 + chunk).min(n);
             let m = r1 - r0;
@@ -456,20 +460,21 @@ impl GpuEngine {
                 self.record_stage_forward(ctx, &mut enc, 1, false);
             }
             ctx.queue.submit([enc.finish()]);
+            let last = self.stages.last().expect("a stage");
+            let got = ctx
+                .read_words(&[(&self.stages[0].counters, 2), (&last.ray_rgb, 3 * m), (&last.opacity, m), (&last.depth, m)])
+                .map_err(gerr)?;
             // The marcher clips at the sample capacity (counters[1] = capacity then): split the
             // chunk and render it again.
-            if let Sampler::Occupancy(_) = &self.sampler {
-                let c = ctx.read_u32(&self.stages[0].counters, 2).map_err(gerr)?;
-                if c[1] as usize >= self.capacity_samples && m > 1 {
-                    chunk = (m / 2).max(1);
-                    continue;
-                }
+            if matches!(self.sampler, Sampler::Occupancy(_)) && got[0][1] as usize >= self.capacity_samples && m > 1 {
+                chunk = (m / 2).max(1);
+                self.render_chunk.set(chunk);
+                continue;
             }
-            let last = self.stages.last().expect("a stage");
-            let c = ctx.read_f32(&last.ray_rgb, 3 * m).map_err(gerr)?;
-            rgb[3 * r0..3 * r1].copy_from_slice(&c);
-            opacity[r0..r1].copy_from_slice(&ctx.read_f32(&last.opacity, m).map_err(gerr)?);
-            depth[r0..r1].copy_from_slice(&ctx.read_f32(&last.depth, m).map_err(gerr)?);
+            let f = |w: &[u32]| -> Vec<f32> { w.iter().map(|&x| f32::from_bits(x)).collect() };
+            rgb[3 * r0..3 * r1].copy_from_slice(&f(&got[1]));
+            opacity[r0..r1].copy_from_slice(&f(&got[2]));
+            depth[r0..r1].copy_from_slice(&f(&got[3]));
             r0 = r1;
         }
         self.reset_batch();
@@ -591,9 +596,4 @@ fn capacities(config: &TrainConfig) -> (usize, usize) {
             (rays, rays * max_samples_per_ray(s))
         }
     }
-}
-
-#[allow(dead_code)]
-fn background_is_random(b: Background) -> bool {
-    matches!(b, Background::Random)
 }
