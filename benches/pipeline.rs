@@ -6,6 +6,10 @@
 //! GFLOP/s), `-p nerf-render` (compositing), `-p nerf-encoding` (hash grid, SH),
 //! `-p nerf-sampling` (marching).
 //!
+//! `train_step_gpu`: the same for the fields' GPU twins on the first adapter (any kind, lavapipe
+//! included: there its numbers are only a smoke test), each iteration waiting for the device so
+//! the time is the step's, not its submission's. Skipped without an adapter.
+//!
 //! `NERF_BENCH_SMALL=1` shrinks every size for a quick CI-sized run.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
@@ -88,5 +92,51 @@ fn training_iteration(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, encoding, training_iteration);
+/// The registry preset of `field` (trainer defaults ← the field's `train_preset`).
+fn preset(registry: &nerf::field::Registry, field: &str) -> TrainConfig {
+    let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
+    nerf::field::merge_json(&mut v, &(registry.get(field).unwrap().train_preset)());
+    let mut config: TrainConfig = serde_json::from_value(v).unwrap();
+    config.field = field.into();
+    config
+}
+
+fn training_iteration_gpu(c: &mut Criterion) {
+    use nerf::gpu::{DevicePreference, GpuContext};
+    let ctx = match GpuContext::open(DevicePreference::Gpu) {
+        Ok(Some(ctx)) => std::sync::Arc::new(ctx),
+        _ => return eprintln!("train_step_gpu: no GPU adapter, skipped"),
+    };
+    eprintln!("train_step_gpu on {}", ctx.describe());
+    let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    let data = load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::All })
+        .expect("in-repo scene loads");
+    let registry = nerf::registry();
+    let mut g = c.benchmark_group("train_step_gpu");
+    g.sample_size(10);
+    // Hash: Instant-NGP's 2^18 samples per step (2^13 small), after the occupancy warm-up.
+    let mut hash = preset(&registry, "hash");
+    hash.target_samples_per_step = Some(if small() { 1 << 13 } else { 1 << 18 });
+    hash.log_every = 1; // every step reads its sample count back, so the bench knows the throughput
+    // Paper: 1024 rays, 64 + 128 samples (64 rays, 16 + 16 small).
+    let (rays, n_coarse, n_fine) = if small() { (64, 16, 16) } else { (1024, 64, 128) };
+    let freq = TrainConfig { batch_rays: rays, sampler: SamplerConfig::Hierarchical { n_coarse, n_fine }, log_every: 1, ..TrainConfig::default() };
+    for (name, config, warmup) in [("hash", hash, if small() { 20 } else { 300 }), ("freq", freq, 2)] {
+        let mut trainer = Trainer::new_on(config, &registry, SceneBounds::of(&data), Some(ctx.clone())).unwrap();
+        let mut seen = 0;
+        for _ in 0..warmup {
+            seen = trainer.step(&data).unwrap().n_samples;
+        }
+        g.throughput(Throughput::Elements(seen as u64));
+        g.bench_function(BenchmarkId::new(name, format!("{seen}_samples")), |b| {
+            b.iter(|| {
+                black_box(trainer.step(&data).unwrap());
+                trainer.finish().unwrap();
+            })
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, encoding, training_iteration, training_iteration_gpu);
 criterion_main!(benches);
