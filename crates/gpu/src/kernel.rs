@@ -136,6 +136,7 @@ impl GpuContext {
     }
 
     /// A storage buffer holding `data` (an empty slice gives a 4-byte buffer: bindings must not be empty).
+    #[allow(clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
     pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         let pad;

@@ -262,6 +262,7 @@ impl GpuEngine {
 
     /// Records and submits one training step; reads the loss back when `step + 1` is a logging
     /// step or the last one.
+    #[allow(clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
     pub(crate) fn step(&mut self, data: &Dataset, cfg: &TrainConfig, step: u64) -> Result<StepStats, TrainError> {
         let key = (data.n_views(), data.width, data.height);
         if self.images.as_ref().map(|(n, w, h, _)| (*n, *w, *h)) != Some(key) {
@@ -505,7 +506,7 @@ impl GpuEngine {
         Ok(v[0] as u64 | ((v[1] as u64) << 32))
     }
 
-    pub(crate) fn export_fields(&self) -> Result<Vec<Vec<(String, Vec<f32>)>>, TrainError> {
+    pub(crate) fn export_fields(&self) -> Result<crate::FieldParams, TrainError> {
         self.fields.iter().map(|f| f.export_params(&self.ctx).map_err(gerr)).collect()
     }
 

@@ -22,6 +22,10 @@ pub use trainer::{SceneBounds, StepStats, Trainer};
 
 use std::path::PathBuf;
 
+/// Parameters of every field instance of a run: per instance, `(group name, values)` in the
+/// field's `export_params` order (what checkpoints hold, on either device).
+pub type FieldParams = Vec<Vec<(String, Vec<f32>)>>;
+
 /// Errors of training and evaluation.
 #[derive(Debug, thiserror::Error)]
 pub enum TrainError {

@@ -360,7 +360,7 @@ impl Trainer {
     }
 
     /// Parameters of every field instance (for checkpoints; read back from the device on the GPU).
-    pub fn export_fields(&self) -> Result<Vec<Vec<(String, Vec<f32>)>>, TrainError> {
+    pub fn export_fields(&self) -> Result<crate::FieldParams, TrainError> {
         if let Some(g) = &self.gpu {
             return g.export_fields();
         }
