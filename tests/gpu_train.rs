@@ -4,7 +4,7 @@
 //! where no adapter exists.
 
 use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
-use nerf::gpu::{DevicePreference, GpuContext, GpuError};
+use nerf::gpu::GpuContext;
 use nerf::train::{evaluate, SamplerConfig, SceneBounds, TrainConfig, Trainer};
 use std::path::Path;
 use std::sync::Arc;
@@ -15,17 +15,7 @@ fn load(split: Split, views: ViewSelection) -> Dataset {
 }
 
 fn device() -> Option<Arc<GpuContext>> {
-    match GpuContext::open(DevicePreference::Gpu) {
-        Ok(Some(c)) => {
-            eprintln!("GPU: {}", c.describe());
-            Some(Arc::new(c))
-        }
-        Ok(None) | Err(GpuError::NoAdapter { .. }) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the GPU training test");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests().map(Arc::new)
 }
 
 /// The hash field's registry preset, scaled to what lavapipe runs in seconds: a 2^13-sample batch

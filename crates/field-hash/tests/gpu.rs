@@ -5,15 +5,10 @@
 use nerf_field::gpu::check_gpu_twin;
 use nerf_field::{FieldContext, GpuContext};
 use nerf_field_hash::{HashNerf, HashNerfConfig};
-use nerf_gpu::{DevicePreference, GpuError};
 
 #[test]
 fn gpu_hash_field_matches_the_cpu_field() {
-    let ctx = match GpuContext::open(DevicePreference::Gpu) {
-        Ok(Some(c)) => c,
-        Ok(None) | Err(GpuError::NoAdapter { .. }) => return eprintln!("NOTICE: no GPU adapter; skipping"),
-        Err(e) => panic!("{e}"),
-    };
+    let Some(ctx) = GpuContext::for_tests() else { return };
     // A small grid (dense and hashed levels) with the default MLP shapes.
     let mut cfg = HashNerfConfig::default();
     cfg.grid.n_levels = 6;

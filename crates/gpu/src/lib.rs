@@ -118,7 +118,11 @@ impl GpuContext {
     /// Opens the best adapter (high performance first), or `Ok(None)` for `Cpu`, or for `Auto`
     /// when no adapter exists.
     pub fn open(pref: DevicePreference) -> Result<Option<Self>, GpuError> {
-        let pref = pref.with_env_override()?;
+        Self::open_with(pref.with_env_override()?)
+    }
+
+    /// As [`GpuContext::open`] without the `NERF_DEVICE` override.
+    pub fn open_with(pref: DevicePreference) -> Result<Option<Self>, GpuError> {
         if pref == DevicePreference::Cpu {
             return Ok(None);
         }
@@ -169,6 +173,23 @@ impl GpuContext {
         }))
         .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
         Ok(Some(Self { device, queue, info, features }))
+    }
+
+    /// For tests and benches: any adapter (software ones such as lavapipe included, the
+    /// `NERF_DEVICE` override ignored), or `None` with a NOTICE on stderr when there is none, so
+    /// that a test can skip its GPU comparison. Panics when a device exists but cannot be opened.
+    pub fn for_tests() -> Option<Self> {
+        match Self::open_with(DevicePreference::Gpu) {
+            Ok(Some(c)) => {
+                eprintln!("GPU tests on {}", c.describe());
+                Some(c)
+            }
+            Ok(None) | Err(GpuError::NoAdapter { .. }) => {
+                eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the GPU comparison");
+                None
+            }
+            Err(e) => panic!("{e}"),
+        }
     }
 
     /// Whether the adapter is a software rasteriser running on the CPU (lavapipe, WARP, …).

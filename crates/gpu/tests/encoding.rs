@@ -9,21 +9,11 @@ use nerf_encoding::{
 };
 use nerf_gpu::encoding::{AtomicMode, GpuFrequencyEncoding, GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::layout::COUNTER_N_SAMPLES;
-use nerf_gpu::{DevicePreference, GpuContext};
+use nerf_gpu::GpuContext;
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::open(DevicePreference::Auto) {
-        Ok(Some(c)) => {
-            eprintln!("GPU tests on {}", c.describe());
-            Some(c)
-        }
-        Ok(None) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests()
 }
 
 /// A counters buffer with `n` samples (and a different ray count, which the encodings must ignore).

@@ -3,22 +3,12 @@
 //! accumulated onto random pre-filled values, d_input). Outputs start poisoned with NaN.
 
 use nerf_gpu::linear::GpuMlp;
-use nerf_gpu::{shaders, DevicePreference, GpuContext};
+use nerf_gpu::{shaders, GpuContext};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::open(DevicePreference::Auto) {
-        Ok(Some(c)) => {
-            eprintln!("GPU tests on {}", c.describe());
-            Some(c)
-        }
-        Ok(None) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests()
 }
 
 #[test]

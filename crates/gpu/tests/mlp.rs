@@ -4,22 +4,12 @@
 //! with NaN so that a skipped slot fails, and slots past n left untouched.
 
 use nerf_gpu::mlp::{self, FusedMlp};
-use nerf_gpu::{shaders, DevicePreference, GpuContext, GpuError};
+use nerf_gpu::{shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::open(DevicePreference::Auto) {
-        Ok(Some(c)) => {
-            eprintln!("GPU tests on {}", c.describe());
-            Some(c)
-        }
-        Ok(None) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests()
 }
 
 fn cfg(input: usize, hidden: usize, layers: usize, output: usize, ha: Activation, oa: Activation, bias: bool) -> MlpConfig {

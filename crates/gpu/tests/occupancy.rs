@@ -10,21 +10,11 @@
 #![allow(clippy::manual_is_multiple_of, clippy::needless_range_loop)] // MSRV 1.85; index loops mirror the CPU
 
 use nerf_gpu::occupancy::GpuOccupancyGrid;
-use nerf_gpu::{DevicePreference, GpuContext};
+use nerf_gpu::GpuContext;
 use nerf_sampling::{OccupancyGrid, OccupancyGridConfig};
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::open(DevicePreference::Auto) {
-        Ok(Some(c)) => {
-            eprintln!("GPU tests on {}", c.describe());
-            Some(c)
-        }
-        Ok(None) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests()
 }
 
 const AABB: ([f32; 3], [f32; 3]) = ([-1.5, -0.5, 0.0], [1.5, 2.0, 1.25]);

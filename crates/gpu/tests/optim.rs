@@ -2,22 +2,12 @@
 //! a notice and returns where no adapter exists).
 
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
-use nerf_gpu::{DevicePreference, GpuContext};
+use nerf_gpu::GpuContext;
 use nerf_optim::{Adam, AdamConfig, ParamGroupMut};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::open(DevicePreference::Auto) {
-        Ok(Some(c)) => {
-            eprintln!("GPU tests on {}", c.describe());
-            Some(c)
-        }
-        Ok(None) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests()
 }
 
 /// Largest |a − b| / max(|b|, 1e-3) over two slices.

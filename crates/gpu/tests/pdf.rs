@@ -6,22 +6,12 @@
 //! the CPU function when both take deterministic `u`.
 
 use nerf_gpu::pdf::{hierarchical_u, stratified_u, GpuHierarchical, GpuStratified, PackedOut};
-use nerf_gpu::{DevicePreference, GpuContext};
+use nerf_gpu::GpuContext;
 use nerf_sampling::{hierarchical, sample_pdf, stratified, RaySamples};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::open(DevicePreference::Auto) {
-        Ok(Some(c)) => {
-            eprintln!("GPU tests on {}", c.describe());
-            Some(c)
-        }
-        Ok(None) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests()
 }
 
 fn rays(seed: u64, n: usize) -> (Vec<f32>, Vec<f32>) {

@@ -9,23 +9,13 @@ use nerf_gpu::rng::rand_f32;
 use nerf_gpu::sampling::{
     ray_batch_cpu, GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples, GpuScan, MarchConfig, PixelFormat, MARCH_STREAM_U,
 };
-use nerf_gpu::{shaders, DevicePreference, GpuContext};
+use nerf_gpu::{shaders, GpuContext};
 use nerf_rays::{Aabb, Camera, Intrinsics, PixelConvention};
 use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
-    match GpuContext::open(DevicePreference::Auto) {
-        Ok(Some(c)) => {
-            eprintln!("GPU tests on {}", c.describe());
-            Some(c)
-        }
-        Ok(None) => {
-            eprintln!("NOTICE: no GPU adapter (install mesa-vulkan-drivers for lavapipe); skipping the kernel comparison");
-            None
-        }
-        Err(e) => panic!("{e}"),
-    }
+    GpuContext::for_tests()
 }
 
 #[test]
