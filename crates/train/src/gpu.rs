@@ -29,6 +29,8 @@ fn gerr(e: nerf_gpu::GpuError) -> TrainError {
 /// Bounds on the adaptive number of rays per step (as the CPU path).
 const MIN_BATCH_RAYS: usize = 64;
 const MAX_BATCH_RAYS: usize = 1 << 20;
+/// Steps submitted but not yet waited for.
+const MAX_IN_FLIGHT: usize = 3;
 /// RNG streams of the device kernels (seeds are per step).
 const SEED_MIX: u64 = 0x9E37_79B9_7F4A_7C15;
 
@@ -135,6 +137,8 @@ pub(crate) struct GpuEngine {
     last_n_samples: Cell<usize>,
     /// Rays per rendering chunk that last fitted the sample capacity.
     render_chunk: Cell<usize>,
+    /// Submissions of the steps still running (at most `MAX_IN_FLIGHT`).
+    in_flight: std::collections::VecDeque<wgpu::SubmissionIndex>,
 }
 
 impl GpuEngine {
@@ -252,6 +256,7 @@ impl GpuEngine {
             bounds,
             last_n_samples: Cell::new(0),
             render_chunk: Cell::new(capacity_rays),
+            in_flight: Default::default(),
             ctx,
         })
     }
@@ -329,7 +334,17 @@ impl GpuEngine {
         if self.adaptive {
             self.glue.record_next_batch(ctx, &mut enc, &self.stages[0].counters, &self.spr);
         }
-        ctx.queue.submit([enc.finish()]);
+        let idx = ctx.queue.submit([enc.finish()]);
+        // Keep at most MAX_IN_FLIGHT steps queued: the host stays a few steps ahead of the device
+        // (recording overlaps execution) without queueing unbounded work, so time budgets and
+        // Ctrl-C act within milliseconds.
+        self.in_flight.push_back(idx);
+        if self.in_flight.len() > MAX_IN_FLIGHT {
+            let oldest = self.in_flight.pop_front().expect("non-empty");
+            ctx.device
+                .poll(wgpu::PollType::Wait { submission_index: Some(oldest), timeout: None })
+                .map_err(|e| TrainError::Gpu(e.to_string()))?;
+        }
         let done = step + 1;
         let read = done % cfg.log_every.max(1) == 0 || done == cfg.iters;
         let (mut loss, mut mse, mut n_samples) = (f32::NAN, f32::NAN, self.last_n_samples.get());
