@@ -440,8 +440,11 @@ impl GpuEngine {
         self.compositor.record_forward(ctx, enc, &self.packed(st), &out);
     }
 
-    /// Renders host rays on the device in chunks of at most the ray capacity (deterministic
-    /// sampling, inference). A chunk whose samples overflow the sample capacity is split.
+    /// Renders host rays on the device (deterministic sampling, inference). The rays are uploaded
+    /// once; every chunk of at most the ray capacity is recorded into one submission that copies
+    /// its image part into frame-sized outputs, and one read-back returns the image and each
+    /// chunk's sample count. A chunk whose samples overflowed the sample capacity (the marcher
+    /// clips there) is split and rendered again; the chunk size that fits is kept for next time.
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn render_rays(
         &self,
@@ -455,43 +458,58 @@ impl GpuEngine {
     ) -> Result<(), TrainError> {
         let ctx = &*self.ctx;
         let n = origins.len() / 3;
-        let mut r0 = 0;
-        // Rays per chunk: the last size that fitted the sample capacity (halved on overflow).
-        let mut chunk = self.render_chunk.get();
-        while r0 < n {
-            let r1 = (r0 + chunk).min(n);
-            let m = r1 - r0;
-            ctx.write(&self.rays.origins, 0, &origins[3 * r0..3 * r1]);
-            ctx.write(&self.rays.dirs, 0, &dirs[3 * r0..3 * r1]);
-            ctx.write(&self.rays.background, 0, &background[3 * r0..3 * r1]);
-            for st in &self.stages {
-                ctx.write(&st.counters, 0, &[m as u32, 0u32]);
-            }
+        if n == 0 {
+            return Ok(());
+        }
+        let (f_o, f_d, f_bg) = (ctx.upload("frame origins", origins), ctx.upload("frame dirs", dirs), ctx.upload("frame bg", background));
+        let (out_rgb, out_op, out_depth) = (ctx.zeros("frame rgb", 12 * n), ctx.zeros("frame opacity", 4 * n), ctx.zeros("frame depth", 4 * n));
+        let chunk = self.render_chunk.get().clamp(1, self.capacity_rays);
+        let mut todo: Vec<(usize, usize)> = (0..n).step_by(chunk).map(|r0| (r0, (r0 + chunk).min(n))).collect();
+        let last = self.stages.last().expect("a stage");
+        while !todo.is_empty() {
+            let sizes: Vec<u32> = todo.iter().flat_map(|&(a, b)| [(b - a) as u32, 0]).collect();
+            let sizes = ctx.upload("chunk sizes", &sizes);
+            let stats = ctx.zeros("chunk samples", 4 * todo.len());
             let mut enc = ctx.encoder("render");
-            self.record_first_stage(ctx, &mut enc, None);
-            self.record_stage_forward(ctx, &mut enc, 0, false);
-            if let Sampler::Hierarchical(_, h) = &self.sampler {
-                let (a, b) = self.stages.split_at(1);
-                self.record_fine(ctx, &mut enc, h, &a[0], &b[0], None);
-                self.record_stage_forward(ctx, &mut enc, 1, false);
+            for (k, &(r0, r1)) in todo.iter().enumerate() {
+                let (r0, m) = (r0 as u64, (r1 - r0) as u64);
+                enc.copy_buffer_to_buffer(&f_o, 12 * r0, &self.rays.origins, 0, 12 * m);
+                enc.copy_buffer_to_buffer(&f_d, 12 * r0, &self.rays.dirs, 0, 12 * m);
+                enc.copy_buffer_to_buffer(&f_bg, 12 * r0, &self.rays.background, 0, 12 * m);
+                for st in &self.stages {
+                    enc.copy_buffer_to_buffer(&sizes, 8 * k as u64, &st.counters, 0, 8);
+                }
+                self.record_first_stage(ctx, &mut enc, None);
+                self.record_stage_forward(ctx, &mut enc, 0, false);
+                if let Sampler::Hierarchical(_, h) = &self.sampler {
+                    let (a, b) = self.stages.split_at(1);
+                    self.record_fine(ctx, &mut enc, h, &a[0], &b[0], None);
+                    self.record_stage_forward(ctx, &mut enc, 1, false);
+                }
+                enc.copy_buffer_to_buffer(&last.ray_rgb, 0, &out_rgb, 12 * r0, 12 * m);
+                enc.copy_buffer_to_buffer(&last.opacity, 0, &out_op, 4 * r0, 4 * m);
+                enc.copy_buffer_to_buffer(&last.depth, 0, &out_depth, 4 * r0, 4 * m);
+                enc.copy_buffer_to_buffer(&self.stages[0].counters, 4, &stats, 4 * k as u64, 4);
             }
             ctx.queue.submit([enc.finish()]);
-            let last = self.stages.last().expect("a stage");
-            let got = ctx
-                .read_words(&[(&self.stages[0].counters, 2), (&last.ray_rgb, 3 * m), (&last.opacity, m), (&last.depth, m)])
-                .map_err(gerr)?;
-            // The marcher clips at the sample capacity (counters[1] = capacity then): split the
-            // chunk and render it again.
-            if matches!(self.sampler, Sampler::Occupancy(_)) && got[0][1] as usize >= self.capacity_samples && m > 1 {
-                chunk = (m / 2).max(1);
-                self.render_chunk.set(chunk);
-                continue;
+            let counts = ctx.read_u32(&stats, todo.len()).map_err(gerr)?;
+            let mut again = Vec::new();
+            if matches!(self.sampler, Sampler::Occupancy(_)) {
+                for (&(r0, r1), &c) in todo.iter().zip(&counts) {
+                    if c as usize >= self.capacity_samples && r1 - r0 > 1 {
+                        let mid = r0 + (r1 - r0) / 2;
+                        again.extend([(r0, mid), (mid, r1)]);
+                        self.render_chunk.set(self.render_chunk.get().min((mid - r0).max(1)));
+                    }
+                }
             }
-            let f = |w: &[u32]| -> Vec<f32> { w.iter().map(|&x| f32::from_bits(x)).collect() };
-            rgb[3 * r0..3 * r1].copy_from_slice(&f(&got[1]));
-            opacity[r0..r1].copy_from_slice(&f(&got[2]));
-            depth[r0..r1].copy_from_slice(&f(&got[3]));
-            r0 = r1;
+            todo = again;
+        }
+        let got = ctx.read_words(&[(&out_rgb, 3 * n), (&out_op, n), (&out_depth, n)]).map_err(gerr)?;
+        for (dst, src) in [(&mut rgb[..3 * n], &got[0]), (&mut opacity[..n], &got[1]), (&mut depth[..n], &got[2])] {
+            for (d, &w) in dst.iter_mut().zip(src) {
+                *d = f32::from_bits(w);
+            }
         }
         self.reset_batch();
         Ok(())
