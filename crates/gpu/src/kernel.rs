@@ -28,11 +28,17 @@ pub fn groups_1d(n: usize, wg: u32) -> [u32; 3] {
     }
 }
 
-/// One compute entry point of one WGSL source, compiled once.
+/// One compute entry point of one WGSL source, compiled once. Bind groups are cached by the
+/// buffers they bind, so a training step that binds the same buffers every time creates none.
 pub struct Kernel {
     pipeline: wgpu::ComputePipeline,
     label: String,
+    cache: std::sync::Mutex<std::collections::HashMap<u64, (Vec<(u32, wgpu::Buffer)>, wgpu::BindGroup)>>,
 }
+
+/// Cached bind groups per kernel before the cache is emptied (tests that bind fresh buffers on
+/// every call would otherwise keep them alive).
+const BIND_GROUP_CACHE: usize = 64;
 
 impl Kernel {
     /// Compiles `entry` of `source` with pipeline-overridable constants.
@@ -57,7 +63,12 @@ impl Kernel {
             },
             cache: None,
         });
-        Self { pipeline, label: entry.to_string() }
+        Self { pipeline, label: entry.to_string(), cache: Default::default() }
+    }
+
+    /// Bind groups currently cached (one per distinct set of bound buffers).
+    pub fn cached_bind_groups(&self) -> usize {
+        self.cache.lock().unwrap_or_else(|e| e.into_inner()).len()
     }
 
     /// The entry point's name.
@@ -93,6 +104,28 @@ impl Kernel {
     }
 
     fn bind_group(&self, ctx: &GpuContext, bindings: &[(u32, &wgpu::Buffer)]) -> wgpu::BindGroup {
+        use std::hash::{Hash, Hasher};
+        let mut h = std::collections::hash_map::DefaultHasher::new();
+        for (i, b) in bindings {
+            i.hash(&mut h);
+            b.hash(&mut h);
+        }
+        let key = h.finish();
+        let mut cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((bound, group)) = cache.get(&key) {
+            if bound.len() == bindings.len() && bound.iter().zip(bindings).all(|((i, b), (j, c))| i == j && b == *c) {
+                return group.clone();
+            }
+        }
+        let group = self.create_bind_group(ctx, bindings);
+        if cache.len() >= BIND_GROUP_CACHE {
+            cache.clear();
+        }
+        cache.insert(key, (bindings.iter().map(|(i, b)| (*i, (*b).clone())).collect(), group.clone()));
+        group
+    }
+
+    fn create_bind_group(&self, ctx: &GpuContext, bindings: &[(u32, &wgpu::Buffer)]) -> wgpu::BindGroup {
         let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
             .iter()
             .map(|(i, b)| wgpu::BindGroupEntry { binding: *i, resource: b.as_entire_binding() })

@@ -167,3 +167,35 @@ fn batch_sizing_kernel_follows_the_cpu_rule() {
         assert!((ctx.read_f32(&spr, 1).unwrap()[0] - mean).abs() <= 1e-5 * mean.max(1.0));
     }
 }
+
+#[test]
+fn kernels_reuse_bind_groups_for_the_same_buffers() {
+    let Some(ctx) = context() else { return };
+    let glue = nerf_gpu::TrainGlue::new(&ctx, 64, nerf_gpu::composite::BatchParams::default());
+    let (c, p, t, d, e) = (
+        ctx.upload("c", &[3u32, 0]),
+        ctx.upload("p", &[0.5f32; 9]),
+        ctx.upload("t", &[0.25f32; 9]),
+        ctx.zeros("d", 36),
+        ctx.zeros("e", 12),
+    );
+    for _ in 0..3 {
+        let mut enc = ctx.encoder("loss");
+        glue.record_loss(&ctx, &mut enc, &c, &p, &t, &d, &e);
+        ctx.queue.submit([enc.finish()]);
+    }
+    // Three recordings with the same buffers: one bind group; a different output buffer: two.
+    let k = nerf_gpu::Kernel::new(&ctx, &shaders::with_common(shaders::TRAIN), "mse_loss", &[]);
+    let lp = ctx.uniform("lp", &nerf_gpu::composite::LossParams { capacity_rays: 64, _pad: [0; 3] });
+    let e2 = ctx.zeros("e2", 12);
+    for out in [&e, &e, &e2, &e] {
+        let mut enc = ctx.encoder("loss");
+        k.record(&ctx, &mut enc, &[(0, &lp), (1, &c), (2, &p), (3, &t), (4, &d), (5, out)], [1, 1, 1]);
+        ctx.queue.submit([enc.finish()]);
+    }
+    assert_eq!(k.cached_bind_groups(), 2);
+    // The cached groups bind the right buffers: the loss landed in both outputs.
+    let (a, b) = (ctx.read_f32(&e, 3).unwrap(), ctx.read_f32(&e2, 3).unwrap());
+    assert_eq!(a, b);
+    assert!((a[0] - 3.0 * 0.0625).abs() < 1e-7, "{a:?}");
+}

@@ -85,6 +85,31 @@ impl Stage {
     }
 }
 
+/// Rays and image of one rendered frame.
+struct Frame {
+    n: usize,
+    origins: wgpu::Buffer,
+    dirs: wgpu::Buffer,
+    background: wgpu::Buffer,
+    rgb: wgpu::Buffer,
+    opacity: wgpu::Buffer,
+    depth: wgpu::Buffer,
+}
+
+impl Frame {
+    fn new(ctx: &GpuContext, n: usize) -> Self {
+        Self {
+            n,
+            origins: ctx.zeros("frame origins", 12 * n),
+            dirs: ctx.zeros("frame dirs", 12 * n),
+            background: ctx.zeros("frame background", 12 * n),
+            rgb: ctx.zeros("frame rgb", 12 * n),
+            opacity: ctx.zeros("frame opacity", 4 * n),
+            depth: ctx.zeros("frame depth", 4 * n),
+        }
+    }
+}
+
 /// The occupancy-grid sampler's state.
 struct Occupancy {
     grid: GpuOccupancyGrid,
@@ -137,6 +162,8 @@ pub(crate) struct GpuEngine {
     last_n_samples: Cell<usize>,
     /// Rays per rendering chunk that last fitted the sample capacity.
     render_chunk: Cell<usize>,
+    /// Frame-sized rendering buffers (rays in, image out), kept between frames.
+    frame: std::cell::RefCell<Option<Frame>>,
     /// Submissions of the steps still running (at most `MAX_IN_FLIGHT`).
     in_flight: std::collections::VecDeque<wgpu::SubmissionIndex>,
 }
@@ -257,6 +284,7 @@ impl GpuEngine {
             last_n_samples: Cell::new(0),
             render_chunk: Cell::new(capacity_rays),
             in_flight: Default::default(),
+            frame: Default::default(),
             ctx,
         })
     }
@@ -461,8 +489,16 @@ impl GpuEngine {
         if n == 0 {
             return Ok(());
         }
-        let (f_o, f_d, f_bg) = (ctx.upload("frame origins", origins), ctx.upload("frame dirs", dirs), ctx.upload("frame bg", background));
-        let (out_rgb, out_op, out_depth) = (ctx.zeros("frame rgb", 12 * n), ctx.zeros("frame opacity", 4 * n), ctx.zeros("frame depth", 4 * n));
+        // Frame-sized buffers, kept between calls (reallocated only for a larger frame).
+        let mut frame = self.frame.borrow_mut();
+        if frame.as_ref().is_none_or(|f| f.n < n) {
+            *frame = Some(Frame::new(ctx, n));
+        }
+        let Frame { origins: f_o, dirs: f_d, background: f_bg, rgb: out_rgb, opacity: out_op, depth: out_depth, .. } =
+            frame.as_ref().expect("allocated above");
+        ctx.write(f_o, 0, origins);
+        ctx.write(f_d, 0, dirs);
+        ctx.write(f_bg, 0, background);
         let chunk = self.render_chunk.get().clamp(1, self.capacity_rays);
         let mut todo: Vec<(usize, usize)> = (0..n).step_by(chunk).map(|r0| (r0, (r0 + chunk).min(n))).collect();
         let last = self.stages.last().expect("a stage");
@@ -473,9 +509,9 @@ impl GpuEngine {
             let mut enc = ctx.encoder("render");
             for (k, &(r0, r1)) in todo.iter().enumerate() {
                 let (r0, m) = (r0 as u64, (r1 - r0) as u64);
-                enc.copy_buffer_to_buffer(&f_o, 12 * r0, &self.rays.origins, 0, 12 * m);
-                enc.copy_buffer_to_buffer(&f_d, 12 * r0, &self.rays.dirs, 0, 12 * m);
-                enc.copy_buffer_to_buffer(&f_bg, 12 * r0, &self.rays.background, 0, 12 * m);
+                enc.copy_buffer_to_buffer(f_o, 12 * r0, &self.rays.origins, 0, 12 * m);
+                enc.copy_buffer_to_buffer(f_d, 12 * r0, &self.rays.dirs, 0, 12 * m);
+                enc.copy_buffer_to_buffer(f_bg, 12 * r0, &self.rays.background, 0, 12 * m);
                 for st in &self.stages {
                     enc.copy_buffer_to_buffer(&sizes, 8 * k as u64, &st.counters, 0, 8);
                 }
@@ -486,9 +522,9 @@ impl GpuEngine {
                     self.record_fine(ctx, &mut enc, h, &a[0], &b[0], None);
                     self.record_stage_forward(ctx, &mut enc, 1, false);
                 }
-                enc.copy_buffer_to_buffer(&last.ray_rgb, 0, &out_rgb, 12 * r0, 12 * m);
-                enc.copy_buffer_to_buffer(&last.opacity, 0, &out_op, 4 * r0, 4 * m);
-                enc.copy_buffer_to_buffer(&last.depth, 0, &out_depth, 4 * r0, 4 * m);
+                enc.copy_buffer_to_buffer(&last.ray_rgb, 0, out_rgb, 12 * r0, 12 * m);
+                enc.copy_buffer_to_buffer(&last.opacity, 0, out_op, 4 * r0, 4 * m);
+                enc.copy_buffer_to_buffer(&last.depth, 0, out_depth, 4 * r0, 4 * m);
                 enc.copy_buffer_to_buffer(&self.stages[0].counters, 4, &stats, 4 * k as u64, 4);
             }
             ctx.queue.submit([enc.finish()]);
@@ -505,7 +541,7 @@ impl GpuEngine {
             }
             todo = again;
         }
-        let got = ctx.read_words(&[(&out_rgb, 3 * n), (&out_op, n), (&out_depth, n)]).map_err(gerr)?;
+        let got = ctx.read_words(&[(out_rgb, 3 * n), (out_op, n), (out_depth, n)]).map_err(gerr)?;
         for (dst, src) in [(&mut rgb[..3 * n], &got[0]), (&mut opacity[..n], &got[1]), (&mut depth[..n], &got[2])] {
             for (d, &w) in dst.iter_mut().zip(src) {
                 *d = f32::from_bits(w);
