@@ -142,7 +142,8 @@ pub(crate) struct GpuEngine {
     /// One optimiser per parameter group (the groups live in separate buffers).
     adams: Vec<Vec<GpuAdam>>,
     group_names: Vec<Vec<String>>,
-    images: Option<(usize, u32, u32, GpuImages)>,
+    /// The training images on the device, with the identity of the dataset they came from.
+    images: Option<((usize, usize, u32, u32), GpuImages)>,
     raygen: GpuRayGen,
     sampler: Sampler,
     compositor: Compositor,
@@ -158,7 +159,6 @@ pub(crate) struct GpuEngine {
     /// Rays of the first step (before the running mean exists).
     first_rays: usize,
     adaptive: bool,
-    bounds: SceneBounds,
     last_n_samples: Cell<usize>,
     /// Rays per rendering chunk that last fitted the sample capacity.
     render_chunk: Cell<usize>,
@@ -280,7 +280,6 @@ impl GpuEngine {
             capacity_rays,
             capacity_samples,
             adaptive: config.target_samples_per_step.is_some(),
-            bounds,
             last_n_samples: Cell::new(0),
             render_chunk: Cell::new(capacity_rays),
             in_flight: Default::default(),
@@ -297,10 +296,11 @@ impl GpuEngine {
     /// step or the last one.
     #[allow(clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
     pub(crate) fn step(&mut self, data: &Dataset, cfg: &TrainConfig, step: u64) -> Result<StepStats, TrainError> {
-        let key = (data.n_views(), data.width, data.height);
-        if self.images.as_ref().map(|(n, w, h, _)| (*n, *w, *h)) != Some(key) {
+        // The training images go to the device once (again only if another dataset is passed).
+        let key = (data as *const Dataset as usize, data.n_views(), data.width, data.height);
+        if self.images.as_ref().map(|(k, _)| *k) != Some(key) {
             let imgs = GpuImages::new(&self.ctx, data).map_err(gerr)?;
-            self.images = Some((key.0, key.1, key.2, imgs));
+            self.images = Some((key, imgs));
         }
         let ctx = self.ctx.clone();
         let ctx = &*ctx;
@@ -310,7 +310,7 @@ impl GpuEngine {
         };
         let lr = cfg.lr.lr(step);
         let mut enc = ctx.encoder("train step");
-        let (_, _, _, images) = self.images.as_ref().expect("uploaded above");
+        let (_, images) = self.images.as_ref().expect("uploaded above");
         let s0 = &self.stages[0];
         // Occupancy-grid refresh from the field's density when due.
         if let Sampler::Occupancy(o) = &self.sampler {
@@ -638,7 +638,6 @@ impl GpuEngine {
                 _ => return Err(TrainError::Config(format!("unexpected sampler state `{name}` in checkpoint"))),
             }
         }
-        let _ = self.bounds;
         Ok(())
     }
 }
