@@ -33,8 +33,11 @@ pub fn groups_1d(n: usize, wg: u32) -> [u32; 3] {
 pub struct Kernel {
     pipeline: wgpu::ComputePipeline,
     label: String,
-    cache: std::sync::Mutex<std::collections::HashMap<u64, (Vec<(u32, wgpu::Buffer)>, wgpu::BindGroup)>>,
+    cache: std::sync::Mutex<BindGroupCache>,
 }
+
+/// Bind groups by a hash of what they bind, with the bindings kept to rule out collisions.
+type BindGroupCache = std::collections::HashMap<u64, (Vec<(u32, wgpu::Buffer)>, wgpu::BindGroup)>;
 
 /// Cached bind groups per kernel before the cache is emptied (tests that bind fresh buffers on
 /// every call would otherwise keep them alive).

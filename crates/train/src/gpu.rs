@@ -132,7 +132,7 @@ struct Occupancy {
 enum Sampler {
     Occupancy(Box<Occupancy>),
     Stratified(GpuStratified),
-    Hierarchical(GpuStratified, GpuHierarchical),
+    Hierarchical(GpuStratified, Box<GpuHierarchical>),
 }
 
 /// The GPU twin of the CPU trainer's state.
@@ -246,7 +246,7 @@ impl GpuEngine {
             }
             SamplerConfig::Hierarchical { n_coarse, n_fine } => Sampler::Hierarchical(
                 GpuStratified::new(&ctx, *n_coarse, bounds.near, bounds.far).map_err(gerr)?,
-                GpuHierarchical::new(&ctx, *n_fine, bounds.far).map_err(gerr)?,
+                Box::new(GpuHierarchical::new(&ctx, *n_fine, bounds.far).map_err(gerr)?),
             ),
         };
         let max_rays = capacity_rays.min(MAX_BATCH_RAYS);
