@@ -232,6 +232,15 @@ fn device_flag_trains_on_the_gpu_and_the_cpu_evaluates_the_checkpoint() {
         eprintln!("NOTICE: no GPU adapter; checked the error only");
         return;
     }
+    // A field without a GPU twin: `gpu` says so, `auto` would train it on the CPU.
+    let o = nerf()
+        .arg("train")
+        .arg(&s)
+        .args(["--field", "voxel", "--iters", "1", "--device", "gpu", "--quiet", "--no-renders", "--out"])
+        .arg(d.path().join("voxel"))
+        .output()
+        .unwrap();
+    assert_clean_failure(&o, &["voxel", "no GPU implementation", "--device cpu"]);
     let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
     assert_eq!(m["device"], "gpu", "{m}");
     assert!(m["adapter"].as_str().is_some_and(|a| !a.is_empty()), "{m}");

@@ -186,7 +186,7 @@ impl GpuEngine {
         let mut fields = Vec::with_capacity(cpu_fields.len());
         for (i, f) in cpu_fields.iter().enumerate() {
             match f.to_gpu(&ctx, stage_samples(i)) {
-                Some(g) => fields.push(g?),
+                Some(g) => fields.push(g.map_err(|e| TrainError::Gpu(format!("field `{}` on the GPU: {e}", f.kind())))?),
                 None => {
                     return Err(TrainError::Gpu(format!(
                         "field `{}` has no GPU implementation (use --device cpu)",

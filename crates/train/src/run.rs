@@ -202,9 +202,9 @@ pub fn run(
     Ok(RunSummary { metrics, eval: report, iterations: iters })
 }
 
-/// A trainer on the device `pref` asks for: `cpu`; `gpu` (any adapter; an error without one or
-/// without a GPU twin of the field); `auto`: a hardware GPU when one exists and the field has a
-/// GPU twin, else the CPU (with a notice on stderr when only the twin is missing).
+/// A trainer on the device `pref` asks for: `cpu`; `gpu` (any adapter; an error without one, or
+/// when the field has no GPU twin or the GPU path cannot take the config); `auto`: a hardware GPU
+/// when one exists and the GPU path can take the run, else the CPU (with a notice on stderr).
 pub fn make_trainer(
     config: &TrainConfig,
     registry: &Registry,
@@ -219,7 +219,10 @@ pub fn make_trainer(
         // A software adapter (lavapipe) is slower than the rayon path: `auto` skips it.
         Some(ctx) if pref == DevicePreference::Auto && ctx.is_software() => Trainer::new(config.clone(), registry, bounds),
         Some(ctx) => match Trainer::new_on(config.clone(), registry, bounds, Some(std::sync::Arc::new(ctx))) {
-            Err(TrainError::Gpu(msg)) if pref == DevicePreference::Auto && msg.contains("no GPU implementation") => {
+            // `auto` falls back to the CPU when the GPU path cannot take this run (a field without
+            // a GPU twin, a config its kernels do not support, a buffer larger than the adapter
+            // allows); `gpu` reports it.
+            Err(TrainError::Gpu(msg)) if pref == DevicePreference::Auto => {
                 eprintln!("note: {msg}; training on the CPU");
                 Trainer::new(config.clone(), registry, bounds)
             }
