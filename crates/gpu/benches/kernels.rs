@@ -1,0 +1,130 @@
+//! Criterion benches of the GPU kernels that dominate a training step, on the first adapter
+//! (skipped without one): hash encoding forward/backward (L16 F2 T2^19), the hash field's fused
+//! MLPs forward and forward + backward, the paper's 8×256 trunk forward + backward (plain WGSL,
+//! and cooperative matrices where the adapter has them), and Adam over the hash field's 12 M
+//! parameters. Each iteration records one launch sequence, submits it and waits, so the time is
+//! the device's. Sizes: 2^18 samples (2^12 with `NERF_BENCH_SMALL=1`, for lavapipe).
+//! `cargo bench -p nerf-gpu --bench kernels`.
+
+use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
+use nerf_encoding::HashGridConfig;
+use nerf_gpu::encoding::GpuHashGrid;
+use nerf_gpu::linear::GpuMlp;
+use nerf_gpu::mlp::FusedMlp;
+use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
+use nerf_gpu::{wgpu, GpuContext};
+use nerf_mlp::{Activation, MlpConfig};
+use rand::Rng as _;
+
+fn n_samples() -> usize {
+    if std::env::var_os("NERF_BENCH_SMALL").is_some() {
+        1 << 12
+    } else {
+        1 << 18
+    }
+}
+
+fn random(n: usize, lo: f32, hi: f32, seed: u64) -> Vec<f32> {
+    let mut rng = nerf_core::rng(seed, 0);
+    (0..n).map(|_| rng.gen_range(lo..hi)).collect()
+}
+
+/// Records with `f`, submits, waits.
+fn run(ctx: &GpuContext, f: impl Fn(&mut wgpu::CommandEncoder)) {
+    let mut enc = ctx.encoder("bench");
+    f(&mut enc);
+    ctx.queue.submit([enc.finish()]);
+    ctx.wait().unwrap();
+}
+
+fn kernels(c: &mut Criterion) {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let n = n_samples();
+    let counters = ctx.upload("counters", &[0u32, n as u32]);
+    let mut g = c.benchmark_group(format!("gpu_kernels ({})", ctx.info.name));
+    g.sample_size(20);
+    g.throughput(Throughput::Elements(n as u64));
+
+    // Hash encoding.
+    let cfg = HashGridConfig::default();
+    let grid = GpuHashGrid::new(&ctx, &cfg, [-1.5; 3], [1.5; 3]).unwrap();
+    let params = ctx.upload("table", &random(grid.n_params(), -1e-4, 1e-4, 1));
+    let grads = ctx.zeros("table grads", 4 * grid.n_params());
+    let pos = ctx.upload("positions", &random(3 * n, -1.5, 1.5, 2));
+    let feat = ctx.zeros("features", 4 * n * grid.output_dim());
+    let d_feat = ctx.upload("d features", &random(n * grid.output_dim(), -1.0, 1.0, 3));
+    g.bench_function(BenchmarkId::new("hash_grid_forward", n), |b| {
+        b.iter(|| run(&ctx, |e| grid.record_forward(&ctx, e, &counters, &pos, &params, &feat, n)))
+    });
+    g.bench_function(BenchmarkId::new("hash_grid_backward", n), |b| {
+        b.iter(|| run(&ctx, |e| grid.record_backward(&ctx, e, &counters, &pos, &d_feat, &grads, n)))
+    });
+
+    // The hash field's fused MLPs.
+    let mlp = |input, output, layers, out_act| MlpConfig {
+        input_dim: input,
+        output_dim: output,
+        hidden_dim: 64,
+        hidden_layers: layers,
+        hidden_activation: Activation::Relu,
+        output_activation: out_act,
+        skips: vec![],
+        bias: false,
+    };
+    for (name, cfg) in [("density_32_64_16", mlp(32, 16, 1, Activation::None)), ("color_32_64_64_3", mlp(32, 3, 2, Activation::Sigmoid))] {
+        let net = FusedMlp::new(&ctx, &cfg).unwrap();
+        let p = ctx.upload("w", &random(net.n_params(), -0.1, 0.1, 4));
+        let gr = ctx.zeros("dw", 4 * net.n_params());
+        let x = ctx.upload("x", &random(n * cfg.input_dim, -1.0, 1.0, 5));
+        let y = ctx.zeros("y", 4 * n * cfg.output_dim);
+        let tape = ctx.zeros("tape", 4 * n * net.tape_floats_per_sample());
+        let dy = ctx.upload("dy", &random(n * cfg.output_dim, -1.0, 1.0, 6));
+        let dx = ctx.zeros("dx", 4 * n * cfg.input_dim);
+        g.bench_function(BenchmarkId::new(format!("fused_mlp_{name}_forward"), n), |b| {
+            b.iter(|| run(&ctx, |e| net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n)))
+        });
+        g.bench_function(BenchmarkId::new(format!("fused_mlp_{name}_forward_backward"), n), |b| {
+            b.iter(|| {
+                run(&ctx, |e| {
+                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n);
+                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, Some(&dx), n);
+                })
+            })
+        });
+    }
+
+    // The paper's trunk (63 → 8×256 with the skip → 257), plain and cooperative matrices.
+    let m = n / 4;
+    let trunk = MlpConfig::nerf_trunk(63, 257);
+    let x = ctx.upload("x", &random(m * 63, -1.0, 1.0, 7));
+    let dy = ctx.upload("dy", &random(m * 257, -1e-3, 1e-3, 8));
+    let y = ctx.zeros("y", 4 * m * 257);
+    let modes: &[bool] = if ctx.features.cooperative_matrix { &[false, true] } else { &[false] };
+    for &coop in modes {
+        let net = GpuMlp::new(&ctx, &trunk, m, coop).unwrap();
+        let p = ctx.upload("w", &random(net.n_params(), -0.05, 0.05, 9));
+        let gr = ctx.zeros("dw", 4 * net.n_params());
+        let tape = ctx.zeros("tape", 4 * m * net.tape_floats_per_sample());
+        let name = if coop { "trunk_8x256_coop_forward_backward" } else { "trunk_8x256_plain_forward_backward" };
+        g.throughput(Throughput::Elements(m as u64));
+        g.bench_function(BenchmarkId::new(name, m), |b| {
+            b.iter(|| {
+                run(&ctx, |e| {
+                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, m);
+                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, None, m);
+                })
+            })
+        });
+    }
+
+    // Adam over the hash field's parameters.
+    let total = grid.n_params() + 8192;
+    let adam = GpuAdam::new(&ctx, &nerf_optim::AdamConfig::instant_ngp(), &[GpuParamGroup::new("all", 0, total, 0.0)]).unwrap();
+    let (p, gr) = (ctx.upload("p", &random(total, -0.1, 0.1, 10)), ctx.upload("g", &random(total, -0.1, 0.1, 11)));
+    g.throughput(Throughput::Elements(total as u64));
+    g.bench_function(BenchmarkId::new("adam", total), |b| b.iter(|| run(&ctx, |e| adam.record_step(&ctx, e, &p, &gr, 1e-2))));
+    g.finish();
+}
+
+criterion_group!(benches, kernels);
+criterion_main!(benches);
