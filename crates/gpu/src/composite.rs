@@ -5,6 +5,7 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{layout, shaders, GpuContext, GpuError};
+pub use crate::layout::{LossParams, BatchParams};
 
 /// Outputs of [`Compositor::forward`], read back to the host.
 #[derive(Clone, Debug, Default)]
@@ -236,30 +237,6 @@ impl Compositor {
         ctx.queue.submit([enc.finish()]);
         Ok(CompositeGrads { d_sigma: ctx.read_f32(&d_s, n)?, d_rgb: ctx.read_f32(&d_c, 3 * n)? })
     }
-}
-
-/// `LossParams` of `shaders/train.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct LossParams {
-    /// Launch capacity in rays.
-    pub capacity_rays: u32,
-    /// Padding.
-    pub _pad: [u32; 3],
-}
-
-/// `BatchParams` of `shaders/train.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct BatchParams {
-    /// Target field samples per step.
-    pub target_samples: u32,
-    /// Fewest rays per step.
-    pub min_rays: u32,
-    /// Most rays per step (≤ the ray capacity of the step's buffers).
-    pub max_rays: u32,
-    /// Padding.
-    pub _pad: u32,
 }
 
 /// The training-step glue kernels (`shaders/train.wgsl`): photometric MSE + gradient, and the

@@ -12,25 +12,10 @@
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_encoding::{FrequencyEncodingConfig, HashGrid, HashGridConfig, ShConfig};
+pub use crate::layout::{HashGridParams};
 
 /// Largest number of levels the hash-grid uniform holds (`HashGridConfig::validate` allows 64).
 pub const MAX_HASH_LEVELS: usize = 64;
-
-/// `Params` of `shaders/hash_grid.wgsl` (uniform; 1056 bytes).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct HashGridParams {
-    /// Lower corner of the scene box (world units).
-    pub aabb_min: [f32; 3],
-    /// Number of levels L.
-    pub n_levels: u32,
-    /// `1 / (aabb_max − aabb_min)` per axis, computed in `f32` as `nerf-field-hash` does.
-    pub inv_extent: [f32; 3],
-    /// Padding (uniform layout).
-    pub _pad: u32,
-    /// Per level: resolution, offset of the level in the parameters (floats), 1 when dense, T − 1.
-    pub levels: [[u32; 4]; MAX_HASH_LEVELS],
-}
 
 /// How the hash-grid backward accumulates into the gradient buffer.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]

@@ -3,6 +3,7 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext};
+pub use crate::layout::{GlueParams};
 
 /// How σ is made from the density network's first output `x`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -11,24 +12,6 @@ pub enum SigmaActivation {
     TruncExp,
     /// `σ = max(x, 0)` (the paper).
     Relu,
-}
-
-/// `GlueParams` of `shaders/field_glue.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct GlueParams {
-    /// Density-network outputs per sample.
-    pub dd: u32,
-    /// Direction-encoding values per sample.
-    pub dir_dim: u32,
-    /// Launch capacity (samples).
-    pub capacity: u32,
-    /// First density output that feeds the colour network (0: all of them, 1: all but σ's).
-    pub feat_start: u32,
-    /// 0 = truncated exp, 1 = ReLU.
-    pub act: u32,
-    /// Padding.
-    pub _pad: [u32; 3],
 }
 
 /// The glue kernels for one field shape.

@@ -1,4 +1,5 @@
-//! Host-side mirrors of the WGSL uniform structs: `#[repr(C)]` + `bytemuck::Pod`, in one place.
+//! Host-side mirrors of every WGSL uniform and storage struct: `#[repr(C)]` + `bytemuck::Pod`, in
+//! one place (grouped by the module that uses them; the public ones are re-exported there).
 
 /// `Params` of `shaders/composite.wgsl`.
 #[repr(C)]
@@ -17,3 +18,278 @@ pub struct CompositeParams {
 pub const COUNTER_N_RAYS: usize = 0;
 /// Slot of the `counters` buffer holding the number of packed samples of the step.
 pub const COUNTER_N_SAMPLES: usize = 1;
+
+// ---- composite.rs ----
+/// `LossParams` of `shaders/train.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct LossParams {
+    /// Launch capacity in rays.
+    pub capacity_rays: u32,
+    /// Padding.
+    pub _pad: [u32; 3],
+}
+
+// ---- composite.rs ----
+/// `BatchParams` of `shaders/train.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct BatchParams {
+    /// Target field samples per step.
+    pub target_samples: u32,
+    /// Fewest rays per step.
+    pub min_rays: u32,
+    /// Most rays per step (≤ the ray capacity of the step's buffers).
+    pub max_rays: u32,
+    /// Padding.
+    pub _pad: u32,
+}
+
+// ---- encoding.rs ----
+/// `Params` of `shaders/hash_grid.wgsl` (uniform; 1056 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct HashGridParams {
+    /// Lower corner of the scene box (world units).
+    pub aabb_min: [f32; 3],
+    /// Number of levels L.
+    pub n_levels: u32,
+    /// `1 / (aabb_max − aabb_min)` per axis, computed in `f32` as `nerf-field-hash` does.
+    pub inv_extent: [f32; 3],
+    /// Padding (uniform layout).
+    pub _pad: u32,
+    /// Per level: resolution, offset of the level in the parameters (floats), 1 when dense, T − 1.
+    pub levels: [[u32; 4]; crate::encoding::MAX_HASH_LEVELS],
+}
+
+// ---- glue.rs ----
+/// `GlueParams` of `shaders/field_glue.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct GlueParams {
+    /// Density-network outputs per sample.
+    pub dd: u32,
+    /// Direction-encoding values per sample.
+    pub dir_dim: u32,
+    /// Launch capacity (samples).
+    pub capacity: u32,
+    /// First density output that feeds the colour network (0: all of them, 1: all but σ's).
+    pub feat_start: u32,
+    /// 0 = truncated exp, 1 = ReLU.
+    pub act: u32,
+    /// Padding.
+    pub _pad: [u32; 3],
+}
+
+// ---- linear.rs ----
+/// Uniform `Params` of `shaders/linear.wgsl` and `shaders/linear_coop.wgsl` (field meanings there).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct LinearParams {
+    /// Fan-out of the layer.
+    pub n_out: u32,
+    /// Fan-in of the layer (including the skip input).
+    pub k_in: u32,
+    /// Leading input columns read from the network input.
+    pub ka: u32,
+    /// Activation code of the layer ([`act_code`](crate::linear::act_code)).
+    pub act: u32,
+    /// Row stride of the network input.
+    pub a_stride: u32,
+    /// Row stride of the hidden source.
+    pub b_stride: u32,
+    /// Column offset of the hidden source.
+    pub b_off: u32,
+    /// Row stride of the destination.
+    pub dst_stride: u32,
+    /// Column offset of the destination.
+    pub dst_off: u32,
+    /// Row stride of the second output / of `d_output`.
+    pub out_stride: u32,
+    /// Bit flags: 1 write work, 2 write out, 4 bias, 8 accumulate d_input.
+    pub flags: u32,
+    /// Offset of `W` in the parameter buffer.
+    pub w_off: u32,
+    /// Offset of `b` in the parameter buffer.
+    pub bias_off: u32,
+    /// Rows per split of the weight-gradient product.
+    pub chunk: u32,
+    /// First column computed by `backward_data`.
+    pub c_lo: u32,
+    /// Activation code of the previous layer.
+    pub prev_act: u32,
+}
+
+// ---- mlp.rs ----
+/// `MlpParams` of `shaders/mlp_fused.wgsl` (uniform, static per instance and mode).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct MlpParams {
+    /// Number of linear layers (`hidden_layers + 1`).
+    pub n_layers: u32,
+    /// Floats per input sample.
+    pub input_dim: u32,
+    /// Floats per output sample.
+    pub output_dim: u32,
+    /// Tape floats per sample.
+    pub fps: u32,
+    /// Bit 0: the forward stores the tape; bit 1: the backward writes `d_input`.
+    pub mode: u32,
+    /// Padding to 32 bytes.
+    pub _pad: [u32; 3],
+}
+
+// ---- mlp.rs ----
+/// `MlpLayer` of `shaders/mlp_fused.wgsl`: one linear layer (storage buffer, static).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct MlpLayerDesc {
+    /// Fan-in.
+    pub fan_in: u32,
+    /// Fan-out.
+    pub out: u32,
+    /// Offset of `W` in the parameter buffer.
+    pub w_off: u32,
+    /// Offset of `b` (0 without bias).
+    pub b_off: u32,
+    /// Activation code (0 none, 1 relu, 2 sigmoid, 3 tanh, 4 softplus, 5 exp).
+    pub act: u32,
+    /// Tape floats per sample before this layer's activated output.
+    pub a_pre: u32,
+    /// Tape floats per sample before this layer's pre-activation gradient.
+    pub d_pre: u32,
+    /// 1 when the layer has a bias.
+    pub has_bias: u32,
+}
+
+// ---- occupancy.rs ----
+/// `OccParams` of `shaders/occupancy.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct OccParams {
+    pub(crate) aabb_min: [f32; 3],
+    pub(crate) res: u32,
+    pub(crate) cell: [f32; 3],
+    pub(crate) n_cells: u32,
+    pub(crate) decay: f32,
+    pub(crate) threshold: f32,
+    pub(crate) n_words: u32,
+    pub(crate) n_blocks: u32,
+    pub(crate) n_partials: u32,
+    pub(crate) seed: u32,
+    pub(crate) warm: u32,
+    pub(crate) step_size: f32,
+}
+
+// ---- optim.rs ----
+/// `AdamParams` of `shaders/adam.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct AdamParams {
+    pub(crate) total: u32,
+    pub(crate) n_groups: u32,
+    pub(crate) beta1: f32,
+    pub(crate) beta2: f32,
+    pub(crate) one_minus_beta1: f32,
+    pub(crate) one_minus_beta2: f32,
+    pub(crate) eps: f32,
+    pub(crate) step_size: f32,
+    pub(crate) inv_sqrt_bc2: f32,
+    pub(crate) _pad: [u32; 3],
+}
+
+// ---- optim.rs ----
+/// `Group` of `shaders/adam.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct GroupDesc {
+    pub(crate) offset: u32,
+    pub(crate) len: u32,
+    pub(crate) start: u32,
+    pub(crate) weight_decay: f32,
+    pub(crate) lr_scale: f32,
+    pub(crate) _pad: [u32; 3],
+}
+
+// ---- pdf.rs ----
+/// `PdfParams` of `shaders/pdf.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct PdfParams {
+    pub(crate) n_per_ray: u32,
+    pub(crate) near: f32,
+    pub(crate) far: f32,
+    pub(crate) jitter: u32,
+    pub(crate) seed: u32,
+    pub(crate) _pad: [u32; 3],
+}
+
+// ---- sampling.rs ----
+/// One view's camera as `shaders/rays.wgsl` reads it (80 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct GpuCamera {
+    /// Rows of the 3×4 camera-to-world matrix: `[R₀₀, R₀₁, R₀₂, px]`, …
+    pub c2w: [[f32; 4]; 3],
+    /// `[fx, fy, cx, cy]`.
+    pub intrinsics: [f32; 4],
+    /// `[width, height, first pixel of the view in the pixel buffer, 0]`.
+    pub size: [u32; 4],
+}
+
+// ---- sampling.rs ----
+/// `ImagesInfo` of `shaders/rays.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ImagesInfo {
+    pub(crate) n_views: u32,
+    pub(crate) format: u32,
+    pub(crate) _pad: [u32; 2],
+}
+
+// ---- sampling.rs ----
+/// `RayGenParams` of `shaders/rays.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct RayGenParams {
+    pub(crate) seed: u32,
+    pub(crate) background: u32,
+    pub(crate) jitter: u32,
+    pub(crate) pixel_offset: f32,
+}
+
+// ---- sampling.rs ----
+/// `ScanParams` of `shaders/scan.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ScanParams {
+    pub(crate) n: u32,
+    pub(crate) n_input: u32,
+    pub(crate) dynamic_n: u32,
+    pub(crate) has_sums: u32,
+    pub(crate) slot: u32,
+    pub(crate) _pad: [u32; 3],
+}
+
+// ---- sampling.rs ----
+/// `MarchParams` of `shaders/march.wgsl` (96 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct MarchParams {
+    pub(crate) aabb_min: [f32; 3],
+    pub(crate) step: f32,
+    pub(crate) aabb_max: [f32; 3],
+    pub(crate) near: f32,
+    pub(crate) cell: [f32; 3],
+    pub(crate) far: f32,
+    pub(crate) inv_cell: [f32; 3],
+    pub(crate) margin: f32,
+    pub(crate) res: u32,
+    pub(crate) cres: u32,
+    pub(crate) max_samples: u32,
+    pub(crate) cap_rays: u32,
+    pub(crate) cap_samples: u32,
+    pub(crate) seed: u32,
+    pub(crate) jitter: u32,
+    pub(crate) _pad: u32,
+}

@@ -24,44 +24,7 @@
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, MlpConfig};
-
-/// Uniform `Params` of `shaders/linear.wgsl` and `shaders/linear_coop.wgsl` (field meanings there).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct LinearParams {
-    /// Fan-out of the layer.
-    pub n_out: u32,
-    /// Fan-in of the layer (including the skip input).
-    pub k_in: u32,
-    /// Leading input columns read from the network input.
-    pub ka: u32,
-    /// Activation code of the layer ([`act_code`]).
-    pub act: u32,
-    /// Row stride of the network input.
-    pub a_stride: u32,
-    /// Row stride of the hidden source.
-    pub b_stride: u32,
-    /// Column offset of the hidden source.
-    pub b_off: u32,
-    /// Row stride of the destination.
-    pub dst_stride: u32,
-    /// Column offset of the destination.
-    pub dst_off: u32,
-    /// Row stride of the second output / of `d_output`.
-    pub out_stride: u32,
-    /// Bit flags: 1 write work, 2 write out, 4 bias, 8 accumulate d_input.
-    pub flags: u32,
-    /// Offset of `W` in the parameter buffer.
-    pub w_off: u32,
-    /// Offset of `b` in the parameter buffer.
-    pub bias_off: u32,
-    /// Rows per split of the weight-gradient product.
-    pub chunk: u32,
-    /// First column computed by `backward_data`.
-    pub c_lo: u32,
-    /// Activation code of the previous layer.
-    pub prev_act: u32,
-}
+pub use crate::layout::{LinearParams};
 
 const FLAG_WORK: u32 = 1;
 const FLAG_OUT: u32 = 2;

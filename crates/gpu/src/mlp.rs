@@ -12,6 +12,7 @@
 use crate::kernel::Kernel;
 use crate::{groups_1d, shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, MlpConfig};
+pub use crate::layout::{MlpParams, MlpLayerDesc};
 
 /// Samples per workgroup tile (the tape is tiled in blocks of this many samples).
 pub const TILE: usize = 32;
@@ -29,46 +30,6 @@ const WORKGROUP_BYTES: u32 = 4 * (2 * 32 * 68);
 const MODE_TAPE: u32 = 1;
 /// Mode bit of [`MlpParams::mode`]: the backward writes `d_input`.
 const MODE_DX: u32 = 2;
-
-/// `MlpParams` of `shaders/mlp_fused.wgsl` (uniform, static per instance and mode).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct MlpParams {
-    /// Number of linear layers (`hidden_layers + 1`).
-    pub n_layers: u32,
-    /// Floats per input sample.
-    pub input_dim: u32,
-    /// Floats per output sample.
-    pub output_dim: u32,
-    /// Tape floats per sample.
-    pub fps: u32,
-    /// Bit 0: the forward stores the tape; bit 1: the backward writes `d_input`.
-    pub mode: u32,
-    /// Padding to 32 bytes.
-    pub _pad: [u32; 3],
-}
-
-/// `MlpLayer` of `shaders/mlp_fused.wgsl`: one linear layer (storage buffer, static).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct MlpLayerDesc {
-    /// Fan-in.
-    pub fan_in: u32,
-    /// Fan-out.
-    pub out: u32,
-    /// Offset of `W` in the parameter buffer.
-    pub w_off: u32,
-    /// Offset of `b` (0 without bias).
-    pub b_off: u32,
-    /// Activation code (0 none, 1 relu, 2 sigmoid, 3 tanh, 4 softplus, 5 exp).
-    pub act: u32,
-    /// Tape floats per sample before this layer's activated output.
-    pub a_pre: u32,
-    /// Tape floats per sample before this layer's pre-activation gradient.
-    pub d_pre: u32,
-    /// 1 when the layer has a bias.
-    pub has_bias: u32,
-}
 
 fn act_code(a: Activation) -> u32 {
     match a {

@@ -28,26 +28,9 @@
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_sampling::{OccupancyGrid, OccupancyGridConfig};
+use crate::layout::{OccParams};
 
 const WG: u32 = 256;
-
-/// `OccParams` of `shaders/occupancy.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct OccParams {
-    aabb_min: [f32; 3],
-    res: u32,
-    cell: [f32; 3],
-    n_cells: u32,
-    decay: f32,
-    threshold: f32,
-    n_words: u32,
-    n_blocks: u32,
-    n_partials: u32,
-    seed: u32,
-    warm: u32,
-    step_size: f32,
-}
 
 /// Byte offsets of the per-update fields of [`OccParams`].
 const SEED_OFFSET: u64 = 13 * 4;

@@ -14,6 +14,7 @@ use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_optim::{AdamConfig, AdamState};
 use std::sync::atomic::{AtomicU64, Ordering};
+use crate::layout::{AdamParams, GroupDesc};
 
 const WG: u32 = 256;
 
@@ -37,34 +38,6 @@ impl GpuParamGroup {
     pub fn new(name: impl Into<String>, offset: usize, len: usize, weight_decay: f32) -> Self {
         Self { name: name.into(), offset, len, weight_decay, lr_scale: 1.0 }
     }
-}
-
-/// `AdamParams` of `shaders/adam.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct AdamParams {
-    total: u32,
-    n_groups: u32,
-    beta1: f32,
-    beta2: f32,
-    one_minus_beta1: f32,
-    one_minus_beta2: f32,
-    eps: f32,
-    step_size: f32,
-    inv_sqrt_bc2: f32,
-    _pad: [u32; 3],
-}
-
-/// `Group` of `shaders/adam.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct GroupDesc {
-    offset: u32,
-    len: u32,
-    start: u32,
-    weight_decay: f32,
-    lr_scale: f32,
-    _pad: [u32; 3],
 }
 
 /// Adam over one flat parameter buffer with named groups; owns the moment buffers.

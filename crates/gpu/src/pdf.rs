@@ -14,20 +14,9 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
+use crate::layout::{PdfParams};
 
 const WG: u32 = 64;
-
-/// `PdfParams` of `shaders/pdf.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct PdfParams {
-    n_per_ray: u32,
-    near: f32,
-    far: f32,
-    jitter: u32,
-    seed: u32,
-    _pad: [u32; 3],
-}
 
 fn module(ctx: &GpuContext) -> wgpu::ShaderModule {
     ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {

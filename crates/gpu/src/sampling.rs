@@ -24,6 +24,8 @@ use crate::layout::COUNTER_N_RAYS;
 use crate::{rng, shaders, GpuContext, GpuError};
 use nerf_data::{Background, Dataset, RayBatch};
 use nerf_rays::PixelConvention;
+pub use crate::layout::{GpuCamera};
+use crate::layout::{ImagesInfo, RayGenParams, ScanParams, MarchParams};
 
 /// Random stream of the view index of ray `r` (`rand_u32(seed, stream, r) % n_views`).
 pub const RAY_STREAM_VIEW: u32 = 0x5241_0001;
@@ -52,18 +54,6 @@ const CBLOCK: u32 = 4;
 // ---------------------------------------------------------------------------------------------
 // Images
 
-/// One view's camera as `shaders/rays.wgsl` reads it (80 bytes).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct GpuCamera {
-    /// Rows of the 3×4 camera-to-world matrix: `[R₀₀, R₀₁, R₀₂, px]`, …
-    pub c2w: [[f32; 4]; 3],
-    /// `[fx, fy, cx, cy]`.
-    pub intrinsics: [f32; 4],
-    /// `[width, height, first pixel of the view in the pixel buffer, 0]`.
-    pub size: [u32; 4],
-}
-
 /// How [`GpuImages`] stores pixels.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PixelFormat {
@@ -71,15 +61,6 @@ pub enum PixelFormat {
     Rgba8,
     /// Two `u32` per pixel, 16 bits per channel.
     Rgba16,
-}
-
-/// `ImagesInfo` of `shaders/rays.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct ImagesInfo {
-    n_views: u32,
-    format: u32,
-    _pad: [u32; 2],
 }
 
 /// All training images and cameras of a dataset on the device (uploaded once).
@@ -207,16 +188,6 @@ impl GpuRays {
     }
 }
 
-/// `RayGenParams` of `shaders/rays.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct RayGenParams {
-    seed: u32,
-    background: u32,
-    jitter: u32,
-    pixel_offset: f32,
-}
-
 /// Draws training rays from [`GpuImages`] on the device (`shaders/rays.wgsl`); CPU twin
 /// [`ray_batch_cpu`] (same random streams, see the `RAY_STREAM_*` constants).
 pub struct GpuRayGen {
@@ -308,18 +279,6 @@ pub fn ray_batch_cpu(dataset: &Dataset, seed: u32, n_rays: usize, background: Ba
 
 // ---------------------------------------------------------------------------------------------
 // Prefix sums
-
-/// `ScanParams` of `shaders/scan.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct ScanParams {
-    n: u32,
-    n_input: u32,
-    dynamic_n: u32,
-    has_sums: u32,
-    slot: u32,
-    _pad: [u32; 3],
-}
 
 /// Number of dynamic-length slots [`GpuScan`] prepares uniforms for.
 const SCAN_SLOTS: usize = 4;
@@ -457,28 +416,6 @@ pub struct MarchConfig {
     pub far: f32,
     /// Most samples per ray.
     pub max_samples_per_ray: u32,
-}
-
-/// `MarchParams` of `shaders/march.wgsl` (96 bytes).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
-struct MarchParams {
-    aabb_min: [f32; 3],
-    step: f32,
-    aabb_max: [f32; 3],
-    near: f32,
-    cell: [f32; 3],
-    far: f32,
-    inv_cell: [f32; 3],
-    margin: f32,
-    res: u32,
-    cres: u32,
-    max_samples: u32,
-    cap_rays: u32,
-    cap_samples: u32,
-    seed: u32,
-    jitter: u32,
-    _pad: u32,
 }
 
 /// Byte offset of `step` in [`MarchParams`].
