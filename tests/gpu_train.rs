@@ -133,37 +133,41 @@ fn gpu_checkpoints_render_the_same_on_the_cpu_with_every_sampler() {
 }
 
 #[test]
-fn a_gpu_run_resumes_from_its_checkpoint() {
+fn a_gpu_run_resumes_from_a_gpu_or_a_cpu_checkpoint() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::First(10));
     let mut config = small_hash_config(30);
     config.log_every = 5;
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
-    let mut first = Trainer::new_on(config.clone(), &registry, bounds, Some(ctx.clone())).unwrap();
-    for _ in 0..20 {
-        first.step(&train).unwrap();
-    }
-    let (fields, adam, sampler) = (first.export_fields().unwrap(), first.adam_state().unwrap(), first.sampler_state().unwrap());
-    assert_eq!(adam.step, 20);
-    assert!(sampler.iter().any(|(n, v)| n == "occupancy_density" && v.iter().any(|x| x.is_finite())));
-    let mut resumed = Trainer::new_on(config.clone(), &registry, bounds, Some(ctx)).unwrap();
-    resumed.restore(first.step_count(), &fields, adam.clone(), &sampler).unwrap();
-    // Everything a checkpoint holds arrives on the device unchanged ...
-    assert_eq!(resumed.step_count(), 20);
-    assert_eq!(resumed.export_fields().unwrap(), fields);
-    assert_eq!(resumed.adam_state().unwrap(), adam);
-    assert_eq!(resumed.sampler_state().unwrap(), sampler);
-    // ... and training continues from it (the loss is read back on logging steps).
-    let mut losses = Vec::new();
-    for _ in 0..10 {
-        let s = resumed.step(&train).unwrap();
-        if s.loss.is_finite() {
-            losses.push(s.loss);
+    for source in [Some(ctx.clone()), None] {
+        let mut first = Trainer::new_on(config.clone(), &registry, bounds, source).unwrap();
+        for _ in 0..20 {
+            first.step(&train).unwrap();
         }
+        let (fields, adam, sampler) =
+            (first.export_fields().unwrap(), first.adam_state().unwrap(), first.sampler_state().unwrap());
+        assert_eq!(adam.step, 20);
+        assert!(sampler.iter().any(|(n, v)| n == "occupancy_density" && v.iter().any(|x| x.is_finite())));
+        let mut resumed = Trainer::new_on(config.clone(), &registry, bounds, Some(ctx.clone())).unwrap();
+        resumed.restore(first.step_count(), &fields, adam.clone(), &sampler).unwrap();
+        // Everything a checkpoint holds arrives on the device unchanged ...
+        let from = first.device();
+        assert_eq!(resumed.step_count(), 20);
+        assert_eq!(resumed.export_fields().unwrap(), fields, "from {from}");
+        assert_eq!(resumed.adam_state().unwrap(), adam, "from {from}");
+        assert_eq!(resumed.sampler_state().unwrap(), sampler, "from {from}");
+        // ... and training continues from it (the loss is read back on logging steps).
+        let mut losses = Vec::new();
+        for _ in 0..10 {
+            let s = resumed.step(&train).unwrap();
+            if s.loss.is_finite() {
+                losses.push(s.loss);
+            }
+        }
+        assert_eq!(resumed.step_count(), 30);
+        assert_eq!(losses.len(), 2, "{losses:?}");
+        // A resumed run trains on (the MSE of a 20-step-old field is far below the white-image 0.1).
+        assert!(losses.iter().all(|&l| l > 0.0 && l < 0.1), "from {from}: {losses:?}");
     }
-    assert_eq!(resumed.step_count(), 30);
-    assert_eq!(losses.len(), 2, "{losses:?}");
-    // A resumed run trains on (the MSE of a 20-step-old field is far below the white-image 0.1).
-    assert!(losses.iter().all(|&l| l > 0.0 && l < 0.1), "{losses:?}");
 }
