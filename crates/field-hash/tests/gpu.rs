@@ -22,3 +22,22 @@ fn gpu_hash_field_matches_the_cpu_field() {
     // σ. Gradients: sums over 700 samples in another order (atomics, split-K reductions).
     check_gpu_twin(&mut cpu, &ctx, aabb, 700, 3, 1e-4, 2e-3);
 }
+
+#[test]
+fn a_capacity_beyond_the_devices_binding_limit_is_a_clear_error() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let mut cfg = HashNerfConfig::default();
+    cfg.grid.n_levels = 2;
+    cfg.grid.log2_hashmap_size = 10;
+    let aabb = ([-1.5f32; 3], [1.5f32; 3]);
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 7 };
+    let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+    // The colour MLP's tape is the largest per-sample buffer: one sample more than the limit holds.
+    let color_fps = nerf_gpu::mlp::FusedMlp::new(&ctx, &cpu.mlps()[1].config).unwrap().tape_floats_per_sample();
+    let capacity = (ctx.max_storage_bytes() / (4 * color_fps as u64)) as usize + 1;
+    let err = match nerf_field::RadianceField::to_gpu(&cpu, &ctx, capacity).expect("the hash field has a GPU twin") {
+        Ok(_) => panic!("a {capacity}-sample capacity fitted a {}-byte binding limit", ctx.max_storage_bytes()),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains("color tape") && err.contains("MiB") && err.contains("target_samples_per_step"), "{err}");
+}

@@ -171,6 +171,30 @@ impl GpuContext {
         })
     }
 
+    /// Largest storage buffer one binding can cover on this device (the smaller of the buffer size
+    /// and storage-binding limits).
+    pub fn max_storage_bytes(&self) -> u64 {
+        let l = self.device.limits();
+        l.max_buffer_size.min(l.max_storage_buffer_binding_size)
+    }
+
+    /// As [`GpuContext::zeros`] for buffers whose size follows the run's configuration: an
+    /// [`GpuError::Unsupported`] that names the buffer, its size and the device's limit when
+    /// `bytes` exceeds [`GpuContext::max_storage_bytes`] (wgpu would panic on it).
+    pub fn zeros_checked(&self, label: &str, bytes: usize) -> Result<wgpu::Buffer, GpuError> {
+        let limit = self.max_storage_bytes();
+        if bytes as u64 > limit {
+            return Err(GpuError::Unsupported(format!(
+                "the `{label}` buffer needs {:.1} MiB, more than the {:.1} MiB one storage binding may hold on {} \
+                 (lower target_samples_per_step or batch_rays)",
+                bytes as f64 / 1048576.0,
+                limit as f64 / 1048576.0,
+                self.info.name
+            )));
+        }
+        Ok(self.zeros(label, bytes))
+    }
+
     /// A storage buffer holding `data` (an empty slice gives a 4-byte buffer: bindings must not be empty).
     #[allow(clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
     pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> wgpu::Buffer {
