@@ -113,8 +113,15 @@ fn t_at(s: RaySetup, k: u32) -> f32 {
 
 // Marches one ray; writes samples base.. when `write`; returns the number of samples (≤ max_n).
 fn march_ray(s: RaySetup, max_n: u32, base: u32, write: bool) -> u32 {
+    return march_from(s, 0u, max_n, base, write).x;
+}
+
+// The walk from step k0 (0, or a step returned by an earlier call): returns (samples emitted
+// (≤ max_n), the step to resume from). Resuming continues the same dense walk, so rounds of
+// march_from emit exactly the samples of one march_ray.
+fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<u32> {
     if (max_n == 0u) {
-        return 0u;
+        return vec2<u32>(0u, k0);
     }
     let fres = f32(P.res);
     let hi_cell = vec3<f32>(fres - 1.0);
@@ -130,9 +137,9 @@ fn march_ray(s: RaySetup, max_n: u32, base: u32, write: bool) -> u32 {
             mt[a] = P.margin * abs(inv);
         }
     }
-    var k = 0u;
+    var k = k0;
     var count = 0u;
-    var t = t_at(s, 0u);
+    var t = t_at(s, k0);
     loop {
         if (t >= s.t1 || count >= max_n) {
             break;
@@ -192,7 +199,7 @@ fn march_ray(s: RaySetup, max_n: u32, base: u32, write: bool) -> u32 {
         k = kn;
         t = t_at(s, k);
     }
-    return count;
+    return vec2<u32>(count, k);
 }
 
 // One invocation per 4³ block: sets its bit when any of its cells is occupied.
@@ -257,4 +264,221 @@ fn march_fill(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     }
     let s = setup(r);
     march_ray(s, min(P.max_samples, end - start), start, true);
+}
+
+// ---- rendering in rounds ---------------------------------------------------------------------
+// Host side: nerf_gpu::sampling::{GpuMarcher::record_round*, RoundFrame}. CPU twin: march_ray
+// (nerf_sampling::march) followed by the compositing of composite.wgsl with early termination
+// (nerf_render::composite_forward): the rounds emit exactly march_ray's samples, in order, and
+// composite them with the same arithmetic, so the image is the same; the saving is that a ray
+// leaves the alive list (and stops being marched and evaluated) once its transmittance falls
+// below the threshold, instead of having every marched sample evaluated.
+//
+// State per frame ray r: rstate[r] (k to resume the walk from, samples emitted, done flag; rgb
+// and transmittance; opacity and depth). Alive list `alive` (ray ids) of rc[0] rays. A round:
+//   round_begin     w = min(rc[0], cap_window) rays of the list form the window; K =
+//                   clamp(cap_samples / w, 1, kmax) steps each (so w·K ≤ cap_samples); rc[1] = w,
+//                   rc[2] = K; counters[0] = w (the stage's ray count).
+//   round_count     samples each window ray emits next (≤ K, ≤ max_samples − emitted) → counts;
+//   GpuScan         counts → raw_offsets, total → counters[1] (the field's sample count);
+//   round_fill      the samples (positions, dirs, t, dt) at their offsets; k, emitted, done.
+//   (the field's inference on counters[1] samples → sigma, rgb)
+//   round_composite accumulates each window ray's samples into its state (stops at the
+//                   threshold); rays still alive are appended to `next` after the tail;
+//   round_tail      next[j] = alive[w + j] for the rays past the window (they go first);
+//   round_end       rc[0] = (rc[0] − w) + appended; rc[4] += counters[1] (samples evaluated).
+// Window rays are alive on entry; a ray dies when it is done marching or its transmittance fell
+// below the threshold. round_output writes the frame's rgb (+ (1 − opacity)·background), opacity
+// and depth from the state.
+
+struct RoundParams {
+    n_frame: u32,       // rays of the frame
+    cap_window: u32,    // most rays per round (counts/raw_offsets sizes)
+    kmax: u32,          // most steps per ray and round
+    has_background: u32,
+    t_threshold: f32,   // transmittance below which a ray stops (0: never)
+    _p0: u32,
+    _p1: u32,
+    _p2: u32,
+}
+
+struct RayState {
+    k: u32,
+    emitted: u32,
+    done: u32,
+    _pad: u32,
+    acc: vec4<f32>,     // rgb, transmittance
+    od: vec4<f32>,      // opacity, depth
+}
+
+@group(0) @binding(14) var<uniform> R: RoundParams;
+@group(0) @binding(15) var<storage, read_write> rc: array<atomic<u32>>;   // [n_alive, w, K, appended, evaluated]
+@group(0) @binding(16) var<storage, read_write> rstate: array<RayState>;
+@group(0) @binding(17) var<storage, read> alive: array<u32>;
+@group(0) @binding(18) var<storage, read_write> next: array<u32>;
+@group(0) @binding(19) var<storage, read> f_sigma: array<f32>;
+@group(0) @binding(20) var<storage, read> f_rgb: array<f32>;
+@group(0) @binding(21) var<storage, read> r_background: array<f32>;
+@group(0) @binding(22) var<storage, read_write> r_rgb: array<f32>;
+@group(0) @binding(23) var<storage, read_write> r_opacity: array<f32>;
+@group(0) @binding(24) var<storage, read_write> r_depth: array<f32>;
+@group(0) @binding(25) var<storage, read_write> r_alive0: array<u32>;
+
+// Every frame ray alive, fresh state; rc = [n_frame, 0, 0, 0, 0].
+@compute @workgroup_size(WG)
+fn round_init(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let r = linear_id(gid, nwg, WG);
+    if (r == 0u) {
+        atomicStore(&rc[0], R.n_frame);
+        atomicStore(&rc[1], 0u);
+        atomicStore(&rc[2], 0u);
+        atomicStore(&rc[3], 0u);
+        atomicStore(&rc[4], 0u);
+    }
+    if (r >= R.n_frame) {
+        return;
+    }
+    var st: RayState;
+    st.k = 0u;
+    st.emitted = 0u;
+    st.done = 0u;
+    st.acc = vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    st.od = vec4<f32>(0.0);
+    rstate[r] = st;
+    r_alive0[r] = r;
+}
+
+@compute @workgroup_size(1)
+fn round_begin() {
+    let n_alive = atomicLoad(&rc[0]);
+    let w = min(n_alive, R.cap_window);
+    let kk = clamp(P.cap_samples / max(w, 1u), 1u, R.kmax);
+    atomicStore(&rc[1], w);
+    atomicStore(&rc[2], kk);
+    atomicStore(&rc[3], 0u);
+    counters[0] = w;
+}
+
+// Steps ray r may take this round.
+fn round_budget(r: u32) -> u32 {
+    let e = rstate[r].emitted;
+    return min(atomicLoad(&rc[2]), P.max_samples - min(e, P.max_samples));
+}
+
+@compute @workgroup_size(WG)
+fn round_count(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    if (i >= atomicLoad(&rc[1])) {
+        return;
+    }
+    let r = alive[i];
+    let s = setup(r);
+    var n = 0u;
+    if (s.ok) {
+        n = march_from(s, rstate[r].k, round_budget(r), 0u, false).x;
+    }
+    counts[i] = n;
+}
+
+@compute @workgroup_size(WG)
+fn round_fill(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    if (i >= atomicLoad(&rc[1])) {
+        return;
+    }
+    let r = alive[i];
+    let s = setup(r);
+    var st = rstate[r];
+    if (!s.ok) {
+        st.done = 1u;
+    } else {
+        let start = raw_offsets[i];
+        let budget = round_budget(r);
+        let got = march_from(s, st.k, budget, start, true);
+        st.k = got.y;
+        st.emitted = st.emitted + got.x;
+        if (t_at(s, st.k) >= s.t1 || st.emitted >= P.max_samples) {
+            st.done = 1u;
+        }
+    }
+    rstate[r] = st;
+}
+
+@compute @workgroup_size(WG)
+fn round_composite(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let w = atomicLoad(&rc[1]);
+    if (i >= w) {
+        return;
+    }
+    let r = alive[i];
+    var st = rstate[r];
+    var trans = st.acc.w;
+    var acc = st.acc.xyz;
+    var opacity = st.od.x;
+    var depth = st.od.y;
+    var stopped = false;
+    for (var k = raw_offsets[i]; k < raw_offsets[i + 1u]; k = k + 1u) {
+        if (R.t_threshold > 0.0 && trans < R.t_threshold) {
+            stopped = true;
+            break;
+        }
+        let em1 = exp(-f_sigma[k] * out_dt[k]) - 1.0;   // exp(−σδ) − 1 = −α
+        let wk = trans * (-em1);
+        acc = acc + wk * vec3<f32>(f_rgb[3u * k], f_rgb[3u * k + 1u], f_rgb[3u * k + 2u]);
+        opacity = opacity + wk;
+        depth = depth + wk * out_t[k];
+        trans = trans * (1.0 + em1);
+    }
+    if (R.t_threshold > 0.0 && trans < R.t_threshold) {
+        stopped = true;
+    }
+    st.acc = vec4<f32>(acc, trans);
+    st.od = vec4<f32>(opacity, depth, 0.0, 0.0);
+    if (stopped) {
+        st.done = 1u;
+    }
+    rstate[r] = st;
+    if (st.done == 0u) {
+        let n_alive = atomicLoad(&rc[0]);
+        next[(n_alive - w) + atomicAdd(&rc[3], 1u)] = r;
+    }
+}
+
+@compute @workgroup_size(WG)
+fn round_tail(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let j = linear_id(gid, nwg, WG);
+    let n_alive = atomicLoad(&rc[0]);
+    let w = atomicLoad(&rc[1]);
+    if (j >= n_alive - w) {
+        return;
+    }
+    next[j] = alive[w + j];
+}
+
+@compute @workgroup_size(1)
+fn round_end() {
+    let n_alive = atomicLoad(&rc[0]);
+    let w = atomicLoad(&rc[1]);
+    atomicStore(&rc[0], (n_alive - w) + atomicLoad(&rc[3]));
+    atomicAdd(&rc[4], counters[1]);
+}
+
+@compute @workgroup_size(WG)
+fn round_output(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let r = linear_id(gid, nwg, WG);
+    if (r >= R.n_frame) {
+        return;
+    }
+    let st = rstate[r];
+    var rgb = st.acc.xyz;
+    if (R.has_background != 0u) {
+        let bg = vec3<f32>(r_background[3u * r], r_background[3u * r + 1u], r_background[3u * r + 2u]);
+        rgb = rgb + (1.0 - st.od.x) * bg;
+    }
+    r_rgb[3u * r] = rgb.x;
+    r_rgb[3u * r + 1u] = rgb.y;
+    r_rgb[3u * r + 2u] = rgb.z;
+    r_opacity[r] = st.od.x;
+    r_depth[r] = st.od.y;
 }

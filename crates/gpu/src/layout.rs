@@ -293,3 +293,27 @@ pub(crate) struct MarchParams {
     pub(crate) jitter: u32,
     pub(crate) _pad: u32,
 }
+
+/// `RoundParams` of `shaders/march.wgsl` (rendering in rounds, 32 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct RoundParams {
+    pub(crate) n_frame: u32,
+    pub(crate) cap_window: u32,
+    pub(crate) kmax: u32,
+    pub(crate) has_background: u32,
+    pub(crate) t_threshold: f32,
+    pub(crate) _pad: [u32; 3],
+}
+
+/// `RayState` of `shaders/march.wgsl` (per-ray state of rendering in rounds, 48 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct RoundRayState {
+    pub(crate) k: u32,
+    pub(crate) emitted: u32,
+    pub(crate) done: u32,
+    pub(crate) _pad: u32,
+    pub(crate) acc: [f32; 4],
+    pub(crate) od: [f32; 4],
+}

@@ -25,7 +25,7 @@ use crate::{rng, shaders, GpuContext, GpuError};
 use nerf_data::{Background, Dataset, RayBatch};
 use nerf_rays::PixelConvention;
 pub use crate::layout::{GpuCamera};
-use crate::layout::{ImagesInfo, RayGenParams, ScanParams, MarchParams};
+use crate::layout::{ImagesInfo, MarchParams, RayGenParams, RoundParams, RoundRayState, ScanParams};
 
 /// Random stream of the view index of ray `r` (`rand_u32(seed, stream, r) % n_views`).
 pub const RAY_STREAM_VIEW: u32 = 0x5241_0001;
@@ -478,10 +478,23 @@ pub struct GpuMarcher {
     n_blocks: usize,
     counts: wgpu::Buffer,
     raw_offsets: wgpu::Buffer,
+    /// Rendering in rounds (`round_*` of march.wgsl).
+    rounds: RoundKernels,
 }
 
-/// Storage buffers the fill kernel binds at once.
-const MARCH_STORAGE_BINDINGS: u32 = 11;
+struct RoundKernels {
+    init: Kernel,
+    begin: Kernel,
+    count: Kernel,
+    fill: Kernel,
+    composite: Kernel,
+    tail: Kernel,
+    end: Kernel,
+    output: Kernel,
+}
+
+/// Storage buffers the kernels bind at once (round_fill).
+const MARCH_STORAGE_BINDINGS: u32 = 12;
 
 impl GpuMarcher {
     /// Compiles the kernels and allocates the scratch for `capacity_rays` rays and
@@ -552,6 +565,16 @@ impl GpuMarcher {
             n_blocks,
             counts: ctx.zeros("march_counts", 4 * capacity_rays),
             raw_offsets: ctx.zeros("march_raw_offsets", 4 * (capacity_rays + 1)),
+            rounds: RoundKernels {
+                init: Kernel::from_module(ctx, &module, "round_init", &[]),
+                begin: Kernel::from_module(ctx, &module, "round_begin", &[]),
+                count: Kernel::from_module(ctx, &module, "round_count", &[]),
+                fill: Kernel::from_module(ctx, &module, "round_fill", &[]),
+                composite: Kernel::from_module(ctx, &module, "round_composite", &[]),
+                tail: Kernel::from_module(ctx, &module, "round_tail", &[]),
+                end: Kernel::from_module(ctx, &module, "round_end", &[]),
+                output: Kernel::from_module(ctx, &module, "round_output", &[]),
+            },
         })
     }
 
@@ -605,8 +628,7 @@ impl GpuMarcher {
             out.capacity_rays >= self.capacity_rays && out.capacity_samples >= self.capacity_samples,
             "output buffers smaller than the marcher's capacities"
         );
-        enc.clear_buffer(&self.coarse, 0, None);
-        self.coarse_kernel.record(ctx, enc, &[(0, &self.params), (2, bitfield), (13, &self.coarse)], groups_1d(self.n_blocks, WG));
+        self.record_coarse(ctx, enc, bitfield);
         let base: [(u32, &wgpu::Buffer); 10] = [
             (0, &self.params),
             (1, counters),
@@ -627,5 +649,207 @@ impl GpuMarcher {
         b.push((7, &self.raw_offsets));
         b.push((8, &out.offsets));
         self.fill_kernel.record(ctx, enc, &b, groups_1d(self.capacity_rays + 1, WG));
+    }
+
+    fn record_coarse(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, bitfield: &wgpu::Buffer) {
+        enc.clear_buffer(&self.coarse, 0, None);
+        self.coarse_kernel.record(ctx, enc, &[(0, &self.params), (2, bitfield), (13, &self.coarse)], groups_1d(self.n_blocks, WG));
+    }
+
+    // ---- rendering in rounds ----------------------------------------------------------------
+
+    /// Buffers for rendering frames of up to `max_rays` rays in rounds of at most `cap_window`
+    /// rays (clamped to `1..=capacity_samples`: a round evaluates at most `capacity_samples`
+    /// samples, the size of the [`GpuSamples`] the rounds write).
+    pub fn round_frame(&self, ctx: &GpuContext, max_rays: usize, cap_window: usize) -> RoundFrame {
+        let max_rays = max_rays.max(1);
+        let cap_window = cap_window.clamp(1, self.capacity_samples.max(1));
+        RoundFrame {
+            max_rays,
+            cap_window,
+            n_rays: std::cell::Cell::new(0),
+            params: ctx.uniform("round params", &RoundParams::default()),
+            rc: ctx.zeros("round counters", 4 * 8),
+            state: ctx.zeros("round ray state", std::mem::size_of::<RoundRayState>() * max_rays),
+            alive: [ctx.zeros("round alive a", 4 * max_rays), ctx.zeros("round alive b", 4 * max_rays)],
+            counts: ctx.zeros("round counts", 4 * cap_window),
+            raw: ctx.zeros("round offsets", 4 * (cap_window + 1)),
+            scan: GpuScan::new(ctx, cap_window),
+        }
+    }
+
+    /// Records the start of a frame set up with [`RoundFrame::set`]: the coarse occupancy bits,
+    /// every ray alive with a fresh state.
+    pub fn record_round_start(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, frame: &RoundFrame, bitfield: &wgpu::Buffer) {
+        self.record_coarse(ctx, enc, bitfield);
+        let n = frame.n_rays.get();
+        self.rounds.init.record(
+            ctx,
+            enc,
+            &[(14, &frame.params), (15, &frame.rc), (16, &frame.state), (25, &frame.alive[0])],
+            groups_1d(n.max(1), WG),
+        );
+    }
+
+    /// Records the marching half of round `round` (0, 1, … within the frame): the window of alive
+    /// rays, each ray's next samples into `out` (positions, dirs, t, dt; the offsets stay in
+    /// the frame), `counters[COUNTER_N_SAMPLES]` = the round's samples. The caller then evaluates
+    /// the field on them (`sigma [n]`, `rgb [n][3]`) and records [`GpuMarcher::record_round_composite`].
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_round_march(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        frame: &RoundFrame,
+        round: usize,
+        counters: &wgpu::Buffer,
+        bitfield: &wgpu::Buffer,
+        origins: &wgpu::Buffer,
+        dirs: &wgpu::Buffer,
+        out: &GpuSamples,
+    ) {
+        assert!(out.capacity_samples >= self.capacity_samples, "output buffers smaller than the marcher's capacity");
+        let alive = &frame.alive[round % 2];
+        let k = &self.rounds;
+        k.begin.record(ctx, enc, &[(0, &self.params), (1, counters), (14, &frame.params), (15, &frame.rc)], [1, 1, 1]);
+        let base: [(u32, &wgpu::Buffer); 12] = [
+            (0, &self.params),
+            (2, bitfield),
+            (3, &self.coarse),
+            (4, origins),
+            (5, dirs),
+            (15, &frame.rc),
+            (16, &frame.state),
+            (17, alive),
+            (9, &out.positions),
+            (10, &out.dirs),
+            (11, &out.t),
+            (12, &out.dt),
+        ];
+        let groups = groups_1d(frame.cap_window, WG);
+        let mut b = base.to_vec();
+        b.push((6, &frame.counts));
+        k.count.record(ctx, enc, &b, groups);
+        frame.scan.record(ctx, enc, &frame.counts, &frame.raw, Some((&frame.rc, 1)), Some((counters, 1)));
+        let mut b = base.to_vec();
+        b.push((7, &frame.raw));
+        k.fill.record(ctx, enc, &b, groups);
+    }
+
+    /// Records the compositing half of round `round`: accumulates the window rays' samples
+    /// (`sigma`, `rgb` of the field on `out`) into their state and compacts the alive list.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_round_composite(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        frame: &RoundFrame,
+        round: usize,
+        counters: &wgpu::Buffer,
+        sigma: &wgpu::Buffer,
+        rgb: &wgpu::Buffer,
+        out: &GpuSamples,
+    ) {
+        let (alive, next) = (&frame.alive[round % 2], &frame.alive[(round + 1) % 2]);
+        let k = &self.rounds;
+        k.composite.record(
+            ctx,
+            enc,
+            &[
+                (14, &frame.params),
+                (15, &frame.rc),
+                (16, &frame.state),
+                (17, alive),
+                (18, next),
+                (7, &frame.raw),
+                (19, sigma),
+                (20, rgb),
+                (11, &out.t),
+                (12, &out.dt),
+            ],
+            groups_1d(frame.cap_window, WG),
+        );
+        let n = frame.n_rays.get().max(1);
+        k.tail.record(ctx, enc, &[(15, &frame.rc), (17, alive), (18, next)], groups_1d(n, WG));
+        k.end.record(ctx, enc, &[(1, counters), (15, &frame.rc)], [1, 1, 1]);
+    }
+
+    /// Records the frame's outputs from the ray states: `rgb [n][3]` (+ `(1 − opacity)·background`
+    /// when the frame has one; `background [n][3]`), `opacity [n]`, `depth [n]`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_round_output(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        frame: &RoundFrame,
+        background: &wgpu::Buffer,
+        rgb: &wgpu::Buffer,
+        opacity: &wgpu::Buffer,
+        depth: &wgpu::Buffer,
+    ) {
+        let n = frame.n_rays.get().max(1);
+        self.rounds.output.record(
+            ctx,
+            enc,
+            &[(14, &frame.params), (16, &frame.state), (21, background), (22, rgb), (23, opacity), (24, depth)],
+            groups_1d(n, WG),
+        );
+    }
+}
+
+/// Frame buffers of rendering in rounds ([`GpuMarcher::round_frame`]): per-ray state, the alive
+/// lists (ping-pong), the round counters and one round's offsets.
+pub struct RoundFrame {
+    max_rays: usize,
+    cap_window: usize,
+    n_rays: std::cell::Cell<usize>,
+    params: wgpu::Buffer,
+    /// `[alive, window, steps, appended, evaluated]` u32.
+    rc: wgpu::Buffer,
+    state: wgpu::Buffer,
+    alive: [wgpu::Buffer; 2],
+    counts: wgpu::Buffer,
+    raw: wgpu::Buffer,
+    scan: GpuScan,
+}
+
+impl RoundFrame {
+    /// Most rays of a frame.
+    pub fn max_rays(&self) -> usize {
+        self.max_rays
+    }
+
+    /// Most rays per round.
+    pub fn cap_window(&self) -> usize {
+        self.cap_window
+    }
+
+    /// Queues the frame's parameters (before the submission that records
+    /// [`GpuMarcher::record_round_start`]): `n_rays ≤ max_rays` rays; a ray stops once its
+    /// transmittance is below `t_threshold` (0: never); at most `kmax ≥ 1` steps per ray and
+    /// round; whether the output composites a background.
+    ///
+    /// # Panics
+    /// If `n_rays > max_rays` or `kmax == 0`.
+    pub fn set(&self, ctx: &GpuContext, n_rays: usize, t_threshold: f32, kmax: u32, has_background: bool) {
+        assert!(n_rays <= self.max_rays, "frame of {n_rays} rays exceeds the {} it was sized for", self.max_rays);
+        assert!(kmax >= 1, "kmax must be at least 1");
+        self.n_rays.set(n_rays);
+        let p = RoundParams {
+            n_frame: n_rays as u32,
+            cap_window: self.cap_window as u32,
+            kmax,
+            has_background: has_background as u32,
+            t_threshold,
+            _pad: [0; 3],
+        };
+        ctx.write(&self.params, 0, &[p]);
+    }
+
+    /// Reads back `(rays still alive, samples evaluated so far in this frame)` (waits for the
+    /// device).
+    pub fn status(&self, ctx: &GpuContext) -> Result<(usize, u64), GpuError> {
+        let v = ctx.read_u32(&self.rc, 5)?;
+        Ok((v[0] as usize, v[4] as u64))
     }
 }

@@ -85,9 +85,16 @@ impl Stage {
     }
 }
 
+/// Most marching steps per ray and rendering round (instant-ngp: 8 between compactions).
+const ROUND_STEPS: u32 = 8;
+/// Rendering rounds recorded per submission (the host reads the alive count in between).
+const ROUNDS_PER_SUBMISSION: usize = 8;
+
 /// Rays and image of one rendered frame.
 struct Frame {
     n: usize,
+    /// Ray states and alive lists of rendering in rounds (occupancy sampler).
+    rounds: Option<nerf_gpu::sampling::RoundFrame>,
     origins: wgpu::Buffer,
     dirs: wgpu::Buffer,
     background: wgpu::Buffer,
@@ -97,9 +104,13 @@ struct Frame {
 }
 
 impl Frame {
-    fn new(ctx: &GpuContext, n: usize) -> Self {
+    fn new(ctx: &GpuContext, n: usize, sampler: &Sampler, capacity_samples: usize) -> Self {
         Self {
             n,
+            rounds: match sampler {
+                Sampler::Occupancy(o) => Some(o.marcher.round_frame(ctx, n, capacity_samples)),
+                _ => None,
+            },
             origins: ctx.zeros("frame origins", 12 * n),
             dirs: ctx.zeros("frame dirs", 12 * n),
             background: ctx.zeros("frame background", 12 * n),
@@ -476,7 +487,7 @@ impl GpuEngine {
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn render_rays(
         &self,
-        _cfg: &TrainConfig,
+        cfg: &TrainConfig,
         origins: &[f32],
         dirs: &[f32],
         background: &[f32],
@@ -492,13 +503,75 @@ impl GpuEngine {
         // Frame-sized buffers, kept between calls (reallocated only for a larger frame).
         let mut frame = self.frame.borrow_mut();
         if frame.as_ref().is_none_or(|f| f.n < n) {
-            *frame = Some(Frame::new(ctx, n));
+            *frame = Some(Frame::new(ctx, n, &self.sampler, self.capacity_samples));
         }
-        let Frame { origins: f_o, dirs: f_d, background: f_bg, rgb: out_rgb, opacity: out_op, depth: out_depth, .. } =
+        let Frame { origins: f_o, dirs: f_d, background: f_bg, rgb: out_rgb, opacity: out_op, depth: out_depth, rounds, .. } =
             frame.as_ref().expect("allocated above");
         ctx.write(f_o, 0, origins);
         ctx.write(f_d, 0, dirs);
         ctx.write(f_bg, 0, background);
+        if let (Sampler::Occupancy(o), Some(rf)) = (&self.sampler, rounds) {
+            self.render_rounds(o, rf, n, cfg.transmittance_threshold, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth))?;
+        } else {
+            self.render_chunks(n, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth))?;
+        }
+        let got = ctx.read_words(&[(out_rgb, 3 * n), (out_op, n), (out_depth, n)]).map_err(gerr)?;
+        for (dst, src) in [(&mut rgb[..3 * n], &got[0]), (&mut opacity[..n], &got[1]), (&mut depth[..n], &got[2])] {
+            for (d, &w) in dst.iter_mut().zip(src) {
+                *d = f32::from_bits(w);
+            }
+        }
+        self.reset_batch();
+        Ok(())
+    }
+
+    /// Occupancy-grid rendering in rounds (`GpuMarcher::record_round_*`): every ray of the frame
+    /// starts alive; a round marches the next few steps of (up to a sample capacity of) alive rays,
+    /// evaluates the field there, composites into the rays' states and drops the rays whose
+    /// transmittance fell below the threshold or whose march ended. Same image as marching every
+    /// sample first, without evaluating the samples behind opaque surfaces.
+    fn render_rounds(
+        &self,
+        o: &Occupancy,
+        rf: &nerf_gpu::sampling::RoundFrame,
+        n: usize,
+        t_threshold: f32,
+        (f_o, f_d, f_bg): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+        (out_rgb, out_op, out_depth): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+    ) -> Result<(), TrainError> {
+        let ctx = &*self.ctx;
+        let st = &self.stages[0];
+        o.marcher.set_seed(ctx, 0, false);
+        rf.set(ctx, n, t_threshold, ROUND_STEPS, true);
+        let mut enc = ctx.encoder("render rounds");
+        o.marcher.record_round_start(ctx, &mut enc, rf, o.grid.bitfield());
+        let mut round = 0;
+        loop {
+            for _ in 0..ROUNDS_PER_SUBMISSION {
+                o.marcher.record_round_march(ctx, &mut enc, rf, round, &st.counters, o.grid.bitfield(), f_o, f_d, &st.packed);
+                self.fields[0].record_query(ctx, &mut enc, st.samples(), &st.sigma, &st.rgb);
+                o.marcher.record_round_composite(ctx, &mut enc, rf, round, &st.counters, &st.sigma, &st.rgb, &st.packed);
+                round += 1;
+            }
+            ctx.queue.submit([std::mem::replace(&mut enc, ctx.encoder("render rounds")).finish()]);
+            let (alive, _) = rf.status(ctx).map_err(gerr)?;
+            if alive == 0 {
+                break;
+            }
+        }
+        o.marcher.record_round_output(ctx, &mut enc, rf, f_bg, out_rgb, out_op, out_depth);
+        ctx.queue.submit([enc.finish()]);
+        Ok(())
+    }
+
+    /// Rendering in chunks of at most the ray capacity (stratified and hierarchical sampling).
+    fn render_chunks(
+        &self,
+        n: usize,
+        (f_o, f_d, f_bg): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+        (out_rgb, out_op, out_depth): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+    ) -> Result<(), TrainError> {
+        let ctx = &*self.ctx;
         let chunk = self.render_chunk.get().clamp(1, self.capacity_rays);
         let mut todo: Vec<(usize, usize)> = (0..n).step_by(chunk).map(|r0| (r0, (r0 + chunk).min(n))).collect();
         let last = self.stages.last().expect("a stage");
@@ -541,13 +614,6 @@ impl GpuEngine {
             }
             todo = again;
         }
-        let got = ctx.read_words(&[(out_rgb, 3 * n), (out_op, n), (out_depth, n)]).map_err(gerr)?;
-        for (dst, src) in [(&mut rgb[..3 * n], &got[0]), (&mut opacity[..n], &got[1]), (&mut depth[..n], &got[2])] {
-            for (d, &w) in dst.iter_mut().zip(src) {
-                *d = f32::from_bits(w);
-            }
-        }
-        self.reset_batch();
         Ok(())
     }
 
