@@ -121,7 +121,15 @@ fn training_iteration_gpu(c: &mut Criterion) {
     // Paper: 1024 rays, 64 + 128 samples (64 rays, 16 + 16 small).
     let (rays, n_coarse, n_fine) = if small() { (64, 16, 16) } else { (1024, 64, 128) };
     let freq = TrainConfig { batch_rays: rays, sampler: SamplerConfig::Hierarchical { n_coarse, n_fine }, log_every: 1, ..TrainConfig::default() };
-    for (name, config, warmup) in [("hash", hash, if small() { 20 } else { 300 }), ("freq", freq, 2)] {
+    let hash_warmup = if small() { 20 } else { 300 };
+    let mut runs = vec![("hash", hash.clone(), hash_warmup), ("freq", freq, 2)];
+    if ctx.features.cooperative_matrix && ctx.features.shader_f16 {
+        // The hash field with its fused MLPs on cooperative matrices (`gpu_mlp = "coop"`).
+        let mut coop = hash;
+        coop.field_config = serde_json::json!({ "gpu_mlp": "coop" });
+        runs.push(("hash_coop", coop, hash_warmup));
+    }
+    for (name, config, warmup) in runs {
         let mut trainer = Trainer::new_on(config, &registry, SceneBounds::of(&data), Some(ctx.clone())).unwrap();
         let mut seen = 0;
         for _ in 0..warmup {

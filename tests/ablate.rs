@@ -191,4 +191,14 @@ fn the_example_ablations_parse_and_plan() {
             assert!(p.config.time_budget_secs.is_some(), "{name}: examples use a time budget");
         }
     }
+    // The device ablations (their scene is a copy of ../shared's lego in .data/, made on demand).
+    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_coop.toml", 2)] {
+        let a = Ablation::load(&dir.join(name)).unwrap();
+        let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(plans.len(), n_runs, "{name}");
+        assert!(plans.iter().all(|p| p.config.field == "hash" && p.config.target_samples_per_step == Some(1 << 18)), "{name}");
+    }
+    let coop = Ablation::load(&dir.join("h100_coop.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    let paths: Vec<_> = coop.iter().map(|p| p.config.field_config["gpu_mlp"].as_str().unwrap().to_string()).collect();
+    assert_eq!(paths, ["plain", "coop"]);
 }

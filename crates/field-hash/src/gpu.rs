@@ -1,5 +1,6 @@
 //! The hash-grid field on a wgpu device: the same composition as the CPU [`HashNerf`] — hash
-//! encoding ([`GpuHashGrid`]), density MLP ([`FusedMlp`]), spherical harmonics
+//! encoding ([`GpuHashGrid`]), density MLP (a fully fused [`FusedNet`]: plain WGSL or cooperative
+//! matrices, [`crate::HashNerfConfig::gpu_mlp`]), spherical harmonics
 //! ([`GpuSphericalHarmonics`]), colour MLP — joined by [`FieldGlue`]. Parameters start as the CPU
 //! field's and live in three device buffers with the CPU groups' layouts.
 
@@ -8,7 +9,7 @@ use nerf_field::gpu::wgpu;
 use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
 use nerf_gpu::encoding::{GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
-use nerf_gpu::mlp::FusedMlp;
+use nerf_gpu::mlp::{fused_net, FusedMlpPath, FusedNet};
 use nerf_gpu::GpuContext;
 
 /// [`HashNerf`] on the GPU.
@@ -16,8 +17,8 @@ pub struct GpuHashNerf {
     groups: Vec<GpuParamGroup>,
     grid: GpuHashGrid,
     sh: GpuSphericalHarmonics,
-    density: FusedMlp,
-    color: FusedMlp,
+    density: Box<dyn FusedNet>,
+    color: Box<dyn FusedNet>,
     glue: FieldGlue,
     capacity: usize,
     enc: wgpu::Buffer,
@@ -43,8 +44,19 @@ impl GpuHashNerf {
         let aabb_min = field.aabb_min;
         let grid = GpuHashGrid::new(ctx, &cfg.grid, aabb_min, field.aabb_max).map_err(gpu_err)?;
         let sh = GpuSphericalHarmonics::new(ctx, field.sh.config()).map_err(gpu_err)?;
-        let density = FusedMlp::new(ctx, &field.density.config).map_err(gpu_err)?;
-        let color = FusedMlp::new(ctx, &field.color.config).map_err(gpu_err)?;
+        let path = match cfg.gpu_mlp {
+            crate::GpuMlp::Plain => FusedMlpPath::Plain,
+            crate::GpuMlp::Coop => FusedMlpPath::Coop,
+        };
+        let mlp_err = |e: nerf_gpu::GpuError| match path {
+            FusedMlpPath::Coop => FieldError::InvalidConfig {
+                field: "hash".into(),
+                message: format!("gpu_mlp = \"coop\": {e} (gpu_mlp = \"plain\" runs on every adapter)"),
+            },
+            FusedMlpPath::Plain => gpu_err(e),
+        };
+        let density = fused_net(ctx, &field.density.config, path).map_err(mlp_err)?;
+        let color = fused_net(ctx, &field.color.config, path).map_err(mlp_err)?;
         let (dd, enc_dim, sh_dim) = (field.dout_dim(), field.enc_dim(), field.sh_dim());
         let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp, capacity);
         let wd = cfg.mlp_weight_decay;

@@ -41,6 +41,20 @@ pub struct HashNerfConfig {
     pub mlp_bias: bool,
     /// L2 weight decay on the MLP weights (the hash table gets none).
     pub mlp_weight_decay: f32,
+    /// Which fully fused MLP kernels the GPU twin runs (ignored on the CPU): `plain` WGSL (every
+    /// adapter) or `coop`erative matrices (tensor cores; adapters that offer them).
+    pub gpu_mlp: GpuMlp,
+}
+
+/// The fully fused MLP kernels of the hash field's GPU twin ([`HashNerfConfig::gpu_mlp`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum GpuMlp {
+    /// Plain WGSL, f32 (`shaders/mlp_fused.wgsl`).
+    #[default]
+    Plain,
+    /// Cooperative matrices, f16 in, f32 accumulate (`shaders/mlp_fused_coop.wgsl`).
+    Coop,
 }
 
 impl Default for HashNerfConfig {
@@ -55,6 +69,7 @@ impl Default for HashNerfConfig {
             color_layers: 2,
             mlp_bias: false,
             mlp_weight_decay: 1e-6,
+            gpu_mlp: GpuMlp::Plain,
         }
     }
 }

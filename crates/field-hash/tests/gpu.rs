@@ -41,3 +41,30 @@ fn a_capacity_beyond_the_devices_binding_limit_is_a_clear_error() {
     };
     assert!(err.contains("color tape") && err.contains("MiB") && err.contains("target_samples_per_step"), "{err}");
 }
+
+#[test]
+fn the_cooperative_matrix_mlps_match_the_cpu_field_where_the_adapter_has_them() {
+    let cfg: HashNerfConfig = serde_json::from_value(serde_json::json!({
+        "gpu_mlp": "coop",
+        "grid": { "n_levels": 6, "log2_hashmap_size": 12, "base_resolution": 4, "max_resolution": 64 }
+    }))
+    .unwrap();
+    assert_eq!(cfg.gpu_mlp, nerf_field_hash::GpuMlp::Coop);
+    assert_eq!(serde_json::to_value(&cfg).unwrap()["gpu_mlp"], "coop");
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 7 };
+    let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+    if !(ctx.features.cooperative_matrix && ctx.features.shader_f16) {
+        let err = match nerf_field::RadianceField::to_gpu(&cpu, &ctx, 1024).expect("a GPU twin") {
+            Ok(_) => panic!("gpu_mlp = coop accepted on an adapter without cooperative matrices"),
+            Err(e) => e.to_string(),
+        };
+        assert!(err.contains("gpu_mlp") && err.contains("cooperative matrices") && err.contains("plain"), "{err}");
+        println!("NOTICE: {} has no cooperative matrices: only the error path was checked", ctx.describe());
+        return;
+    }
+    // f16 activations, weights and scaled gradients (see crates/gpu/tests/mlp_coop.rs): outputs
+    // within 2 % of the largest value, gradients within 5 %.
+    check_gpu_twin(&mut cpu, &ctx, aabb, 700, 3, 2e-2, 5e-2);
+}

@@ -1,7 +1,8 @@
 //! Criterion benches of the GPU kernels that dominate a training step, on the first adapter
 //! (skipped without one): hash encoding forward/backward (L16 F2 T2^19), the hash field's fused
-//! MLPs forward and forward + backward, the paper's 8×256 trunk forward + backward (plain WGSL,
-//! and cooperative matrices where the adapter has them), and Adam over the hash field's 12 M
+//! MLPs forward and forward + backward (plain WGSL, and on cooperative matrices where the adapter
+//! has them), the paper's 8×256 trunk forward + backward (plain WGSL, and cooperative matrices
+//! where the adapter has them), and Adam over the hash field's 12 M
 //! parameters. Each iteration records one launch sequence, submits it and waits, so the time is
 //! the device's. Sizes: 2^18 samples (2^12 with `NERF_BENCH_SMALL=1`, for lavapipe).
 //! `cargo bench -p nerf-gpu --bench kernels`.
@@ -11,6 +12,7 @@ use nerf_encoding::HashGridConfig;
 use nerf_gpu::encoding::GpuHashGrid;
 use nerf_gpu::linear::GpuMlp;
 use nerf_gpu::mlp::FusedMlp;
+use nerf_gpu::mlp_coop::FusedMlpCoop;
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
 use nerf_gpu::{wgpu, GpuContext};
 use nerf_mlp::{Activation, MlpConfig};
@@ -91,6 +93,31 @@ fn kernels(c: &mut Criterion) {
                 })
             })
         });
+    }
+
+    // The same nets through the cooperative-matrix fused MLP (adapters with cooperative matrices).
+    if ctx.features.cooperative_matrix {
+        for (name, cfg) in [("density_32_64_16", mlp(32, 16, 1, Activation::None)), ("color_32_64_64_3", mlp(32, 3, 2, Activation::Sigmoid))] {
+            let net = FusedMlpCoop::new(&ctx, &cfg).unwrap();
+            let p = ctx.upload("w", &random(net.n_params(), -0.1, 0.1, 4));
+            let gr = ctx.zeros("dw", 4 * net.n_params());
+            let x = ctx.upload("x", &random(n * cfg.input_dim, -1.0, 1.0, 5));
+            let y = ctx.zeros("y", 4 * n * cfg.output_dim);
+            let tape = ctx.zeros("tape", 4 * n * net.tape_floats_per_sample());
+            let dy = ctx.upload("dy", &random(n * cfg.output_dim, -1.0, 1.0, 6));
+            let dx = ctx.zeros("dx", 4 * n * cfg.input_dim);
+            g.bench_function(BenchmarkId::new(format!("fused_mlp_coop_{name}_forward"), n), |b| {
+                b.iter(|| run(&ctx, |e| net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n)))
+            });
+            g.bench_function(BenchmarkId::new(format!("fused_mlp_coop_{name}_forward_backward"), n), |b| {
+                b.iter(|| {
+                    run(&ctx, |e| {
+                        net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n);
+                        net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, Some(&dx), n);
+                    })
+                })
+            });
+        }
     }
 
     // The paper's trunk (63 → 8×256 with the skip → 257), plain and cooperative matrices.

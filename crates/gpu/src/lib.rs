@@ -13,6 +13,7 @@ pub mod kernel;
 pub mod layout;
 pub mod linear;
 pub mod mlp;
+pub mod mlp_coop;
 pub mod occupancy;
 pub mod pdf;
 pub mod optim;

@@ -356,3 +356,126 @@ impl FusedMlp {
         );
     }
 }
+
+/// Which implementation of the fully fused small MLPs a field runs on.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum FusedMlpPath {
+    /// Plain WGSL ([`FusedMlp`]): every adapter.
+    #[default]
+    Plain,
+    /// Cooperative matrices ([`crate::mlp_coop::FusedMlpCoop`], f16 in, f32 accumulate): adapters
+    /// with `EXPERIMENTAL_COOPERATIVE_MATRIX` and f16 (an error elsewhere).
+    Coop,
+}
+
+/// What a field needs of a fully fused MLP, whichever path runs it (the methods of
+/// [`FusedMlp`] and [`crate::mlp_coop::FusedMlpCoop`], which share their semantics).
+#[allow(clippy::too_many_arguments)]
+pub trait FusedNet: Send + Sync {
+    /// The configuration.
+    fn config(&self) -> &MlpConfig;
+    /// f32 words of tape per sample (the caller allocates `capacity ·` this).
+    fn tape_floats_per_sample(&self) -> usize;
+    /// Inference of `counters[1]` samples.
+    fn record_inference(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        capacity: usize,
+    );
+    /// Training forward (stores the tape).
+    fn record_forward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        tape: &wgpu::Buffer,
+        capacity: usize,
+    );
+    /// Backward of the last training forward: gradients accumulated, `d_input` written.
+    fn record_backward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        tape: &wgpu::Buffer,
+        d_output: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        d_input: Option<&wgpu::Buffer>,
+        capacity: usize,
+    );
+}
+
+macro_rules! impl_fused_net {
+    ($t:ty) => {
+        impl FusedNet for $t {
+            fn config(&self) -> &MlpConfig {
+                <$t>::config(self)
+            }
+            fn tape_floats_per_sample(&self) -> usize {
+                <$t>::tape_floats_per_sample(self)
+            }
+            fn record_inference(
+                &self,
+                ctx: &GpuContext,
+                enc: &mut wgpu::CommandEncoder,
+                counters: &wgpu::Buffer,
+                input: &wgpu::Buffer,
+                params: &wgpu::Buffer,
+                output: &wgpu::Buffer,
+                capacity: usize,
+            ) {
+                <$t>::record_inference(self, ctx, enc, counters, input, params, output, capacity)
+            }
+            fn record_forward(
+                &self,
+                ctx: &GpuContext,
+                enc: &mut wgpu::CommandEncoder,
+                counters: &wgpu::Buffer,
+                input: &wgpu::Buffer,
+                params: &wgpu::Buffer,
+                output: &wgpu::Buffer,
+                tape: &wgpu::Buffer,
+                capacity: usize,
+            ) {
+                <$t>::record_forward(self, ctx, enc, counters, input, params, output, tape, capacity)
+            }
+            fn record_backward(
+                &self,
+                ctx: &GpuContext,
+                enc: &mut wgpu::CommandEncoder,
+                counters: &wgpu::Buffer,
+                input: &wgpu::Buffer,
+                params: &wgpu::Buffer,
+                tape: &wgpu::Buffer,
+                d_output: &wgpu::Buffer,
+                grads: &wgpu::Buffer,
+                d_input: Option<&wgpu::Buffer>,
+                capacity: usize,
+            ) {
+                <$t>::record_backward(self, ctx, enc, counters, input, params, tape, d_output, grads, d_input, capacity)
+            }
+        }
+    };
+}
+
+impl_fused_net!(FusedMlp);
+impl_fused_net!(crate::mlp_coop::FusedMlpCoop);
+
+/// A fully fused MLP for `config` on `path` (a clear [`GpuError::Unsupported`] where the adapter
+/// or the config does not allow it).
+pub fn fused_net(ctx: &GpuContext, config: &MlpConfig, path: FusedMlpPath) -> Result<Box<dyn FusedNet>, GpuError> {
+    Ok(match path {
+        FusedMlpPath::Plain => Box::new(FusedMlp::new(ctx, config)?),
+        FusedMlpPath::Coop => Box::new(crate::mlp_coop::FusedMlpCoop::new(ctx, config)?),
+    })
+}

@@ -32,6 +32,8 @@ pub const MLP_FUSED: &str = wgsl!("mlp_fused.wgsl");
 pub const LINEAR: &str = wgsl!("linear.wgsl");
 /// Tiled linear layers on cooperative matrices (f16 in, f32 accumulate).
 pub const LINEAR_COOP: &str = wgsl!("linear_coop.wgsl");
+/// Fully fused small MLPs on cooperative matrices (f16 in, f32 accumulate), forward and backward.
+pub const MLP_FUSED_COOP: &str = wgsl!("mlp_fused_coop.wgsl");
 /// Training-step glue: photometric loss and adaptive batch size.
 pub const TRAIN: &str = wgsl!("train.wgsl");
 /// Glue between a field's density network, σ activation and colour network (hash and paper fields).
@@ -54,6 +56,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("mlp_fused.wgsl", MLP_FUSED),
     ("linear.wgsl", LINEAR),
     ("linear_coop.wgsl", LINEAR_COOP),
+    ("mlp_fused_coop.wgsl", MLP_FUSED_COOP),
     ("adam.wgsl", ADAM),
     ("train.wgsl", TRAIN),
     ("field_glue.wgsl", FIELD_GLUE),
