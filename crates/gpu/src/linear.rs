@@ -109,13 +109,26 @@ impl GpuMlp {
     /// `use_coop` selects the cooperative-matrix path (needs `ctx.features.cooperative_matrix`
     /// and `shader_f16`; an error otherwise).
     pub fn new(ctx: &GpuContext, config: &MlpConfig, capacity: usize, use_coop: bool) -> Result<Self, GpuError> {
-        config.validate().map_err(|e| GpuError::Unsupported(e.to_string()))?;
         if use_coop && !(ctx.features.cooperative_matrix && ctx.features.shader_f16) {
             return Err(GpuError::Unsupported(format!(
                 "cooperative-matrix MLP asked for, but the adapter {} lacks cooperative matrices or f16",
                 ctx.describe()
             )));
         }
+        let src = use_coop.then(|| shaders::with_common(shaders::LINEAR_COOP));
+        Self::build(ctx, config, capacity, src.as_deref())
+    }
+
+    /// For tests: the cooperative-matrix path compiled from `source` (a copy of
+    /// `linear_coop.wgsl` with the same entry points and bindings, e.g. with its cooperative-matrix
+    /// operations emulated in plain WGSL) and without the feature check.
+    #[doc(hidden)]
+    pub fn with_coop_source(ctx: &GpuContext, config: &MlpConfig, capacity: usize, source: &str) -> Result<Self, GpuError> {
+        Self::build(ctx, config, capacity, Some(source))
+    }
+
+    fn build(ctx: &GpuContext, config: &MlpConfig, capacity: usize, coop_source: Option<&str>) -> Result<Self, GpuError> {
+        config.validate().map_err(|e| GpuError::Unsupported(e.to_string()))?;
         let mut layers = Vec::with_capacity(config.hidden_layers + 1);
         let (mut off, mut prev, mut tape_off) = (0usize, config.input_dim, 0usize);
         for i in 0..=config.hidden_layers {
@@ -156,8 +169,8 @@ impl GpuMlp {
             coop: None,
             dummy: ctx.zeros("linear dummy", 4),
         };
-        if use_coop {
-            me.coop = Some(coop::Coop::new(ctx, &me)?);
+        if let Some(src) = coop_source {
+            me.coop = Some(coop::Coop::new(ctx, &me, src)?);
         } else {
             me.plain = Some(me.build_plain(ctx));
         }
@@ -534,11 +547,10 @@ mod coop {
     }
 
     impl Coop {
-        pub(super) fn new(ctx: &GpuContext, m: &GpuMlp) -> Result<Self, GpuError> {
-            let src = shaders::with_common(shaders::LINEAR_COOP);
+        pub(super) fn new(ctx: &GpuContext, m: &GpuMlp, src: &str) -> Result<Self, GpuError> {
             let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some("linear_coop.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(src.into()),
+                source: wgpu::ShaderSource::Wgsl(src.to_string().into()),
             });
             let k = |e: &str| Kernel::from_module(ctx, &module, e, &[]);
             let cfg = &m.config;

@@ -76,7 +76,22 @@ fn check(what: &str, gpu: &[f32], cpu: &[f32], tol: f32) {
 /// Runs every config at several n (incl. 0, 1 and sizes that are not multiples of the tiles)
 /// through forward, inference and backward, against the CPU twin.
 fn compare(ctx: &GpuContext, use_coop: bool, tol_fwd: f32, tol_bwd: f32) {
-    for (ci, mut cfg) in configs().into_iter().enumerate() {
+    compare_with(ctx, configs(), &[0, 1, 77, 300], use_coop, tol_fwd, tol_bwd, &|cfg, capacity| {
+        GpuMlp::new(ctx, cfg, capacity, use_coop).unwrap()
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn compare_with(
+    ctx: &GpuContext,
+    configs: Vec<MlpConfig>,
+    sizes: &[usize],
+    use_coop: bool,
+    tol_fwd: f32,
+    tol_bwd: f32,
+    make: &dyn Fn(&MlpConfig, usize) -> GpuMlp,
+) {
+    for (ci, mut cfg) in configs.into_iter().enumerate() {
         if use_coop && cfg.hidden_activation == Activation::Relu {
             // f16 forward values flip the sign of pre-activations near 0 relative to the CPU, and
             // a flipped ReLU mask changes a whole gradient term: compare with a smooth activation.
@@ -85,10 +100,10 @@ fn compare(ctx: &GpuContext, use_coop: bool, tol_fwd: f32, tol_bwd: f32) {
         let capacity = 300;
         let mut rng = nerf_core::rng(40 + ci as u64, 0);
         let mut mlp = Mlp::<f32>::new(cfg.clone(), &mut rng);
-        let g = GpuMlp::new(ctx, &cfg, capacity, use_coop).unwrap();
+        let g = make(&cfg, capacity);
         assert_eq!(g.n_params(), mlp.n_params());
         assert_eq!(g.tape_floats_per_sample(), cfg.hidden_layers * cfg.hidden_dim + cfg.output_dim);
-        for (si, n) in [0usize, 1, 77, 300].into_iter().enumerate() {
+        for (si, &n) in sizes.iter().enumerate() {
             let mut r = nerf_core::rng(1000 + 10 * ci as u64 + si as u64, 1);
             let input: Vec<f32> = (0..n * cfg.input_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
             let d_out: Vec<f32> = (0..n * cfg.output_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
@@ -166,4 +181,26 @@ fn gradients_accumulate_over_two_backward_passes() {
     for (i, (a, b)) in once.iter().zip(&twice).enumerate() {
         assert!((2.0 * a - b).abs() <= 1e-5 * (1.0 + a.abs()), "grad {i}: once {a}, twice {b}");
     }
+}
+
+#[path = "common/coop_emu.rs"]
+mod coop_emu;
+
+/// `linear_coop.wgsl` — checked on an H100 (docs/gpu.md) — with its cooperative-matrix operations
+/// emulated in plain WGSL, against the CPU twin: this pins the emulation's semantics (load/store
+/// layouts, multiply-add) to those the hardware showed, which `tests/mlp_coop.rs` relies on to run
+/// the fused cooperative-matrix kernels here.
+#[test]
+fn emulated_coop_mlp_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    if !ctx.features.shader_f16 {
+        eprintln!("NOTICE: adapter {} has no SHADER_F16; the emulated kernels cannot run", ctx.describe());
+        return;
+    }
+    let src = coop_emu::emulate(&shaders::with_common(shaders::LINEAR_COOP));
+    // The same f16 tolerances as the hardware comparison (coop_mlp_matches_its_cpu_twin). One
+    // config (input and hidden blocks, a skip, biases: every kernel and operand layout) and two
+    // sizes: lavapipe compiles and runs the emulation slowly.
+    let cfgs = vec![configs().swap_remove(1)];
+    compare_with(&ctx, cfgs, &[1, 77], true, 1e-2, 5e-2, &|cfg, capacity| GpuMlp::with_coop_source(&ctx, cfg, capacity, &src).unwrap());
 }

@@ -181,79 +181,11 @@ fn uniform_layout_and_plan_match_the_shader_and_the_cpu_twin() {
 /// accumulation). Only lane 0 of the workgroup (= subgroup) computes and stores; the other lanes
 /// carry zeros. Relies on the shader naming every coop pointer index and stride with a plain
 /// identifier (the "runtime zero" lets).
+#[path = "common/coop_emu.rs"]
+mod coop_emu;
+
 fn emulated_source() -> String {
-    // Without comments (they name the coop ops too).
-    let src: String = mlp_coop::source()
-        .lines()
-        .map(|l| format!("{}\n", l.split("//").next().unwrap_or("")))
-        .collect();
-    let src = src.replace("enable wgpu_cooperative_matrix;\n", "");
-    assert!(!src.contains("wgpu_cooperative_matrix"));
-    let src = src.replace("coop_mat16x16<f32, C>()", "array<f32, 256>()").replace("coopMultiplyAdd(", "emu_mma(");
-    // Each entry point with coop ops starts with `let n = load_n(lid);`: record the lane.
-    let src = src.replace("let n = load_n(lid);", "emu_lane = lid;\n    let n = load_n(lid);");
-    let mut out = String::new();
-    let mut funcs = std::collections::BTreeMap::new();
-    let mut rest = src.as_str();
-    // Loads: coopLoad[T]<coop_mat16x16<f16, R>>(&ARRAY[INDEX], STRIDE)
-    while let Some(at) = rest.find("coopLoad") {
-        out.push_str(&rest[..at]);
-        let tail = &rest[at..];
-        let row_major = tail.starts_with("coopLoadT<");
-        let args_at = tail.find(">>(").expect("coop load type arguments") + 3;
-        let close = args_at + tail[args_at..].find(')').expect("coop load arguments");
-        let args = &tail[args_at..close];
-        let (ptr, stride) = args.split_once(", ").expect("coop load: two arguments");
-        let ptr = ptr.strip_prefix('&').expect("coop load: a pointer");
-        let (array, index) = ptr.trim_end_matches(']').split_once('[').expect("coop load: &array[index]");
-        let name = format!("emu_load_{}_{array}", if row_major { "rm" } else { "cm" });
-        let elem = if row_major { "i + r * st + c" } else { "i + c * st + r" };
-        funcs.entry(name.clone()).or_insert(format!(
-            "fn {name}(i: u32, st: u32) -> array<f32, 256> {{\n    var m = array<f32, 256>();\n    if emu_lane != 0u {{ return m; }}\n    \
-             for (var r = 0u; r < 16u; r++) {{\n        for (var c = 0u; c < 16u; c++) {{\n            \
-             m[r * 16u + c] = f32({array}[{elem}]);\n        }}\n    }}\n    return m;\n}}\n"
-        ));
-        out.push_str(&format!("{name}({index}, {stride})"));
-        rest = &tail[close + 1..];
-    }
-    out.push_str(rest);
-    // Stores: coopStoreT(MATRIX, &ARRAY[INDEX], STRIDE);
-    let src = out;
-    let mut out = String::new();
-    let mut rest = src.as_str();
-    while let Some(at) = rest.find("coopStoreT(") {
-        out.push_str(&rest[..at]);
-        let tail = &rest[at + "coopStoreT(".len()..];
-        let close = tail.find(')').expect("coop store arguments");
-        let parts: Vec<&str> = tail[..close].split(", ").collect();
-        assert_eq!(parts.len(), 3, "coop store: {}", &tail[..close]);
-        let ptr = parts[1].strip_prefix('&').expect("coop store: a pointer");
-        let (array, index) = ptr.trim_end_matches(']').split_once('[').expect("coop store: &array[index]");
-        let name = format!("emu_store_{array}");
-        funcs.entry(name.clone()).or_insert(format!(
-            "fn {name}(m_in: array<f32, 256>, i: u32, st: u32) {{\n    if emu_lane != 0u {{ return; }}\n    var m = m_in;\n    \
-             for (var r = 0u; r < 16u; r++) {{\n        for (var c = 0u; c < 16u; c++) {{\n            \
-             {array}[i + r * st + c] = m[r * 16u + c];\n        }}\n    }}\n}}\n"
-        ));
-        out.push_str(&format!("{name}({}, {index}, {})", parts[0], parts[2]));
-        rest = &tail[close + 1..];
-    }
-    out.push_str(rest);
-    for op in ["coopLoad", "coopStore", "coopMultiplyAdd", "coop_mat"] {
-        assert!(!out.contains(op), "an unemulated {op} is left");
-    }
-    out.push_str(
-        "\nvar<private> emu_lane: u32;\n\
-         fn emu_mma(a_in: array<f32, 256>, b_in: array<f32, 256>, c_in: array<f32, 256>) -> array<f32, 256> {\n\
-         \x20   var d = c_in;\n    if emu_lane != 0u { return d; }\n    var a = a_in;\n    var b = b_in;\n\
-         \x20   for (var r = 0u; r < 16u; r++) {\n        for (var c = 0u; c < 16u; c++) {\n\
-         \x20           var s = d[r * 16u + c];\n            for (var k = 0u; k < 16u; k++) { s += a[r * 16u + k] * b[k * 16u + c]; }\n\
-         \x20           d[r * 16u + c] = s;\n        }\n    }\n    return d;\n}\n",
-    );
-    for f in funcs.values() {
-        out.push_str(f);
-    }
-    out
+    coop_emu::emulate(&mlp_coop::source())
 }
 
 #[test]
