@@ -474,7 +474,7 @@ impl GpuMlp {
 mod coop {
     use super::{act_code, GpuMlp, FLAG_BIAS, FLAG_DINPUT, FLAG_OUT, FLAG_WORK, WG};
     use crate::kernel::{groups_1d, Kernel};
-    use crate::{shaders, GpuContext, GpuError};
+    use crate::{GpuContext, GpuError};
 
     /// Writes the f16 copy of the hidden activations.
     const FLAG_H16: u32 = 16;
