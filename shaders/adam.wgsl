@@ -8,6 +8,13 @@
 // groups sorted by offset with `start` = Σ of the lengths of the groups before (the launch index
 // space is the concatenation of the groups, so holes between groups are never touched).
 // One invocation per parameter, workgroups of WG; memory bound (4 reads, 4 writes per element).
+//
+// Entry `adam_step_ema` also folds the updated parameter into its exponential moving average
+// (tiny-cuda-nn's Ema; CPU twin: nerf_optim::Ema::update / ema_update):
+//   ema = ema_old·ema + ema_new·p_new   (ema = ema_new·p_new when ema_old == 0: the first update
+// never reads the previous values), with ema_old = d·(1−d^(t−1))/(1−d^t), ema_new = (1−d)/(1−d^t)
+// computed on the host in f64 (nerf_optim::Ema::coefficients). `ema` has the parameter layout;
+// one more read and write per element, no extra pass.
 
 struct AdamParams {
     total: u32,        // Σ group lengths (launch size)
@@ -19,9 +26,9 @@ struct AdamParams {
     eps: f32,
     step_size: f32,    // lr / (1 − β1^t)
     inv_sqrt_bc2: f32, // 1 / sqrt(1 − β2^t)
+    ema_old: f32,      // EMA weight of the previous average (adam_step_ema only)
+    ema_new: f32,      // EMA weight of the new parameter (adam_step_ema only)
     _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
 }
 
 struct Group {
@@ -44,12 +51,17 @@ override WG: u32 = 256u;
 @group(0) @binding(4) var<storage, read_write> m1: array<f32>;
 @group(0) @binding(5) var<storage, read_write> m2: array<f32>;
 
-@compute @workgroup_size(WG)
-fn adam_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let i = linear_id(gid, nwg, WG);
-    if (i >= prm.total) {
-        return;
-    }
+@group(0) @binding(6) var<storage, read_write> ema: array<f32>;
+
+/// Index of parameter of launch index `i` (the group holding `i`, then the offset inside it);
+/// `wd` and `lr_scale` of that group.
+struct Slot {
+    k: u32,
+    wd: f32,
+    lr_scale: f32,
+}
+
+fn slot(i: u32) -> Slot {
     // Few groups (a handful per field): a linear scan is cheaper than anything clever.
     var g = 0u;
     loop {
@@ -59,13 +71,44 @@ fn adam_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgro
         g += 1u;
     }
     let grp = groups[g];
-    let k = grp.offset + (i - grp.start);
+    return Slot(grp.offset + (i - grp.start), grp.weight_decay, grp.lr_scale);
+}
+
+/// The Adam update of parameter `k`; returns the new parameter.
+fn adam_update(s: Slot) -> f32 {
+    let k = s.k;
     let p = params[k];
-    let gi = grads[k] + grp.weight_decay * p;
+    let gi = grads[k] + s.wd * p;
     let mi = prm.beta1 * m1[k] + prm.one_minus_beta1 * gi;
     let vi = prm.beta2 * m2[k] + prm.one_minus_beta2 * gi * gi;
     m1[k] = mi;
     m2[k] = vi;
-    params[k] = p - (prm.step_size * grp.lr_scale) * mi / (sqrt(vi) * prm.inv_sqrt_bc2 + prm.eps);
+    let p_new = p - (prm.step_size * s.lr_scale) * mi / (sqrt(vi) * prm.inv_sqrt_bc2 + prm.eps);
+    params[k] = p_new;
     grads[k] = 0.0;
+    return p_new;
+}
+
+@compute @workgroup_size(WG)
+fn adam_step(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    if (i >= prm.total) {
+        return;
+    }
+    adam_update(slot(i));
+}
+
+@compute @workgroup_size(WG)
+fn adam_step_ema(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    if (i >= prm.total) {
+        return;
+    }
+    let s = slot(i);
+    let p_new = adam_update(s);
+    var e = prm.ema_new * p_new;
+    if (prm.ema_old != 0.0) {
+        e = prm.ema_old * ema[s.k] + e;
+    }
+    ema[s.k] = e;
 }

@@ -195,7 +195,11 @@ pub(crate) struct AdamParams {
     pub(crate) eps: f32,
     pub(crate) step_size: f32,
     pub(crate) inv_sqrt_bc2: f32,
-    pub(crate) _pad: [u32; 3],
+    /// EMA weight of the previous average (`adam_step_ema`).
+    pub(crate) ema_old: f32,
+    /// EMA weight of the new parameter (`adam_step_ema`).
+    pub(crate) ema_new: f32,
+    pub(crate) _pad: u32,
 }
 
 // ---- optim.rs ----

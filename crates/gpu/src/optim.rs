@@ -12,7 +12,7 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
-use nerf_optim::{AdamConfig, AdamState};
+use nerf_optim::{AdamConfig, AdamState, Ema, EmaState};
 use std::sync::atomic::{AtomicU64, Ordering};
 use crate::layout::{AdamParams, GroupDesc};
 
@@ -53,6 +53,14 @@ pub struct GpuAdam {
     group_buf: wgpu::Buffer,
     uniform: wgpu::Buffer,
     kernel: Kernel,
+    ema: Option<GpuEma>,
+}
+
+/// The EMA of a [`GpuAdam`]: decay, update count, values (parameter layout).
+struct GpuEma {
+    decay: f32,
+    step: AtomicU64,
+    values: wgpu::Buffer,
 }
 
 impl GpuAdam {
@@ -61,6 +69,23 @@ impl GpuAdam {
     /// Errors on overlapping groups, non-finite weight decay or learning-rate scale, or a buffer
     /// larger than `u32` indices allow.
     pub fn new(ctx: &GpuContext, cfg: &AdamConfig, groups: &[GpuParamGroup]) -> Result<Self, GpuError> {
+        Self::with_ema(ctx, cfg, groups, None)
+    }
+
+    /// As [`GpuAdam::new`], and with `ema_decay` every step also updates the exponential moving
+    /// average of the parameters (see the module docs), which starts empty (update count 0; the
+    /// first update copies the parameters). Errors when the decay is not in (0, 1).
+    pub fn with_ema(
+        ctx: &GpuContext,
+        cfg: &AdamConfig,
+        groups: &[GpuParamGroup],
+        ema_decay: Option<f32>,
+    ) -> Result<Self, GpuError> {
+        if let Some(d) = ema_decay {
+            if !(d > 0.0 && d < 1.0) {
+                return Err(GpuError::Unsupported(format!("Adam: EMA decay must lie in (0, 1), got {d}")));
+            }
+        }
         let mut order: Vec<usize> = (0..groups.len()).filter(|&i| groups[i].len > 0).collect();
         order.sort_by_key(|&i| groups[i].offset);
         for w in order.windows(2) {
@@ -114,7 +139,8 @@ impl GpuAdam {
             eps: cfg.eps,
             ..Default::default()
         };
-        let kernel = Kernel::new(ctx, &shaders::with_common(shaders::ADAM), "adam_step", &[("WG", WG as f64)]);
+        let entry = if ema_decay.is_some() { "adam_step_ema" } else { "adam_step" };
+        let kernel = Kernel::new(ctx, &shaders::with_common(shaders::ADAM), entry, &[("WG", WG as f64)]);
         Ok(Self {
             cfg: cfg.clone(),
             groups: groups.to_vec(),
@@ -126,6 +152,7 @@ impl GpuAdam {
             group_buf: ctx.upload("adam.groups", &descs),
             uniform: ctx.uniform("adam.params", &params),
             kernel,
+            ema: ema_decay.map(|decay| GpuEma { decay, step: AtomicU64::new(0), values: ctx.zeros("adam.ema", 4 * extent) }),
         })
     }
 
@@ -165,17 +192,83 @@ impl GpuAdam {
         let bc2 = 1.0 - (self.cfg.beta2 as f64).powf(t);
         let step_size = (lr as f64 / bc1) as f32;
         let inv_sqrt_bc2 = (1.0 / bc2.sqrt()) as f32;
-        // `step_size` and `inv_sqrt_bc2` are the 8th and 9th words of AdamParams.
-        ctx.write(&self.uniform, 7 * 4, &[step_size, inv_sqrt_bc2]);
+        // `step_size`, `inv_sqrt_bc2`, `ema_old`, `ema_new`: words 7..11 of AdamParams.
+        let (ema_old, ema_new) = match &self.ema {
+            Some(e) => Ema::coefficients(e.decay, e.step.fetch_add(1, Ordering::Relaxed) + 1),
+            None => (0.0, 0.0),
+        };
+        ctx.write(&self.uniform, 7 * 4, &[step_size, inv_sqrt_bc2, ema_old, ema_new]);
         if self.total == 0 {
             return;
         }
-        self.kernel.record(
-            ctx,
-            enc,
-            &[(0, &self.uniform), (1, &self.group_buf), (2, params), (3, grads), (4, &self.m), (5, &self.v)],
-            groups_1d(self.total, WG),
-        );
+        let mut bindings = vec![(0, &self.uniform), (1, &self.group_buf), (2, params), (3, grads), (4, &self.m), (5, &self.v)];
+        if let Some(e) = &self.ema {
+            bindings.push((6, &e.values));
+        }
+        self.kernel.record(ctx, enc, &bindings, groups_1d(self.total, WG));
+    }
+
+    /// The EMA decay, when the optimiser keeps an average.
+    pub fn ema_decay(&self) -> Option<f32> {
+        self.ema.as_ref().map(|e| e.decay)
+    }
+
+    /// EMA updates recorded so far (or loaded); 0 without an EMA or before the first step.
+    pub fn ema_step_count(&self) -> u64 {
+        self.ema.as_ref().map_or(0, |e| e.step.load(Ordering::Relaxed))
+    }
+
+    /// The EMA values (`extent` f32, parameter layout), when the optimiser keeps an average.
+    /// Meaningful once [`GpuAdam::ema_step_count`] is positive.
+    pub fn ema_buffer(&self) -> Option<&wgpu::Buffer> {
+        self.ema.as_ref().map(|e| &e.values)
+    }
+
+    /// Reads the EMA back into an [`EmaState`] (one entry per group, in the order given to
+    /// [`GpuAdam::new`]; no groups before the first update), `None` without an EMA. Waits for the
+    /// queue.
+    pub fn ema_state(&self, ctx: &GpuContext) -> Result<Option<EmaState>, GpuError> {
+        let Some(e) = &self.ema else { return Ok(None) };
+        let step = e.step.load(Ordering::Relaxed);
+        if step == 0 {
+            return Ok(Some(EmaState { step, groups: Vec::new() }));
+        }
+        let values = ctx.read_f32(&e.values, self.extent)?;
+        Ok(Some(EmaState {
+            step,
+            groups: self.groups.iter().map(|g| (g.name.clone(), values[g.offset..g.offset + g.len].to_vec())).collect(),
+        }))
+    }
+
+    /// Loads an EMA (from [`GpuAdam::ema_state`] or [`nerf_optim::Ema::state`]): the update count
+    /// and every group's values. Fails, leaving the optimiser unchanged, without an EMA, when the
+    /// state has updates but lacks a group (or its length differs), or holds a non-finite value.
+    pub fn load_ema_state(&self, ctx: &GpuContext, s: &EmaState) -> Result<(), GpuError> {
+        let Some(e) = &self.ema else {
+            return Err(GpuError::Unsupported("Adam: loading an EMA into an optimiser without one".into()));
+        };
+        let mut values = vec![0.0f32; self.extent];
+        if s.step > 0 {
+            for g in &self.groups {
+                let Some((_, v)) = s.groups.iter().find(|(n, _)| *n == g.name) else {
+                    return Err(GpuError::Unsupported(format!("EMA state: group {:?} is missing", g.name)));
+                };
+                if v.len() != g.len || v.iter().any(|x| !x.is_finite()) {
+                    return Err(GpuError::Unsupported(format!(
+                        "EMA state: group {:?} has {} values (expected {}) or non-finite ones",
+                        g.name,
+                        v.len(),
+                        g.len
+                    )));
+                }
+                values[g.offset..g.offset + g.len].copy_from_slice(v);
+            }
+        }
+        if self.extent > 0 {
+            ctx.write(&e.values, 0, &values);
+        }
+        e.step.store(s.step, Ordering::Relaxed);
+        Ok(())
     }
 
     /// Reads the moments back into an [`AdamState`] (one entry per group, in the order given to

@@ -3,7 +3,7 @@
 
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
 use nerf_gpu::GpuContext;
-use nerf_optim::{Adam, AdamConfig, ParamGroupMut};
+use nerf_optim::{Adam, AdamConfig, Ema, ParamGroupMut};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
@@ -28,16 +28,25 @@ fn layout(sizes: &[usize], wds: &[f32]) -> (Vec<GpuParamGroup>, usize) {
     (groups, off)
 }
 
-fn run_case(ctx: &GpuContext, seed: u64, cfg: AdamConfig, sizes: &[usize], wds: &[f32], steps: usize) {
+/// `steps` steps of `GpuAdam` (with an EMA of decay `ema` when given) against `Adam` (+ `Ema`).
+#[allow(clippy::too_many_arguments)]
+fn run_case(ctx: &GpuContext, seed: u64, cfg: AdamConfig, sizes: &[usize], wds: &[f32], steps: usize, ema: Option<f32>) {
     let mut rng = nerf_core::rng(seed, 0);
     let (groups, extent) = layout(sizes, wds);
-    let adam = GpuAdam::new(ctx, &cfg, &groups).unwrap();
+    let adam = GpuAdam::with_ema(ctx, &cfg, &groups, ema).unwrap();
+    assert_eq!(adam.ema_decay(), ema);
+    assert_eq!(adam.ema_buffer().is_some(), ema.is_some());
     assert_eq!(adam.extent(), extent - 5);
     let extent = adam.extent();
     let mut p: Vec<f32> = (0..extent).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
     let p_buf = ctx.upload("params", &p);
     let g_buf = ctx.zeros("grads", 4 * extent);
     let mut cpu = Adam::new(cfg);
+    let mut cpu_ema = ema.map(Ema::new);
+    // Poisoned: the first update must not read the previous values (ema = p exactly).
+    if let Some(buf) = adam.ema_buffer() {
+        ctx.write(buf, 0, &vec![f32::NAN; extent]);
+    }
     for step in 0..steps {
         // Random gradients, some tiny, some large, some exactly zero.
         let g: Vec<f32> = (0..extent)
@@ -71,8 +80,27 @@ fn run_case(ctx: &GpuContext, seed: u64, cfg: AdamConfig, sizes: &[usize], wds: 
             pos = grp.offset + grp.len;
         }
         cpu.step(&mut cpu_groups, lr);
+        if let Some(e) = cpu_ema.as_mut() {
+            e.update(&cpu_groups);
+        }
         drop(cpu_groups);
         let p_gpu = ctx.read_f32(&p_buf, extent).unwrap();
+        if let (Some(buf), Some(e)) = (adam.ema_buffer(), &cpu_ema) {
+            let got = ctx.read_f32(buf, extent).unwrap();
+            for grp in &groups {
+                let got = &got[grp.offset..grp.offset + grp.len];
+                if step == 0 {
+                    assert_eq!(got, &p_gpu[grp.offset..grp.offset + grp.len], "first EMA of {} is not p", grp.name);
+                }
+                // The parameters' own error (≤ 1e-5 relative, below) plus FMA contraction of the
+                // two-term average; relative to max(|·|, 1e-3) as for the parameters.
+                let err = max_rel(got, e.values(&grp.name).unwrap());
+                assert!(err < 2e-5, "seed {seed} step {step}: EMA of {} rel. error {err}", grp.name);
+            }
+            // Outside every group: never written (still the poison).
+            assert!(got[..3].iter().all(|x| x.is_nan()));
+            assert_eq!(adam.ema_step_count(), step as u64 + 1);
+        }
         // Same f32 formula; only FMA contraction and the device's sqrt and division differ
         // (Vulkan allows 2.5 ulp for division and sqrt; the H100 measured 2.0e-6 relative after
         // one step), compounded over a few steps.
@@ -103,9 +131,83 @@ fn run_case(ctx: &GpuContext, seed: u64, cfg: AdamConfig, sizes: &[usize], wds: 
 #[test]
 fn adam_matches_the_cpu_over_several_steps_with_weight_decay_groups() {
     let Some(ctx) = context() else { return };
-    run_case(&ctx, 1, AdamConfig::default(), &[1000, 37, 4096], &[0.0, 1e-2, 1e-6], 5);
-    run_case(&ctx, 2, AdamConfig::instant_ngp(), &[70_000, 1], &[0.0, 0.1], 4);
-    run_case(&ctx, 3, AdamConfig { beta1: 0.5, beta2: 0.9, eps: 1e-3 }, &[513, 0, 300], &[1e-3, 0.0, 0.0], 3);
+    run_case(&ctx, 1, AdamConfig::default(), &[1000, 37, 4096], &[0.0, 1e-2, 1e-6], 5, None);
+    run_case(&ctx, 2, AdamConfig::instant_ngp(), &[70_000, 1], &[0.0, 0.1], 4, None);
+    run_case(&ctx, 3, AdamConfig { beta1: 0.5, beta2: 0.9, eps: 1e-3 }, &[513, 0, 300], &[1e-3, 0.0, 0.0], 3, None);
+}
+
+#[test]
+fn adam_with_ema_matches_the_cpu_adam_and_ema() {
+    let Some(ctx) = context() else { return };
+    run_case(&ctx, 11, AdamConfig::instant_ngp(), &[1000, 37, 4096], &[0.0, 1e-2, 1e-6], 6, Some(0.95));
+    run_case(&ctx, 12, AdamConfig::instant_ngp(), &[70_000, 1], &[0.0, 0.1], 4, Some(0.5));
+    run_case(&ctx, 13, AdamConfig::default(), &[513, 0, 300], &[1e-3, 0.0, 0.0], 5, Some(0.99));
+}
+
+#[test]
+fn ema_state_round_trips_and_bad_ema_states_are_rejected() {
+    let Some(ctx) = context() else { return };
+    let mut rng = nerf_core::rng(21, 0);
+    let cfg = AdamConfig::instant_ngp();
+    let groups = vec![GpuParamGroup::new("a", 0, 100, 0.0), GpuParamGroup::new("b", 100, 30, 0.0)];
+    let adam = GpuAdam::with_ema(&ctx, &cfg, &groups, Some(0.9)).unwrap();
+    assert_eq!(adam.ema_state(&ctx).unwrap().unwrap().step, 0);
+    let p: Vec<f32> = (0..130).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+    let p_buf = ctx.upload("p", &p);
+    let g_buf = ctx.zeros("g", 4 * 130);
+    for _ in 0..3 {
+        let g: Vec<f32> = (0..130).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+        ctx.write(&g_buf, 0, &g);
+        let mut enc = ctx.encoder("adam");
+        adam.record_step(&ctx, &mut enc, &p_buf, &g_buf, 1e-2);
+        ctx.queue.submit([enc.finish()]);
+    }
+    let s = adam.ema_state(&ctx).unwrap().unwrap();
+    assert_eq!(s.step, 3);
+    assert_eq!(s.groups.iter().map(|(n, v)| (n.as_str(), v.len())).collect::<Vec<_>>(), [("a", 100), ("b", 30)]);
+    // Three steps of size ~1e-2 from p: the average moved, and lags the parameters.
+    let p_now = ctx.read_f32(&p_buf, 130).unwrap();
+    let all: Vec<f32> = s.groups.iter().flat_map(|(_, v)| v.clone()).collect();
+    assert!(all.iter().zip(&p_now).any(|(e, x)| e != x));
+    // Into a fresh optimiser: the same values come back; the next step continues from them.
+    let other = GpuAdam::with_ema(&ctx, &cfg, &groups, Some(0.9)).unwrap();
+    other.load_ema_state(&ctx, &s).unwrap();
+    assert_eq!(other.ema_state(&ctx).unwrap().unwrap(), s);
+    let mut cpu = Ema::new(0.9);
+    cpu.load_state(s.clone()).unwrap();
+    let p2 = ctx.upload("p2", &p_now);
+    let g2 = ctx.zeros("g2", 4 * 130); // zero gradient: Adam leaves p (almost: m ≠ 0) — compare to the device p
+    let mut enc = ctx.encoder("adam");
+    other.record_step(&ctx, &mut enc, &p2, &g2, 1e-2);
+    ctx.queue.submit([enc.finish()]);
+    let mut p_after = ctx.read_f32(&p2, 130).unwrap();
+    let mut gz = vec![0.0f32; 130];
+    {
+        let (pa, pb) = p_after.split_at_mut(100);
+        let (ga, gb) = gz.split_at_mut(100);
+        cpu.update(&[
+            ParamGroupMut { name: "a", params: pa, grads: ga, weight_decay: 0.0 },
+            ParamGroupMut { name: "b", params: pb, grads: gb, weight_decay: 0.0 },
+        ]);
+    }
+    let got = other.ema_state(&ctx).unwrap().unwrap();
+    assert_eq!(got.step, 4);
+    for (name, v) in &got.groups {
+        let e = max_rel(v, cpu.values(name).unwrap());
+        assert!(e < 1e-6, "{name}: rel. error {e}");
+    }
+    // Bad states: a missing group, a wrong length, a NaN; an optimiser without an EMA.
+    let missing = nerf_optim::EmaState { step: 2, groups: vec![("a".into(), vec![0.0; 100])] };
+    assert!(other.load_ema_state(&ctx, &missing).unwrap_err().to_string().contains("\"b\""));
+    let short = nerf_optim::EmaState { step: 2, groups: vec![("a".into(), vec![0.0; 99]), ("b".into(), vec![0.0; 30])] };
+    assert!(other.load_ema_state(&ctx, &short).is_err());
+    let nan = nerf_optim::EmaState { step: 2, groups: vec![("a".into(), vec![f32::NAN; 100]), ("b".into(), vec![0.0; 30])] };
+    assert!(other.load_ema_state(&ctx, &nan).is_err());
+    assert_eq!(other.ema_step_count(), 4);
+    let plain = GpuAdam::new(&ctx, &cfg, &groups).unwrap();
+    assert!(plain.load_ema_state(&ctx, &s).is_err());
+    assert_eq!(plain.ema_state(&ctx).unwrap(), None);
+    assert!(GpuAdam::with_ema(&ctx, &cfg, &groups, Some(1.0)).is_err());
 }
 
 #[test]

@@ -4,6 +4,8 @@
 //! with their gradients, a name and an L2 weight decay). [`Adam`] keeps its moment estimates per
 //! group, keyed by the group's name and length, creates them on first use, and can export and import
 //! them ([`AdamState`]) for checkpoints. [`LrSchedule`] gives the learning rate of each step.
+//! [`Ema`] keeps an exponential moving average of the parameters (tiny-cuda-nn's `Ema` optimiser
+//! wrapper, which instant-ngp renders with), updated after every optimiser step.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -216,6 +218,142 @@ impl Adam {
             .into_iter()
             .map(|(name, m, v)| GroupState { name, m, v })
             .collect();
+        Ok(())
+    }
+}
+
+/// Exponential moving average of parameter groups, debiased as tiny-cuda-nn's `Ema` optimiser
+/// stores it (instant-ngp trains with `Ema(decay 0.95) ∘ ExponentialDecay ∘ Adam` and renders with
+/// the average, while the optimiser keeps stepping the raw parameters).
+///
+/// With zero initialisation the plain average after `t` updates is
+/// `s_t = d·s_{t−1} + (1−d)·p_t = (1−d)·Σ_{k≤t} d^(t−k)·p_k`, whose weights sum to `1 − d^t`;
+/// the debiased average `e_t = s_t / (1 − d^t)` is what is stored. Substituting
+/// `s_{t−1} = (1 − d^(t−1))·e_{t−1}` gives the recursion
+/// `e_t = (d·(1 − d^(t−1))·e_{t−1} + (1 − d)·p_t) / (1 − d^t) = a_t·e_{t−1} + b_t·p_t`
+/// (see [`Ema::coefficients`]); `a_1 = 0`, `b_1 = 1`, so the first update copies the parameters.
+///
+/// Values are kept per group, keyed by the group's name like [`Adam`]'s moments. A group seen for
+/// the first time (or whose length changed) starts as a copy of its parameters, as if they had
+/// always had these values. Allocation-free once every group has values.
+#[derive(Clone, Debug)]
+pub struct Ema {
+    decay: f32,
+    step: u64,
+    groups: Vec<(String, Vec<f32>)>,
+}
+
+/// Exported [`Ema`] state for checkpoints: the number of updates and `(name, values)` per group.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EmaState {
+    /// Number of updates taken (0: no average yet).
+    pub step: u64,
+    /// `(group name, averaged values)`.
+    pub groups: Vec<(String, Vec<f32>)>,
+}
+
+/// One EMA update on a slice: `ema = a·ema + b·p` element-wise, and `ema = b·p` when `a == 0`
+/// (the first update, which must not read the previous values). The CPU twin of the EMA part of
+/// `shaders/adam.wgsl`.
+pub fn ema_update(a: f32, b: f32, ema: &mut [f32], p: &[f32]) {
+    assert_eq!(ema.len(), p.len(), "ema_update: {} values but {} parameters", ema.len(), p.len());
+    if a == 0.0 {
+        for (e, &x) in ema.iter_mut().zip(p) {
+            *e = b * x;
+        }
+    } else {
+        for (e, &x) in ema.iter_mut().zip(p) {
+            *e = a * *e + b * x;
+        }
+    }
+}
+
+impl Ema {
+    /// A new average with no values yet. Panics unless `0 < decay < 1` (configs validate it).
+    pub fn new(decay: f32) -> Self {
+        assert!(decay > 0.0 && decay < 1.0, "Ema: decay must lie in (0, 1), got {decay}");
+        Self { decay, step: 0, groups: Vec::new() }
+    }
+
+    /// The decay `d`.
+    pub fn decay(&self) -> f32 {
+        self.decay
+    }
+
+    /// Updates taken so far (0: no average yet).
+    pub fn step_count(&self) -> u64 {
+        self.step
+    }
+
+    /// `(a_t, b_t)` of the `t`-th update (`t ≥ 1`) in `f64`: `e_t = a_t·e_{t−1} + b_t·p_t` with
+    /// `a_t = d·(1 − d^(t−1)) / (1 − d^t)` and `b_t = (1 − d) / (1 − d^t)`.
+    pub fn coefficients_f64(decay: f64, t: u64) -> (f64, f64) {
+        assert!(t >= 1, "Ema: updates are numbered from 1");
+        let t = t as f64;
+        let denom = 1.0 - decay.powf(t);
+        (decay * (1.0 - decay.powf(t - 1.0)) / denom, (1.0 - decay) / denom)
+    }
+
+    /// [`Ema::coefficients_f64`] rounded to `f32` (what both devices use: computed once per step on
+    /// the host, exactly as [`Adam`]'s bias corrections are). `a_1 = 0` and `b_1 = 1` exactly.
+    pub fn coefficients(decay: f32, t: u64) -> (f32, f32) {
+        let (a, b) = Self::coefficients_f64(decay as f64, t);
+        (a as f32, b as f32)
+    }
+
+    /// Folds the current parameters of every group into the average (call after each optimiser
+    /// step). Parallel over chunks for large groups.
+    pub fn update(&mut self, groups: &[ParamGroupMut<'_>]) {
+        self.step += 1;
+        let (a, b) = Self::coefficients(self.decay, self.step);
+        for g in groups {
+            let p: &[f32] = g.params;
+            let known = self.groups.iter().position(|(n, _)| n == g.name);
+            let values = match known {
+                Some(i) if self.groups[i].1.len() == p.len() => &mut self.groups[i].1,
+                _ => {
+                    // First sight (or a new length): the average starts at the parameters.
+                    match known {
+                        Some(i) => self.groups[i].1 = p.to_vec(),
+                        None => self.groups.push((g.name.to_owned(), p.to_vec())),
+                    }
+                    continue;
+                }
+            };
+            if p.len() > PAR_CHUNK {
+                values
+                    .par_chunks_mut(PAR_CHUNK)
+                    .zip(p.par_chunks(PAR_CHUNK))
+                    .for_each(|(e, x)| ema_update(a, b, e, x));
+            } else {
+                ema_update(a, b, values, p);
+            }
+        }
+    }
+
+    /// The averaged values of group `name`, if it has any.
+    pub fn values(&self, name: &str) -> Option<&[f32]> {
+        self.groups.iter().find(|(n, _)| n == name).map(|(_, v)| v.as_slice())
+    }
+
+    /// Exports the state (a copy) for a checkpoint.
+    pub fn state(&self) -> EmaState {
+        EmaState { step: self.step, groups: self.groups.clone() }
+    }
+
+    /// Replaces the state with `s` (from [`Ema::state`]). Fails, leaving the average unchanged,
+    /// when a group name repeats or a value is not finite.
+    pub fn load_state(&mut self, s: EmaState) -> Result<(), String> {
+        for (i, (name, v)) in s.groups.iter().enumerate() {
+            if s.groups[..i].iter().any(|(n, _)| n == name) {
+                return Err(format!("EMA state: group {name:?} appears more than once"));
+            }
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(format!("EMA state: group {name:?} has non-finite values"));
+            }
+        }
+        self.step = s.step;
+        self.groups = s.groups;
         Ok(())
     }
 }
@@ -502,6 +640,110 @@ mod tests {
             "{}",
             s.groups[0].1[0]
         );
+    }
+
+    /// The debiased average written as a weighted sum: `Σ_k (1−d)·d^(t−k)·p_k / (1 − d^t)`.
+    fn direct_ema(decay: f64, ps: &[Vec<f64>]) -> Vec<f64> {
+        let t = ps.len() as i32;
+        let norm = 1.0 - decay.powi(t);
+        let mut out = vec![0.0; ps[0].len()];
+        for (k, p) in ps.iter().enumerate() {
+            let w = (1.0 - decay) * decay.powi(t - 1 - k as i32) / norm;
+            for (o, x) in out.iter_mut().zip(p) {
+                *o += w * x;
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn ema_recursion_equals_the_debiased_weighted_sum() {
+        use rand::{Rng as _, SeedableRng as _};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(17);
+        for &decay in &[0.95f64, 0.5, 0.99, 0.1] {
+            // The recursion in f64 against the direct sum, after every step.
+            let n = 7;
+            let mut ps: Vec<Vec<f64>> = Vec::new();
+            let mut e = vec![f64::NAN; n];
+            for t in 1..=60u64 {
+                let p: Vec<f64> = (0..n).map(|_| rng.gen_range(-2.0..2.0)).collect();
+                let (a, b) = Ema::coefficients_f64(decay, t);
+                if t == 1 {
+                    assert_eq!((a, b), (0.0, 1.0), "the first update copies the parameters");
+                }
+                assert!((a + b - 1.0).abs() < 1e-12, "weights sum to one: {a} + {b}");
+                for (ei, &pi) in e.iter_mut().zip(&p) {
+                    *ei = if a == 0.0 { b * pi } else { a * *ei + b * pi };
+                }
+                ps.push(p);
+                let direct = direct_ema(decay, &ps);
+                for (x, y) in e.iter().zip(&direct) {
+                    assert!((x - y).abs() < 1e-12, "decay {decay} step {t}: {x} vs {y}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn ema_matches_the_direct_sum_over_groups_and_round_trips() {
+        use rand::{Rng as _, SeedableRng as _};
+        let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+        let decay = 0.95f32;
+        let sizes = [PAR_CHUNK + 9, 5];
+        let mut ema = Ema::new(decay);
+        let mut hist: Vec<Vec<Vec<f64>>> = vec![Vec::new(); 2];
+        let mut params: Vec<Vec<f32>> = sizes.iter().map(|&n| vec![0.0; n]).collect();
+        let mut grads: Vec<Vec<f32>> = sizes.iter().map(|&n| vec![0.0; n]).collect();
+        let mut json = String::new();
+        for t in 1..=30u64 {
+            for (i, p) in params.iter_mut().enumerate() {
+                for x in p.iter_mut() {
+                    *x = rng.gen_range(-1.0f32..1.0);
+                }
+                hist[i].push(p.iter().map(|&x| x as f64).collect());
+            }
+            let (p0, p1) = params.split_at_mut(1);
+            let (g0, g1) = grads.split_at_mut(1);
+            ema.update(&[group("big", &mut p0[0], &mut g0[0], 0.0), group("small", &mut p1[0], &mut g1[0], 0.0)]);
+            assert_eq!(ema.step_count(), t);
+            for (i, name) in ["big", "small"].iter().enumerate() {
+                let direct = direct_ema(decay as f64, &hist[i]);
+                let got = ema.values(name).unwrap();
+                if t == 1 {
+                    assert_eq!(got, &params[i][..], "the first update copies the parameters");
+                }
+                // f32 recursion: a few ulp per step, not compounding (|a|, |b| ≤ 1).
+                let err = got.iter().zip(&direct).map(|(&x, y)| (x as f64 - y).abs()).fold(0.0, f64::max);
+                assert!(err < 1e-5, "{name} step {t}: max error {err}");
+            }
+            if t == 10 {
+                json = serde_json::to_string(&ema.state()).unwrap();
+            }
+        }
+        // A restored average continues exactly as the original did.
+        let mut back = Ema::new(decay);
+        back.load_state(serde_json::from_str(&json).unwrap()).unwrap();
+        assert_eq!(back.step_count(), 10);
+        let mut again = back.clone();
+        let mut p = vec![0.25f32; 5];
+        let mut g = vec![0.0f32; 5];
+        again.update(&[group("small", &mut p, &mut g, 0.0)]);
+        let (a, b) = Ema::coefficients(decay, 11);
+        let before = back.values("small").unwrap();
+        for (x, y) in again.values("small").unwrap().iter().zip(before) {
+            assert_eq!(*x, a * y + b * 0.25);
+        }
+        // A group seen for the first time starts at its parameters.
+        let mut q = vec![3.0f32; 4];
+        let mut gq = vec![0.0f32; 4];
+        again.update(&[group("new", &mut q, &mut gq, 0.0)]);
+        assert_eq!(again.values("new").unwrap(), &[3.0f32; 4][..]);
+        // Bad states are rejected and leave the average unchanged.
+        let dup = EmaState { step: 2, groups: vec![("w".into(), vec![0.0]), ("w".into(), vec![1.0])] };
+        assert!(back.load_state(dup).unwrap_err().contains("\"w\""));
+        let nan = EmaState { step: 2, groups: vec![("w".into(), vec![f32::NAN])] };
+        assert!(back.load_state(nan).is_err());
+        assert_eq!(back.step_count(), 10);
     }
 
     #[test]

@@ -29,7 +29,10 @@ pub struct Checkpoint {
     pub fields: Vec<Vec<(String, Vec<f32>)>>,
     /// Optimiser state.
     pub adam: AdamState,
-    /// Sampler state (occupancy grid, batch sizing) by name.
+    /// Sampler state (occupancy grid, batch sizing) by name, and — for runs with `ema_decay` — the
+    /// parameters' moving average (`ema/step`, `ema/<group>`: see
+    /// [`Trainer::sampler_state`](crate::Trainer::sampler_state)). Checkpoints of runs without an
+    /// average simply lack those entries.
     pub sampler: Vec<(String, Vec<f32>)>,
 }
 

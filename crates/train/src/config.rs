@@ -73,6 +73,13 @@ pub struct TrainConfig {
     pub lr: LrSchedule,
     /// Adam hyper-parameters.
     pub adam: AdamConfig,
+    /// Exponential moving average of the parameters (instant-ngp / tiny-cuda-nn: `Ema` with decay
+    /// 0.95 around Adam); `None` (the default) = off. When set, every Adam step also updates the
+    /// debiased average of every parameter group ([`nerf_optim::Ema`]), and rendering (evaluation,
+    /// novel views, `nerf eval`) uses the averaged weights, while training steps — and, unlike
+    /// instant-ngp, whose grid update queries its inference network, the occupancy-grid density
+    /// updates — keep using the raw weights. Must lie in (0, 1).
+    pub ema_decay: Option<f32>,
     /// Background composited behind training rays (paper on Blender: white).
     pub train_background: Background,
     /// Background for evaluation (white, as the paper's numbers).
@@ -109,6 +116,7 @@ impl Default for TrainConfig {
             time_budget_secs: None,
             lr: LrSchedule::Exponential { lr0: 5e-4, lr1: 5e-5, steps: 250_000 },
             adam: AdamConfig::default(),
+            ema_decay: None,
             train_background: Background::White,
             eval_background: Background::White,
             pixel_convention: PixelConvention::Center,
@@ -156,6 +164,11 @@ impl TrainConfig {
         if self.render_chunk_rays == 0 {
             return Err("render_chunk_rays must be positive".into());
         }
+        if let Some(d) = self.ema_decay {
+            if !(d > 0.0 && d < 1.0) {
+                return Err(format!("ema_decay must lie strictly between 0 and 1 (instant-ngp: 0.95), got {d}"));
+            }
+        }
         if let Some(t) = self.time_budget_secs {
             if !(t.is_finite() && t > 0.0) {
                 return Err(format!("time_budget_secs must be a positive number, got {t}"));
@@ -190,5 +203,18 @@ mod tests {
         assert_eq!(c.sampler, SamplerConfig::Stratified { n_samples: 8 });
         assert_eq!(c.batch_rays, 1024);
         assert!(toml::from_str::<TrainConfig>("iterz = 5").is_err());
+        assert_eq!(c.ema_decay, None);
+    }
+
+    #[test]
+    fn ema_decay_parses_and_is_validated() {
+        let c: TrainConfig = toml::from_str("ema_decay = 0.95").unwrap();
+        assert_eq!(c.ema_decay, Some(0.95));
+        assert!(c.validate().is_ok());
+        for bad in [0.0f32, 1.0, -0.5, 1.5, f32::NAN] {
+            let c = TrainConfig { ema_decay: Some(bad), ..TrainConfig::default() };
+            let e = c.validate().unwrap_err();
+            assert!(e.contains("ema_decay"), "{e}");
+        }
     }
 }

@@ -18,7 +18,7 @@ use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
 use nerf_gpu::pdf::{GpuHierarchical, GpuStratified, PackedOut};
 use nerf_gpu::sampling::{GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples as PackedSamples, MarchConfig};
 use nerf_gpu::{wgpu, Compositor, GpuContext, TrainGlue};
-use nerf_optim::AdamState;
+use nerf_optim::{AdamState, EmaState};
 use std::cell::Cell;
 use std::sync::Arc;
 
@@ -150,8 +150,13 @@ enum Sampler {
 pub(crate) struct GpuEngine {
     ctx: Arc<GpuContext>,
     fields: Vec<Box<dyn GpuRadianceField>>,
-    /// One optimiser per parameter group (the groups live in separate buffers).
+    /// One optimiser per parameter group (the groups live in separate buffers); each keeps the
+    /// group's moving average when `ema_decay` is set.
     adams: Vec<Vec<GpuAdam>>,
+    /// With `ema_decay`: one buffer per parameter group that holds the raw parameters while a
+    /// render runs with the average copied into the parameter buffers (so the fields' bind groups
+    /// stay valid).
+    ema_backup: Vec<Vec<wgpu::Buffer>>,
     group_names: Vec<Vec<String>>,
     /// The training images on the device, with the identity of the dataset they came from.
     images: Option<((usize, usize, u32, u32), GpuImages)>,
@@ -211,10 +216,17 @@ impl GpuEngine {
             let mut per = Vec::new();
             for (g, name) in f.groups().iter().zip(names) {
                 let group = GpuParamGroup::new(name.clone(), 0, g.len, g.weight_decay);
-                per.push(GpuAdam::new(&ctx, &config.adam, &[group]).map_err(gerr)?);
+                per.push(GpuAdam::with_ema(&ctx, &config.adam, &[group], config.ema_decay).map_err(gerr)?);
             }
             adams.push(per);
         }
+        let ema_backup = match config.ema_decay {
+            Some(_) => fields
+                .iter()
+                .map(|f| f.groups().iter().map(|g| ctx.zeros("ema backup", 4 * g.len.max(1))).collect())
+                .collect(),
+            None => Vec::new(),
+        };
         let n_stages = config.sampler.n_fields();
         let stages: Vec<Stage> = (0..n_stages).map(|i| Stage::new(&ctx, capacity_rays, stage_samples(i))).collect();
         let sampler = match &config.sampler {
@@ -286,6 +298,7 @@ impl GpuEngine {
             images: None,
             fields,
             adams,
+            ema_backup,
             sampler,
             stages,
             capacity_rays,
@@ -484,8 +497,56 @@ impl GpuEngine {
     /// its image part into frame-sized outputs, and one read-back returns the image and each
     /// chunk's sample count. A chunk whose samples overflowed the sample capacity (the marcher
     /// clips there) is split and rendered again; the chunk size that fits is kept for next time.
+    ///
+    /// With a moving average (`ema_decay`, at least one update) the fields render with it: the
+    /// raw parameters are copied aside and the average into the parameter buffers before, and
+    /// back after (recorded copies, also when rendering fails).
     #[allow(clippy::too_many_arguments)]
     pub(crate) fn render_rays(
+        &self,
+        cfg: &TrainConfig,
+        origins: &[f32],
+        dirs: &[f32],
+        background: &[f32],
+        rgb: &mut [f32],
+        opacity: &mut [f32],
+        depth: &mut [f32],
+    ) -> Result<(), TrainError> {
+        let swap = !self.ema_backup.is_empty() && self.adams.iter().flatten().any(|a| a.ema_step_count() > 0);
+        if swap {
+            self.record_ema_swap(true);
+        }
+        let r = self.render_rays_with_current(cfg, origins, dirs, background, rgb, opacity, depth);
+        if swap {
+            self.record_ema_swap(false);
+        }
+        r
+    }
+
+    /// Submits the copies that put the moving average into the fields' parameter buffers (raw
+    /// parameters to the backup first; `to_ema`) or the raw parameters back (`!to_ema`).
+    fn record_ema_swap(&self, to_ema: bool) {
+        let ctx = &*self.ctx;
+        let mut enc = ctx.encoder(if to_ema { "ema in" } else { "ema out" });
+        for ((f, adams), backups) in self.fields.iter().zip(&self.adams).zip(&self.ema_backup) {
+            for ((g, adam), backup) in f.groups().iter().zip(adams).zip(backups) {
+                let (Some(ema), bytes) = (adam.ema_buffer(), 4 * g.len as u64) else { continue };
+                if bytes == 0 {
+                    continue;
+                }
+                if to_ema {
+                    enc.copy_buffer_to_buffer(&g.params, 0, backup, 0, bytes);
+                    enc.copy_buffer_to_buffer(ema, 0, &g.params, 0, bytes);
+                } else {
+                    enc.copy_buffer_to_buffer(backup, 0, &g.params, 0, bytes);
+                }
+            }
+        }
+        ctx.queue.submit([enc.finish()]);
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn render_rays_with_current(
         &self,
         cfg: &TrainConfig,
         origins: &[f32],
@@ -658,6 +719,25 @@ impl GpuEngine {
         Ok(AdamState { step, groups })
     }
 
+    /// The moving average of every group (`None` without `ema_decay`; no groups before the first
+    /// update).
+    pub(crate) fn ema_state(&self) -> Result<Option<EmaState>, TrainError> {
+        if self.ema_backup.is_empty() {
+            return Ok(None);
+        }
+        let mut out = EmaState { step: 0, groups: Vec::new() };
+        for a in self.adams.iter().flatten() {
+            if let Some(s) = a.ema_state(&self.ctx).map_err(gerr)? {
+                out.step = s.step;
+                out.groups.extend(s.groups);
+            }
+        }
+        if out.step == 0 {
+            out.groups.clear();
+        }
+        Ok(Some(out))
+    }
+
     pub(crate) fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {
         let spr = self.ctx.read_f32(&self.spr, 1).map_err(gerr)?;
         let mut v = vec![("samples_per_ray".to_string(), spr)];
@@ -672,6 +752,7 @@ impl GpuEngine {
         fields: &[Vec<(String, Vec<f32>)>],
         adam: &AdamState,
         sampler_state: &[(String, Vec<f32>)],
+        ema: Option<&EmaState>,
     ) -> Result<(), TrainError> {
         if fields.len() != self.fields.len() {
             return Err(TrainError::Config(format!(
@@ -687,6 +768,10 @@ impl GpuEngine {
             for (a, name) in adams.iter().zip(names) {
                 let groups = adam.groups.iter().filter(|(n, _, _)| n == name).cloned().collect();
                 a.load_state(&self.ctx, &AdamState { step: adam.step, groups }).map_err(gerr)?;
+                if let Some(e) = ema {
+                    let groups = e.groups.iter().filter(|(n, _)| n == name).cloned().collect();
+                    a.load_ema_state(&self.ctx, &EmaState { step: e.step, groups }).map_err(gerr)?;
+                }
             }
         }
         for (name, v) in sampler_state {

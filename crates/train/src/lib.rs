@@ -3,7 +3,8 @@
 //! [`Trainer`] takes random ray batches from a [`nerf_data::Dataset`], turns them into packed
 //! samples (stratified, then optionally hierarchical through a coarse instance of the same field),
 //! queries the field(s), composites, takes the photometric MSE on every stage, back-propagates
-//! through compositing into the field(s) and steps Adam. [`run()`] wraps it into a whole run with
+//! through compositing into the field(s) and steps Adam (optionally keeping an exponential moving
+//! average of the parameters that rendering then uses, `TrainConfig::ema_decay`). [`run()`] wraps it into a whole run with
 //! a progress bar, a time budget, atomic checkpoints (resumable, written on Ctrl-C), evaluation on
 //! held-out views and `metrics.json`. Nothing here knows which field it drives.
 
@@ -18,7 +19,7 @@ pub use checkpoint::Checkpoint;
 pub use config::{SamplerConfig, TrainConfig};
 pub use eval::{evaluate, EvalReport, ViewMetrics};
 pub use run::{make_trainer, run, RunOptions, RunSummary};
-pub use trainer::{SceneBounds, StepStats, Trainer};
+pub use trainer::{ema_from_entries, ema_to_entries, SceneBounds, StepStats, Trainer};
 
 use std::path::PathBuf;
 

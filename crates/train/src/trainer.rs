@@ -4,9 +4,10 @@ use crate::config::{SamplerConfig, TrainConfig};
 use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
-use nerf_optim::{Adam, AdamState};
+use nerf_optim::{Adam, AdamState, Ema, EmaState};
 use nerf_render::{composite_backward, composite_forward, mse_loss_grad, CompositeOutputs};
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, RaySamples};
+use std::sync::{Mutex, MutexGuard};
 
 /// Where the scene lives: what fields and samplers need to know about it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -55,6 +56,14 @@ pub struct StepStats {
     pub lr: f32,
 }
 
+/// Field instances that hold the EMA weights, for rendering on the CPU. Filled from the average
+/// lazily (at the first render after the average changed), so training pays nothing for them.
+struct EmaFields {
+    /// Version of the average the fields hold (see `Trainer::ema_version`).
+    synced: u64,
+    fields: Vec<Box<dyn RadianceField>>,
+}
+
 /// RNG streams (see `nerf_core::rng`): field initialisation, per-step batches.
 const STREAM_STEP: u64 = 1 << 40;
 
@@ -78,6 +87,12 @@ pub struct Trainer {
     samples_seen: u64,
     /// The GPU execution path, when the trainer runs on a device.
     gpu: Option<crate::gpu::GpuEngine>,
+    /// The parameters' exponential moving average (CPU path, `config.ema_decay`).
+    ema: Option<Ema>,
+    /// Bumped whenever the average changes (updates, restores): `EmaFields::synced` compares to it.
+    ema_version: u64,
+    /// Rendering instances of the field holding the average (CPU path with `ema_decay`).
+    ema_fields: Option<Mutex<EmaFields>>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -89,15 +104,23 @@ impl Trainer {
     pub fn new(config: TrainConfig, registry: &Registry, bounds: SceneBounds) -> Result<Self, TrainError> {
         config.validate().map_err(TrainError::Config)?;
         let n = config.sampler.n_fields();
-        let mut fields = Vec::with_capacity(n);
-        for i in 0..n {
-            let ctx = FieldContext {
-                aabb_min: bounds.aabb_min,
-                aabb_max: bounds.aabb_max,
-                seed: config.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(i as u64),
-            };
-            fields.push(registry.build(&config.field, &config.field_config, &ctx)?);
-        }
+        let build = || -> Result<Vec<Box<dyn RadianceField>>, TrainError> {
+            (0..n)
+                .map(|i| {
+                    let ctx = FieldContext {
+                        aabb_min: bounds.aabb_min,
+                        aabb_max: bounds.aabb_max,
+                        seed: config.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(i as u64),
+                    };
+                    Ok(registry.build(&config.field, &config.field_config, &ctx)?)
+                })
+                .collect()
+        };
+        let mut fields = build()?;
+        let (ema, ema_fields) = match config.ema_decay {
+            Some(d) => (Some(Ema::new(d)), Some(Mutex::new(EmaFields { synced: 0, fields: build()? }))),
+            None => (None, None),
+        };
         let prefixes: &[&str] = if n == 1 { &["field"] } else { &["coarse", "fine"] };
         let group_names = fields
             .iter_mut()
@@ -117,6 +140,9 @@ impl Trainer {
             samples_per_ray: 0.0,
             samples_seen: 0,
             gpu: None,
+            ema,
+            ema_version: 0,
+            ema_fields,
             stages: (0..n).map(|_| Stage::default()).collect(),
             config,
             bounds,
@@ -142,6 +168,9 @@ impl Trainer {
         let mut t = Self::new(config, registry, bounds)?;
         if let Some(ctx) = device {
             t.gpu = Some(crate::gpu::GpuEngine::new(ctx, &t.config, bounds, &t.fields, &t.group_names)?);
+            // The device keeps (and renders with) its own average.
+            t.ema = None;
+            t.ema_fields = None;
         }
         Ok(t)
     }
@@ -299,7 +328,7 @@ impl Trainer {
             field.backward(&st.d_sigma, &st.d_rgb);
         }
         let lr = cfg.lr.lr(self.step);
-        let Self { fields, group_names, adam, .. } = self;
+        let Self { fields, group_names, adam, ema, .. } = self;
         let mut groups: Vec<ParamGroupMut<'_>> = Vec::new();
         for (f, names) in fields.iter_mut().zip(group_names.iter()) {
             for (g, name) in f.param_groups().into_iter().zip(names) {
@@ -307,6 +336,10 @@ impl Trainer {
             }
         }
         adam.step(&mut groups, lr);
+        if let Some(e) = ema.as_mut() {
+            e.update(&groups);
+            self.ema_version += 1;
+        }
         drop(groups);
         for f in fields.iter_mut() {
             f.after_optimizer_step();
@@ -320,7 +353,9 @@ impl Trainer {
     }
 
     /// Renders rays (inference, deterministic sampling) in chunks of `render_chunk_rays`, on the
-    /// trainer's device. Outputs: rgb `3·n`, opacity `n`, depth `n`.
+    /// trainer's device. Outputs: rgb `3·n`, opacity `n`, depth `n`. With `ema_decay` set (and at
+    /// least one step taken or restored) the field renders with the parameters' moving average;
+    /// the occupancy grid is the one training keeps (from the raw parameters).
     pub fn render_rays(
         &self,
         origins: &[f32],
@@ -333,9 +368,11 @@ impl Trainer {
         if let Some(g) = &self.gpu {
             return g.render_rays(&self.config, origins, dirs, background, rgb, opacity, depth);
         }
+        let ema_fields = self.ema_render_fields();
+        let fields = ema_fields.as_ref().map_or(&self.fields, |g| &g.fields);
         let n = origins.len() / 3;
         let chunk = self.config.render_chunk_rays;
-        let mut stages: Vec<Stage> = (0..self.fields.len()).map(|_| Stage::default()).collect();
+        let mut stages: Vec<Stage> = (0..fields.len()).map(|_| Stage::default()).collect();
         let (mut near, mut far) = (Vec::new(), Vec::new());
         for r0 in (0..n).step_by(chunk) {
             let r1 = (r0 + chunk).min(n);
@@ -345,11 +382,11 @@ impl Trainer {
             far.clear();
             far.resize(r1 - r0, self.bounds.far);
             first_stage_samples(&self.config, self.grid.as_ref(), o, d, &near, &far, None, &mut stages[0].samples);
-            query_stage(self.fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
+            query_stage(fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
             if let SamplerConfig::Hierarchical { n_fine, .. } = self.config.sampler {
                 let (s0, s1) = stages.split_at_mut(1);
                 hierarchical(&s0[0].samples, &s0[0].comp.weights, o, d, &far, n_fine, None, &mut s1[0].samples);
-                query_stage(self.fields[1].as_ref(), &mut s1[0], bg, self.config.transmittance_threshold);
+                query_stage(fields[1].as_ref(), &mut s1[0], bg, self.config.transmittance_threshold);
             }
             let last = stages.last().unwrap();
             rgb[3 * r0..3 * r1].copy_from_slice(&last.comp.rgb);
@@ -357,6 +394,36 @@ impl Trainer {
             depth[r0..r1].copy_from_slice(&last.comp.depth);
         }
         Ok(())
+    }
+
+    /// The rendering instances holding the moving average, filled from it if it changed since;
+    /// `None` without an average (off, or no update yet): render with the raw parameters.
+    fn ema_render_fields(&self) -> Option<MutexGuard<'_, EmaFields>> {
+        let (ema, cell) = (self.ema.as_ref()?, self.ema_fields.as_ref()?);
+        if ema.step_count() == 0 {
+            return None;
+        }
+        let mut guard = cell.lock().unwrap_or_else(|e| e.into_inner());
+        if guard.synced != self.ema_version {
+            for (f, names) in guard.fields.iter_mut().zip(&self.group_names) {
+                for (g, name) in f.param_groups().into_iter().zip(names) {
+                    let v = ema.values(name).expect("every group has an average after an update or a restore");
+                    g.params.copy_from_slice(v);
+                }
+                f.after_optimizer_step();
+            }
+            guard.synced = self.ema_version;
+        }
+        Some(guard)
+    }
+
+    /// The parameters' moving average (`None` when `ema_decay` is off; no groups before the first
+    /// step). Read back from the device on the GPU.
+    pub fn ema_state(&self) -> Result<Option<EmaState>, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.ema_state();
+        }
+        Ok(self.ema.as_ref().map(|e| e.state()))
     }
 
     /// Parameters of every field instance (for checkpoints; read back from the device on the GPU).
@@ -367,14 +434,24 @@ impl Trainer {
         Ok(self.fields.iter().map(|f| f.export_params()).collect())
     }
 
-    /// State of the sampler that a resumed run needs (occupancy-grid densities, batch sizing).
+    /// State besides parameters and optimiser that a resumed run needs, as named tensors: the
+    /// sampler's (occupancy-grid densities, batch sizing) and, with `ema_decay` once a step was
+    /// taken, the parameters' moving average (`ema/step` and `ema/<group>`, see
+    /// [`ema_to_entries`]). Checkpoints store it as is, so [`Trainer::restore`] — resume, `nerf
+    /// eval`, a move between devices — carries the average without a separate argument.
     pub fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {
-        if let Some(g) = &self.gpu {
-            return g.sampler_state();
-        }
-        let mut v = vec![("samples_per_ray".to_string(), vec![self.samples_per_ray])];
-        if let Some(g) = &self.grid {
-            v.push(("occupancy_density".to_string(), g.densities().to_vec()));
+        let mut v = match &self.gpu {
+            Some(g) => g.sampler_state()?,
+            None => {
+                let mut v = vec![("samples_per_ray".to_string(), vec![self.samples_per_ray])];
+                if let Some(g) = &self.grid {
+                    v.push(("occupancy_density".to_string(), g.densities().to_vec()));
+                }
+                v
+            }
+        };
+        if let Some(s) = self.ema_state()? {
+            v.extend(ema_to_entries(&s));
         }
         Ok(v)
     }
@@ -392,7 +469,11 @@ impl Trainer {
         Ok(self.adam.state())
     }
 
-    /// Restores parameters, optimiser state and the step counter from a checkpoint.
+    /// Restores parameters, optimiser state, sampler state (with the moving average, when the
+    /// checkpoint has one: see [`Trainer::sampler_state`]) and the step counter from a checkpoint.
+    /// With `ema_decay` set and no average in the checkpoint, the average starts afresh (the next
+    /// step copies the parameters); an average in the checkpoint of a run without `ema_decay` is
+    /// ignored.
     pub fn restore(
         &mut self,
         step: u64,
@@ -400,12 +481,18 @@ impl Trainer {
         adam: AdamState,
         sampler_state: &[(String, Vec<f32>)],
     ) -> Result<(), TrainError> {
+        let (ema, sampler_state) = ema_from_entries(sampler_state)?;
+        if let (Some(s), Some(_)) = (&ema, self.config.ema_decay) {
+            check_ema_groups(s, &self.group_names, fields)?;
+        }
+        let ema = ema.unwrap_or(EmaState { step: 0, groups: Vec::new() });
         if let Some(g) = self.gpu.as_mut() {
-            g.restore(fields, &adam, sampler_state)?;
+            let ema = self.config.ema_decay.is_some().then_some(&ema);
+            g.restore(fields, &adam, &sampler_state, ema)?;
             self.step = step;
             return Ok(());
         }
-        for (name, v) in sampler_state {
+        for (name, v) in &sampler_state {
             match (name.as_str(), self.grid.as_mut(), &self.config.sampler) {
                 ("samples_per_ray", _, _) if v.len() == 1 => self.samples_per_ray = v[0],
                 ("occupancy_density", Some(g), SamplerConfig::Occupancy { step_size, .. }) => {
@@ -425,12 +512,87 @@ impl Trainer {
             f.import_params(groups)?;
         }
         self.adam.load_state(adam).map_err(TrainError::Config)?;
+        if let Some(e) = self.ema.as_mut() {
+            e.load_state(ema).map_err(TrainError::Config)?;
+            self.ema_version += 1;
+        }
         for f in self.fields.iter_mut() {
             f.after_optimizer_step();
         }
         self.step = step;
         Ok(())
     }
+}
+
+/// Name of the moving average's update count in [`Trainer::sampler_state`].
+pub const EMA_STEP_ENTRY: &str = "ema/step";
+/// Prefix of the moving average's per-group values in [`Trainer::sampler_state`].
+pub const EMA_PREFIX: &str = "ema/";
+
+/// The moving average as named tensors (nothing before its first update): `ema/step` holds the
+/// update count as `[count mod 2^24, count / 2^24]` (both exact in `f32`), then `ema/<group>`
+/// holds each group's values.
+pub fn ema_to_entries(s: &EmaState) -> Vec<(String, Vec<f32>)> {
+    if s.step == 0 {
+        return Vec::new();
+    }
+    let step = vec![(s.step & 0xFF_FFFF) as f32, (s.step >> 24) as f32];
+    std::iter::once((EMA_STEP_ENTRY.to_string(), step))
+        .chain(s.groups.iter().map(|(n, v)| (format!("{EMA_PREFIX}{n}"), v.clone())))
+        .collect()
+}
+
+/// Splits the moving average ([`ema_to_entries`]) off a list of state tensors: `(average if
+/// present, the other tensors)`. Errors on group values without an update count or a malformed
+/// count.
+#[allow(clippy::type_complexity)]
+pub fn ema_from_entries(
+    state: &[(String, Vec<f32>)],
+) -> Result<(Option<EmaState>, Vec<(String, Vec<f32>)>), TrainError> {
+    let mut step = None;
+    let mut groups = Vec::new();
+    let mut rest = Vec::new();
+    for (name, v) in state {
+        if name == EMA_STEP_ENTRY {
+            let ok = v.len() == 2 && v.iter().all(|x| *x >= 0.0 && x.fract() == 0.0 && *x < (1u64 << 24) as f32);
+            if !ok {
+                return Err(TrainError::Config(format!("malformed `{EMA_STEP_ENTRY}` in checkpoint: {v:?}")));
+            }
+            step = Some(v[0] as u64 | ((v[1] as u64) << 24));
+        } else if let Some(g) = name.strip_prefix(EMA_PREFIX) {
+            groups.push((g.to_string(), v.clone()));
+        } else {
+            rest.push((name.clone(), v.clone()));
+        }
+    }
+    match step {
+        Some(step) => Ok((Some(EmaState { step, groups }), rest)),
+        None if groups.is_empty() => Ok((None, rest)),
+        None => Err(TrainError::Config(format!("checkpoint has EMA values but no `{EMA_STEP_ENTRY}`"))),
+    }
+}
+
+/// A restored average must cover every parameter group of the run, with the parameters' lengths.
+fn check_ema_groups(s: &EmaState, group_names: &[Vec<String>], fields: &[Vec<(String, Vec<f32>)>]) -> Result<(), TrainError> {
+    if s.step == 0 {
+        return Ok(());
+    }
+    for (names, groups) in group_names.iter().zip(fields) {
+        for (name, (_, v)) in names.iter().zip(groups) {
+            match s.groups.iter().find(|(n, _)| n == name) {
+                Some((_, e)) if e.len() == v.len() => {}
+                Some((_, e)) => {
+                    return Err(TrainError::Config(format!(
+                        "checkpoint EMA of group `{name}` has {} values, the parameters {}",
+                        e.len(),
+                        v.len()
+                    )))
+                }
+                None => return Err(TrainError::Config(format!("checkpoint EMA lacks group `{name}`"))),
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Upper bound on the samples one ray can get from the sampler (all stages).
