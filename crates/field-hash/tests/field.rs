@@ -3,7 +3,7 @@
 
 use nerf_encoding::{HashGridConfig, Precision};
 use nerf_field::{FieldContext, RadianceField};
-use nerf_field_hash::{HashNerf, HashNerfConfig};
+use nerf_field_hash::{GpuMlp, HashNerf, HashNerfConfig};
 use rand::Rng as _;
 
 fn unit_ctx(seed: u64) -> FieldContext {
@@ -30,6 +30,7 @@ fn small() -> HashNerfConfig {
         color_layers: 2,
         mlp_bias: true,
         mlp_weight_decay: 1e-6,
+        gpu_mlp: GpuMlp::Plain,
     }
 }
 
