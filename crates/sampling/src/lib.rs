@@ -21,7 +21,7 @@ mod packed;
 mod pdf;
 mod stratified;
 
-pub use occupancy::{march, OccupancyGrid, OccupancyGridConfig, DENSITY_CHUNK, MAX_RESOLUTION};
+pub use occupancy::{march, OccupancyGrid, RayMarch, OccupancyGridConfig, DENSITY_CHUNK, MAX_RESOLUTION};
 pub use packed::RaySamples;
 pub use pdf::{hierarchical, sample_pdf};
 pub use stratified::stratified;

@@ -554,10 +554,30 @@ fn march_ray(
     u: f32,
     step: f32,
     max_samples: usize,
-    mut emit: impl FnMut(usize, f32),
+    emit: impl FnMut(usize, f32),
 ) -> usize {
+    march_ray_from(grid, o, d, t_start, t_end, u, step, 0, max_samples, emit).0
+}
+
+/// [`march_ray`] from step `k0` (0, or a step an earlier call returned): `(samples emitted (≤
+/// max_samples), the step to resume from)`. Resuming continues the same walk, so successive
+/// calls emit exactly the samples of one call without a limit.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn march_ray_from(
+    grid: &OccupancyGrid,
+    o: [f32; 3],
+    d: [f32; 3],
+    t_start: f32,
+    t_end: f32,
+    u: f32,
+    step: f32,
+    k0: i64,
+    max_samples: usize,
+    mut emit: impl FnMut(usize, f32),
+) -> (usize, i64) {
     if max_samples == 0 {
-        return 0;
+        return (0, k0);
     }
     let res = grid.res;
     let inv_step = 1.0 / step;
@@ -600,10 +620,10 @@ fn march_ray(
     };
 
     let mut count = 0usize;
-    let mut k: i64 = 0;
-    let mut t = t_at(0);
+    let mut k: i64 = k0;
+    let mut t = t_at(k0);
     if t >= t_end {
-        return 0;
+        return (0, k);
     }
     // Emits the current step and moves to the next; `false` when the ray is done.
     macro_rules! emit_next {
@@ -696,13 +716,13 @@ fn march_ray(
         while t < s0 {
             if lookup(t) {
                 if !emit_next!() {
-                    return count;
+                    return (count, k);
                 }
             } else {
                 k += 1;
                 t = t_at(k);
                 if t >= t_end {
-                    return count;
+                    return (count, k);
                 }
             }
         }
@@ -711,7 +731,7 @@ fn march_ray(
             if grid.bit(idx as usize) {
                 while t < s1 {
                     if !emit_next!() {
-                        return count;
+                        return (count, k);
                     }
                 }
             } else {
@@ -728,14 +748,14 @@ fn march_ray(
                     }
                     if t < sb1 {
                         if !skip_to!(sb1) {
-                            return count;
+                            return (count, k);
                         }
                         init_cell!();
                         continue;
                     }
                 }
                 if !skip_to!(s1) {
-                    return count;
+                    return (count, k);
                 }
             }
         }
@@ -765,14 +785,76 @@ fn march_ray(
     while t < t_end {
         if lookup(t) {
             if !emit_next!() {
-                return count;
+                return (count, k);
             }
         } else {
             k += 1;
             t = t_at(k);
         }
     }
-    count
+    (count, k)
+}
+
+/// `[t0, t1)` of a ray in the grid's box clipped to `[near, far]`; `(0, 0)` (no samples) when
+/// empty. `far > near` also rejects NaN bounds (`max`/`min` would otherwise drop a NaN); an
+/// unbounded interval (zero direction with infinite bounds) gets no samples.
+fn ray_interval(grid: &OccupancyGrid, o: [f32; 3], d: [f32; 3], near: f32, far: f32) -> (f32, f32) {
+    let (a, b) = slab(o, d, grid.aabb_min, grid.aabb_max);
+    let t0 = near.max(a);
+    let t1 = far.min(b);
+    if far > near && t1 > t0 && t0.is_finite() && t1.is_finite() {
+        (t0, t1)
+    } else {
+        (0.0, 0.0)
+    }
+}
+
+/// One ray's deterministic march (`u = 0.5`, as [`march`] without a generator), taken a few
+/// samples at a time: rendering in rounds stops marching a ray once it is opaque. Successive
+/// [`RayMarch::advance`] calls emit exactly the samples [`march`] gives the ray, in order. The
+/// CPU twin of the `round_*` kernels of `shaders/march.wgsl`.
+#[derive(Clone, Copy, Debug)]
+pub struct RayMarch {
+    o: [f32; 3],
+    d: [f32; 3],
+    t0: f32,
+    t1: f32,
+    k: i64,
+    emitted: usize,
+    done: bool,
+}
+
+impl RayMarch {
+    /// The march of the ray `o + t·d` (unit `d`) over `[near, far]` in `grid`'s box.
+    pub fn new(grid: &OccupancyGrid, o: [f32; 3], d: [f32; 3], near: f32, far: f32) -> Self {
+        let (t0, t1) = ray_interval(grid, o, d, near, far);
+        Self { o, d, t0, t1, k: 0, emitted: 0, done: t1 <= t0 }
+    }
+
+    /// Whether the march has ended (past the far end, or `max_samples` emitted).
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+
+    /// Samples emitted so far.
+    pub fn emitted(&self) -> usize {
+        self.emitted
+    }
+
+    /// Emits the ray's next samples (`t`, in order; their `dt` is `step`): at most `budget`, and
+    /// never more than `max_samples` over the whole march. Returns how many.
+    pub fn advance(&mut self, grid: &OccupancyGrid, step: f32, max_samples: usize, budget: usize, mut emit: impl FnMut(f32)) -> usize {
+        if self.done {
+            return 0;
+        }
+        let n = budget.min(max_samples.saturating_sub(self.emitted));
+        let (got, k) = march_ray_from(grid, self.o, self.d, self.t0, self.t1, 0.5, step, self.k, n, |_, t| emit(t));
+        self.k = k;
+        self.emitted += got;
+        let t_next = self.t0 + (k as f32 + 0.5) * step;
+        self.done = self.emitted >= max_samples || t_next >= self.t1;
+        got
+    }
 }
 
 /// Ray marching with empty-space skipping through an [`OccupancyGrid`].
@@ -818,20 +900,12 @@ pub fn march(
     let setup = |r: usize| -> ([f32; 3], [f32; 3], f32, f32, f32) {
         let o = [origins[3 * r], origins[3 * r + 1], origins[3 * r + 2]];
         let d = [dirs[3 * r], dirs[3 * r + 1], dirs[3 * r + 2]];
-        let (a, b) = slab(o, d, grid.aabb_min, grid.aabb_max);
-        let t0 = near[r].max(a);
-        let t1 = far[r].min(b);
         let u = match seed {
             Some(s) => nerf_core::rng(s, r as u64).gen::<f32>(),
             None => 0.5,
         };
-        // `far > near` also rejects NaN bounds (`max`/`min` would otherwise drop a NaN); an
-        // unbounded interval (zero direction with infinite bounds) gets no samples.
-        if far[r] > near[r] && t1 > t0 && t0.is_finite() && t1.is_finite() {
-            (o, d, t0, t1, u)
-        } else {
-            (o, d, 0.0, 0.0, u)
-        }
+        let (t0, t1) = ray_interval(grid, o, d, near[r], far[r]);
+        (o, d, t0, t1, u)
     };
 
     // Pass 1: count per ray into ray_offsets[r + 1].

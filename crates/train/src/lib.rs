@@ -12,6 +12,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod eval;
 mod gpu;
+mod rounds;
 pub mod run;
 pub mod trainer;
 

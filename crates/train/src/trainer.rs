@@ -372,6 +372,34 @@ impl Trainer {
         let fields = ema_fields.as_ref().map_or(&self.fields, |g| &g.fields);
         let n = origins.len() / 3;
         let chunk = self.config.render_chunk_rays;
+        if let (Some(grid), SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. }) = (self.grid.as_ref(), &self.config.sampler) {
+            // Occupancy grid: rounds that stop marching a ray once it is opaque (same image).
+            let p = crate::rounds::MarchParams {
+                step: *step_size,
+                max_samples: *max_samples_per_ray,
+                near: self.bounds.near,
+                far: self.bounds.far,
+                t_threshold: self.config.transmittance_threshold,
+            };
+            let mut scratch = crate::rounds::RoundScratch::default();
+            let field = fields[0].as_ref();
+            for r0 in (0..n).step_by(chunk) {
+                let r1 = (r0 + chunk).min(n);
+                crate::rounds::render_in_rounds(
+                    grid,
+                    p,
+                    &origins[3 * r0..3 * r1],
+                    &dirs[3 * r0..3 * r1],
+                    &background[3 * r0..3 * r1],
+                    &mut scratch,
+                    |pos, dir, sigma, c| field.query(pos, dir, sigma, c),
+                    &mut rgb[3 * r0..3 * r1],
+                    &mut opacity[r0..r1],
+                    &mut depth[r0..r1],
+                );
+            }
+            return Ok(());
+        }
         let mut stages: Vec<Stage> = (0..fields.len()).map(|_| Stage::default()).collect();
         let (mut near, mut far) = (Vec::new(), Vec::new());
         for r0 in (0..n).step_by(chunk) {
