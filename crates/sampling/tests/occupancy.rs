@@ -788,3 +788,33 @@ fn bad_density_values_are_sanitised() {
         assert_eq!(g.is_cell_occupied(idx), idx % 4 >= 2);
     }
 }
+
+#[test]
+fn a_march_taken_a_few_samples_at_a_time_emits_exactly_the_samples_of_march() {
+    use nerf_sampling::RayMarch;
+    let mut g = OccupancyGrid::new(cfg(24), [-1.5; 3], [1.5; 3]);
+    g.fill_from(0.01, &mut ball(0.9, 50.0));
+    let (o, d, near, far) = random_rays(2000, 7);
+    let mut rng = nerf_core::rng(7, 1);
+    for (step, max) in [(0.013f32, 1024usize), (0.03, 5)] {
+        let mut all = RaySamples::default();
+        march(&g, &o, &d, &near, &far, step, max, None, &mut all);
+        assert!(all.len() > 1000, "too few samples to be a test ({})", all.len());
+        for r in 0..2000 {
+            let ray = |v: &[f32]| [v[3 * r], v[3 * r + 1], v[3 * r + 2]];
+            let mut m = RayMarch::new(&g, ray(&o), ray(&d), near[r], far[r]);
+            let mut got = Vec::new();
+            let mut calls = 0;
+            while !m.is_done() {
+                let budget = rng.gen_range(1..5);
+                let n = m.advance(&g, step, max, budget, |t| got.push(t));
+                assert!(n <= budget);
+                calls += 1;
+                assert!(calls <= max + 2, "ray {r}: the march does not end");
+            }
+            assert_eq!(got, all.t[all.ray_range(r)], "ray {r} (step {step}, max {max})");
+            assert_eq!(m.emitted(), got.len());
+            assert_eq!(m.advance(&g, step, max, 4, |_| panic!("a finished march emitted")), 0);
+        }
+    }
+}
