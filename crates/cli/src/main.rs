@@ -24,6 +24,9 @@ enum Command {
     Train(TrainArgs),
     /// Evaluate a trained run (its checkpoint) on a scene's test views.
     Eval(EvalArgs),
+    /// Render novel views of a trained run: an orbit around the scene at the training cameras'
+    /// distance and elevation, written as PNG frames.
+    Render(RenderArgs),
     /// Write a reduced copy of a Blender scene (fewer views, lower resolution).
     ExportScene(ExportArgs),
     /// List the registered fields and their default configs.
@@ -114,6 +117,26 @@ struct EvalArgs {
 }
 
 #[derive(Args)]
+struct RenderArgs {
+    /// A run folder written by `nerf train` (holds checkpoint.bin).
+    run: PathBuf,
+    /// The scene the run was trained on: its training cameras define the orbit.
+    scene: PathBuf,
+    /// Frames of the orbit (evenly spaced over 360°).
+    #[arg(long, default_value_t = 60)]
+    frames: usize,
+    /// Frame width in pixels (default: the training images'); the height keeps their aspect.
+    #[arg(long)]
+    width: Option<u32>,
+    /// Where to write frame_0000.png, … and render.json (default: `RUN/render`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Where to render: auto, cpu or gpu (as `train --device`).
+    #[arg(long, default_value = "auto")]
+    device: nerf::gpu::DevicePreference,
+}
+
+#[derive(Args)]
 struct ExportArgs {
     /// Source scene (Blender format).
     src: PathBuf,
@@ -138,6 +161,7 @@ fn main() {
     let result = match cli.command {
         Command::Train(a) => cmd_train(a),
         Command::Eval(a) => cmd_eval(a),
+        Command::Render(a) => cmd_render(a),
         Command::ExportScene(a) => cmd_export(a),
         Command::Fields => cmd_fields(),
         Command::Ablate(a) => cmd_ablate(a),
@@ -256,6 +280,51 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
     println!("test PSNR {:.2} dB, SSIM {:.4} on {} views -> {}", report.psnr, report.ssim, report.views.len(), out.display());
+    Ok(())
+}
+
+fn cmd_render(a: RenderArgs) -> Result<()> {
+    if a.frames == 0 {
+        bail!("--frames must be at least 1");
+    }
+    let ck_path = a.run.join("checkpoint.bin");
+    let ck = Checkpoint::load(&ck_path)?;
+    let train = load_blender(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All })?;
+    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
+    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+    let mut k = train.cameras[0].intrinsics;
+    if let Some(w) = a.width {
+        let s = w as f32 / k.width as f32;
+        let h = (k.height as f32 * s).round().max(1.0) as u32;
+        k = nerf::rays::Intrinsics { width: w, height: h, fx: k.fx * s, fy: k.fy * s, cx: k.cx * s, cy: k.cy * s };
+    }
+    k.validate().map_err(|e| anyhow::anyhow!("--width {}: {e}", k.width))?;
+    let center = nerf::rays::glam::Vec3::from_array(train.aabb.center());
+    let path = nerf::rays::orbit(&train.cameras, center, k, a.frames)
+        .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?;
+    let out = a.out.unwrap_or_else(|| a.run.join("render"));
+    std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;
+    let n = (k.width * k.height) as usize;
+    let bg: Vec<f32> = ck.config.eval_background.fixed_rgb().repeat(n);
+    let (mut o, mut d) = (Vec::new(), Vec::new());
+    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
+    let mut render_seconds = 0.0;
+    for (i, cam) in path.iter().enumerate() {
+        cam.rays_into(ck.config.pixel_convention, &mut o, &mut d);
+        let t = std::time::Instant::now();
+        trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
+        render_seconds += t.elapsed().as_secs_f64();
+        nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
+    }
+    let fps = a.frames as f64 / render_seconds.max(1e-9);
+    let cameras: Vec<_> = path.iter().map(|c| c.c2w()).collect();
+    let text = serde_json::to_string_pretty(&serde_json::json!({
+        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(),
+        "frames": a.frames, "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "camera_to_world": cameras,
+    }))?;
+    nerf::train::run::write_atomic(&out.join("render.json"), text.as_bytes())?;
+    println!("{} frames at {}x{} ({fps:.2} frames/s on {}) -> {}", a.frames, k.width, k.height, trainer.device(), out.display());
     Ok(())
 }
 

@@ -282,3 +282,40 @@ fn without_an_adapter_gpu_is_a_clear_error_and_auto_runs_on_the_cpu() {
     assert_eq!(m["device"], "cpu");
     assert!(m["adapter"].is_null());
 }
+
+#[test]
+fn render_writes_an_orbit_of_novel_views() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = d.path().join("frames");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "20", "--device", "cpu", "--out"]).arg(&out).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    for i in 0..3 {
+        let img = image::open(out.join(format!("frame_{i:04}.png"))).unwrap();
+        assert_eq!((img.width(), img.height()), (20, 20), "frame {i}: the training images are square");
+    }
+    assert!(!out.join("frame_0003.png").exists());
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
+    assert_eq!(r["frames"], 3);
+    assert_eq!(r["device"], "cpu");
+    assert!(r["frames_per_second"].as_f64().unwrap() > 0.0);
+    // Three camera positions on one circle about the box centre (the origin), 120° apart.
+    let pos: Vec<[f64; 3]> = r["camera_to_world"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| std::array::from_fn(|k| m[k][3].as_f64().unwrap()))
+        .collect();
+    let norm = |p: &[f64; 3]| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+    assert!(pos.iter().all(|p| (norm(p) - norm(&pos[0])).abs() < 1e-4 && norm(p) > 1.0), "{pos:?}");
+    let dist = |a: &[f64; 3], b: &[f64; 3]| norm(&[a[0] - b[0], a[1] - b[1], a[2] - b[2]]);
+    assert!((dist(&pos[0], &pos[1]) - dist(&pos[1], &pos[2])).abs() < 1e-4 && dist(&pos[0], &pos[1]) > 0.5, "{pos:?}");
+    // Bad arguments: a clear one-line error.
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "0"]).output().unwrap();
+    assert_clean_failure(&o, &["--frames"]);
+    let o = nerf().arg("render").arg(d.path().join("nope")).arg(&s).output().unwrap();
+    assert_clean_failure(&o, &["checkpoint.bin"]);
+}

@@ -13,6 +13,7 @@
 //! - [`Ray::dir`] is always unit length; [`Camera::pixel_dir_unnormalized`] gives the
 //!   nerf-pytorch direction whose camera-space z component is −1.
 
+pub use glam;
 use glam::{Mat3, Vec3};
 use serde::{Deserialize, Serialize};
 
@@ -330,6 +331,50 @@ impl Camera {
     }
 }
 
+/// A camera path for novel views: `n` cameras on a circle around `center`, at the mean distance and
+/// mean elevation of `cameras` (the training views) about their mean "up" direction, each looking
+/// at `center`, evenly spaced in azimuth and starting at the first camera's azimuth; `intrinsics`
+/// for every frame. For object-centred (360°) captures such as the NeRF synthetic scenes this is
+/// the familiar turntable render. `None` when `cameras` is empty or degenerate (every camera at
+/// `center`, or a zero mean up vector).
+pub fn orbit(cameras: &[Camera], center: Vec3, intrinsics: Intrinsics, n: usize) -> Option<Vec<Camera>> {
+    let k = cameras.len() as f32;
+    if cameras.is_empty() {
+        return None;
+    }
+    let up = (cameras.iter().map(|c| c.rotation.y_axis).sum::<Vec3>() / k).try_normalize()?;
+    let radius = cameras.iter().map(|c| (c.position - center).length()).sum::<f32>() / k;
+    if !(radius > 0.0 && radius.is_finite()) {
+        return None;
+    }
+    let elevation = cameras
+        .iter()
+        .map(|c| {
+            let v = c.position - center;
+            (v.dot(up) / v.length().max(f32::MIN_POSITIVE)).clamp(-1.0, 1.0).asin()
+        })
+        .sum::<f32>()
+        / k;
+    // Azimuth basis: the first camera's horizontal direction (any horizontal one if it is vertical).
+    let v0 = cameras[0].position - center;
+    let e1 = (v0 - up * v0.dot(up)).try_normalize().unwrap_or_else(|| up.any_orthonormal_vector());
+    let e2 = up.cross(e1);
+    Some(
+        (0..n)
+            .map(|j| {
+                let phi = std::f32::consts::TAU * j as f32 / n as f32;
+                let horizontal = e1 * phi.cos() + e2 * phi.sin();
+                let position = center + radius * (horizontal * elevation.cos() + up * elevation.sin());
+                // OpenGL axes: the camera looks down −z, so z points from the centre to the camera.
+                let z = (position - center).normalize();
+                let x = up.cross(z).try_normalize().unwrap_or(e2);
+                let y = z.cross(x);
+                Camera { intrinsics, rotation: Mat3::from_cols(x, y, z), position }
+            })
+            .collect(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -424,5 +469,44 @@ mod tests {
         assert!(b.contains([0.0, 1.0, 3.0]));
         assert!(!b.contains([0.0, 1.0, 5.0]));
         assert_eq!(Aabb::cube(1.5).extent(), [3.0; 3]);
+    }
+
+    #[test]
+    fn orbit_cameras_circle_the_centre_at_the_training_distance_and_look_at_it() {
+        let k = Intrinsics::from_fov_x(40, 30, 0.7);
+        // Training cameras on a ring of radius 4 at 30° elevation about +z, looking at the origin.
+        let centre = Vec3::new(0.1, -0.2, 0.05);
+        let ring: Vec<Camera> = (0..12)
+            .map(|j| {
+                let (phi, el) = (std::f32::consts::TAU * j as f32 / 12.0 + 0.3, 30f32.to_radians());
+                let position = centre + 4.0 * Vec3::new(el.cos() * phi.cos(), el.cos() * phi.sin(), el.sin());
+                let z = (position - centre).normalize();
+                let x = Vec3::Z.cross(z).normalize();
+                Camera { intrinsics: k, rotation: Mat3::from_cols(x, z.cross(x), z), position }
+            })
+            .collect();
+        let path = orbit(&ring, centre, k, 8).unwrap();
+        assert_eq!(path.len(), 8);
+        for (j, c) in path.iter().enumerate() {
+            let v = c.position - centre;
+            assert!((v.length() - 4.0).abs() < 1e-4, "frame {j}: radius {}", v.length());
+            let el = (v.z / v.length()).asin().to_degrees();
+            assert!((el - 30.0).abs() < 0.05, "frame {j}: elevation {el}");
+            // The central ray passes through the centre; the rotation is orthonormal, right-handed.
+            let ray = c.ray_at(20.0, 15.0);
+            let to_centre = (centre - c.position).normalize();
+            assert!(ray.dir.dot(to_centre) > 1.0 - 1e-6, "frame {j} does not look at the centre");
+            assert!((c.rotation.determinant() - 1.0).abs() < 1e-5);
+            assert!(c.rotation.y_axis.z > 0.0, "frame {j}: image up points down");
+            // Evenly spaced: 45° between consecutive frames.
+            let n = path[(j + 1) % 8].position - centre;
+            let (a, b) = (Vec3::new(v.x, v.y, 0.0).normalize(), Vec3::new(n.x, n.y, 0.0).normalize());
+            assert!((a.dot(b).clamp(-1.0, 1.0).acos().to_degrees() - 45.0).abs() < 0.05, "frame {j}: spacing");
+        }
+        // The first frame starts at the first training camera's azimuth.
+        assert!((path[0].position - ring[0].position).length() < 1e-3);
+        assert!(orbit(&[], centre, k, 8).is_none());
+        let at_centre = Camera { position: centre, ..ring[0] };
+        assert!(orbit(&[at_centre], centre, k, 8).is_none());
     }
 }
