@@ -214,10 +214,10 @@ impl<T: Real> FreqNerf<T> {
         t.d_color_in.resize(n * (w + dd), T::zero());
         self.color.backward(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in));
         t.d_trunk.resize(n * (1 + w), T::zero());
-        for k in 0..n {
+        for (k, &ds) in d_sigma.iter().enumerate() {
             let dh = &mut t.d_trunk[k * (1 + w)..(k + 1) * (1 + w)];
             // σ = ReLU(raw): the gradient passes where raw > 0.
-            dh[0] = if t.raw_sigma[k] > T::zero() { d_sigma[k] } else { T::zero() };
+            dh[0] = if t.raw_sigma[k] > T::zero() { ds } else { T::zero() };
             dh[1..].copy_from_slice(&t.d_color_in[k * (w + dd)..k * (w + dd) + w]);
         }
         self.trunk.backward(n, &t.pos_enc, &mut t.trunk, &t.d_trunk, None);

@@ -132,12 +132,12 @@ impl<T: Real> HashNerf<T> {
             return Err(bad("MLP widths must be positive".into()));
         }
         let mut inv = [T::zero(); 3];
-        for a in 0..3 {
+        for (a, inv_a) in inv.iter_mut().enumerate() {
             let e = ctx.aabb_max[a] - ctx.aabb_min[a];
             if !(e.is_finite() && e > 0.0) {
                 return Err(bad(format!("scene box has extent {e} on axis {a}")));
             }
-            inv[a] = T::one() / T::c(e as f64);
+            *inv_a = T::one() / T::c(e as f64);
         }
         let mut rng = nerf_core::rng(ctx.seed, 0x4A54);
         let grid = HashGrid::<T>::try_new(&config.grid, &mut rng).map_err(|e| bad(e.to_string()))?;
@@ -260,12 +260,12 @@ impl<T: Real> HashNerf<T> {
         t.d_color_in.resize(n * (dd + sh_dim), T::zero());
         self.color.backward(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in));
         t.d_density_out.resize(n * dd, T::zero());
-        for k in 0..n {
+        for (k, &ds) in d_sigma.iter().enumerate() {
             let dr = &mut t.d_density_out[k * dd..(k + 1) * dd];
             dr.copy_from_slice(&t.d_color_in[k * (dd + sh_dim)..k * (dd + sh_dim) + dd]);
             // σ = exp(x) with a truncated gradient: dσ/dx := exp(min(x, TRUNC)).
             let x = t.color_in[k * (dd + sh_dim)];
-            dr[0] += d_sigma[k] * x.min(T::c(TRUNC)).exp();
+            dr[0] += ds * x.min(T::c(TRUNC)).exp();
         }
         t.d_enc.resize(n * enc_dim, T::zero());
         self.density.backward(n, &t.enc, &mut t.density, &t.d_density_out, Some(&mut t.d_enc));
