@@ -63,6 +63,16 @@ pub fn source(f32_atomics: bool) -> String {
     format!("{}{}{}", &src[..b], F32_ATOMIC_BLOCK, &src[e..])
 }
 
+/// Panics (a caller bug) when `buf` holds fewer than `floats` f32 words.
+pub(crate) fn check_buffer(owner: &str, what: &str, buf: &wgpu::Buffer, floats: usize) {
+    assert!(
+        buf.size() >= 4 * floats as u64,
+        "{owner}: {what} buffer has {} bytes, needs {} (capacity × width)",
+        buf.size(),
+        4 * floats
+    );
+}
+
 /// A small MLP (every width ≤ [`MAX_WIDTH`], any number of layers, no skips) as fused GPU kernels.
 /// Built once per config; parameters, gradients and activations live in caller-owned buffers.
 pub struct FusedMlp {
@@ -211,12 +221,7 @@ impl FusedMlp {
     }
 
     fn check(&self, what: &str, buf: &wgpu::Buffer, floats: usize) {
-        assert!(
-            buf.size() >= 4 * floats as u64,
-            "FusedMlp: {what} buffer has {} bytes, needs {} (capacity × width)",
-            buf.size(),
-            4 * floats
-        );
+        check_buffer("FusedMlp", what, buf, floats);
     }
 
     fn check_common(&self, input: &wgpu::Buffer, params: &wgpu::Buffer, capacity: usize) {

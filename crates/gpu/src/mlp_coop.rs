@@ -372,12 +372,7 @@ impl FusedMlpCoop {
     }
 
     fn check(&self, what: &str, buf: &wgpu::Buffer, floats: usize) {
-        assert!(
-            buf.size() >= 4 * floats as u64,
-            "FusedMlpCoop: {what} buffer has {} bytes, needs {} (capacity × width)",
-            buf.size(),
-            4 * floats
-        );
+        crate::mlp::check_buffer("FusedMlpCoop", what, buf, floats);
     }
 
     fn check_common(&self, input: &wgpu::Buffer, params: &wgpu::Buffer, capacity: usize) {

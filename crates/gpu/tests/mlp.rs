@@ -6,24 +6,14 @@
 use nerf_gpu::mlp::{self, FusedMlp};
 use nerf_gpu::{shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
-use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
     GpuContext::for_tests()
 }
 
-fn cfg(input: usize, hidden: usize, layers: usize, output: usize, ha: Activation, oa: Activation, bias: bool) -> MlpConfig {
-    MlpConfig {
-        input_dim: input,
-        output_dim: output,
-        hidden_dim: hidden,
-        hidden_layers: layers,
-        hidden_activation: ha,
-        output_activation: oa,
-        skips: vec![],
-        bias,
-    }
-}
+#[path = "common/small_mlp.rs"]
+mod small_mlp;
+use small_mlp::{cfg, random};
 
 /// The configurations under test: instant-ngp's density and colour nets, odd sizes with bias and
 /// every activation, a single linear layer and a deep narrow net.
@@ -37,10 +27,6 @@ fn configs() -> Vec<(&'static str, MlpConfig)> {
         ("linear only", cfg(13, 0, 0, 9, Relu, Tanh, true)),
         ("deep 64 wide", cfg(64, 64, 4, 64, Sigmoid, None, true)),
     ]
-}
-
-fn random(rng: &mut nerf_core::Rng, len: usize, scale: f32) -> Vec<f32> {
-    (0..len).map(|_| (2.0 * rng.gen::<f32>() - 1.0) * scale).collect()
 }
 
 /// |gpu − cpu| ≤ rel·|cpu| + abs_frac·max|cpu| for every element (and both finite).

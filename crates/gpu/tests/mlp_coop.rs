@@ -16,7 +16,6 @@ use half::f16;
 use nerf_gpu::mlp_coop::{self, CoopMlpParams, FusedMlpCoop};
 use nerf_gpu::{shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
-use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
     GpuContext::for_tests()
@@ -215,18 +214,9 @@ fn emulated_coop_kernels_match_their_references() {
 // ------------------------------------------------------------------------------------------------
 // Device: against the references.
 
-fn cfg(input: usize, hidden: usize, layers: usize, output: usize, ha: Activation, oa: Activation, bias: bool) -> MlpConfig {
-    MlpConfig {
-        input_dim: input,
-        output_dim: output,
-        hidden_dim: hidden,
-        hidden_layers: layers,
-        hidden_activation: ha,
-        output_activation: oa,
-        skips: vec![],
-        bias,
-    }
-}
+#[path = "common/small_mlp.rs"]
+mod small_mlp;
+use small_mlp::{cfg, random};
 
 /// instant-ngp's density and colour nets, odd sizes with biases and every activation, a single
 /// linear layer, a deep 64-wide net (with bias: 80 columns in the weight-gradient product).
@@ -240,10 +230,6 @@ fn configs() -> Vec<(&'static str, MlpConfig)> {
         ("linear only", cfg(13, 0, 0, 9, Relu, Tanh, true)),
         ("deep 64 wide", cfg(64, 64, 4, 64, Sigmoid, None, true)),
     ]
-}
-
-fn random(rng: &mut nerf_core::Rng, len: usize, scale: f32) -> Vec<f32> {
-    (0..len).map(|_| (2.0 * rng.gen::<f32>() - 1.0) * scale).collect()
 }
 
 /// Per element: |gpu − ref| ≤ tol·(max|ref| + |ref|). On failure reports the worst element, the
