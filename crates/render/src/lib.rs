@@ -146,6 +146,57 @@ fn bg_of<T: Real>(background: Option<&[T]>, r: usize) -> [T; 3] {
     }
 }
 
+/// One ray's compositing in progress: transmittance and the accumulated colour, opacity and
+/// depth. [`composite_forward`] runs it over each ray's samples; renderers that evaluate a ray's
+/// samples a few at a time (rendering in rounds) keep it between batches — same arithmetic, same
+/// result.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayComposite<T> {
+    /// Transmittance before the next sample.
+    pub trans: T,
+    /// Σ wᵢ cᵢ so far.
+    pub rgb: [T; 3],
+    /// Σ wᵢ so far.
+    pub opacity: T,
+    /// Σ wᵢ tᵢ so far.
+    pub depth: T,
+}
+
+impl<T: Real> Default for RayComposite<T> {
+    fn default() -> Self {
+        Self { trans: T::one(), rgb: [T::zero(); 3], opacity: T::zero(), depth: T::zero() }
+    }
+}
+
+impl<T: Real> RayComposite<T> {
+    /// Whether compositing has stopped: transmittance below `t_threshold` (0 = never).
+    #[inline]
+    pub fn stopped(&self, t_threshold: T) -> bool {
+        self.trans < t_threshold
+    }
+
+    /// Adds a sample (density, colour, interval length, distance) and returns its weight
+    /// `w = T·(1 − exp(−σδ))`. Call only while not [`stopped`](Self::stopped).
+    #[inline]
+    pub fn add(&mut self, sigma: T, rgb: [T; 3], dt: T, t: T) -> T {
+        let em = (-sigma * dt).exp_m1(); // exp(−σδ) − 1 = −α, accurate for small σδ
+        let w = self.trans * -em;
+        for (a, c) in self.rgb.iter_mut().zip(rgb) {
+            *a += w * c;
+        }
+        self.opacity += w;
+        self.depth += w * t;
+        self.trans *= T::one() + em;
+        w
+    }
+
+    /// The ray's colour over `background`: `Σ wᵢ cᵢ + (1 − Σ wᵢ)·bg`.
+    #[inline]
+    pub fn color(&self, background: [T; 3]) -> [T; 3] {
+        std::array::from_fn(|c| self.rgb[c] + (T::one() - self.opacity) * background[c])
+    }
+}
+
 /// Composites packed samples into per-ray colour, opacity and depth (see the crate docs).
 ///
 /// * `ray_offsets`: `n_rays + 1` CSR offsets; `sigma`, `dt`, `t`: `n` values; `rgb`: `3·n`.
@@ -190,29 +241,18 @@ pub fn composite_forward<T: Real>(
             let base = ray_offsets[lo] as usize;
             for r in lo..hi {
                 let (s0, s1) = (ray_offsets[r] as usize, ray_offsets[r + 1] as usize);
-                let mut trans = T::one();
-                let (mut acc, mut op, mut dep) = ([T::zero(); 3], T::zero(), T::zero());
+                let mut ray = RayComposite::default();
                 for k in s0..s1 {
-                    if trans < t_threshold {
+                    if ray.stopped(t_threshold) {
                         break; // the remaining weights stay 0 (the slice was zero-filled)
                     }
-                    let em = (-sigma[k] * dt[k]).exp_m1(); // exp(−σδ) − 1 = −α, accurate for small σδ
-                    let w = trans * -em;
-                    o.weights[k - base] = w;
-                    for c in 0..3 {
-                        acc[c] += w * rgb[3 * k + c];
-                    }
-                    op += w;
-                    dep += w * t[k];
-                    trans *= T::one() + em;
+                    let c = [rgb[3 * k], rgb[3 * k + 1], rgb[3 * k + 2]];
+                    o.weights[k - base] = ray.add(sigma[k], c, dt[k], t[k]);
                 }
-                let bg = bg_of(background, r);
                 let i = r - lo;
-                for c in 0..3 {
-                    o.rgb[3 * i + c] = acc[c] + (T::one() - op) * bg[c];
-                }
-                o.opacity[i] = op;
-                o.depth[i] = dep;
+                o.rgb[3 * i..3 * i + 3].copy_from_slice(&ray.color(bg_of(background, r)));
+                o.opacity[i] = ray.opacity;
+                o.depth[i] = ray.depth;
             }
         },
     );

@@ -1,12 +1,14 @@
 //! Rendering in rounds with the occupancy grid on the CPU — the twin of the GPU's `round_*`
 //! kernels (`shaders/march.wgsl`): every ray starts alive; a round marches each alive ray's next
 //! few steps ([`RayMarch::advance`]), evaluates the field on those samples in one batch,
-//! composites them into the ray's running colour, transmittance, opacity and depth, and drops
+//! composites them into the ray's running colour, transmittance, opacity and depth
+//! ([`nerf_render::RayComposite`], the per-ray step of `composite_forward`), and drops
 //! the rays whose transmittance fell below the threshold or whose march ended. The samples, their
 //! order and the arithmetic are those of [`nerf_sampling::march`] followed by
 //! [`nerf_render::composite_forward`], so the image is the same bit for bit; the samples behind
 //! opaque surfaces are never evaluated.
 
+use nerf_render::RayComposite;
 use nerf_sampling::{OccupancyGrid, RayMarch};
 
 /// Steps per alive ray and round: about `ROUND_SAMPLES_PER_RAY × rays` samples per round (at
@@ -28,10 +30,7 @@ pub(crate) struct MarchParams {
 
 struct RayState {
     march: RayMarch,
-    trans: f32,
-    acc: [f32; 3],
-    opacity: f32,
-    depth: f32,
+    comp: RayComposite<f32>,
 }
 
 /// Reusable buffers of [`render_in_rounds`].
@@ -70,10 +69,7 @@ pub(crate) fn render_in_rounds(
     s.states.clear();
     s.states.extend((0..n).map(|r| RayState {
         march: RayMarch::new(grid, ray3(origins, r), ray3(dirs, r), p.near, p.far),
-        trans: 1.0,
-        acc: [0.0; 3],
-        opacity: 0.0,
-        depth: 0.0,
+        comp: RayComposite::default(),
     }));
     s.alive.clear();
     s.alive.extend((0..n as u32).filter(|&r| !s.states[r as usize].march.is_done()));
@@ -117,23 +113,14 @@ pub(crate) fn render_in_rounds(
         for i in 0..s.alive.len() {
             let (r, end) = (s.alive[i], s.ends[i]);
             let st = &mut s.states[r as usize];
-            let mut stopped = false;
             for j in start..end {
-                if st.trans < p.t_threshold {
-                    stopped = true;
+                if st.comp.stopped(p.t_threshold) {
                     break;
                 }
-                let em = (-s.sigma[j] * p.step).exp_m1(); // exp(−σδ) − 1 = −α
-                let w = st.trans * -em;
-                for c in 0..3 {
-                    st.acc[c] += w * s.rgb[3 * j + c];
-                }
-                st.opacity += w;
-                st.depth += w * s.t[j];
-                st.trans *= 1.0 + em;
+                st.comp.add(s.sigma[j], ray3(&s.rgb, j), p.step, s.t[j]);
             }
             start = end;
-            if !(stopped || st.trans < p.t_threshold || st.march.is_done()) {
+            if !(st.comp.stopped(p.t_threshold) || st.march.is_done()) {
                 s.alive[keep] = r;
                 keep += 1;
             }
@@ -141,11 +128,9 @@ pub(crate) fn render_in_rounds(
         s.alive.truncate(keep);
     }
     for (r, st) in s.states.iter().enumerate() {
-        for c in 0..3 {
-            rgb[3 * r + c] = st.acc[c] + (1.0 - st.opacity) * background[3 * r + c];
-        }
-        opacity[r] = st.opacity;
-        depth[r] = st.depth;
+        rgb[3 * r..3 * r + 3].copy_from_slice(&st.comp.color(ray3(background, r)));
+        opacity[r] = st.comp.opacity;
+        depth[r] = st.comp.depth;
     }
 }
 
