@@ -9,7 +9,7 @@ use nerf_field::gpu::wgpu;
 use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
 use nerf_gpu::encoding::{GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
-use nerf_gpu::mlp::{fused_net, FusedMlpPath, FusedNet};
+use nerf_gpu::mlp::{fused_nets, FusedMlpPath, FusedNet};
 use nerf_gpu::GpuContext;
 
 /// [`HashNerf`] on the GPU.
@@ -55,8 +55,9 @@ impl GpuHashNerf {
             },
             FusedMlpPath::Plain => gpu_err(e),
         };
-        let density = fused_net(ctx, &field.density.config, path).map_err(mlp_err)?;
-        let color = fused_net(ctx, &field.color.config, path).map_err(mlp_err)?;
+        let mut nets = fused_nets(ctx, &[field.density.config.clone(), field.color.config.clone()], path).map_err(mlp_err)?;
+        let color = nets.pop().expect("two nets");
+        let density = nets.pop().expect("two nets");
         let (dd, enc_dim, sh_dim) = (field.dout_dim(), field.enc_dim(), field.sh_dim());
         let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp, capacity);
         let wd = cfg.mlp_weight_decay;

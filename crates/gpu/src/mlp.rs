@@ -63,6 +63,28 @@ pub fn source(f32_atomics: bool) -> String {
     format!("{}{}{}", &src[..b], F32_ATOMIC_BLOCK, &src[e..])
 }
 
+/// The shapes the fully fused kernels take (both paths): a valid config, no skips, every width ≤
+/// [`MAX_WIDTH`]. `owner` starts the error message.
+pub(crate) fn check_fused_shape(owner: &str, config: &MlpConfig) -> Result<(), GpuError> {
+    config.validate().map_err(|e| GpuError::Unsupported(format!("{owner}: invalid config: {e}")))?;
+    if !config.skips.is_empty() {
+        return Err(GpuError::Unsupported(format!(
+            "{owner}: skip connections ({:?}) are not supported by the fused kernels",
+            config.skips
+        )));
+    }
+    for (what, w) in [
+        ("input_dim", config.input_dim),
+        ("output_dim", config.output_dim),
+        ("hidden_dim", if config.hidden_layers > 0 { config.hidden_dim } else { 0 }),
+    ] {
+        if w > MAX_WIDTH {
+            return Err(GpuError::Unsupported(format!("{owner}: {what} = {w} exceeds the fused kernels' limit of {MAX_WIDTH}")));
+        }
+    }
+    Ok(())
+}
+
 /// Panics (a caller bug) when `buf` holds fewer than `floats` f32 words.
 pub(crate) fn check_buffer(owner: &str, what: &str, buf: &wgpu::Buffer, floats: usize) {
     assert!(
@@ -103,26 +125,7 @@ impl FusedMlp {
     /// As [`FusedMlp::new`] with the gradient-atomics path chosen explicitly (`true`: `atomic<f32>`,
     /// an error on adapters without `SHADER_FLOAT32_ATOMIC`; `false`: compare-and-swap loop).
     pub fn with_atomics(ctx: &GpuContext, config: &MlpConfig, f32_atomics: bool) -> Result<Self, GpuError> {
-        config
-            .validate()
-            .map_err(|e| GpuError::Unsupported(format!("fused MLP: invalid config: {e}")))?;
-        if !config.skips.is_empty() {
-            return Err(GpuError::Unsupported(format!(
-                "fused MLP: skip connections ({:?}) are not supported by the fused kernels",
-                config.skips
-            )));
-        }
-        for (what, w) in [
-            ("input_dim", config.input_dim),
-            ("output_dim", config.output_dim),
-            ("hidden_dim", if config.hidden_layers > 0 { config.hidden_dim } else { 0 }),
-        ] {
-            if w > MAX_WIDTH {
-                return Err(GpuError::Unsupported(format!(
-                    "fused MLP: {what} = {w} exceeds the fused kernels' limit of {MAX_WIDTH}"
-                )));
-            }
-        }
+        check_fused_shape("fused MLP", config)?;
         if f32_atomics && !ctx.features.float32_atomics {
             return Err(GpuError::Unsupported(
                 "fused MLP: atomic<f32> gradients requested but the adapter lacks SHADER_FLOAT32_ATOMIC".into(),
@@ -479,8 +482,27 @@ impl_fused_net!(crate::mlp_coop::FusedMlpCoop);
 /// A fully fused MLP for `config` on `path` (a clear [`GpuError::Unsupported`] where the adapter
 /// or the config does not allow it).
 pub fn fused_net(ctx: &GpuContext, config: &MlpConfig, path: FusedMlpPath) -> Result<Box<dyn FusedNet>, GpuError> {
-    Ok(match path {
-        FusedMlpPath::Plain => Box::new(FusedMlp::new(ctx, config)?),
-        FusedMlpPath::Coop => Box::new(crate::mlp_coop::FusedMlpCoop::new(ctx, config)?),
-    })
+    Ok(fused_nets(ctx, std::slice::from_ref(config), path)?.remove(0))
+}
+
+/// Fully fused MLPs for several configs on `path`; the cooperative-matrix nets share one shader
+/// compilation ([`crate::mlp_coop::FusedMlpCoop::with_config`]).
+pub fn fused_nets(ctx: &GpuContext, configs: &[MlpConfig], path: FusedMlpPath) -> Result<Vec<Box<dyn FusedNet>>, GpuError> {
+    let mut nets: Vec<Box<dyn FusedNet>> = Vec::with_capacity(configs.len());
+    match path {
+        FusedMlpPath::Plain => {
+            for c in configs {
+                nets.push(Box::new(FusedMlp::new(ctx, c)?));
+            }
+        }
+        FusedMlpPath::Coop => {
+            let Some((first, rest)) = configs.split_first() else { return Ok(nets) };
+            let base = crate::mlp_coop::FusedMlpCoop::new(ctx, first)?;
+            for c in rest {
+                nets.push(Box::new(base.with_config(ctx, c)?));
+            }
+            nets.insert(0, Box::new(base));
+        }
+    }
+    Ok(nets)
 }

@@ -30,7 +30,7 @@ use std::sync::Arc;
 /// Samples per workgroup tile of the forward and backward kernels.
 pub const TILE: usize = 32;
 /// Widest supported layer (input, hidden and output widths).
-pub const MAX_WIDTH: usize = 64;
+pub use crate::mlp::MAX_WIDTH;
 /// Most linear layers (`hidden_layers + 1`) the uniform's layer table holds.
 pub const MAX_LAYERS: usize = 16;
 /// Most sample splits of the weight-gradient reduction.
@@ -218,26 +218,7 @@ impl FusedMlpCoop {
     }
 
     fn check_config(ctx: &GpuContext, config: &MlpConfig) -> Result<(), GpuError> {
-        config
-            .validate()
-            .map_err(|e| GpuError::Unsupported(format!("cooperative-matrix fused MLP: invalid config: {e}")))?;
-        if !config.skips.is_empty() {
-            return Err(GpuError::Unsupported(format!(
-                "cooperative-matrix fused MLP: skip connections ({:?}) are not supported by the fused kernels",
-                config.skips
-            )));
-        }
-        for (what, w) in [
-            ("input_dim", config.input_dim),
-            ("output_dim", config.output_dim),
-            ("hidden_dim", if config.hidden_layers > 0 { config.hidden_dim } else { 0 }),
-        ] {
-            if w > MAX_WIDTH {
-                return Err(GpuError::Unsupported(format!(
-                    "cooperative-matrix fused MLP: {what} = {w} exceeds the fused kernels' limit of {MAX_WIDTH}"
-                )));
-            }
-        }
+        crate::mlp::check_fused_shape("cooperative-matrix fused MLP", config)?;
         let nl = config.hidden_layers + 1;
         if nl > MAX_LAYERS {
             return Err(GpuError::Unsupported(format!(
