@@ -171,3 +171,45 @@ fn a_gpu_run_resumes_from_a_gpu_or_a_cpu_checkpoint() {
         assert!(losses.iter().all(|&l| l > 0.0 && l < 0.1), "from {from}: {losses:?}");
     }
 }
+
+/// `gpu_profile`: a window of GPU steps is timed pass by pass and summed by stage and kernel into
+/// `gpu_profile.json` and `metrics.json`; a run that stops inside the window keeps what it timed.
+#[test]
+fn a_gpu_run_writes_its_profile() {
+    let Some(ctx) = device() else { return };
+    if !ctx.features.timestamps {
+        eprintln!("NOTICE: adapter {} has no timestamp queries; no profile to check", ctx.describe());
+        return;
+    }
+    let train = load(Split::Train, ViewSelection::First(10));
+    let test = load(Split::Test, ViewSelection::First(1));
+    let registry = nerf::registry();
+    for (iters, start, steps, expect) in [(20u64, 15u64, 3u64, 3u64), (17, 15, 5, 2)] {
+        let dir = tempfile::tempdir().unwrap();
+        let mut config = small_hash_config(iters);
+        config.gpu_profile = Some(nerf::train::ProfileWindow { start, steps });
+        let opts = nerf::train::RunOptions {
+            progress: false,
+            write_renders: false,
+            device: nerf::gpu::DevicePreference::Gpu,
+            ..nerf::train::RunOptions::new(dir.path())
+        };
+        let summary = nerf::train::run(config, &registry, &train, &test, &opts).unwrap();
+        let text = std::fs::read_to_string(dir.path().join("gpu_profile.json")).unwrap();
+        let p: nerf::train::GpuProfile = serde_json::from_str(&text).unwrap();
+        assert_eq!((p.first_step, p.steps, p.untimed_passes), (start, expect, 0));
+        let stages: Vec<&str> = p.stages.iter().map(|s| s.stage.as_str()).collect();
+        // Step 16 refreshes the occupancy grid (every 16 steps): it is in both windows.
+        for s in ["occupancy update", "rays", "sampling", "field forward", "composite forward", "loss", "composite backward", "field backward", "adam"] {
+            assert!(stages.contains(&s), "stage {s} missing: {stages:?}");
+        }
+        for part in ["hash encoding", "density MLP", "colour MLP"] {
+            assert!(p.kernels.iter().any(|k| k.stage == "field backward" && k.part == part), "{part}: {:?}", p.kernels);
+        }
+        let sum: f64 = p.kernels.iter().map(|k| k.ms_per_step).sum();
+        assert!(p.busy_ms_per_step > 0.0 && (sum - p.busy_ms_per_step).abs() <= 1e-9 * sum.max(1.0));
+        assert!(p.span_ms_per_step >= p.busy_ms_per_step * 0.999, "passes of one queue do not overlap: {p:?}");
+        assert!(p.kernels.windows(2).all(|w| w[0].ms_per_step >= w[1].ms_per_step));
+        assert_eq!(summary.metrics["gpu_profile"]["steps"], expect);
+    }
+}

@@ -74,6 +74,9 @@ pub struct RunMetrics {
     pub config_hash: String,
     /// The resolved training config.
     pub config: TrainConfig,
+    /// Per-kernel GPU timings of the steps `config.gpu_profile` asked for (GPU runs only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gpu_profile: Option<nerf_train::GpuProfile>,
 }
 
 /// The outcome of one run of an ablation.
@@ -179,8 +182,13 @@ pub fn train_run(
     // segment ends with `finish()` (wait for the device) before the clock is read.
     let mut seg_base = 0.0f64;
     let mut seg = Instant::now();
+    let mut profile = None;
     while trainer.step_count() < cfg.iters && elapsed < budget {
         trainer.step(train).map_err(terr)?;
+        if let Some(p) = trainer.take_gpu_profile(false) {
+            eprintln!("[{}] {}", plan.id, p.table(25));
+            profile = Some(p);
+        }
         elapsed = seg_base + seg.elapsed().as_secs_f64();
         let done = trainer.step_count();
         let by_iter = sched.every_iters.is_some_and(|k| done % k == 0);
@@ -199,6 +207,10 @@ pub fn train_run(
         }
     }
     trainer.finish().map_err(terr)?;
+    if let Some(p) = trainer.take_gpu_profile(true) {
+        eprintln!("[{}] {}", plan.id, p.table(25));
+        profile = Some(p);
+    }
     if curve.last().map(|p| p.iter) != Some(trainer.step_count()) {
         elapsed = elapsed.max(seg_base + seg.elapsed().as_secs_f64());
         eval_point(&trainer, elapsed, &mut curve)?;
@@ -232,6 +244,7 @@ pub fn train_run(
         curve,
         config_hash: plan.config_hash.clone(),
         config: cfg.clone(),
+        gpu_profile: profile,
     })
 }
 

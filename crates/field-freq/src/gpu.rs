@@ -96,34 +96,48 @@ impl GpuRadianceField for GpuFreqNerf {
 
     fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer) {
         let cap = self.capacity;
+        ctx.profile_part("frequency encoding");
         self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
+        ctx.profile_part("trunk MLP");
         self.trunk.record_inference(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, cap);
+        ctx.profile_part("glue");
         self.glue.record_density(ctx, enc, s.counters, &self.head, sigma);
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
         let cap = self.capacity;
+        ctx.profile_part("frequency encoding");
         self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
+        ctx.profile_part("trunk MLP");
         self.trunk.record_inference(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, cap);
+        ctx.profile_part("frequency encoding + glue");
         self.dir_enc.record_forward(ctx, enc, s.counters, s.dirs, &self.dir, cap);
         self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in);
+        ctx.profile_part("view MLP");
         self.color.record_inference(ctx, enc, s.counters, &self.color_in, &self.groups[1].params, rgb, cap);
     }
 
     fn record_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
         let cap = self.capacity;
+        ctx.profile_part("frequency encoding");
         self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
+        ctx.profile_part("trunk MLP");
         self.trunk.record_forward(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, &self.trunk_tape, cap);
+        ctx.profile_part("frequency encoding + glue");
         self.dir_enc.record_forward(ctx, enc, s.counters, s.dirs, &self.dir, cap);
         self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in);
+        ctx.profile_part("view MLP");
         self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[1].params, rgb, &self.color_tape, cap);
     }
 
     fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {
         let cap = self.capacity;
         let g = &self.groups;
+        ctx.profile_part("view MLP");
         self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[1].params, &self.color_tape, d_rgb, &g[1].grads, Some(&self.d_color_in), cap);
+        ctx.profile_part("glue");
         self.glue.record_backward(ctx, enc, s.counters, &self.head, &self.d_color_in, d_sigma, &self.d_head);
+        ctx.profile_part("trunk MLP");
         self.trunk.record_backward(ctx, enc, s.counters, &self.pos, &g[0].params, &self.trunk_tape, &self.d_head, &g[0].grads, None, cap);
     }
 }

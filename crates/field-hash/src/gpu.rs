@@ -111,35 +111,50 @@ impl GpuRadianceField for GpuHashNerf {
 
     fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer) {
         let cap = self.capacity;
+        ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
+        ctx.profile_part("density MLP");
         self.density.record_inference(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, cap);
+        ctx.profile_part("glue");
         self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma);
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
         let cap = self.capacity;
+        ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
+        ctx.profile_part("density MLP");
         self.density.record_inference(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, cap);
+        ctx.profile_part("SH + glue");
         self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
         self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
+        ctx.profile_part("colour MLP");
         self.color.record_inference(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, cap);
     }
 
     fn record_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
         let cap = self.capacity;
+        ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
+        ctx.profile_part("density MLP");
         self.density.record_forward(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, cap);
+        ctx.profile_part("SH + glue");
         self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
         self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
+        ctx.profile_part("colour MLP");
         self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, &self.color_tape, cap);
     }
 
     fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {
         let cap = self.capacity;
         let g = &self.groups;
+        ctx.profile_part("colour MLP");
         self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[2].params, &self.color_tape, d_rgb, &g[2].grads, Some(&self.d_color_in), cap);
+        ctx.profile_part("glue");
         self.glue.record_backward(ctx, enc, s.counters, &self.dout, &self.d_color_in, d_sigma, &self.d_dout);
+        ctx.profile_part("density MLP");
         self.density.record_backward(ctx, enc, s.counters, &self.enc, &g[1].params, &self.density_tape, &self.d_dout, &g[1].grads, Some(&self.d_enc), cap);
+        ctx.profile_part("hash encoding");
         self.grid.record_backward(ctx, enc, s.counters, s.positions, &self.d_enc, &g[0].grads, cap);
     }
 }

@@ -36,6 +36,15 @@ pub struct Kernel {
     cache: std::sync::Mutex<BindGroupCache>,
 }
 
+/// The begin/end timestamp writes of a pass that [`GpuContext::profile_pass`] chose to time.
+fn timestamp_writes(timed: &Option<(wgpu::QuerySet, u32)>) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+    timed.as_ref().map(|(query_set, i)| wgpu::ComputePassTimestampWrites {
+        query_set,
+        beginning_of_pass_write_index: Some(*i),
+        end_of_pass_write_index: Some(i + 1),
+    })
+}
+
 /// Bind groups by a hash of what they bind, with the bindings kept to rule out collisions.
 type BindGroupCache = std::collections::HashMap<u64, (Vec<(u32, wgpu::Buffer)>, wgpu::BindGroup)>;
 
@@ -83,7 +92,8 @@ impl Kernel {
     /// buffers). Bindings the shader does not use must not be passed (auto layout).
     pub fn record(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, bindings: &[(u32, &wgpu::Buffer)], groups: [u32; 3]) {
         let group = self.bind_group(ctx, bindings);
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&self.label), timestamp_writes: None });
+        let timed = ctx.profile_pass(&self.label);
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&self.label), timestamp_writes: timestamp_writes(&timed) });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &group, &[]);
         pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
@@ -100,7 +110,8 @@ impl Kernel {
         offset: u64,
     ) {
         let group = self.bind_group(ctx, bindings);
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&self.label), timestamp_writes: None });
+        let timed = ctx.profile_pass(&self.label);
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&self.label), timestamp_writes: timestamp_writes(&timed) });
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &group, &[]);
         pass.dispatch_workgroups_indirect(indirect, offset);

@@ -17,6 +17,7 @@ pub mod mlp_coop;
 pub mod occupancy;
 pub mod pdf;
 pub mod optim;
+pub mod profile;
 pub mod rng;
 pub mod sampling;
 pub mod shaders;
@@ -100,6 +101,8 @@ pub struct GpuFeatures {
     pub subgroups: bool,
     /// Cooperative matrices (tensor cores from WGSL; experimental in wgpu 30).
     pub cooperative_matrix: bool,
+    /// Timestamp queries around compute passes (the [`profile`] of a training step).
+    pub timestamps: bool,
 }
 
 /// An opened device with its queue and what it supports. Pipelines and buffers are built once
@@ -113,6 +116,8 @@ pub struct GpuContext {
     pub info: wgpu::AdapterInfo,
     /// Detected features (those requested from the device).
     pub features: GpuFeatures,
+    /// The pass timer of [`profile`] (made on first use).
+    profiler: std::sync::Mutex<Option<profile::Recorder>>,
 }
 
 impl GpuContext {
@@ -147,6 +152,7 @@ impl GpuContext {
             (wgpu::Features::SHADER_F16, &mut features.shader_f16),
             (wgpu::Features::SHADER_FLOAT32_ATOMIC, &mut features.float32_atomics),
             (wgpu::Features::SUBGROUP, &mut features.subgroups),
+            (wgpu::Features::TIMESTAMP_QUERY, &mut features.timestamps),
         ] {
             if have.contains(flag) {
                 want |= flag;
@@ -173,7 +179,7 @@ impl GpuContext {
             trace: wgpu::Trace::Off,
         }))
         .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
-        Ok(Some(Self { device, queue, info, features }))
+        Ok(Some(Self { device, queue, info, features, profiler: Default::default() }))
     }
 
     /// For tests and benches: any adapter (software ones such as lavapipe included, the

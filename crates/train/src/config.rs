@@ -102,6 +102,11 @@ pub struct TrainConfig {
     pub checkpoint_every: u64,
     /// Rays per rendering chunk during evaluation.
     pub render_chunk_rays: usize,
+    /// Time every compute pass of these training steps on the GPU (timestamp queries) and write
+    /// the breakdown by stage and kernel to `gpu_profile.json` and `metrics.json`
+    /// ([`crate::profile`]); `None` (the default) = off. Ignored, with a note, on the CPU path.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu_profile: Option<crate::profile::ProfileWindow>,
 }
 
 impl Default for TrainConfig {
@@ -128,6 +133,7 @@ impl Default for TrainConfig {
             log_every: 100,
             checkpoint_every: 1000,
             render_chunk_rays: 4096,
+            gpu_profile: None,
         }
     }
 }
@@ -168,6 +174,9 @@ impl TrainConfig {
             if !(d > 0.0 && d < 1.0) {
                 return Err(format!("ema_decay must lie strictly between 0 and 1 (instant-ngp: 0.95), got {d}"));
             }
+        }
+        if self.gpu_profile.is_some_and(|w| w.steps == 0) {
+            return Err("gpu_profile.steps must be positive".into());
         }
         if let Some(t) = self.time_budget_secs {
             if !(t.is_finite() && t > 0.0) {

@@ -8,6 +8,7 @@
 //! (`[n_rays, n_samples]`) written by the kernels themselves (batch sizing, marching).
 
 use crate::config::{SamplerConfig, TrainConfig};
+use crate::profile::{GpuProfile, ProfileAccumulator};
 use crate::trainer::{SceneBounds, StepStats};
 use crate::TrainError;
 use nerf_data::Dataset;
@@ -182,6 +183,10 @@ pub(crate) struct GpuEngine {
     frame: std::cell::RefCell<Option<Frame>>,
     /// Submissions of the steps still running (at most `MAX_IN_FLIGHT`).
     in_flight: std::collections::VecDeque<wgpu::SubmissionIndex>,
+    /// Pass timings of the steps of `TrainConfig::gpu_profile` so far.
+    profile: ProfileAccumulator,
+    /// Set once the profile window is complete; taken by [`GpuEngine::take_profile`].
+    profile_done: Option<GpuProfile>,
 }
 
 impl GpuEngine {
@@ -194,6 +199,12 @@ impl GpuEngine {
         group_names: &[Vec<String>],
     ) -> Result<Self, TrainError> {
         let (capacity_rays, capacity_samples) = capacities(config);
+        if config.gpu_profile.is_some() && !ctx.features.timestamps {
+            return Err(TrainError::Gpu(format!(
+                "gpu_profile needs timestamp queries, which the adapter {} lacks",
+                ctx.describe()
+            )));
+        }
 
         let stage_samples = |i: usize| match config.sampler {
             SamplerConfig::Hierarchical { n_coarse, n_fine } if i == 1 => capacity_rays * (n_coarse + n_fine),
@@ -308,6 +319,8 @@ impl GpuEngine {
             render_chunk: Cell::new(capacity_rays),
             in_flight: Default::default(),
             frame: Default::default(),
+            profile: Default::default(),
+            profile_done: None,
             ctx,
         })
     }
@@ -333,16 +346,23 @@ impl GpuEngine {
             (x ^ (x >> 32)) as u32
         };
         let lr = cfg.lr.lr(step);
+        let profiled = cfg.gpu_profile.is_some_and(|w| w.contains(step));
+        if profiled {
+            ctx.profile_start().map_err(gerr)?;
+        }
         let mut enc = ctx.encoder("train step");
         let (_, images) = self.images.as_ref().expect("uploaded above");
         let s0 = &self.stages[0];
         // Occupancy-grid refresh from the field's density when due.
         if let Sampler::Occupancy(o) = &self.sampler {
             if o.grid.due(step) {
+                ctx.profile_stage("occupancy update");
+                ctx.profile_part("grid");
                 o.grid.record_choose(ctx, &mut enc, step, seed(1), &o.points, &o.cells, &o.counters);
                 // σ at the chosen points, a field-capacity chunk at a time.
                 for (offset, size, uniform) in &o.chunks {
                     enc.copy_buffer_to_buffer(&o.points, 12 * *offset as u64, &o.chunk_points, 0, 12 * *size as u64);
+                    ctx.profile_part("chunk");
                     self.glue.record_chunk_count(ctx, &mut enc, uniform, &o.counters, &o.chunk_counters);
                     let s = GpuSamples {
                         counters: &o.chunk_counters,
@@ -353,10 +373,12 @@ impl GpuEngine {
                     self.fields[0].record_density(ctx, &mut enc, s, &o.chunk_sigma);
                     enc.copy_buffer_to_buffer(&o.chunk_sigma, 0, &o.sigma, 4 * *offset as u64, 4 * *size as u64);
                 }
+                ctx.profile_part("grid");
                 o.grid.record_apply(ctx, &mut enc, &o.cells, &o.sigma, o.step_size);
             }
         }
         self.raygen.set_seed(ctx, seed(2));
+        ctx.profile_stage("rays");
         self.raygen.record(ctx, &mut enc, &s0.counters, images, &self.rays);
         let perturb = cfg.perturb;
         self.record_first_stage(ctx, &mut enc, perturb.then(|| seed(3)));
@@ -368,11 +390,15 @@ impl GpuEngine {
         }
         // Loss on every stage, backward through compositing into each field, Adam.
         for (i, st) in self.stages.iter().enumerate() {
+            ctx.profile_stage("loss");
             self.glue.record_loss(ctx, &mut enc, &st.counters, &st.ray_rgb, &self.rays.target, &st.d_ray_rgb, &st.sq_err);
             let pb = self.packed(st);
+            ctx.profile_stage("composite backward");
             self.compositor.record_backward(ctx, &mut enc, &pb, &st.weights, &st.d_ray_rgb, None, None, &st.d_sigma, &st.d_rgb);
+            ctx.profile_stage(if i == 0 { "field backward" } else { "fine field backward" });
             self.fields[i].record_backward(ctx, &mut enc, st.samples(), &st.d_sigma, &st.d_rgb);
         }
+        ctx.profile_stage("adam");
         for (f, adams) in self.fields.iter().zip(&self.adams) {
             for (g, adam) in f.groups().iter().zip(adams) {
                 adam.record_step(ctx, &mut enc, &g.params, &g.grads, lr);
@@ -380,13 +406,23 @@ impl GpuEngine {
         }
         // Samples seen, batch size of the next step (from this step's first stage).
         let last = self.stages.len() - 1;
+        ctx.profile_stage("batch bookkeeping");
         for st in &self.stages {
             self.glue.record_count(ctx, &mut enc, &st.counters, &self.seen);
         }
         if self.adaptive {
             self.glue.record_next_batch(ctx, &mut enc, &self.stages[0].counters, &self.spr);
         }
+        let timings = if profiled { ctx.profile_finish(&mut enc) } else { None };
         let idx = ctx.queue.submit([enc.finish()]);
+        if let Some(t) = timings {
+            let untimed = t.dropped();
+            let passes = t.read(ctx).map_err(gerr)?;
+            self.profile.add_step(step, &passes, untimed);
+            if cfg.gpu_profile.is_some_and(|w| w.is_last(step)) {
+                self.profile_done = Some(self.profile.summary(&ctx.describe()));
+            }
+        }
         // Keep at most MAX_IN_FLIGHT steps queued: the host stays a few steps ahead of the device
         // (recording overlaps execution) without queueing unbounded work, so time budgets and
         // Ctrl-C act within milliseconds.
@@ -420,6 +456,21 @@ impl GpuEngine {
         Ok(StepStats { step, loss, mse, n_samples, lr })
     }
 
+    /// The profile of `TrainConfig::gpu_profile` once its window is complete (once), or with
+    /// `partial` whatever steps of it ran (a run that stopped inside the window).
+    pub(crate) fn take_profile(&mut self, partial: bool) -> Option<GpuProfile> {
+        if let Some(p) = self.profile_done.take() {
+            self.profile = Default::default();
+            return Some(p);
+        }
+        if partial && self.profile.steps() > 0 {
+            let p = self.profile.summary(&self.ctx.describe());
+            self.profile = Default::default();
+            return Some(p);
+        }
+        None
+    }
+
     fn packed<'a>(&'a self, st: &'a Stage) -> PackedBuffers<'a> {
         PackedBuffers {
             counters: &st.counters,
@@ -435,6 +486,7 @@ impl GpuEngine {
     /// Samples of the first (or only) stage from the current rays.
     fn record_first_stage(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, jitter_seed: Option<u32>) {
         let s0 = &self.stages[0];
+        ctx.profile_stage("sampling");
         match &self.sampler {
             Sampler::Occupancy(o) => {
                 o.marcher.set_seed(ctx, jitter_seed.unwrap_or(0), jitter_seed.is_some());
@@ -463,6 +515,7 @@ impl GpuEngine {
         fine: &Stage,
         jitter_seed: Option<u32>,
     ) {
+        ctx.profile_stage("fine sampling");
         h.record(
             ctx,
             enc,
@@ -483,12 +536,14 @@ impl GpuEngine {
     fn record_stage_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, i: usize, train: bool) {
         let st = &self.stages[i];
         let s = st.samples();
+        ctx.profile_stage(if i == 0 { "field forward" } else { "fine field forward" });
         if train {
             self.fields[i].record_forward(ctx, enc, s, &st.sigma, &st.rgb);
         } else {
             self.fields[i].record_query(ctx, enc, s, &st.sigma, &st.rgb);
         }
         let out = CompositeTargets { rgb: &st.ray_rgb, opacity: &st.opacity, depth: &st.depth, weights: &st.weights };
+        ctx.profile_stage("composite forward");
         self.compositor.record_forward(ctx, enc, &self.packed(st), &out);
     }
 

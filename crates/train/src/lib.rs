@@ -12,6 +12,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod eval;
 mod gpu;
+pub mod profile;
 mod rounds;
 pub mod run;
 pub mod trainer;
@@ -19,6 +20,7 @@ pub mod trainer;
 pub use checkpoint::Checkpoint;
 pub use config::{SamplerConfig, TrainConfig};
 pub use eval::{evaluate, EvalReport, ViewMetrics};
+pub use profile::{GpuProfile, ProfileWindow};
 pub use run::{make_trainer, run, RunOptions, RunSummary};
 pub use trainer::{ema_from_entries, ema_to_entries, SceneBounds, StepStats, Trainer};
 

@@ -84,6 +84,15 @@ pub fn run(
     std::fs::create_dir_all(out).map_err(io_err(out))?;
     let ck_path = out.join("checkpoint.bin");
     let mut trainer = make_trainer(&config, registry, SceneBounds::of(train), opts.device)?;
+    if config.gpu_profile.is_some() && trainer.device() == "cpu" {
+        eprintln!("note: gpu_profile is ignored on the CPU path");
+    }
+    let mut profile: Option<crate::GpuProfile> = None;
+    let profile_path = out.join("gpu_profile.json");
+    let write_profile = |p: &crate::GpuProfile| -> Result<(), TrainError> {
+        let text = serde_json::to_string_pretty(p).expect("profile serialises");
+        write_atomic(&profile_path, text.as_bytes())
+    };
     let (mut elapsed, mut samples_seen) = (0.0f64, 0u64);
     if opts.resume && ck_path.exists() {
         let ck = Checkpoint::load(&ck_path)?;
@@ -141,6 +150,11 @@ pub fn run(
             return Err(TrainError::Interrupted { step: trainer.step_count(), checkpoint: ck_path });
         }
         let s = trainer.step(train)?;
+        if let Some(p) = trainer.take_gpu_profile(false) {
+            write_profile(&p)?;
+            pb.suspend(|| eprintln!("{}", p.table(25)));
+            profile = Some(p);
+        }
         elapsed = base_elapsed + start.elapsed().as_secs_f64();
         if s.loss.is_finite() {
             last_loss = s.loss;
@@ -160,6 +174,11 @@ pub fn run(
     // GPU steps are queued: wait for them so the clock counts the work, not its submission.
     trainer.finish()?;
     elapsed = base_elapsed + start.elapsed().as_secs_f64();
+    if let Some(p) = trainer.take_gpu_profile(true) {
+        write_profile(&p)?;
+        pb.suspend(|| eprintln!("{}", p.table(25)));
+        profile = Some(p);
+    }
     samples_seen += trainer.samples_seen()?;
     pb.finish_with_message(format!("trained {} steps in {:.1}s", trainer.step_count(), elapsed));
     save(&trainer, elapsed)?;
@@ -174,7 +193,7 @@ pub fn run(
 
     let steps_this_run = trainer.step_count() - base_step;
     let iters = trainer.step_count();
-    let metrics = json!({
+    let mut metrics = json!({
         "field": config.field,
         "device": trainer.device(),
         "adapter": trainer.adapter(),
@@ -197,6 +216,9 @@ pub fn run(
         "config": config,
         "per_view": report.views,
     });
+    if let Some(p) = &profile {
+        metrics["gpu_profile"] = serde_json::to_value(p).expect("profile serialises");
+    }
     let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
     write_atomic(&out.join("metrics.json"), text.as_bytes())?;
     Ok(RunSummary { metrics, eval: report, iterations: iters })

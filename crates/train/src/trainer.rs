@@ -189,6 +189,12 @@ impl Trainer {
         self.gpu.as_ref().map(|g| g.describe())
     }
 
+    /// The GPU profile of `TrainConfig::gpu_profile` once its window of steps is complete (returned
+    /// once), or with `partial` the steps of it that ran. Always `None` on the CPU path.
+    pub fn take_gpu_profile(&mut self, partial: bool) -> Option<crate::GpuProfile> {
+        self.gpu.as_mut().and_then(|g| g.take_profile(partial))
+    }
+
     /// Waits until every queued GPU step has finished (no-op on the CPU).
     pub fn finish(&self) -> Result<(), TrainError> {
         match &self.gpu {
