@@ -15,6 +15,14 @@
 // never reads the previous values), with ema_old = d·(1−d^(t−1))/(1−d^t), ema_new = (1−d)/(1−d^t)
 // computed on the host in f64 (nerf_optim::Ema::coefficients). `ema` has the parameter layout;
 // one more read and write per element, no extra pass.
+//
+// Sparse groups (Group.sparse = 1; tiny-cuda-nn's Adam on "non-matrix" parameters such as hash
+// tables; CPU twin: nerf_optim::Adam with AdamConfig::sparse_groups): an entry whose gradient is
+// exactly zero is left alone (parameter, moments, count); otherwise its own step count
+// `counts[k]` is incremented and the bias corrections use it: step_size = lr·bias[t_k−1].x with
+// bias[t−1] = (1/(1−β1^t), 1/sqrt(1−β2^t)) computed on the host in f64 (as the CPU does) up to the
+// t where both are 1 in f32; larger counts use the last entry. `counts` has the parameter layout
+// (u32) and is only touched for sparse groups.
 
 struct AdamParams {
     total: u32,        // Σ group lengths (launch size)
@@ -28,7 +36,7 @@ struct AdamParams {
     inv_sqrt_bc2: f32, // 1 / sqrt(1 − β2^t)
     ema_old: f32,      // EMA weight of the previous average (adam_step_ema only)
     ema_new: f32,      // EMA weight of the new parameter (adam_step_ema only)
-    _pad0: u32,
+    lr: f32,           // learning rate (sparse groups debias per entry)
 }
 
 struct Group {
@@ -37,7 +45,7 @@ struct Group {
     start: u32,        // first launch index
     weight_decay: f32,
     lr_scale: f32,
-    _pad0: u32,
+    sparse: u32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -52,6 +60,8 @@ override WG: u32 = 256u;
 @group(0) @binding(5) var<storage, read_write> m2: array<f32>;
 
 @group(0) @binding(6) var<storage, read_write> ema: array<f32>;
+@group(0) @binding(7) var<storage, read_write> counts: array<u32>;
+@group(0) @binding(8) var<storage, read> bias: array<vec2<f32>>;
 
 /// Index of parameter of launch index `i` (the group holding `i`, then the offset inside it);
 /// `wd` and `lr_scale` of that group.
@@ -59,6 +69,7 @@ struct Slot {
     k: u32,
     wd: f32,
     lr_scale: f32,
+    sparse: u32,
 }
 
 fn slot(i: u32) -> Slot {
@@ -71,19 +82,32 @@ fn slot(i: u32) -> Slot {
         g += 1u;
     }
     let grp = groups[g];
-    return Slot(grp.offset + (i - grp.start), grp.weight_decay, grp.lr_scale);
+    return Slot(grp.offset + (i - grp.start), grp.weight_decay, grp.lr_scale, grp.sparse);
 }
 
 /// The Adam update of parameter `k`; returns the new parameter.
 fn adam_update(s: Slot) -> f32 {
     let k = s.k;
     let p = params[k];
-    let gi = grads[k] + s.wd * p;
+    let g = grads[k];
+    var step_size = prm.step_size;
+    var inv_sqrt_bc2 = prm.inv_sqrt_bc2;
+    if (s.sparse != 0u) {
+        if (g == 0.0) {
+            return p; // its gradient is already zero
+        }
+        let t = counts[k] + 1u;
+        counts[k] = t;
+        let b = bias[min(t, arrayLength(&bias)) - 1u];
+        step_size = prm.lr * b.x;
+        inv_sqrt_bc2 = b.y;
+    }
+    let gi = g + s.wd * p;
     let mi = prm.beta1 * m1[k] + prm.one_minus_beta1 * gi;
     let vi = prm.beta2 * m2[k] + prm.one_minus_beta2 * gi * gi;
     m1[k] = mi;
     m2[k] = vi;
-    let p_new = p - (prm.step_size * s.lr_scale) * mi / (sqrt(vi) * prm.inv_sqrt_bc2 + prm.eps);
+    let p_new = p - (step_size * s.lr_scale) * mi / (sqrt(vi) * inv_sqrt_bc2 + prm.eps);
     params[k] = p_new;
     grads[k] = 0.0;
     return p_new;

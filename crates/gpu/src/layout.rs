@@ -199,7 +199,8 @@ pub(crate) struct AdamParams {
     pub(crate) ema_old: f32,
     /// EMA weight of the new parameter (`adam_step_ema`).
     pub(crate) ema_new: f32,
-    pub(crate) _pad: u32,
+    /// The learning rate (sparse groups debias per entry on the device).
+    pub(crate) lr: f32,
 }
 
 // ---- optim.rs ----
@@ -212,7 +213,9 @@ pub(crate) struct GroupDesc {
     pub(crate) start: u32,
     pub(crate) weight_decay: f32,
     pub(crate) lr_scale: f32,
-    pub(crate) _pad: [u32; 3],
+    /// 1: sparse group (zero gradients skipped, per-entry step counts).
+    pub(crate) sparse: u32,
+    pub(crate) _pad: [u32; 2],
 }
 
 // ---- pdf.rs ----

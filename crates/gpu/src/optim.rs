@@ -54,6 +54,26 @@ pub struct GpuAdam {
     uniform: wgpu::Buffer,
     kernel: Kernel,
     ema: Option<GpuEma>,
+    /// Per-entry step counts (u32, parameter layout; one word when no group is sparse).
+    counts: wgpu::Buffer,
+    /// `(1/(1−β1^t), 1/sqrt(1−β2^t))` for t = 1, 2, … until both are 1 in f32 (sparse groups).
+    bias: wgpu::Buffer,
+}
+
+/// The bias corrections of sparse entries by step count, `(1/(1−β1^t), 1/sqrt(1−β2^t))` for
+/// t = 1 … T, computed in f64 as [`nerf_optim::Adam`] does and rounded to f32; T is the first t
+/// where both round to 1 (at most 2^20 entries; β this close to 1 are not used in practice).
+fn bias_table(cfg: &AdamConfig) -> Vec<[f32; 2]> {
+    let (b1, b2) = (cfg.beta1 as f64, cfg.beta2 as f64);
+    let mut out = Vec::new();
+    for t in 1..=(1u32 << 20) {
+        let e = [(1.0 / (1.0 - b1.powf(t as f64))) as f32, (1.0 / (1.0 - b2.powf(t as f64)).sqrt()) as f32];
+        out.push(e);
+        if e == [1.0, 1.0] {
+            break;
+        }
+    }
+    out
 }
 
 /// The EMA of a [`GpuAdam`]: decay, update count, values (parameter layout).
@@ -124,7 +144,8 @@ impl GpuAdam {
                 start: start as u32,
                 weight_decay: g.weight_decay,
                 lr_scale: g.lr_scale,
-                _pad: [0; 3],
+                sparse: cfg.is_sparse(&g.name) as u32,
+                _pad: [0; 2],
             });
             start += g.len;
         }
@@ -153,6 +174,12 @@ impl GpuAdam {
             uniform: ctx.uniform("adam.params", &params),
             kernel,
             ema: ema_decay.map(|decay| GpuEma { decay, step: AtomicU64::new(0), values: ctx.zeros("adam.ema", 4 * extent) }),
+            counts: ctx.zeros("adam.counts", 4 * if groups.iter().any(|g| cfg.is_sparse(&g.name)) { extent } else { 1 }),
+            bias: if groups.iter().any(|g| cfg.is_sparse(&g.name)) {
+                ctx.upload("adam.bias", &bias_table(cfg))
+            } else {
+                ctx.upload("adam.bias", &[[1.0f32; 2]])
+            },
         })
     }
 
@@ -192,12 +219,12 @@ impl GpuAdam {
         let bc2 = 1.0 - (self.cfg.beta2 as f64).powf(t);
         let step_size = (lr as f64 / bc1) as f32;
         let inv_sqrt_bc2 = (1.0 / bc2.sqrt()) as f32;
-        // `step_size`, `inv_sqrt_bc2`, `ema_old`, `ema_new`: words 7..11 of AdamParams.
+        // `step_size`, `inv_sqrt_bc2`, `ema_old`, `ema_new`, `lr`: words 7..12 of AdamParams.
         let (ema_old, ema_new) = match &self.ema {
             Some(e) => Ema::coefficients(e.decay, e.step.fetch_add(1, Ordering::Relaxed) + 1),
             None => (0.0, 0.0),
         };
-        ctx.write(&self.uniform, 7 * 4, &[step_size, inv_sqrt_bc2, ema_old, ema_new]);
+        ctx.write(&self.uniform, 7 * 4, &[step_size, inv_sqrt_bc2, ema_old, ema_new, lr]);
         if self.total == 0 {
             return;
         }
@@ -205,6 +232,8 @@ impl GpuAdam {
         if let Some(e) = &self.ema {
             bindings.push((6, &e.values));
         }
+        bindings.push((7, &self.counts));
+        bindings.push((8, &self.bias));
         self.kernel.record(ctx, enc, &bindings, groups_1d(self.total, WG));
     }
 
@@ -276,6 +305,8 @@ impl GpuAdam {
     pub fn state(&self, ctx: &GpuContext) -> Result<AdamState, GpuError> {
         let m = ctx.read_f32(&self.m, self.extent)?;
         let v = ctx.read_f32(&self.v, self.extent)?;
+        let sparse: Vec<&GpuParamGroup> = self.groups.iter().filter(|g| self.cfg.is_sparse(&g.name)).collect();
+        let counts = if sparse.is_empty() { Vec::new() } else { ctx.read_u32(&self.counts, self.extent)? };
         Ok(AdamState {
             step: self.step_count(),
             groups: self
@@ -283,6 +314,7 @@ impl GpuAdam {
                 .iter()
                 .map(|g| (g.name.clone(), m[g.offset..g.offset + g.len].to_vec(), v[g.offset..g.offset + g.len].to_vec()))
                 .collect(),
+            steps: sparse.iter().map(|g| (g.name.clone(), counts[g.offset..g.offset + g.len].to_vec())).collect(),
         })
     }
 
@@ -290,8 +322,21 @@ impl GpuAdam {
     /// and the moments of every group whose name and length match; other groups get zero moments
     /// (as the CPU optimiser gives a group it has no state for). Fails, leaving the optimiser
     /// unchanged, when a group's `m` and `v` lengths differ, a name repeats, or a moment is not
-    /// finite (or `v` negative) — the CPU's rules.
+    /// finite (or `v` negative), or per-entry step counts do not fit their group's moments — the
+    /// CPU's rules. A sparse group's entries take their counts from `s.steps`, or, without them
+    /// (a dense run's state), the step count when the group's moments were loaded and 0 otherwise.
     pub fn load_state(&self, ctx: &GpuContext, s: &AdamState) -> Result<(), GpuError> {
+        for (name, n) in &s.steps {
+            let bad = |what: String| Err(GpuError::Unsupported(format!("Adam state: group {name:?} {what}")));
+            match s.groups.iter().find(|(g, _, _)| g == name) {
+                None => return bad("has step counts but no moments".into()),
+                Some((_, m, _)) if m.len() != n.len() => return bad(format!("has {} moments but {} step counts", m.len(), n.len())),
+                _ => {}
+            }
+            if n.iter().any(|&k| k as u64 > s.step) {
+                return bad(format!("has an entry step count above the step count {}", s.step));
+            }
+        }
         for (i, (name, m, v)) in s.groups.iter().enumerate() {
             let bad = |what: &str| Err(GpuError::Unsupported(format!("Adam state: group {name:?} {what}")));
             if m.len() != v.len() {
@@ -315,6 +360,18 @@ impl GpuAdam {
         if self.extent > 0 {
             ctx.write(&self.m, 0, &m);
             ctx.write(&self.v, 0, &v);
+        }
+        if self.groups.iter().any(|g| self.cfg.is_sparse(&g.name)) {
+            let mut counts = vec![0u32; self.extent];
+            for g in self.groups.iter().filter(|g| self.cfg.is_sparse(&g.name)) {
+                let dst = &mut counts[g.offset..g.offset + g.len];
+                if let Some((_, n)) = s.steps.iter().find(|(n, k)| *n == g.name && k.len() == g.len) {
+                    dst.copy_from_slice(n);
+                } else if s.groups.iter().any(|(n, gm, _)| *n == g.name && gm.len() == g.len) {
+                    dst.fill(s.step.min(u32::MAX as u64) as u32);
+                }
+            }
+            ctx.write(&self.counts, 0, &counts);
         }
         self.step.store(s.step, Ordering::Relaxed);
         Ok(())

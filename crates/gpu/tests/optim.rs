@@ -3,7 +3,7 @@
 
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
 use nerf_gpu::GpuContext;
-use nerf_optim::{Adam, AdamConfig, Ema, ParamGroupMut};
+use nerf_optim::{Adam, AdamConfig, AdamState, Ema, ParamGroupMut};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
@@ -126,6 +126,24 @@ fn run_case(ctx: &GpuContext, seed: u64, cfg: AdamConfig, sizes: &[usize], wds: 
         let (_, gm, gv) = s_gpu.groups.iter().find(|(n, _, _)| n == name).unwrap();
         assert!(max_rel(gm, m) < 1e-6 && max_rel(gv, v) < 1e-6, "moments of {name}");
     }
+    // Per-entry step counts of sparse groups: exactly the CPU's.
+    assert_eq!(s_gpu.steps.len(), s_cpu.steps.len());
+    for (name, n) in &s_cpu.steps {
+        let (_, gn) = s_gpu.steps.iter().find(|(g, _)| g == name).unwrap();
+        assert_eq!(gn, n, "step counts of {name}");
+        // Every entry's gradient is exactly zero one step in four (see the gradients above).
+        assert!(n.iter().all(|&k| k > 0 && (k as usize) < steps), "{name}: zero gradients were not skipped");
+    }
+}
+
+/// tiny-cuda-nn's sparse Adam on some groups (zero-gradient entries skipped, per-entry bias
+/// correction from the host's f64 table) beside dense groups, with and without the EMA.
+#[test]
+fn sparse_groups_match_the_cpu_adam() {
+    let Some(ctx) = context() else { return };
+    let cfg = AdamConfig { sparse_groups: vec!["g0".into(), "g2".into()], ..AdamConfig::instant_ngp() };
+    run_case(&ctx, 5, cfg.clone(), &[1000, 37, 70_000], &[0.0, 1e-2, 1e-3], 6, None);
+    run_case(&ctx, 6, cfg, &[513, 300], &[0.0, 0.0], 4, Some(0.95));
 }
 
 #[test]
@@ -133,7 +151,7 @@ fn adam_matches_the_cpu_over_several_steps_with_weight_decay_groups() {
     let Some(ctx) = context() else { return };
     run_case(&ctx, 1, AdamConfig::default(), &[1000, 37, 4096], &[0.0, 1e-2, 1e-6], 5, None);
     run_case(&ctx, 2, AdamConfig::instant_ngp(), &[70_000, 1], &[0.0, 0.1], 4, None);
-    run_case(&ctx, 3, AdamConfig { beta1: 0.5, beta2: 0.9, eps: 1e-3 }, &[513, 0, 300], &[1e-3, 0.0, 0.0], 3, None);
+    run_case(&ctx, 3, AdamConfig { beta1: 0.5, beta2: 0.9, eps: 1e-3, sparse_groups: vec![] }, &[513, 0, 300], &[1e-3, 0.0, 0.0], 3, None);
 }
 
 #[test]
@@ -280,9 +298,48 @@ fn bad_groups_and_bad_states_are_rejected() {
     let e = GpuAdam::new(&ctx, &cfg, &[GpuParamGroup::new("a", 0, 10, f32::NAN)]).err().unwrap();
     assert!(e.to_string().contains("\"a\""), "{e}");
     let adam = GpuAdam::new(&ctx, &cfg, &[GpuParamGroup::new("w", 0, 3, 0.0)]).unwrap();
-    let bad = nerf_optim::AdamState { step: 2, groups: vec![("w".into(), vec![0.0; 3], vec![0.0; 2])] };
+    let bad = nerf_optim::AdamState { step: 2, groups: vec![("w".into(), vec![0.0; 3], vec![0.0; 2])], steps: vec![] };
     assert!(adam.load_state(&ctx, &bad).unwrap_err().to_string().contains("\"w\""));
-    let nan = nerf_optim::AdamState { step: 2, groups: vec![("w".into(), vec![f32::NAN; 3], vec![0.0; 3])] };
+    let nan = nerf_optim::AdamState { step: 2, groups: vec![("w".into(), vec![f32::NAN; 3], vec![0.0; 3])], steps: vec![] };
     assert!(adam.load_state(&ctx, &nan).is_err());
     assert_eq!(adam.step_count(), 0);
+}
+
+/// Sparse groups' per-entry step counts travel through checkpoints on either device; a dense
+/// run's state (no counts) continues with every entry counted as having taken every step.
+#[test]
+fn sparse_step_counts_round_trip_and_continue_a_dense_state() {
+    let Some(ctx) = context() else { return };
+    let cfg = AdamConfig { sparse_groups: vec!["t".into()], ..AdamConfig::instant_ngp() };
+    let groups = [GpuParamGroup::new("t", 0, 64, 0.0)];
+    let adam = GpuAdam::new(&ctx, &cfg, &groups).unwrap();
+    let p = ctx.upload("p", &vec![0.5f32; 64]);
+    let g = ctx.zeros("g", 4 * 64);
+    for step in 0..3u32 {
+        // Entry i has a gradient at step s when i % 3 != s, i.e. twice in three steps (0 < i).
+        let grads: Vec<f32> = (0..64).map(|i| if i % 3 == step { 0.0 } else { 0.1 + i as f32 * 1e-3 }).collect();
+        ctx.write(&g, 0, &grads);
+        let mut enc = ctx.encoder("adam");
+        adam.record_step(&ctx, &mut enc, &p, &g, 1e-2);
+        ctx.queue.submit([enc.finish()]);
+    }
+    let st = adam.state(&ctx).unwrap();
+    assert_eq!(st.steps.len(), 1);
+    assert!(st.steps[0].1.iter().all(|&k| k == 2), "{:?}", st.steps);
+    let mut cpu = Adam::new(cfg.clone());
+    cpu.load_state(st.clone()).unwrap();
+    assert_eq!(cpu.entry_steps("t").unwrap(), st.steps[0].1.as_slice());
+    let again = GpuAdam::new(&ctx, &cfg, &groups).unwrap();
+    again.load_state(&ctx, &st).unwrap();
+    assert_eq!(again.state(&ctx).unwrap(), st);
+    // Bad counts are refused.
+    let mut bad = st.clone();
+    bad.steps[0].1[0] = 9;
+    assert!(again.load_state(&ctx, &bad).is_err());
+    bad.steps[0].1.pop();
+    assert!(again.load_state(&ctx, &bad).is_err());
+    // A dense state: counts = its step count.
+    let dense = AdamState { steps: vec![], ..st };
+    again.load_state(&ctx, &dense).unwrap();
+    assert!(again.state(&ctx).unwrap().steps[0].1.iter().all(|&k| k == 3));
 }

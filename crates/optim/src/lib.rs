@@ -31,6 +31,14 @@ pub struct AdamConfig {
     pub beta2: f32,
     /// Added to `sqrt(v̂)` in the denominator.
     pub eps: f32,
+    /// Names of the parameter groups updated *sparsely*, as tiny-cuda-nn's Adam updates its
+    /// "non-matrix" parameters (instant-ngp's hash tables): an entry whose gradient is exactly zero
+    /// in a step is skipped — parameter, moments and its own step count unchanged — and the bias
+    /// correction of an entry uses its own step count (the number of steps in which it had a
+    /// gradient). Groups are named as [`AdamConfig::is_sparse`] says. Empty (the default): every
+    /// group is dense.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub sparse_groups: Vec<String>,
 }
 
 impl Default for AdamConfig {
@@ -40,6 +48,7 @@ impl Default for AdamConfig {
             beta1: 0.9,
             beta2: 0.999,
             eps: 1e-7,
+            sparse_groups: Vec::new(),
         }
     }
 }
@@ -51,7 +60,16 @@ impl AdamConfig {
             beta1: 0.9,
             beta2: 0.99,
             eps: 1e-15,
+            sparse_groups: Vec::new(),
         }
+    }
+
+    /// Whether group `name` is updated sparsely (see [`AdamConfig::sparse_groups`]): an entry of
+    /// `sparse_groups` names a group by its full name (`field/hash_grid`, `fine/hash_grid`) or by
+    /// the part after the last `/` (the field's own group name, `hash_grid`).
+    pub fn is_sparse(&self, name: &str) -> bool {
+        let local = name.rsplit('/').next().unwrap_or(name);
+        self.sparse_groups.iter().any(|g| g == name || g == local)
     }
 }
 
@@ -61,20 +79,26 @@ struct GroupState {
     name: String,
     m: Vec<f32>,
     v: Vec<f32>,
+    /// Per-entry step counts of a sparse group (empty for a dense one).
+    steps: Vec<u32>,
 }
 
 /// Adam with bias correction and L2 weight decay added to the gradient (g += wd·p, as torch Adam weight_decay).
 /// State (m, v per group, keyed by group name and length; step count) is created on first use and can be
 /// exported/imported for checkpoints.
 ///
-/// The bias correction uses one step count shared by all groups (the number of [`Adam::step`] calls),
-/// so every group is expected to take part in every step. A group whose name is known but whose length
-/// changed gets fresh (zero) moments.
+/// The bias correction of a dense group uses one step count shared by all groups (the number of
+/// [`Adam::step`] calls), so every group is expected to take part in every step; a sparse group
+/// ([`AdamConfig::sparse_groups`]) counts steps per entry. A group whose name is known but whose
+/// length changed gets fresh (zero) moments.
 #[derive(Clone, Debug)]
 pub struct Adam {
     cfg: AdamConfig,
     step: u64,
     groups: Vec<GroupState>,
+    /// `(1 − β1^t, 1/sqrt(1 − β2^t))` for t = 1, 2, … (f64, as the dense update computes them),
+    /// extended one entry per step: the bias corrections of sparse entries with their own counts.
+    bias: Vec<(f64, f64)>,
 }
 
 /// Exported optimiser state for checkpoints: the step count and `(name, m, v)` per group.
@@ -84,6 +108,11 @@ pub struct AdamState {
     pub step: u64,
     /// `(group name, first moments, second moments)`.
     pub groups: Vec<(String, Vec<f32>, Vec<f32>)>,
+    /// `(group name, per-entry step counts)` of the sparse groups ([`AdamConfig::sparse_groups`]).
+    /// A sparse group missing here (a state written by a dense run) counts every entry as having
+    /// taken all `step` steps, which is what its moments went through.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub steps: Vec<(String, Vec<u32>)>,
 }
 
 /// Groups longer than this are updated in parallel chunks of this many elements.
@@ -96,6 +125,7 @@ impl Adam {
             cfg,
             step: 0,
             groups: Vec::new(),
+            bias: Vec::new(),
         }
     }
 
@@ -106,18 +136,23 @@ impl Adam {
 
     /// Takes one step with learning rate `lr` on every group: increments the step count, then for each
     /// element `g = grad + wd·p; m = β1·m + (1−β1)·g; v = β2·v + (1−β2)·g²;
-    /// p −= lr·(m/(1−β1^t)) / (sqrt(v/(1−β2^t)) + ε)` (torch's formulation). Parallel over chunks for
-    /// large groups; allocation-free once every group has state.
+    /// p −= lr·(m/(1−β1^t)) / (sqrt(v/(1−β2^t)) + ε)` (torch's formulation). In a sparse group an
+    /// element whose gradient is exactly zero is skipped and `t` is the element's own step count.
+    /// Parallel over chunks for large groups; allocation-free once every group has state (the
+    /// bias-correction table grows by one entry per step).
     ///
     /// Panics if a group's `params` and `grads` lengths differ (programmer error).
     pub fn step(&mut self, groups: &mut [ParamGroupMut<'_>], lr: f32) {
         self.step += 1;
-        let t = self.step as f64;
         let (b1, b2, eps) = (self.cfg.beta1, self.cfg.beta2, self.cfg.eps);
-        let bc1 = 1.0 - (b1 as f64).powf(t);
-        let bc2 = 1.0 - (b2 as f64).powf(t);
+        while (self.bias.len() as u64) < self.step {
+            let t = (self.bias.len() + 1) as f64;
+            self.bias.push((1.0 - (b1 as f64).powf(t), 1.0 / (1.0 - (b2 as f64).powf(t)).sqrt()));
+        }
+        let (bc1, inv_sqrt_bc2) = self.bias[self.step as usize - 1];
         let step_size = (lr as f64 / bc1) as f32;
-        let inv_sqrt_bc2 = (1.0 / bc2.sqrt()) as f32;
+        let inv_sqrt_bc2 = inv_sqrt_bc2 as f32;
+        let bias = &self.bias;
         for g in groups.iter_mut() {
             assert_eq!(
                 g.params.len(),
@@ -127,9 +162,39 @@ impl Adam {
                 g.params.len(),
                 g.grads.len()
             );
-            let idx = self.state_index(g.name, g.params.len());
+            let sparse = self.cfg.is_sparse(g.name);
+            let idx = state_index(&mut self.groups, self.step - 1, sparse, g.name, g.params.len());
             let st = &mut self.groups[idx];
             let wd = g.weight_decay;
+            if sparse {
+                let sparse_kernel = |p: &mut [f32], gr: &[f32], m: &mut [f32], v: &mut [f32], n: &mut [u32]| {
+                    for i in 0..p.len() {
+                        if gr[i] == 0.0 {
+                            continue;
+                        }
+                        n[i] += 1;
+                        let (bc1, ib2) = bias[n[i] as usize - 1];
+                        let gi = gr[i] + wd * p[i];
+                        let mi = b1 * m[i] + (1.0 - b1) * gi;
+                        let vi = b2 * v[i] + (1.0 - b2) * gi * gi;
+                        m[i] = mi;
+                        v[i] = vi;
+                        p[i] -= (lr as f64 / bc1) as f32 * mi / (vi.sqrt() * ib2 as f32 + eps);
+                    }
+                };
+                if g.params.len() > PAR_CHUNK {
+                    g.params
+                        .par_chunks_mut(PAR_CHUNK)
+                        .zip(g.grads.par_chunks(PAR_CHUNK))
+                        .zip(st.m.par_chunks_mut(PAR_CHUNK))
+                        .zip(st.v.par_chunks_mut(PAR_CHUNK))
+                        .zip(st.steps.par_chunks_mut(PAR_CHUNK))
+                        .for_each(|((((p, gr), m), v), n)| sparse_kernel(p, gr, m, v, n));
+                } else {
+                    sparse_kernel(g.params, g.grads, &mut st.m, &mut st.v, &mut st.steps);
+                }
+                continue;
+            }
             let kernel = |p: &mut [f32], gr: &[f32], m: &mut [f32], v: &mut [f32]| {
                 for i in 0..p.len() {
                     let gi = gr[i] + wd * p[i];
@@ -153,26 +218,10 @@ impl Adam {
         }
     }
 
-    /// Index of the state of group `name` with `len` parameters, creating (or resetting) it if needed.
-    fn state_index(&mut self, name: &str, len: usize) -> usize {
-        match self.groups.iter().position(|s| s.name == name) {
-            Some(i) => {
-                let s = &mut self.groups[i];
-                if s.m.len() != len {
-                    s.m = vec![0.0; len];
-                    s.v = vec![0.0; len];
-                }
-                i
-            }
-            None => {
-                self.groups.push(GroupState {
-                    name: name.to_owned(),
-                    m: vec![0.0; len],
-                    v: vec![0.0; len],
-                });
-                self.groups.len() - 1
-            }
-        }
+
+    /// The per-entry step counts of sparse group `name` (`None` for a dense or unknown group).
+    pub fn entry_steps(&self, name: &str) -> Option<&[u32]> {
+        self.groups.iter().find(|g| g.name == name && !g.steps.is_empty()).map(|g| g.steps.as_slice())
     }
 
     /// Number of steps taken so far.
@@ -189,6 +238,7 @@ impl Adam {
                 .iter()
                 .map(|g| (g.name.clone(), g.m.clone(), g.v.clone()))
                 .collect(),
+            steps: self.groups.iter().filter(|g| !g.steps.is_empty()).map(|g| (g.name.clone(), g.steps.clone())).collect(),
         }
     }
 
@@ -212,14 +262,60 @@ impl Adam {
                 ));
             }
         }
+        for (name, n) in &s.steps {
+            let Some((_, m, _)) = s.groups.iter().find(|(g, _, _)| g == name) else {
+                return Err(format!("Adam state: step counts for {name:?}, which has no moments"));
+            };
+            if n.len() != m.len() {
+                return Err(format!("Adam state: group {name:?} has {} moments but {} step counts", m.len(), n.len()));
+            }
+            if n.iter().any(|&k| k as u64 > s.step) {
+                return Err(format!("Adam state: group {name:?} has an entry step count above the step count {}", s.step));
+            }
+        }
         self.step = s.step;
+        let mut steps = s.steps;
         self.groups = s
             .groups
             .into_iter()
-            .map(|(name, m, v)| GroupState { name, m, v })
+            .map(|(name, m, v)| {
+                let steps = steps.iter_mut().find(|(n, _)| *n == name).map(|(_, k)| std::mem::take(k)).unwrap_or_default();
+                GroupState { name, m, v, steps }
+            })
             .collect();
         Ok(())
     }
+}
+
+/// Index of the state of group `name` with `len` parameters, creating (or resetting) it if needed.
+/// A sparse group without per-entry step counts gets them: `dense_steps` (the steps its moments
+/// went through) when it has moments, 0 for fresh ones.
+fn state_index(groups: &mut Vec<GroupState>, dense_steps: u64, sparse: bool, name: &str, len: usize) -> usize {
+    let i = match groups.iter().position(|s| s.name == name) {
+        Some(i) => {
+            let s = &mut groups[i];
+            if s.m.len() != len {
+                s.m = vec![0.0; len];
+                s.v = vec![0.0; len];
+                s.steps.clear();
+                if sparse {
+                    s.steps = vec![0; len];
+                }
+            }
+            i
+        }
+        None => {
+            groups.push(GroupState { name: name.to_owned(), m: vec![0.0; len], v: vec![0.0; len], steps: if sparse { vec![0; len] } else { Vec::new() } });
+            groups.len() - 1
+        }
+    };
+    let s = &mut groups[i];
+    if sparse && s.steps.len() != len {
+        s.steps = vec![dense_steps.min(u32::MAX as u64) as u32; len];
+    } else if !sparse && !s.steps.is_empty() {
+        s.steps.clear();
+    }
+    i
 }
 
 /// Exponential moving average of parameter groups, debiased as tiny-cuda-nn's `Ema` optimiser
@@ -426,12 +522,123 @@ mod tests {
         }
     }
 
+    fn sparse_cfg() -> AdamConfig {
+        AdamConfig { sparse_groups: vec!["table".into()], ..AdamConfig::instant_ngp() }
+    }
+
+    #[test]
+    fn sparse_group_with_every_gradient_nonzero_is_dense_adam() {
+        // Large enough for the parallel chunks; gradients never exactly zero.
+        let n = 3 * PAR_CHUNK + 17;
+        let mut rng = nerf_core_free_rng(11);
+        let p0: Vec<f32> = (0..n).map(|_| rng() * 2.0 - 1.0).collect();
+        let (mut pd, mut ps) = (p0.clone(), p0.clone());
+        let mut dense = Adam::new(AdamConfig::instant_ngp());
+        let mut sparse = Adam::new(sparse_cfg());
+        for step in 0..5 {
+            let g: Vec<f32> = (0..n).map(|_| rng() + 0.01).collect();
+            let lr = 1e-2 / (1 + step) as f32;
+            dense.step(&mut [group("table", &mut pd, &mut g.clone(), 1e-3)], lr);
+            sparse.step(&mut [group("table", &mut ps, &mut g.clone(), 1e-3)], lr);
+        }
+        assert_eq!(pd, ps);
+        assert!(sparse.entry_steps("table").unwrap().iter().all(|&k| k == 5));
+        assert!(dense.entry_steps("table").is_none());
+    }
+
+    #[test]
+    fn sparse_entries_skip_zero_gradients_and_debias_with_their_own_count() {
+        let mut p = vec![0.5f32, -0.25, 1.0];
+        let mut mlp = vec![0.3f32];
+        let mut adam = Adam::new(sparse_cfg());
+        // Entry 0 has a gradient at steps 1 and 3, entry 1 at step 2, entry 2 never.
+        let grads = [[0.2f32, 0.0, 0.0], [0.0, -0.7, 0.0], [0.4, 0.0, 0.0]];
+        for (k, g) in grads.iter().enumerate() {
+            let mut g = g.to_vec();
+            let mut gm = vec![0.0f32];
+            let before = (p.clone(), adam.state());
+            adam.step(&mut [group("table", &mut p, &mut g, 0.0), group("mlp", &mut mlp, &mut gm, 0.0)], 1e-2);
+            // Skipped entries: parameter, moments and count unchanged.
+            let after = adam.state();
+            for i in 0..3 {
+                if grads[k][i] == 0.0 {
+                    assert_eq!(p[i], before.0[i]);
+                    if let Some((_, m, v)) = before.1.groups.iter().find(|(n, _, _)| n == "table") {
+                        assert_eq!((after.groups[0].1[i], after.groups[0].2[i]), (m[i], v[i]));
+                    }
+                }
+            }
+        }
+        assert_eq!(adam.entry_steps("table").unwrap(), &[2, 1, 0]);
+        assert_eq!(p[2], 1.0);
+        // The dense "mlp" group moved on its zero gradients (its moments decay), sparse entries did not.
+        assert!(adam.entry_steps("mlp").is_none());
+        // Entry 0 took exactly the steps of a dense Adam that saw only its two gradients.
+        let mut q = vec![0.5f32];
+        let mut solo = Adam::new(AdamConfig::instant_ngp());
+        for g in [0.2f32, 0.4] {
+            solo.step(&mut [group("x", &mut q, &mut [g], 0.0)], 1e-2);
+        }
+        assert_eq!(p[0], q[0]);
+        let mut q1 = vec![-0.25f32];
+        Adam::new(AdamConfig::instant_ngp()).step(&mut [group("x", &mut q1, &mut [-0.7], 0.0)], 1e-2);
+        assert_eq!(p[1], q1[0]);
+    }
+
+    #[test]
+    fn sparse_state_round_trips_and_is_validated() {
+        let mut p = vec![0.5f32, -0.25];
+        let mut adam = Adam::new(sparse_cfg());
+        adam.step(&mut [group("table", &mut p, &mut [0.1, 0.0], 0.0)], 1e-2);
+        adam.step(&mut [group("table", &mut p, &mut [0.1, 0.3], 0.0)], 1e-2);
+        let st = adam.state();
+        assert_eq!(st.steps, vec![("table".to_string(), vec![2, 1])]);
+        let json = serde_json::to_string(&st).unwrap();
+        assert_eq!(serde_json::from_str::<AdamState>(&json).unwrap(), st);
+        let mut back = Adam::new(sparse_cfg());
+        back.load_state(st.clone()).unwrap();
+        assert_eq!(back.state(), st);
+        let bad = |f: &dyn Fn(&mut AdamState)| {
+            let mut s = st.clone();
+            f(&mut s);
+            Adam::new(sparse_cfg()).load_state(s).unwrap_err()
+        };
+        assert!(bad(&|s| s.steps[0].1.push(0)).contains("step counts"));
+        assert!(bad(&|s| s.steps[0].0 = "other".into()).contains("no moments"));
+        assert!(bad(&|s| s.steps[0].1[0] = 3).contains("above"));
+        // A dense run's state continues sparsely with every entry counted as having taken every step.
+        let mut dense = Adam::new(AdamConfig::instant_ngp());
+        let mut pd = vec![0.5f32, -0.25];
+        for _ in 0..3 {
+            dense.step(&mut [group("table", &mut pd, &mut [0.1, 0.2], 0.0)], 1e-2);
+        }
+        let mut cont = Adam::new(sparse_cfg());
+        cont.load_state(dense.state()).unwrap();
+        let (mut a, mut b) = (pd.clone(), pd.clone());
+        cont.step(&mut [group("table", &mut a, &mut [0.1, 0.2], 0.0)], 1e-2);
+        dense.step(&mut [group("table", &mut b, &mut [0.1, 0.2], 0.0)], 1e-2);
+        assert_eq!(a, b);
+        assert_eq!(cont.entry_steps("table").unwrap(), &[4, 4]);
+    }
+
+    /// A tiny deterministic generator in [0, 1) for these tests.
+    fn nerf_core_free_rng(seed: u64) -> impl FnMut() -> f32 {
+        let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 40) as f32 / (1u64 << 24) as f32
+        }
+    }
+
     #[test]
     fn first_and_second_step_match_hand_computation() {
         let cfg = AdamConfig {
             beta1: 0.9,
             beta2: 0.999,
             eps: 1e-8,
+            sparse_groups: vec![],
         };
         let mut adam = Adam::new(cfg);
         let mut p = vec![1.0f32, -2.0];
@@ -603,6 +810,7 @@ mod tests {
         let bad = AdamState {
             step: 3,
             groups: vec![("w".into(), vec![0.0; 3], vec![0.0; 2])],
+            steps: vec![],
         };
         let e = adam.load_state(bad).unwrap_err();
         assert!(e.contains("\"w\""), "{e}");
@@ -612,11 +820,13 @@ mod tests {
                 ("w".into(), vec![0.0], vec![0.0]),
                 ("w".into(), vec![0.0], vec![0.0]),
             ],
+            steps: vec![],
         };
         assert!(adam.load_state(dup).is_err());
         let nan = AdamState {
             step: 3,
             groups: vec![("w".into(), vec![f32::NAN], vec![0.0])],
+            steps: vec![],
         };
         assert!(adam.load_state(nan).is_err());
         assert_eq!(adam.step_count(), 0);

@@ -52,6 +52,10 @@ struct Header {
     /// (name, length) of sampler state tensors, stored last.
     #[serde(default)]
     sampler: Vec<(String, usize)>,
+    /// (group name, length) of the per-entry Adam step counts of sparse groups (u32), stored
+    /// after the sampler state.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    adam_steps: Vec<(String, usize)>,
 }
 
 fn ck_err(path: &Path, message: impl Into<String>) -> TrainError {
@@ -77,6 +81,7 @@ impl Checkpoint {
                 .collect(),
             adam: self.adam.groups.iter().map(|(n, m, _)| (n.clone(), m.len())).collect(),
             sampler: self.sampler.iter().map(|(n, v)| (n.clone(), v.len())).collect(),
+            adam_steps: self.adam.steps.iter().map(|(n, k)| (n.clone(), k.len())).collect(),
         };
         let json = serde_json::to_vec(&header).map_err(|e| ck_err(path, e.to_string()))?;
         let tmp = path.with_extension("tmp");
@@ -104,6 +109,12 @@ impl Checkpoint {
         }
         for (_, v) in &self.sampler {
             put(v).map_err(io)?;
+        }
+        for (_, k) in &self.adam.steps {
+            for chunk in k.chunks(1 << 16) {
+                let bytes: Vec<u8> = chunk.iter().flat_map(|x| x.to_le_bytes()).collect();
+                w.write_all(&bytes).map_err(io)?;
+            }
         }
         let file = w.into_inner().map_err(|e| io(e.into_error()))?;
         file.sync_all().map_err(io)?;
@@ -148,6 +159,11 @@ impl Checkpoint {
         for (name, len) in &h.sampler {
             sampler.push((name.clone(), take(*len)?));
         }
+        let mut steps = Vec::new();
+        for (name, len) in &h.adam_steps {
+            // The same 4-byte little-endian words, read as u32.
+            steps.push((name.clone(), take(*len)?.into_iter().map(f32::to_bits).collect()));
+        }
         if pos != bytes.len() {
             return Err(ck_err(path, "trailing bytes after tensor data"));
         }
@@ -157,7 +173,7 @@ impl Checkpoint {
             samples_seen: h.samples_seen,
             config: h.config,
             fields,
-            adam: AdamState { step: h.adam_step, groups },
+            adam: AdamState { step: h.adam_step, groups, steps },
             sampler,
         })
     }
@@ -177,7 +193,11 @@ mod tests {
             samples_seen: 99,
             config: TrainConfig::default(),
             fields: vec![vec![("a".into(), vec![1.0, -2.0]), ("b".into(), vec![3.5])], vec![("a".into(), vec![0.25])]],
-            adam: AdamState { step: 7, groups: vec![("g".into(), vec![0.1, 0.2], vec![0.3, 0.4])] },
+            adam: AdamState {
+                step: 7,
+                groups: vec![("g".into(), vec![0.1, 0.2], vec![0.3, 0.4])],
+                steps: vec![("g".into(), vec![7, 3])],
+            },
             sampler: vec![("occ".into(), vec![0.5; 3])],
         };
         ck.save(&p).unwrap();
@@ -186,6 +206,7 @@ mod tests {
         assert_eq!(back.step, 42);
         assert_eq!(back.fields, ck.fields);
         assert_eq!(back.adam.groups, ck.adam.groups);
+        assert_eq!(back.adam.steps, ck.adam.steps);
         assert_eq!(back.adam.step, 7);
         assert_eq!(back.sampler, ck.sampler);
         // Truncate: the error names the file.

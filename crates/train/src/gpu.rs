@@ -762,16 +762,17 @@ impl GpuEngine {
     }
 
     pub(crate) fn adam_state(&self) -> Result<AdamState, TrainError> {
-        let mut groups = Vec::new();
+        let (mut groups, mut steps) = (Vec::new(), Vec::new());
         let mut step = 0;
         for adams in &self.adams {
             for a in adams {
                 let s = a.state(&self.ctx).map_err(gerr)?;
                 step = s.step;
                 groups.extend(s.groups);
+                steps.extend(s.steps);
             }
         }
-        Ok(AdamState { step, groups })
+        Ok(AdamState { step, groups, steps })
     }
 
     /// The moving average of every group (`None` without `ema_decay`; no groups before the first
@@ -822,7 +823,8 @@ impl GpuEngine {
         for (adams, names) in self.adams.iter().zip(&self.group_names) {
             for (a, name) in adams.iter().zip(names) {
                 let groups = adam.groups.iter().filter(|(n, _, _)| n == name).cloned().collect();
-                a.load_state(&self.ctx, &AdamState { step: adam.step, groups }).map_err(gerr)?;
+                let steps = adam.steps.iter().filter(|(n, _)| n == name).cloned().collect();
+                a.load_state(&self.ctx, &AdamState { step: adam.step, groups, steps }).map_err(gerr)?;
                 if let Some(e) = ema {
                     let groups = e.groups.iter().filter(|(n, _)| n == name).cloned().collect();
                     a.load_ema_state(&self.ctx, &EmaState { step: e.step, groups }).map_err(gerr)?;

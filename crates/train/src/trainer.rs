@@ -4,7 +4,7 @@ use crate::config::{SamplerConfig, TrainConfig};
 use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
-use nerf_optim::{Adam, AdamState, Ema, EmaState};
+use nerf_optim::{Adam, AdamConfig, AdamState, Ema, EmaState};
 use nerf_render::{composite_backward, composite_forward, mse_loss_grad, CompositeOutputs};
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, RaySamples};
 use std::sync::{Mutex, MutexGuard};
@@ -122,11 +122,20 @@ impl Trainer {
             None => (None, None),
         };
         let prefixes: &[&str] = if n == 1 { &["field"] } else { &["coarse", "fine"] };
-        let group_names = fields
+        let group_names: Vec<Vec<String>> = fields
             .iter_mut()
             .zip(prefixes)
             .map(|(f, p)| f.param_groups().iter().map(|g| format!("{p}/{}", g.name)).collect())
             .collect();
+        let names: Vec<&String> = group_names.iter().flatten().collect();
+        for g in &config.adam.sparse_groups {
+            let probe = AdamConfig { sparse_groups: vec![g.clone()], ..AdamConfig::default() };
+            if !names.iter().any(|n| probe.is_sparse(n)) {
+                return Err(TrainError::Config(format!(
+                    "adam.sparse_groups names {g:?}, but the parameter groups of this run are {names:?}"
+                )));
+            }
+        }
         let adam = Adam::new(config.adam.clone());
         let grid = match &config.sampler {
             SamplerConfig::Occupancy { grid, .. } => Some(
