@@ -198,6 +198,13 @@ fn the_example_ablations_parse_and_plan() {
         assert_eq!(plans.len(), n_runs, "{name}");
         assert!(plans.iter().all(|p| p.config.field == "hash" && p.config.target_samples_per_step == Some(1 << 18)), "{name}");
     }
+    // The profile ablation (in-repo scene) and the sparse-Adam comparison.
+    let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
+    assert!(prof.iter().any(|p| p.config.adam.is_sparse("field/hash_grid")));
+    let sparse = Ablation::load(&dir.join("sparse_adam.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(sparse.iter().filter(|p| p.config.adam.is_sparse("field/hash_grid")).count(), 2);
+    assert_eq!(sparse.len(), 4);
     let coop = Ablation::load(&dir.join("h100_coop.toml")).unwrap().plan(&nerf::registry()).unwrap();
     let paths: Vec<_> = coop.iter().map(|p| p.config.field_config["gpu_mlp"].as_str().unwrap().to_string()).collect();
     assert_eq!(paths, ["plain", "coop"]);

@@ -1,0 +1,12 @@
+#!/usr/bin/env bash
+# On the lent H100: where a training step spends its GPU time, per field and MLP path
+# (examples/ablations/h100_profile.toml: in-repo scene, 1200 steps each, steps 1000..1019 timed
+# pass by pass; ~5 min). Expects .bin/nerf.xz (build here: see h100_coop.sh's header) and .gl.
+# Writes the ablation log (with the profile tables) and each run's record (gpu_profile inside).
+set -u
+for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
+(cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
+.bin/nerf ablate examples/ablations/h100_profile.toml --device gpu --out /tmp/prof > "$OUT/profile.log" 2>&1
+cp /tmp/prof/results.md /tmp/prof/results.csv "$OUT/" 2>/dev/null
+for d in /tmp/prof/runs/*/; do cp "$d/metrics.json" "$OUT/$(basename "$d").json" 2>/dev/null; done
+grep -E "GPU profile|^\| [a-z]" "$OUT/profile.log" | head -150; cat "$OUT/results.md"
