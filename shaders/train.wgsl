@@ -1,10 +1,10 @@
 // Training-step glue on the device: the photometric loss and its gradient, and the adaptive batch
 // size (rays per step from a target number of samples per step). CPU twins:
-// nerf_render::mse_loss_grad and nerf_train's batch sizing (Trainer::step).
+// nerf_render::photometric_loss_grad and nerf_train's batch sizing (Trainer::step).
 
 struct LossParams {
     capacity_rays: u32,
-    _pad0: u32,
+    huber_delta: f32,  // > 0: instant-ngp's Huber loss (residuals clamped to ±δ in the gradient); 0: MSE
     _pad1: u32,
     _pad2: u32,
 }
@@ -16,8 +16,9 @@ struct LossParams {
 @group(0) @binding(4) var<storage, read_write> d_pred: array<f32>;   // 3·n_rays
 @group(0) @binding(5) var<storage, read_write> ray_sq_err: array<f32>; // n_rays: Σ_c (pred − target)²
 
-// MSE over all 3·n_rays values: L = Σ e² / (3 n), dL/dpred = 2 e / (3 n). The per-ray squared
-// errors are kept so the host can read the loss every N steps without a reduction kernel.
+// MSE over all 3·n_rays values: L = Σ e² / (3 n), dL/dpred = 2 e / (3 n); with a Huber δ,
+// dL/dpred = 2 clamp(e, −δ, δ) / (3 n). The per-ray squared errors are kept so the host can read
+// the MSE every N steps without a reduction kernel.
 @compute @workgroup_size(64)
 fn mse_loss(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let r = linear_id(gid, nwg, 64u);
@@ -29,7 +30,11 @@ fn mse_loss(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgrou
     var sq = 0.0;
     for (var c = 0u; c < 3u; c = c + 1u) {
         let e = pred[3u * r + c] - target_rgb[3u * r + c];
-        d_pred[3u * r + c] = scale * e;
+        var g = e;
+        if (lp.huber_delta > 0.0) {
+            g = clamp(e, -lp.huber_delta, lp.huber_delta);
+        }
+        d_pred[3u * r + c] = scale * g;
         sq = sq + e * e;
     }
     ray_sq_err[r] = sq;

@@ -266,14 +266,22 @@ impl TrainGlue {
             count: Kernel::from_module(ctx, &module, "count_samples", &[]),
             from_mean: Kernel::from_module(ctx, &module, "batch_from_mean", &[]),
             chunk: Kernel::from_module(ctx, &module, "chunk_count", &[]),
-            loss_params: ctx.uniform("loss params", &LossParams { capacity_rays: capacity_rays as u32, _pad: [0; 3] }),
+            loss_params: ctx.uniform("loss params", &LossParams { capacity_rays: capacity_rays as u32, huber_delta: 0.0, _pad: [0; 2] }),
             batch_params: ctx.uniform("batch params", &batch),
             capacity_rays,
         }
     }
 
-    /// Records the MSE over the `counters[0]` rays: `d_pred = 2(pred − target)/(3n)` and the
-    /// per-ray squared error `ray_sq_err` (the host sums it when it wants the loss).
+    /// Selects the loss of [`TrainGlue::record_loss`]: the MSE (`None`, the default) or the Huber
+    /// loss with this δ ([`nerf_render::photometric_loss_grad`]). A queued write: set it before
+    /// the steps it applies to are submitted.
+    pub fn set_huber_delta(&self, ctx: &GpuContext, delta: Option<f32>) {
+        ctx.write(&self.loss_params, 4, &[delta.unwrap_or(0.0)]);
+    }
+
+    /// Records the loss over the `counters[0]` rays: `d_pred = 2(pred − target)/(3n)` (MSE; with a
+    /// Huber δ the residual is clamped to ±δ first) and the per-ray squared error `ray_sq_err`
+    /// (the host sums it when it wants the MSE).
     #[allow(clippy::too_many_arguments)]
     pub fn record_loss(
         &self,

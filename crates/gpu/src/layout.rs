@@ -26,8 +26,10 @@ pub const COUNTER_N_SAMPLES: usize = 1;
 pub struct LossParams {
     /// Launch capacity in rays.
     pub capacity_rays: u32,
+    /// δ of the Huber loss (0: MSE).
+    pub huber_delta: f32,
     /// Padding.
-    pub _pad: [u32; 3],
+    pub _pad: [u32; 2],
 }
 
 // ---- composite.rs ----

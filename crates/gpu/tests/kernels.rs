@@ -128,15 +128,17 @@ fn composite_backward_kernel_matches_its_cpu_twin() {
 }
 
 #[test]
-fn loss_kernel_matches_mse_loss_grad() {
+fn loss_kernel_matches_photometric_loss_grad() {
     let Some(ctx) = context() else { return };
     let glue = nerf_gpu::TrainGlue::new(&ctx, 5000, nerf_gpu::composite::BatchParams::default());
-    for (seed, n) in [(11u64, 1usize), (12, 777), (13, 5000)] {
+    // MSE, then instant-ngp's Huber loss (δ = 0.1: most random residuals lie beyond it), then MSE again.
+    for (seed, n, huber) in [(11u64, 1usize, None), (12, 777, None), (13, 5000, None), (14, 777, Some(0.1f32)), (15, 5000, Some(0.3)), (16, 10, None)] {
+        glue.set_huber_delta(&ctx, huber);
         let mut rng = nerf_core::rng(seed, 0);
         let pred: Vec<f32> = (0..3 * n).map(|_| rng.gen()).collect();
         let target: Vec<f32> = (0..3 * n).map(|_| rng.gen()).collect();
         let mut d_cpu = vec![0.0; 3 * n];
-        let mse = nerf_render::mse_loss_grad(&pred, &target, &mut d_cpu);
+        let mse = nerf_render::photometric_loss_grad(&pred, &target, huber, &mut d_cpu);
         let (d_gpu, sq) = glue.loss(&ctx, &pred, &target).unwrap();
         for (i, (a, b)) in d_gpu.iter().zip(&d_cpu).enumerate() {
             assert!((a - b).abs() <= 1e-6 * (1.0 + b.abs()), "d_pred[{i}]: {a} vs {b}");
@@ -186,7 +188,7 @@ fn kernels_reuse_bind_groups_for_the_same_buffers() {
     }
     // Three recordings with the same buffers: one bind group; a different output buffer: two.
     let k = nerf_gpu::Kernel::new(&ctx, &shaders::with_common(shaders::TRAIN), "mse_loss", &[]);
-    let lp = ctx.uniform("lp", &nerf_gpu::composite::LossParams { capacity_rays: 64, _pad: [0; 3] });
+    let lp = ctx.uniform("lp", &nerf_gpu::composite::LossParams { capacity_rays: 64, huber_delta: 0.0, _pad: [0; 2] });
     let e2 = ctx.zeros("e2", 12);
     for out in [&e, &e, &e2, &e] {
         let mut enc = ctx.encoder("loss");

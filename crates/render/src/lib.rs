@@ -365,6 +365,16 @@ pub fn composite_backward<T: Real>(
 /// Mean squared error over all values and its gradient: returns `mean((pred − target)²)` and writes
 /// `d_pred = 2 (pred − target) / len`. Accumulates in `f64`.
 pub fn mse_loss_grad(pred: &[f32], target: &[f32], d_pred: &mut [f32]) -> f32 {
+    photometric_loss_grad(pred, target, None, d_pred)
+}
+
+/// The photometric loss `mean(h(pred − target))` over all values and its gradient, where `h(e) = e²`
+/// (MSE, `huber_delta = None`) or instant-ngp's Huber loss `h(e) = e²` for `|e| ≤ δ`,
+/// `2δ|e| − δ²` beyond (its `huber_loss(·, 0.1) / 5`: the MSE for small residuals, linear for large
+/// ones, so outliers — edges, early training — pull with a bounded gradient). Writes
+/// `d_pred = h'(e) / len` and returns the MSE `mean(e²)` in either case (what PSNR reports).
+/// Accumulates in `f64`.
+pub fn photometric_loss_grad(pred: &[f32], target: &[f32], huber_delta: Option<f32>, d_pred: &mut [f32]) -> f32 {
     assert_eq!(
         pred.len(),
         target.len(),
@@ -379,11 +389,12 @@ pub fn mse_loss_grad(pred: &[f32], target: &[f32], d_pred: &mut [f32]) -> f32 {
         return 0.0;
     }
     let scale = 2.0 / pred.len() as f32;
+    let delta = huber_delta.unwrap_or(f32::INFINITY);
     let mut sum = 0.0f64;
     for ((d, &p), &y) in d_pred.iter_mut().zip(pred).zip(target) {
         let e = p - y;
         sum += (e as f64) * (e as f64);
-        *d = scale * e;
+        *d = scale * e.clamp(-delta, delta);
     }
     (sum / pred.len() as f64) as f32
 }

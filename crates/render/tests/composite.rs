@@ -437,3 +437,37 @@ fn mse_loss_and_gradient() {
     }
     assert_eq!(mse_loss_grad(&[], &[], &mut []), 0.0);
 }
+
+/// instant-ngp's Huber loss: the gradient is that of `mean(h(e))`, `h(e) = e²` for `|e| ≤ δ` and
+/// `2δ|e| − δ²` beyond (central differences in f64 away from the kink), and the returned value is
+/// still the MSE.
+#[test]
+fn huber_loss_gradient_and_reported_mse() {
+    let mut g = nerf_core::rng(10, 0);
+    let n = 400;
+    let pred: Vec<f32> = (0..n).map(|_| g.gen()).collect();
+    let target: Vec<f32> = (0..n).map(|_| g.gen()).collect();
+    let delta = 0.1f32;
+    let mut d = vec![f32::NAN; n];
+    let l = nerf_render::photometric_loss_grad(&pred, &target, Some(delta), &mut d);
+    let mut d_mse = vec![0.0; n];
+    assert_eq!(l, mse_loss_grad(&pred, &target, &mut d_mse), "reports the MSE");
+    let h = |e: f64| if e.abs() <= delta as f64 { e * e } else { 2.0 * delta as f64 * e.abs() - (delta as f64).powi(2) };
+    let (mut inside, mut outside) = (0, 0);
+    for k in 0..n {
+        let e = (pred[k] - target[k]) as f64;
+        let step = 1e-4f64;
+        if (e.abs() - delta as f64).abs() < 2.0 * step {
+            continue; // the kink
+        }
+        let fd = (h(e + step) - h(e - step)) / (2.0 * step) / n as f64;
+        assert!((d[k] as f64 - fd).abs() < 1e-7, "d_pred[{k}] {} vs {fd} (e = {e})", d[k]);
+        if e.abs() <= delta as f64 {
+            inside += 1;
+            assert_eq!(d[k], d_mse[k], "MSE gradient inside δ");
+        } else {
+            outside += 1;
+        }
+    }
+    assert!(inside > 10 && outside > 100, "{inside} / {outside}");
+}

@@ -48,6 +48,32 @@ impl SamplerConfig {
     }
 }
 
+/// The photometric loss on the rendered colours ([`nerf_render::photometric_loss_grad`]). Logged
+/// losses and PSNRs are the MSE's in either case.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum LossConfig {
+    /// Mean squared error (the NeRF paper).
+    #[default]
+    Mse,
+    /// instant-ngp's default for NeRF (`"loss": {"otype": "Huber"}`, its `huber_loss(·, 0.1) / 5`):
+    /// the squared error for residuals up to `delta`, linear beyond.
+    Huber {
+        /// Residual where the loss turns linear (instant-ngp: 0.1).
+        delta: f32,
+    },
+}
+
+impl LossConfig {
+    /// The Huber δ, `None` for the MSE.
+    pub fn huber_delta(&self) -> Option<f32> {
+        match self {
+            LossConfig::Mse => None,
+            LossConfig::Huber { delta } => Some(*delta),
+        }
+    }
+}
+
 /// Everything that defines a training run. Defaults are the paper's NeRF on Blender scenes.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -73,6 +99,8 @@ pub struct TrainConfig {
     pub lr: LrSchedule,
     /// Adam hyper-parameters.
     pub adam: AdamConfig,
+    /// Photometric loss (default: MSE).
+    pub loss: LossConfig,
     /// Exponential moving average of the parameters (instant-ngp / tiny-cuda-nn: `Ema` with decay
     /// 0.95 around Adam); `None` (the default) = off. When set, every Adam step also updates the
     /// debiased average of every parameter group ([`nerf_optim::Ema`]), and rendering (evaluation,
@@ -121,6 +149,7 @@ impl Default for TrainConfig {
             time_budget_secs: None,
             lr: LrSchedule::Exponential { lr0: 5e-4, lr1: 5e-5, steps: 250_000 },
             adam: AdamConfig::default(),
+            loss: LossConfig::Mse,
             ema_decay: None,
             train_background: Background::White,
             eval_background: Background::White,
@@ -175,6 +204,11 @@ impl TrainConfig {
                 return Err(format!("ema_decay must lie strictly between 0 and 1 (instant-ngp: 0.95), got {d}"));
             }
         }
+        if let Some(d) = self.loss.huber_delta() {
+            if !(d.is_finite() && d > 0.0) {
+                return Err(format!("loss.delta must be a positive number (instant-ngp: 0.1), got {d}"));
+            }
+        }
         if self.gpu_profile.is_some_and(|w| w.steps == 0) {
             return Err("gpu_profile.steps must be positive".into());
         }
@@ -213,6 +247,20 @@ mod tests {
         assert_eq!(c.batch_rays, 1024);
         assert!(toml::from_str::<TrainConfig>("iterz = 5").is_err());
         assert_eq!(c.ema_decay, None);
+    }
+
+    #[test]
+    fn loss_parses_and_is_validated() {
+        let c: TrainConfig = toml::from_str("[loss]\nkind = \"huber\"\ndelta = 0.1\n").unwrap();
+        assert_eq!(c.loss, LossConfig::Huber { delta: 0.1 });
+        assert_eq!(c.loss.huber_delta(), Some(0.1));
+        assert!(c.validate().is_ok());
+        assert_eq!(TrainConfig::default().loss.huber_delta(), None);
+        for bad in [0.0f32, -0.1, f32::NAN, f32::INFINITY] {
+            let c = TrainConfig { loss: LossConfig::Huber { delta: bad }, ..TrainConfig::default() };
+            assert!(c.validate().unwrap_err().contains("loss.delta"));
+        }
+        assert!(toml::from_str::<TrainConfig>("[loss]\nkind = \"l1\"\n").is_err());
     }
 
     #[test]

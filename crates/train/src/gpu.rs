@@ -297,11 +297,13 @@ impl GpuEngine {
         for st in &stages {
             ctx.write(&st.counters, 0, &[first_rays as u32, 0u32]);
         }
+        let glue = TrainGlue::new(&ctx, capacity_rays, batch);
+        glue.set_huber_delta(&ctx, config.loss.huber_delta());
         Ok(Self {
             first_rays,
             raygen: GpuRayGen::new(&ctx, config.train_background, config.pixel_convention, false),
             compositor: Compositor::new(&ctx, capacity_rays, config.transmittance_threshold, true),
-            glue: TrainGlue::new(&ctx, capacity_rays, batch),
+            glue,
             rays: GpuRays::new(&ctx, capacity_rays),
             spr: ctx.upload("samples per ray", &[0.0f32]),
             seen: ctx.upload("samples seen", &[0u32, 0u32]),

@@ -18,7 +18,7 @@ pub mod run;
 pub mod trainer;
 
 pub use checkpoint::Checkpoint;
-pub use config::{SamplerConfig, TrainConfig};
+pub use config::{LossConfig, SamplerConfig, TrainConfig};
 pub use eval::{evaluate, EvalReport, ViewMetrics};
 pub use profile::{GpuProfile, ProfileWindow};
 pub use run::{make_trainer, run, RunOptions, RunSummary};

@@ -5,7 +5,7 @@ use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
 use nerf_optim::{Adam, AdamConfig, AdamState, Ema, EmaState};
-use nerf_render::{composite_backward, composite_forward, mse_loss_grad, CompositeOutputs};
+use nerf_render::{composite_backward, composite_forward, photometric_loss_grad, CompositeOutputs};
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, RaySamples};
 use std::sync::{Mutex, MutexGuard};
 
@@ -320,7 +320,7 @@ impl Trainer {
         let mut n_samples = 0;
         for (field, st) in self.fields.iter_mut().zip(self.stages.iter_mut()) {
             st.d_ray_rgb.resize(3 * n_rays, 0.0);
-            mse = mse_loss_grad(&st.comp.rgb, &b.target, &mut st.d_ray_rgb);
+            mse = photometric_loss_grad(&st.comp.rgb, &b.target, cfg.loss.huber_delta(), &mut st.d_ray_rgb);
             loss += mse;
             n_samples += st.samples.len();
             let n = st.samples.len();
