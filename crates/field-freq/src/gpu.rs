@@ -4,12 +4,12 @@
 //! where the adapter offers them), joined by [`FieldGlue`] (σ = ReLU of the first trunk output,
 //! colour input = [feature, γ(d)]). Parameters start as the CPU field's, one buffer per group.
 
-use crate::{FreqNerf, GROUP_NAMES};
+use crate::{FreqNerf, GpuLinear, GROUP_NAMES};
 use nerf_field::gpu::wgpu;
 use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
 use nerf_gpu::encoding::GpuFrequencyEncoding;
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
-use nerf_gpu::linear::GpuMlp;
+use nerf_gpu::linear::{GpuMlp, LinearPath};
 use nerf_gpu::GpuContext;
 
 /// [`FreqNerf`] on the GPU.
@@ -36,16 +36,29 @@ fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
 }
 
 impl GpuFreqNerf {
-    /// The GPU twin of `field` with buffers for `capacity` samples per launch. The networks use
-    /// cooperative matrices (f16 in, f32 accumulate) when the adapter has them, unless
-    /// `NERF_NO_COOP` is set.
+    /// The GPU twin of `field` with buffers for `capacity` samples per launch. The networks run on
+    /// the kernels `gpu_linear` names; `auto` uses cooperative matrices (f16 in, f32 accumulate)
+    /// when the adapter has them, unless `NERF_NO_COOP` is set.
     pub fn new(field: &FreqNerf<f32>, ctx: &GpuContext, capacity: usize) -> Result<Self, FieldError> {
         let capacity = capacity.max(1);
         let coop = ctx.features.cooperative_matrix && ctx.features.shader_f16;
         let pos_enc = GpuFrequencyEncoding::new(ctx, 3, field.pos_enc.config()).map_err(gpu_err)?;
         let dir_enc = GpuFrequencyEncoding::new(ctx, 3, field.dir_enc.config()).map_err(gpu_err)?;
-        let trunk = GpuMlp::new(ctx, &field.trunk.config, capacity, coop).map_err(gpu_err)?;
-        let color = GpuMlp::new(ctx, &field.color.config, capacity, coop).map_err(gpu_err)?;
+        let path = match field.config.gpu_linear {
+            GpuLinear::Auto if coop => LinearPath::Coop,
+            GpuLinear::Auto | GpuLinear::Plain => LinearPath::Plain,
+            GpuLinear::Coop => LinearPath::Coop,
+            GpuLinear::CoopTiled => LinearPath::CoopTiled,
+        };
+        let linear_err = |e: nerf_gpu::GpuError| FieldError::InvalidConfig {
+            field: "freq".into(),
+            message: format!(
+                "gpu_linear = {}: {e} (gpu_linear = \"plain\" runs on every adapter)",
+                serde_json::to_value(field.config.gpu_linear).unwrap_or_default()
+            ),
+        };
+        let trunk = GpuMlp::new_with(ctx, &field.trunk.config, capacity, path).map_err(linear_err)?;
+        let color = GpuMlp::new_with(ctx, &field.color.config, capacity, path).map_err(linear_err)?;
         let (pd, dd, w) = (field.pos_dim(), field.dir_dim(), field.config.width);
         let glue = FieldGlue::new(ctx, 1 + w, dd, 1, SigmaActivation::Relu, capacity);
         let wd = field.config.weight_decay;

@@ -41,6 +41,26 @@ pub struct FreqNerfConfig {
     pub view_width: usize,
     /// L2 weight decay on all weights (paper: 0).
     pub weight_decay: f32,
+    /// Which layer-by-layer GEMM kernels the GPU twin runs (ignored on the CPU).
+    pub gpu_linear: GpuLinear,
+}
+
+/// The GEMM kernels of the paper field's GPU twin ([`FreqNerfConfig::gpu_linear`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GpuLinear {
+    /// Cooperative matrices where the adapter has them (and `NERF_NO_COOP` is unset), else plain.
+    #[default]
+    Auto,
+    /// Plain WGSL, f32, 64×64 tiles (`shaders/linear.wgsl`).
+    Plain,
+    /// Cooperative matrices, one subgroup per 32×32 output block, operands from global memory
+    /// (`shaders/linear_coop.wgsl`, the H100-verified kernels).
+    Coop,
+    /// Cooperative matrices, four subgroups per 64×64 output block with K chunks staged in
+    /// workgroup memory (`*_tiled` entry points of `shaders/linear_coop.wgsl`); needs 32-wide
+    /// subgroups.
+    CoopTiled,
 }
 
 impl Default for FreqNerfConfig {
@@ -53,6 +73,7 @@ impl Default for FreqNerfConfig {
             skips: vec![4],
             view_width: 128,
             weight_decay: 0.0,
+            gpu_linear: GpuLinear::Auto,
         }
     }
 }

@@ -5,7 +5,8 @@
 
 use nerf_field::gpu::check_gpu_twin;
 use nerf_field::GpuContext;
-use nerf_field_freq::{FreqNerf, FreqNerfConfig};
+use nerf_field::RadianceField;
+use nerf_field_freq::{FreqNerf, FreqNerfConfig, GpuLinear};
 
 #[test]
 fn gpu_paper_field_matches_the_cpu_field() {
@@ -20,5 +21,31 @@ fn gpu_paper_field_matches_the_cpu_field() {
         check_gpu_twin(&mut cpu, &ctx, aabb, 500, 4, 2e-2, 1e-1);
     } else {
         check_gpu_twin(&mut cpu, &ctx, aabb, 500, 4, 1e-4, 2e-3);
+    }
+}
+
+/// `gpu_linear` picks the GEMM kernels: the workgroup-tiled cooperative-matrix path where the
+/// adapter has cooperative matrices (and 32-wide subgroups; f16 tolerances as above), and a clear
+/// refusal naming the setting elsewhere (lavapipe); `plain` runs everywhere.
+#[test]
+fn gpu_linear_selects_the_kernels() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let cfg = |gpu_linear| FreqNerfConfig { width: 64, depth: 4, skips: vec![2], view_width: 32, gpu_linear, ..Default::default() };
+    let aabb = ([-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]);
+    let mut plain = FreqNerf::<f32>::new(cfg(GpuLinear::Plain), 6).unwrap();
+    check_gpu_twin(&mut plain, &ctx, aabb, 300, 4, 1e-4, 2e-3);
+    for path in [GpuLinear::Coop, GpuLinear::CoopTiled] {
+        let mut f = FreqNerf::<f32>::new(cfg(path), 7).unwrap();
+        match f.to_gpu(&ctx, 300).expect("the paper field has a GPU twin") {
+            Ok(_) => {
+                eprintln!("cooperative matrices: checking gpu_linear = {path:?}");
+                check_gpu_twin(&mut f, &ctx, aabb, 300, 4, 2e-2, 1e-1);
+            }
+            Err(e) => {
+                eprintln!("NOTICE: gpu_linear = {path:?} is not available on {}: {e}", ctx.describe());
+                assert!(!ctx.features.cooperative_matrix || path == GpuLinear::CoopTiled, "{e}");
+                assert!(e.to_string().contains("gpu_linear") && e.to_string().contains("plain"), "{e}");
+            }
+        }
     }
 }

@@ -13,6 +13,7 @@ fn small() -> FreqNerfConfig {
         skips: vec![1],
         view_width: 6,
         weight_decay: 0.0,
+        gpu_linear: Default::default(),
     }
 }
 

@@ -2,7 +2,7 @@
 //! (skipped without one): hash encoding forward/backward (L16 F2 T2^19), the hash field's fused
 //! MLPs forward and forward + backward (plain WGSL, and on cooperative matrices where the adapter
 //! has them), the paper's 8×256 trunk forward + backward (plain WGSL, and cooperative matrices
-//! where the adapter has them), and Adam over the hash field's 12 M
+//! where the adapter has them: subgroup-tiled and, with subgroups of 32, workgroup-tiled), and Adam over the hash field's 12 M
 //! parameters. Each iteration records one launch sequence, submits it and waits, so the time is
 //! the device's. Sizes: 2^18 samples (2^12 with `NERF_BENCH_SMALL=1`, for lavapipe).
 //! `cargo bench -p nerf-gpu --bench kernels`.
@@ -10,7 +10,7 @@
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use nerf_encoding::HashGridConfig;
 use nerf_gpu::encoding::GpuHashGrid;
-use nerf_gpu::linear::GpuMlp;
+use nerf_gpu::linear::{GpuMlp, LinearPath};
 use nerf_gpu::mlp::FusedMlp;
 use nerf_gpu::mlp_coop::FusedMlpCoop;
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
@@ -126,13 +126,24 @@ fn kernels(c: &mut Criterion) {
     let x = ctx.upload("x", &random(m * 63, -1.0, 1.0, 7));
     let dy = ctx.upload("dy", &random(m * 257, -1e-3, 1e-3, 8));
     let y = ctx.zeros("y", 4 * m * 257);
-    let modes: &[bool] = if ctx.features.cooperative_matrix { &[false, true] } else { &[false] };
-    for &coop in modes {
-        let net = GpuMlp::new(&ctx, &trunk, m, coop).unwrap();
+    let mut modes = vec![LinearPath::Plain];
+    if ctx.features.cooperative_matrix {
+        modes.push(LinearPath::Coop);
+        // The workgroup-tiled kernels need subgroups of exactly 32 (GpuMlp::new_with says so).
+        if ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32 {
+            modes.push(LinearPath::CoopTiled);
+        }
+    }
+    for path in modes {
+        let net = GpuMlp::new_with(&ctx, &trunk, m, path).unwrap();
         let p = ctx.upload("w", &random(net.n_params(), -0.05, 0.05, 9));
         let gr = ctx.zeros("dw", 4 * net.n_params());
         let tape = ctx.zeros("tape", 4 * m * net.tape_floats_per_sample());
-        let name = if coop { "trunk_8x256_coop_forward_backward" } else { "trunk_8x256_plain_forward_backward" };
+        let name = match path {
+            LinearPath::Plain => "trunk_8x256_plain_forward_backward",
+            LinearPath::Coop => "trunk_8x256_coop_forward_backward",
+            LinearPath::CoopTiled => "trunk_8x256_coop_tiled_forward_backward",
+        };
         g.throughput(Throughput::Elements(m as u64));
         g.bench_function(BenchmarkId::new(name, m), |b| {
             b.iter(|| {

@@ -11,6 +11,10 @@
 //! - cooperative matrices (`shaders/linear_coop.wgsl`, tensor cores): 16×16×16 f16 products with
 //!   f32 accumulation, on f16 copies of the activations and weights padded to multiples of 16
 //!   (owned by the [`GpuMlp`]); the f32 tape and outputs keep the same layout as the plain path.
+//!   Two tilings of its products ([`CoopTiling`]): one subgroup per workgroup owning a 32×32
+//!   block with every operand tile loaded from global memory ([`LinearPath::Coop`], the path
+//!   verified on an H100), or four subgroups sharing a 64×64 block with each 32-deep K chunk of
+//!   both operands staged once in workgroup memory by coalesced loads ([`LinearPath::CoopTiled`]).
 //!
 //! Buffers (all `f32`, row-major, caller-owned unless noted):
 //! - `input` `[capacity][input_dim]`, `output` `[capacity][output_dim]`, `d_output` like `output`,
@@ -44,6 +48,57 @@ pub fn act_code(a: Activation) -> u32 {
         Activation::Tanh => 3,
         Activation::Softplus => 4,
         Activation::Exp => 5,
+    }
+}
+
+/// Which implementation of the products a [`GpuMlp`] runs (chosen in [`GpuMlp::new_with`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum LinearPath {
+    /// Plain WGSL, f32 throughout (`shaders/linear.wgsl`); runs on every adapter.
+    #[default]
+    Plain,
+    /// Cooperative matrices, one subgroup of 32 per workgroup owning a 32×32 output block,
+    /// operand tiles loaded straight from global memory ([`CoopTiling::Subgroup`]).
+    Coop,
+    /// Cooperative matrices, four subgroups of 32 per workgroup sharing a 64×64 output block,
+    /// K staged through workgroup memory ([`CoopTiling::Workgroup`]). Needs a subgroup size of
+    /// exactly 32 (NVIDIA); the f16 scratch gets 64-row padding.
+    CoopTiled,
+}
+
+impl LinearPath {
+    /// The cooperative-matrix tiling of this path (`None` for [`LinearPath::Plain`]).
+    pub fn coop_tiling(self) -> Option<CoopTiling> {
+        match self {
+            LinearPath::Plain => None,
+            LinearPath::Coop => Some(CoopTiling::Subgroup),
+            LinearPath::CoopTiled => Some(CoopTiling::Workgroup),
+        }
+    }
+}
+
+/// How the cooperative-matrix GEMMs (`forward`, `backward_data`, `backward_weight` of
+/// `shaders/linear_coop.wgsl`) split their work; the results agree up to f32 summation order.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum CoopTiling {
+    /// One subgroup (32 lanes) per workgroup, a 32×32 block of C (2×2 accumulators); every 16×16
+    /// f16 operand tile is loaded from global memory by the subgroup that uses it.
+    #[default]
+    Subgroup,
+    /// The `*_tiled` entry points: 4 subgroups per workgroup (128 lanes), a 64×64 block of C;
+    /// each K chunk of 32 is copied once into workgroup memory (8-byte coalesced loads, the next
+    /// chunk prefetched into registers) and the subgroups load their tiles from there. 14 340
+    /// bytes of workgroup memory per entry point.
+    Workgroup,
+}
+
+impl CoopTiling {
+    /// Rows of an output block, and the row padding of the f16 scratch.
+    fn rows(self) -> usize {
+        match self {
+            CoopTiling::Subgroup => 32,
+            CoopTiling::Workgroup => 64,
+        }
     }
 }
 
@@ -106,28 +161,48 @@ fn split_chunk(capacity: usize) -> usize {
 
 impl GpuMlp {
     /// Builds the kernels for `config` and scratch for up to `capacity` samples per call.
-    /// `use_coop` selects the cooperative-matrix path (needs `ctx.features.cooperative_matrix`
-    /// and `shader_f16`; an error otherwise).
+    /// `use_coop` selects the cooperative-matrix path ([`LinearPath::Coop`]; needs
+    /// `ctx.features.cooperative_matrix` and `shader_f16`; an error otherwise), else
+    /// [`LinearPath::Plain`].
     pub fn new(ctx: &GpuContext, config: &MlpConfig, capacity: usize, use_coop: bool) -> Result<Self, GpuError> {
-        if use_coop && !(ctx.features.cooperative_matrix && ctx.features.shader_f16) {
+        Self::new_with(ctx, config, capacity, if use_coop { LinearPath::Coop } else { LinearPath::Plain })
+    }
+
+    /// As [`GpuMlp::new`] with the implementation chosen by `path`. The cooperative-matrix paths
+    /// need `ctx.features.cooperative_matrix` and `shader_f16`, and [`LinearPath::CoopTiled`] a
+    /// subgroup size of exactly 32 (its kernels take `local_invocation_index / 32` as the
+    /// subgroup); an [`GpuError::Unsupported`] otherwise.
+    pub fn new_with(ctx: &GpuContext, config: &MlpConfig, capacity: usize, path: LinearPath) -> Result<Self, GpuError> {
+        let Some(tiling) = path.coop_tiling() else {
+            return Self::build(ctx, config, capacity, None);
+        };
+        if !(ctx.features.cooperative_matrix && ctx.features.shader_f16) {
             return Err(GpuError::Unsupported(format!(
                 "cooperative-matrix MLP asked for, but the adapter {} lacks cooperative matrices or f16",
                 ctx.describe()
             )));
         }
-        let src = use_coop.then(|| shaders::with_common(shaders::LINEAR_COOP));
-        Self::build(ctx, config, capacity, src.as_deref())
+        if tiling == CoopTiling::Workgroup && !(ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32) {
+            return Err(GpuError::Unsupported(format!(
+                "workgroup-tiled cooperative-matrix MLP needs a subgroup size of 32, but the adapter {} has {}..={}",
+                ctx.describe(),
+                ctx.info.subgroup_min_size,
+                ctx.info.subgroup_max_size
+            )));
+        }
+        let src = shaders::with_common(shaders::LINEAR_COOP);
+        Self::build(ctx, config, capacity, Some((&src, tiling)))
     }
 
-    /// For tests: the cooperative-matrix path compiled from `source` (a copy of
+    /// For tests: the cooperative-matrix path with `tiling`, compiled from `source` (a copy of
     /// `linear_coop.wgsl` with the same entry points and bindings, e.g. with its cooperative-matrix
-    /// operations emulated in plain WGSL) and without the feature check.
+    /// operations emulated in plain WGSL) and without the feature checks.
     #[doc(hidden)]
-    pub fn with_coop_source(ctx: &GpuContext, config: &MlpConfig, capacity: usize, source: &str) -> Result<Self, GpuError> {
-        Self::build(ctx, config, capacity, Some(source))
+    pub fn with_coop_source(ctx: &GpuContext, config: &MlpConfig, capacity: usize, source: &str, tiling: CoopTiling) -> Result<Self, GpuError> {
+        Self::build(ctx, config, capacity, Some((source, tiling)))
     }
 
-    fn build(ctx: &GpuContext, config: &MlpConfig, capacity: usize, coop_source: Option<&str>) -> Result<Self, GpuError> {
+    fn build(ctx: &GpuContext, config: &MlpConfig, capacity: usize, coop_source: Option<(&str, CoopTiling)>) -> Result<Self, GpuError> {
         config.validate().map_err(|e| GpuError::Unsupported(e.to_string()))?;
         let mut layers = Vec::with_capacity(config.hidden_layers + 1);
         let (mut off, mut prev, mut tape_off) = (0usize, config.input_dim, 0usize);
@@ -169,8 +244,8 @@ impl GpuMlp {
             coop: None,
             dummy: ctx.zeros("linear dummy", 4),
         };
-        if let Some(src) = coop_source {
-            me.coop = Some(coop::Coop::new(ctx, &me, src)?);
+        if let Some((src, tiling)) = coop_source {
+            me.coop = Some(coop::Coop::new(ctx, &me, src, tiling)?);
         } else {
             me.plain = Some(me.build_plain(ctx));
         }
@@ -285,6 +360,15 @@ impl GpuMlp {
     /// Whether this instance runs on cooperative matrices.
     pub fn uses_coop(&self) -> bool {
         self.coop.is_some()
+    }
+
+    /// The implementation this instance runs.
+    pub fn path(&self) -> LinearPath {
+        match self.coop.as_ref().map(|c| c.tiling) {
+            None => LinearPath::Plain,
+            Some(CoopTiling::Subgroup) => LinearPath::Coop,
+            Some(CoopTiling::Workgroup) => LinearPath::CoopTiled,
+        }
     }
 
     fn check_capacity(&self, capacity: usize) {
@@ -472,7 +556,7 @@ impl GpuMlp {
 
 /// The cooperative-matrix implementation (`shaders/linear_coop.wgsl`).
 mod coop {
-    use super::{act_code, GpuMlp, FLAG_BIAS, FLAG_DINPUT, FLAG_OUT, FLAG_WORK, WG};
+    use super::{act_code, CoopTiling, GpuMlp, FLAG_BIAS, FLAG_DINPUT, FLAG_OUT, FLAG_WORK, WG};
     use crate::kernel::{groups_1d, Kernel};
     use crate::{GpuContext, GpuError};
 
@@ -525,6 +609,7 @@ mod coop {
     }
 
     pub(super) struct Coop {
+        pub(super) tiling: CoopTiling,
         convert_input: Kernel,
         convert_weights: Kernel,
         forward: Kernel,
@@ -547,7 +632,12 @@ mod coop {
     }
 
     impl Coop {
-        pub(super) fn new(ctx: &GpuContext, m: &GpuMlp, src: &str) -> Result<Self, GpuError> {
+        /// Memory (f16 scratch, bytes): x16 and its inference copy `2·rows·xp` each, h16
+        /// `hidden_layers·rows·hp` (+ `2·rows·hp` for inference), dz16 `2·rows·max_np`, with
+        /// `rows = capacity` rounded up to 32 ([`CoopTiling::Subgroup`]) or 64
+        /// ([`CoopTiling::Workgroup`], whose epilogues write whole 64-row blocks); w16 and the f32
+        /// partials do not depend on the tiling.
+        pub(super) fn new(ctx: &GpuContext, m: &GpuMlp, src: &str, tiling: CoopTiling) -> Result<Self, GpuError> {
             let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some("linear_coop.wgsl"),
                 source: wgpu::ShaderSource::Wgsl(src.to_string().into()),
@@ -556,7 +646,7 @@ mod coop {
             let cfg = &m.config;
             let xp = r16(cfg.input_dim);
             let hp = r16(cfg.hidden_dim);
-            let rows = m.capacity.next_multiple_of(32).max(32);
+            let rows = m.capacity.next_multiple_of(tiling.rows()).max(tiling.rows());
             let nl = m.layers.len();
             let mut layers = Vec::with_capacity(nl);
             let mut w16_off = 0usize;
@@ -639,13 +729,18 @@ mod coop {
                 ones[r * 16] = half::f16::ONE;
             }
             let f16b = |n: usize| 2 * n;
+            let tiled = |e: &str| match tiling {
+                CoopTiling::Subgroup => k(e),
+                CoopTiling::Workgroup => k(&format!("{e}_tiled")),
+            };
             Ok(Self {
+                tiling,
                 convert_input: k("convert_input"),
                 convert_weights: k("convert_weights"),
-                forward: k("forward"),
+                forward: tiled("forward"),
                 output_grad: k("output_grad"),
-                backward_data: k("backward_data"),
-                backward_weight: k("backward_weight"),
+                backward_data: tiled("backward_data"),
+                backward_weight: tiled("backward_weight"),
                 reduce: k("reduce_grads"),
                 layers,
                 xp,
@@ -686,14 +781,16 @@ mod coop {
             self.record_weights(ctx, enc, params);
             self.convert_input.record(ctx, enc, &[(0, &self.in_u), (1, counters), (2, input), (3, x16)], groups_1d(rows * self.xp, WG));
             let dst = tape.unwrap_or(&m.dummy);
+            let t = self.tiling.rows();
             for l in &self.layers {
                 let u = if tape.is_some() { &l.fwd } else { &l.inf };
-                self.forward.record(
-                    ctx,
-                    enc,
-                    &[(0, u), (1, counters), (2, x16), (3, h16), (4, &self.w16), (5, params), (6, dst), (7, output)],
-                    GpuMlp::row_groups(capacity, 32, l.np.div_ceil(32)),
-                );
+                let groups = GpuMlp::row_groups(capacity, t, l.np.div_ceil(t));
+                let b = [(0, u), (1, counters), (2, x16), (3, h16), (4, &self.w16), (5, params), (6, dst), (7, output), (8, h16)];
+                match self.tiling {
+                    CoopTiling::Subgroup => self.forward.record(ctx, enc, &b[..8], groups),
+                    // Binding 8: h16 again, as vec4s for the staging loads.
+                    CoopTiling::Workgroup => self.forward.record(ctx, enc, &b, groups),
+                }
             }
         }
 
@@ -713,6 +810,7 @@ mod coop {
             capacity: usize,
         ) {
             let rows = capacity.next_multiple_of(32).max(32);
+            let t = self.tiling.rows();
             self.record_weights(ctx, enc, params);
             let nl = self.layers.len();
             self.output_grad.record(
@@ -726,12 +824,22 @@ mod coop {
                 let l = &self.layers[i];
                 let ml = &m.layers[i];
                 let u = &l.bwd[d_input.is_some() as usize];
-                self.backward_weight.record(
-                    ctx,
-                    enc,
-                    &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.x16), (4, &self.h16), (5, &self.ones), (6, &self.partial)],
-                    [l.kcp.div_ceil(32) as u32, l.np.div_ceil(32) as u32, capacity.div_ceil(m.chunk).max(1) as u32],
-                );
+                let splits = capacity.div_ceil(m.chunk).max(1) as u32;
+                match self.tiling {
+                    CoopTiling::Subgroup => self.backward_weight.record(
+                        ctx,
+                        enc,
+                        &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.x16), (4, &self.h16), (5, &self.ones), (6, &self.partial)],
+                        [l.kcp.div_ceil(32) as u32, l.np.div_ceil(32) as u32, splits],
+                    ),
+                    // Blocks over the kp columns only: the bias column is summed without the ones.
+                    CoopTiling::Workgroup => self.backward_weight.record(
+                        ctx,
+                        enc,
+                        &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.x16), (4, &self.h16), (6, &self.partial)],
+                        [l.kp.div_ceil(64) as u32, l.np.div_ceil(64) as u32, splits],
+                    ),
+                }
                 let kc = ml.fan_in + ml.b_off.is_some() as usize;
                 self.reduce.record(ctx, enc, &[(0, u), (1, counters), (2, &self.partial), (3, grads)], groups_1d(ml.out * kc, WG));
                 let c_lo = if d_input.is_some() { 0 } else { l.xp };
@@ -741,7 +849,7 @@ mod coop {
                         ctx,
                         enc,
                         &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.w16), (4, &self.dz16[1 - cur]), (5, tape), (6, dx)],
-                        GpuMlp::row_groups(capacity, 32, (l.kp - c_lo).div_ceil(32)),
+                        GpuMlp::row_groups(capacity, t, (l.kp - c_lo).div_ceil(t)),
                     );
                 }
                 cur = 1 - cur;

@@ -1,8 +1,11 @@
 //! `GpuMlp` (tiled linear layers, plain WGSL and cooperative matrices) against its CPU twin
 //! `nerf_mlp::Mlp` on random inputs: forward (output and tape), inference, backward (gradients
 //! accumulated onto random pre-filled values, d_input). Outputs start poisoned with NaN.
+//! The cooperative-matrix kernels (both tilings) also run here without tensor cores through the
+//! plain-WGSL emulation of `common/coop_emu.rs`, and the workgroup-tiled entry points are
+//! translated to SPIR-V as wgpu's Vulkan backend does (where an H100 run once failed).
 
-use nerf_gpu::linear::GpuMlp;
+use nerf_gpu::linear::{CoopTiling, GpuMlp, LinearPath};
 use nerf_gpu::{shaders, GpuContext};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
 use rand::Rng as _;
@@ -78,7 +81,7 @@ fn check(what: &str, gpu: &[f32], cpu: &[f32], tol: f32) {
 fn compare(ctx: &GpuContext, use_coop: bool, tol_fwd: f32, tol_bwd: f32) {
     compare_with(ctx, configs(), &[0, 1, 77, 300], use_coop, tol_fwd, tol_bwd, &|cfg, capacity| {
         GpuMlp::new(ctx, cfg, capacity, use_coop).unwrap()
-    })
+    });
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -90,7 +93,8 @@ fn compare_with(
     tol_fwd: f32,
     tol_bwd: f32,
     make: &dyn Fn(&MlpConfig, usize) -> GpuMlp,
-) {
+) -> Vec<GpuMlp> {
+    let mut made = Vec::new();
     for (ci, mut cfg) in configs.into_iter().enumerate() {
         if use_coop && cfg.hidden_activation == Activation::Relu {
             // f16 forward values flip the sign of pre-activations near 0 relative to the CPU, and
@@ -138,7 +142,9 @@ fn compare_with(
                 }
             }
         }
+        made.push(g);
     }
+    made
 }
 
 #[test]
@@ -157,6 +163,7 @@ fn coop_mlp_matches_its_cpu_twin() {
         assert!(GpuMlp::new(&ctx, &small_trunk(Activation::None, 4), 16, true).is_err());
         return;
     }
+    assert_eq!(GpuMlp::new(&ctx, &small_trunk(Activation::None, 4), 16, true).unwrap().path(), LinearPath::Coop);
     // f16 operands (11-bit mantissa, ~5e-4 relative per rounding) accumulated in f32 over up to
     // ~90 products per output and 4 layers: 1e-2 of the largest entry forward; backward also
     // rounds dZ at every layer and d_input sums cancelling terms through all 5 layers: 5e-2.
@@ -202,5 +209,183 @@ fn emulated_coop_mlp_matches_its_cpu_twin() {
     // config (input and hidden blocks, a skip, biases: every kernel and operand layout) and two
     // sizes: lavapipe compiles and runs the emulation slowly.
     let cfgs = vec![configs().swap_remove(1)];
-    compare_with(&ctx, cfgs, &[1, 77], true, 1e-2, 5e-2, &|cfg, capacity| GpuMlp::with_coop_source(&ctx, cfg, capacity, &src).unwrap());
+    compare_with(&ctx, cfgs, &[1, 77], true, 1e-2, 5e-2, &|cfg, capacity| {
+        GpuMlp::with_coop_source(&ctx, cfg, capacity, &src, CoopTiling::Subgroup).unwrap()
+    });
+}
+
+// ---------------------------------------------------------------------------------------------
+// The workgroup-tiled cooperative-matrix kernels (LinearPath::CoopTiled).
+
+/// Widths that are not multiples of the 64×64 blocks nor of the 32-deep K chunks: input 39
+/// (xp 48: K 48 in layer 0, a half-filled chunk), hidden 80 (two column blocks, the second 16
+/// wide), a skip layer (K = 48 + 80 = 128 from both sources), output 4 (np 16), biases (the bias
+/// column of dW), softplus hidden (see compare_with), sigmoid output. Three layers: the emulation
+/// is slow on lavapipe.
+fn tiled_config() -> MlpConfig {
+    MlpConfig {
+        input_dim: 39,
+        output_dim: 4,
+        hidden_dim: 80,
+        hidden_layers: 2,
+        hidden_activation: Activation::Softplus,
+        output_activation: Activation::Sigmoid,
+        skips: vec![1],
+        bias: true,
+    }
+}
+
+const TILED_ENTRY_POINTS: [&str; 3] = ["forward_tiled", "backward_data_tiled", "backward_weight_tiled"];
+
+/// SPIR-V opcodes of the KHR cooperative-matrix load, store and multiply-add.
+const SPIRV_COOP_OPS: [u32; 3] = [4457, 4458, 4459];
+
+/// Parses and validates `src`, then translates each tiled entry point to SPIR-V the way
+/// wgpu-hal 30's Vulkan backend does (process_overrides, spv::write_vec with the entry point's
+/// pipeline options, SPIR-V 1.6, both buffer bounds-check policies; as in tests/mlp_coop.rs).
+/// Returns per entry point (coop loads, stores, multiply-adds, bytes of workgroup memory used).
+fn translate_tiled(src: &str) -> Vec<(&'static str, [usize; 3], u32)> {
+    use naga::back::spv;
+    let module = naga::front::wgsl::parse_str(src).unwrap_or_else(|e| panic!("{}", e.emit_to_string(src)));
+    let mut v = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all());
+    let info = v.validate(&module).unwrap_or_else(|e| panic!("naga validation: {e:?}"));
+    let mut out = Vec::new();
+    for ep_name in TILED_ENTRY_POINTS {
+        let idx = module.entry_points.iter().position(|e| e.name == ep_name).unwrap_or_else(|| panic!("entry point {ep_name} missing"));
+        let ep = &module.entry_points[idx];
+        assert_eq!(ep.workgroup_size, [128, 1, 1], "{ep_name}: 4 subgroups of 32");
+        let fi = info.get_entry_point(idx);
+        let wg_bytes: u32 = module
+            .global_variables
+            .iter()
+            .filter(|(h, g)| g.space == naga::AddressSpace::WorkGroup && !fi[*h].is_empty())
+            .map(|(_, g)| module.types[g.ty].inner.size(module.to_ctx()))
+            .sum();
+        let mut counts = [0usize; 3];
+        for buffer in [naga::proc::BoundsCheckPolicy::Restrict, naga::proc::BoundsCheckPolicy::Unchecked] {
+            let options = spv::Options {
+                lang_version: (1, 6),
+                bounds_check_policies: naga::proc::BoundsCheckPolicies {
+                    index: naga::proc::BoundsCheckPolicy::Restrict,
+                    buffer,
+                    image_load: naga::proc::BoundsCheckPolicy::Restrict,
+                    binding_array: naga::proc::BoundsCheckPolicy::Unchecked,
+                },
+                zero_initialize_workgroup_memory: spv::ZeroInitializeWorkgroupMemoryMode::None,
+                force_loop_bounding: true,
+                use_storage_input_output_16: true,
+                ..Default::default()
+            };
+            let (m, i) = naga::back::pipeline_constants::process_overrides(&module, &info, Some((ep.stage, &ep.name)), &Default::default())
+                .unwrap_or_else(|e| panic!("{ep_name}: process_overrides: {e}"));
+            let po = spv::PipelineOptions { shader_stage: ep.stage, entry_point: ep.name.clone() };
+            let words = spv::write_vec(&m, &i, &options, Some(&po)).unwrap_or_else(|e| panic!("{ep_name}: SPIR-V translation ({buffer:?}): {e}"));
+            assert!(words.len() > 5 && words[0] == 0x0723_0203, "{ep_name}: not a SPIR-V module");
+            counts = [0; 3];
+            let mut w = 5;
+            while w < words.len() {
+                let (len, op) = ((words[w] >> 16) as usize, words[w] & 0xffff);
+                assert!(len > 0, "{ep_name}: malformed SPIR-V at word {w}");
+                if let Some(k) = SPIRV_COOP_OPS.iter().position(|&o| o == op) {
+                    counts[k] += 1;
+                }
+                w += len;
+            }
+        }
+        out.push((ep_name, counts, wg_bytes));
+    }
+    out
+}
+
+#[test]
+fn tiled_coop_kernels_translate_to_spirv_within_16k_of_workgroup_memory() {
+    for (ep, [loads, stores, muladds], wg_bytes) in translate_tiled(&shaders::with_common(shaders::LINEAR_COOP)) {
+        eprintln!("linear_coop.wgsl {ep}: {loads} coop loads, {stores} coop stores, {muladds} multiply-adds, {wg_bytes} B workgroup memory");
+        // Per K step 2 A + 2 B tiles and 2×2 products; 4 accumulators stored for the epilogue.
+        assert!(loads >= 4 && muladds >= 4 && stores >= 4, "{ep}: coop ops missing from the SPIR-V");
+        assert!(wg_bytes <= 16 * 1024, "{ep}: {wg_bytes} B of workgroup memory (budget 16 KiB)");
+        assert!(wg_bytes >= 2 * 64 * 40 * 2, "{ep}: the staging arrays are not used ({wg_bytes} B)");
+    }
+}
+
+/// Emulated tiled kernels against the CPU twin with the f16 tolerances of the hardware test, at
+/// sizes with partial 64-row blocks, and against the emulated subgroup-tiled kernels (the same f16
+/// operands; only the f32 summation order differs).
+#[test]
+fn emulated_tiled_coop_mlp_matches_its_cpu_twin_and_the_untiled_kernels() {
+    let Some(ctx) = context() else { return };
+    if !ctx.features.shader_f16 {
+        eprintln!("NOTICE: adapter {} has no SHADER_F16; the emulated kernels cannot run", ctx.describe());
+        return;
+    }
+    let src = coop_emu::emulate(&shaders::with_common(shaders::LINEAR_COOP));
+    let t0 = std::time::Instant::now();
+    let tiled = compare_with(&ctx, vec![tiled_config()], &[1, 130], true, 1e-2, 5e-2, &|cfg, capacity| {
+        let g = GpuMlp::with_coop_source(&ctx, cfg, capacity, &src, CoopTiling::Workgroup).unwrap();
+        assert_eq!(g.path(), LinearPath::CoopTiled);
+        g
+    })
+    .remove(0);
+    eprintln!("emulated tiled kernels vs the CPU twin: {:.1} s", t0.elapsed().as_secs_f64());
+
+    // Tiled vs untiled on one input. Both round the same f32 values to f16 at the same places;
+    // accumulation order differs (the bias gradient is a plain sum in the tiled kernel), which
+    // can move an f16 rounding by one ulp (~5e-4 relative): 2e-3 of the largest entry, 5-25×
+    // tighter than the comparison with the CPU twin.
+    let cfg = tiled_config();
+    let untiled = GpuMlp::with_coop_source(&ctx, &cfg, tiled.capacity(), &src, CoopTiling::Subgroup).unwrap();
+    assert_eq!(untiled.path(), LinearPath::Coop);
+    let n = 77;
+    let mut r = nerf_core::rng(77, 3);
+    let mlp = Mlp::<f32>::new(cfg.clone(), &mut r);
+    let input: Vec<f32> = (0..n * cfg.input_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+    let d_out: Vec<f32> = (0..n * cfg.output_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+    let run = |g: &GpuMlp| {
+        let (out, tape) = g.run_forward(&ctx, &input, mlp.params(), n, true).unwrap();
+        let mut grads = vec![0.0f32; g.n_params()];
+        let dx = g.run_backward(&ctx, &input, mlp.params(), &d_out, &mut grads, n, true).unwrap().unwrap();
+        (out, tape, grads, dx)
+    };
+    let (a, b) = (run(&untiled), run(&tiled));
+    eprintln!("emulated tiled kernels, CPU twin and untiled kernels: {:.1} s", t0.elapsed().as_secs_f64());
+    check("tiled vs untiled: output", &b.0, &a.0, 2e-3);
+    check("tiled vs untiled: tape", &b.1, &a.1, 2e-3);
+    check("tiled vs untiled: grads", &b.2, &a.2, 2e-3);
+    check("tiled vs untiled: d_input", &b.3, &a.3, 2e-3);
+    assert!(a.2.iter().any(|v| v.abs() > 1e-3), "gradients all ~0: the comparison would be vacuous");
+}
+
+#[test]
+fn coop_tiled_mlp_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let sg32 = ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32;
+    if !(ctx.features.cooperative_matrix && ctx.features.shader_f16 && sg32) {
+        eprintln!(
+            "NOTICE: adapter {} has no cooperative matrices / f16 / subgroups of exactly 32 ({}..={}); tiled coop path not compared",
+            ctx.describe(),
+            ctx.info.subgroup_min_size,
+            ctx.info.subgroup_max_size
+        );
+        assert!(GpuMlp::new_with(&ctx, &tiled_config(), 16, LinearPath::CoopTiled).is_err());
+        return;
+    }
+    // The tolerances of coop_mlp_matches_its_cpu_twin (same f16 operands).
+    let mut cfgs = configs();
+    cfgs.push(tiled_config());
+    compare_with(&ctx, cfgs, &[0, 1, 77, 130, 300], true, 1e-2, 5e-2, &|cfg, capacity| {
+        let g = GpuMlp::new_with(&ctx, cfg, capacity, LinearPath::CoopTiled).unwrap();
+        assert_eq!(g.path(), LinearPath::CoopTiled);
+        g
+    });
+}
+
+#[test]
+fn linear_paths_map_to_tilings() {
+    assert_eq!(LinearPath::default(), LinearPath::Plain);
+    assert_eq!(LinearPath::Plain.coop_tiling(), None);
+    assert_eq!(LinearPath::Coop.coop_tiling(), Some(CoopTiling::Subgroup));
+    assert_eq!(LinearPath::CoopTiled.coop_tiling(), Some(CoopTiling::Workgroup));
+    let Some(ctx) = context() else { return };
+    let g = GpuMlp::new_with(&ctx, &small_trunk(Activation::None, 4), 16, LinearPath::Plain).unwrap();
+    assert_eq!((g.path(), g.uses_coop()), (LinearPath::Plain, false));
 }

@@ -4,7 +4,10 @@
 //! emulation): a 16×16 matrix is `m[r·16 + c]`; `coopLoadT(&a[i], st)` reads row-major
 //! (`a[i + r·st + c]`), `coopLoad(&a[i], st)` column-major (`a[i + c·st + r]`), `coopStoreT` writes
 //! row-major, `coopMultiplyAdd(a, b, c) = a·b + c`. Every entry point with cooperative-matrix
-//! operations must start with `let n = load_n(lid);` (lane 0 does each whole operation).
+//! operations must start with `let n = load_n(lid);` and take its subgroups as consecutive runs
+//! of 32 invocations (`lid / 32`, as on the H100): lane `lid % 32 == 0` of each subgroup does each
+//! whole operation of its subgroup (the other lanes hold zero matrices), so workgroups of one or
+//! several subgroups of 32 are emulated alike whatever the adapter's real subgroup size.
 
 pub fn emulate(source: &str) -> String {
     // Without comments (they name the coop ops too).
@@ -18,8 +21,23 @@ pub fn emulate(source: &str) -> String {
         .replace("coop_mat16x16<f32, C>()", "array<f32, 256>()")
         .replace("coop_mat16x16<f16, A>()", "array<f32, 256>()")
         .replace("coop_mat16x16<f16, B>()", "array<f32, 256>()").replace("coopMultiplyAdd(", "emu_mma(");
-    // Each entry point with coop ops starts with `let n = load_n(lid);`: record the lane.
-    let src = src.replace("let n = load_n(lid);", "emu_lane = lid;\n    let n = load_n(lid);");
+    // Each entry point with coop ops starts with `let n = load_n(lid);`: record the lane within
+    // its subgroup of 32 (`lid` itself in workgroups of one subgroup: lavapipe takes minutes to
+    // compile the backward kernels of linear_coop.wgsl when the lane is written `lid % 32u`).
+    let src = {
+        let marker = "let n = load_n(lid);";
+        let (mut out, mut last) = (String::new(), 0);
+        for (at, _) in src.match_indices(marker) {
+            let size_at = src[..at].rfind("@workgroup_size(").expect("an entry point with coop ops has a @workgroup_size") + 16;
+            let size = src[size_at..].split(')').next().unwrap_or("").trim();
+            let lane = if size == "32" || size == "32u" { "lid" } else { "lid % 32u" };
+            out.push_str(&src[last..at]);
+            out.push_str(&format!("emu_lane = {lane};\n    {marker}"));
+            last = at + marker.len();
+        }
+        out.push_str(&src[last..]);
+        out
+    };
     let mut out = String::new();
     let mut funcs = std::collections::BTreeMap::new();
     let mut rest = src.as_str();
