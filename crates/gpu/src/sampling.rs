@@ -197,7 +197,7 @@ pub struct GpuRayGen {
 
 impl GpuRayGen {
     /// Compiles the kernel for a background mode (`Random`: one uniform colour per ray), a pixel
-    /// convention and optional sub-pixel jitter (the trainer uses none).
+    /// convention and optional sub-pixel jitter (`TrainConfig::pixel_jitter`).
     pub fn new(ctx: &GpuContext, background: Background, conv: PixelConvention, jitter: bool) -> Self {
         let kernel = Kernel::new(ctx, &shaders::with_common(shaders::RAYS), "ray_gen", &[]);
         let params = RayGenParams {

@@ -114,6 +114,11 @@ pub struct TrainConfig {
     pub eval_background: Background,
     /// Pixel convention of ray generation.
     pub pixel_convention: PixelConvention,
+    /// Training rays through a uniformly random point of their pixel instead of its centre, the
+    /// target staying the pixel's colour (instant-ngp trains so, unless `snap_to_pixel_centers`):
+    /// the field learns what the pixel integrates, as the anti-aliased ground truth does.
+    /// Evaluation and rendering always use the pixel convention's point. Default off (the paper).
+    pub pixel_jitter: bool,
     /// Jitter samples within their strata while training (paper: perturb = 1).
     pub perturb: bool,
     /// Stop compositing a ray once its transmittance falls below this (0 = never).
@@ -154,6 +159,7 @@ impl Default for TrainConfig {
             train_background: Background::White,
             eval_background: Background::White,
             pixel_convention: PixelConvention::Center,
+            pixel_jitter: false,
             perturb: true,
             transmittance_threshold: 0.0,
             seed: 0,

@@ -301,7 +301,7 @@ impl GpuEngine {
         glue.set_huber_delta(&ctx, config.loss.huber_delta());
         Ok(Self {
             first_rays,
-            raygen: GpuRayGen::new(&ctx, config.train_background, config.pixel_convention, false),
+            raygen: GpuRayGen::new(&ctx, config.train_background, config.pixel_convention, config.pixel_jitter),
             compositor: Compositor::new(&ctx, capacity_rays, config.transmittance_threshold, true),
             glue,
             rays: GpuRays::new(&ctx, capacity_rays),

@@ -268,7 +268,7 @@ impl Trainer {
             }
             None => cfg.batch_rays,
         };
-        data.sample_rays(n_rays, cfg.train_background, cfg.pixel_convention, false, &mut rng, &mut self.batch);
+        data.sample_rays(n_rays, cfg.train_background, cfg.pixel_convention, cfg.pixel_jitter, &mut rng, &mut self.batch);
         let n_rays = self.batch.len();
         self.near.clear();
         self.near.resize(n_rays, self.bounds.near);

@@ -1,0 +1,62 @@
+//! Training options that must reach both devices' step: `pixel_jitter` (rays through random points
+//! of their pixels; the ray generators themselves are tested in crates/data and
+//! crates/gpu/tests/sampling.rs) and `loss` (the Huber loss; its gradient is tested in
+//! crates/render and crates/gpu/tests/kernels.rs). Each option, switched on alone, changes what one
+//! step does to the parameters, on the CPU and (where an adapter exists) on the GPU, and
+//! switching it off again reproduces the default run exactly.
+
+use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
+use nerf::gpu::GpuContext;
+use nerf::train::{LossConfig, SamplerConfig, SceneBounds, TrainConfig, Trainer};
+use std::path::Path;
+use std::sync::Arc;
+
+fn load() -> Dataset {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::First(10) }).unwrap()
+}
+
+fn config() -> TrainConfig {
+    TrainConfig {
+        field: "hash".into(),
+        field_config: serde_json::json!({"grid": {"log2_hashmap_size": 14}}),
+        sampler: SamplerConfig::Occupancy {
+            grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every: 16, warmup_steps: 64, ..Default::default() },
+            step_size: 0.02,
+            max_samples_per_ray: 256,
+        },
+        batch_rays: 256,
+        seed: 3,
+        ..TrainConfig::default()
+    }
+}
+
+/// The parameters after `steps` steps of `c` on `dev`.
+fn params_after(c: &TrainConfig, train: &Dataset, dev: Option<Arc<GpuContext>>, steps: usize) -> Vec<f32> {
+    let mut t = Trainer::new_on(c.clone(), &nerf::registry(), SceneBounds::of(train), dev).unwrap();
+    for _ in 0..steps {
+        t.step(train).unwrap();
+    }
+    t.export_fields().unwrap().into_iter().flatten().flat_map(|(_, v)| v).collect()
+}
+
+#[test]
+fn jitter_and_huber_loss_reach_the_step_on_both_devices() {
+    let train = load();
+    let gpu = GpuContext::for_tests().map(Arc::new);
+    let base = config();
+    let jitter = TrainConfig { pixel_jitter: true, ..config() };
+    // δ small enough that most residuals of an untrained field lie beyond it.
+    let huber = TrainConfig { loss: LossConfig::Huber { delta: 0.01 }, ..config() };
+    for dev in std::iter::once(None).chain(gpu.map(Some)) {
+        let name = if dev.is_some() { "gpu" } else { "cpu" };
+        let p0 = params_after(&base, &train, dev.clone(), 2);
+        assert_eq!(p0, params_after(&base, &train, dev.clone(), 2), "{name}: a run is reproducible");
+        for (what, c) in [("pixel_jitter", &jitter), ("huber loss", &huber)] {
+            let p = params_after(c, &train, dev.clone(), 2);
+            assert!(p.iter().all(|x| x.is_finite()), "{name}: {what}");
+            let changed = p.iter().zip(&p0).filter(|(a, b)| a != b).count();
+            assert!(changed > 100, "{name}: {what} changed only {changed} parameters");
+        }
+    }
+}
