@@ -4,8 +4,9 @@
 # rendering in rounds that lavapipe cannot make, then the plain-vs-coop ablation
 # (examples/ablations/h100_coop.toml). Build here first (the binaries of a commit; .bin/COMMIT says which):
 #   cargo build --release -p nerf-cli && strip -o /tmp/nerf target/release/nerf && xz -c /tmp/nerf > .bin/nerf.xz
-#   cargo test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --no-run
+#   cargo test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --no-run
 #   cargo test --release -p nerf-field-hash --test gpu --no-run
+#   cargo test --release -p nerf-field-freq --test gpu --no-run     (strip it as freq_gpu-…)
 #   cargo bench -p nerf-gpu --bench kernels --no-run
 #   strip each printed executable into /tmp/t3/t3/ (the bench as kernels-bench), then
 #   tar cJf .bint/tests3.tar.xz -C /tmp/t3 t3
@@ -14,7 +15,8 @@
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf) && tar xJf .bint/tests3.tar.xz -C .bin
-for t in .bin/t3/mlp_coop-* .bin/t3/linear-* .bin/t3/sampling-* .bin/t3/gpu-*; do
+for t in .bin/t3/*; do
+  [ "$(basename "$t")" = kernels-bench ] && continue
   echo "== $t"; "$t" --test-threads=1 --nocapture 2>&1 | grep -vE "^\s+[0-9]+:|^\s+at " | tail -40
 done > "$OUT/tests3.log" 2>&1
 grep -E "test result|panicked|NOTICE|GPU tests on" "$OUT/tests3.log"
