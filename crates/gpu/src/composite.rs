@@ -273,7 +273,7 @@ impl TrainGlue {
     }
 
     /// Selects the loss of [`TrainGlue::record_loss`]: the MSE (`None`, the default) or the Huber
-    /// loss with this δ ([`nerf_render::photometric_loss_grad`]). A queued write: set it before
+    /// loss with this δ (CPU twin: `nerf_render::photometric_loss_grad`). A queued write: set it before
     /// the steps it applies to are submitted.
     pub fn set_huber_delta(&self, ctx: &GpuContext, delta: Option<f32>) {
         ctx.write(&self.loss_params, 4, &[delta.unwrap_or(0.0)]);
