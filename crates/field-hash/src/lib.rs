@@ -408,8 +408,8 @@ pub fn default_config() -> serde_json::Value {
 /// - rendering with an exponential moving average of the weights (decay 0.95, tiny-cuda-nn's `Ema`:
 ///   +0.4 dB on the in-repo scene after ~800 CPU steps, docs/results.md);
 /// - compositing stops once transmittance falls below 1e-4;
-/// - instant-ngp's Huber loss (δ 0.1; +0.07 / +0.29 dB over the MSE after 800 CPU steps on the
-///   in-repo scene, +0.5 / +1.3 dB after 400, docs/results.md).
+/// - the MSE loss: instant-ngp's Huber loss (`loss = { kind = "huber", delta = 0.1 }`) helped on
+///   the in-repo scene but cost 0.43 dB on lego at 400×400 after 5 CPU minutes (docs/results.md).
 pub fn train_preset() -> serde_json::Value {
     serde_json::json!({
         "sampler": {
@@ -425,7 +425,6 @@ pub fn train_preset() -> serde_json::Value {
         "transmittance_threshold": 1e-4,
         "adam": { "beta1": 0.9, "beta2": 0.99, "eps": 1e-15 },
         "ema_decay": 0.95,
-        "loss": { "kind": "huber", "delta": 0.1 },
         "lr": { "kind": "step", "lr0": 1e-2, "gamma": 0.33, "milestones": [10000, 15000, 18000] },
         "log_every": 100,
         "checkpoint_every": 2000
