@@ -68,9 +68,14 @@ impl AdamConfig {
     /// `sparse_groups` names a group by its full name (`field/hash_grid`, `fine/hash_grid`) or by
     /// the part after the last `/` (the field's own group name, `hash_grid`).
     pub fn is_sparse(&self, name: &str) -> bool {
-        let local = name.rsplit('/').next().unwrap_or(name);
-        self.sparse_groups.iter().any(|g| g == name || g == local)
+        self.sparse_groups.iter().any(|g| names_group(g, name))
     }
+}
+
+/// Whether `entry` (of [`AdamConfig::sparse_groups`]) names the parameter group `name`: by its full
+/// name (`field/hash_grid`) or by the part after the last `/` (`hash_grid`).
+pub fn names_group(entry: &str, name: &str) -> bool {
+    entry == name || name.rsplit('/').next() == Some(entry)
 }
 
 /// Moment estimates of one parameter group.
@@ -619,6 +624,17 @@ mod tests {
         dense.step(&mut [group("table", &mut b, &mut [0.1, 0.2], 0.0)], 1e-2);
         assert_eq!(a, b);
         assert_eq!(cont.entry_steps("table").unwrap(), &[4, 4]);
+    }
+
+    #[test]
+    fn sparse_group_entries_name_full_or_local_group_names() {
+        assert!(names_group("field/hash_grid", "field/hash_grid"));
+        assert!(names_group("hash_grid", "field/hash_grid") && names_group("hash_grid", "fine/hash_grid"));
+        assert!(names_group("hash_grid", "hash_grid"));
+        assert!(!names_group("field", "field/hash_grid") && !names_group("hash", "field/hash_grid"));
+        assert!(!names_group("coarse/hash_grid", "fine/hash_grid"));
+        let cfg = AdamConfig { sparse_groups: vec!["coarse/hash_grid".into()], ..AdamConfig::default() };
+        assert!(cfg.is_sparse("coarse/hash_grid") && !cfg.is_sparse("fine/hash_grid"));
     }
 
     /// A tiny deterministic generator in [0, 1) for these tests.

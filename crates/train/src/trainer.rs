@@ -4,7 +4,7 @@ use crate::config::{SamplerConfig, TrainConfig};
 use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
-use nerf_optim::{Adam, AdamConfig, AdamState, Ema, EmaState};
+use nerf_optim::{Adam, AdamState, Ema, EmaState};
 use nerf_render::{composite_backward, composite_forward, photometric_loss_grad, CompositeOutputs};
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, RaySamples};
 use std::sync::{Mutex, MutexGuard};
@@ -129,8 +129,7 @@ impl Trainer {
             .collect();
         let names: Vec<&String> = group_names.iter().flatten().collect();
         for g in &config.adam.sparse_groups {
-            let probe = AdamConfig { sparse_groups: vec![g.clone()], ..AdamConfig::default() };
-            if !names.iter().any(|n| probe.is_sparse(n)) {
+            if !names.iter().any(|n| nerf_optim::names_group(g, n)) {
                 return Err(TrainError::Config(format!(
                     "adam.sparse_groups names {g:?}, but the parameter groups of this run are {names:?}"
                 )));
