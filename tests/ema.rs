@@ -3,36 +3,18 @@
 //! rendering does), checkpoints carry it, and the GPU path keeps the same average as the CPU.
 //! GPU tests print a notice and return where no adapter exists.
 
-use nerf::data::{load_blender, Dataset, LoadOptions, RayBatch, Split, ViewSelection};
+use nerf::data::{Dataset, RayBatch, Split, ViewSelection};
 use nerf::gpu::GpuContext;
 use nerf::train::{evaluate, Checkpoint, FieldParams, SamplerConfig, SceneBounds, TrainConfig, Trainer};
-use std::path::Path;
 use std::sync::Arc;
 
-fn load(split: Split, views: ViewSelection) -> Dataset {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, split, &LoadOptions { downscale: 1, views }).unwrap()
-}
+mod common;
+use common::load;
 
-/// The hash field's registry preset scaled down (as tests/gpu_train.rs): a 2^13-sample batch, a
-/// 2^15 table and a 32³ occupancy grid, with the average on.
+/// The hash field's preset scaled down (the grid refreshed every 4 steps after 8), with the
+/// average on.
 fn small_hash_config(iters: u64, ema: Option<f32>) -> TrainConfig {
-    let registry = nerf::registry();
-    let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
-    nerf::field::merge_json(&mut v, &(registry.get("hash").unwrap().train_preset)());
-    let mut c: TrainConfig = serde_json::from_value(v).unwrap();
-    c.field = "hash".into();
-    c.iters = iters;
-    c.log_every = 50;
-    c.target_samples_per_step = Some(1 << 13);
-    c.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 15}});
-    c.sampler = SamplerConfig::Occupancy {
-        grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every: 4, warmup_steps: 8, ..Default::default() },
-        step_size: 0.01,
-        max_samples_per_ray: 512,
-    };
-    c.ema_decay = ema;
-    c
+    TrainConfig { ema_decay: ema, ..common::small_hash_config(iters, 4, 8) }
 }
 
 /// Renders the first view of `test` (colours, then opacities), outputs poisoned beforehand.

@@ -3,39 +3,21 @@
 //! GPU checkpoint restored into a CPU trainer renders the same image. Prints a notice and returns
 //! where no adapter exists.
 
-use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
+use nerf::data::{Split, ViewSelection};
 use nerf::gpu::GpuContext;
 use nerf::train::{evaluate, SamplerConfig, SceneBounds, TrainConfig, Trainer};
-use std::path::Path;
 use std::sync::Arc;
 
-fn load(split: Split, views: ViewSelection) -> Dataset {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, split, &LoadOptions { downscale: 1, views }).unwrap()
-}
+mod common;
+use common::load;
 
 fn device() -> Option<Arc<GpuContext>> {
     GpuContext::for_tests().map(Arc::new)
 }
 
-/// The hash field's registry preset, scaled to what lavapipe runs in seconds: a 2^13-sample batch
-/// and a 32³ occupancy grid warmed up for 64 steps.
+/// The hash field's preset scaled down: a 32³ occupancy grid warmed up for 64 steps.
 fn small_hash_config(iters: u64) -> TrainConfig {
-    let registry = nerf::registry();
-    let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
-    nerf::field::merge_json(&mut v, &(registry.get("hash").unwrap().train_preset)());
-    let mut c: TrainConfig = serde_json::from_value(v).unwrap();
-    c.field = "hash".into();
-    c.iters = iters;
-    c.log_every = 50;
-    c.target_samples_per_step = Some(1 << 13);
-    c.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 15}});
-    c.sampler = SamplerConfig::Occupancy {
-        grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every: 16, warmup_steps: 64, ..Default::default() },
-        step_size: 0.01,
-        max_samples_per_ray: 512,
-    };
-    c
+    common::small_hash_config(iters, 16, 64)
 }
 
 #[test]

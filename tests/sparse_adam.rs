@@ -3,32 +3,24 @@
 //! table — entries the batch did not reach are skipped — which checkpoints carry across devices.
 //! GPU parts print a notice and return where no adapter exists.
 
-use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
+use nerf::data::{Dataset, Split, ViewSelection};
 use nerf::gpu::GpuContext;
-use nerf::train::{SamplerConfig, SceneBounds, TrainConfig, TrainError, Trainer};
-use std::path::Path;
+use nerf::train::{SceneBounds, TrainConfig, TrainError, Trainer};
 use std::sync::Arc;
 
+mod common;
+
 fn load() -> Dataset {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::First(10) }).unwrap()
+    common::load(Split::Train, ViewSelection::First(10))
 }
 
-/// The hash preset scaled down (as tests/gpu_train.rs), the table updated sparsely.
+/// The hash preset scaled down (as tests/gpu_train.rs, a smaller batch and table), the table
+/// updated sparsely.
 fn config(iters: u64) -> TrainConfig {
-    let registry = nerf::registry();
-    let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
-    nerf::field::merge_json(&mut v, &(registry.get("hash").unwrap().train_preset)());
-    let mut c: TrainConfig = serde_json::from_value(v).unwrap();
-    c.field = "hash".into();
-    c.iters = iters;
+    let mut c = common::small_hash_config(iters, 4, 8);
+    c.log_every = 100;
     c.target_samples_per_step = Some(1 << 12);
     c.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 14}});
-    c.sampler = SamplerConfig::Occupancy {
-        grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every: 4, warmup_steps: 8, ..Default::default() },
-        step_size: 0.01,
-        max_samples_per_ray: 512,
-    };
     c.adam.sparse_groups = vec!["hash_grid".into()];
     c
 }

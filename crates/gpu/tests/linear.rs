@@ -192,6 +192,8 @@ fn gradients_accumulate_over_two_backward_passes() {
 
 #[path = "common/coop_emu.rs"]
 mod coop_emu;
+#[path = "common/spirv.rs"]
+mod spirv;
 
 /// `linear_coop.wgsl` — checked on an H100 (docs/gpu.md) — with its cooperative-matrix operations
 /// emulated in plain WGSL, against the CPU twin: this pins the emulation's semantics (load/store
@@ -263,19 +265,7 @@ fn translate_tiled(src: &str) -> Vec<(&'static str, [usize; 3], u32)> {
             .sum();
         let mut counts = [0usize; 3];
         for buffer in [naga::proc::BoundsCheckPolicy::Restrict, naga::proc::BoundsCheckPolicy::Unchecked] {
-            let options = spv::Options {
-                lang_version: (1, 6),
-                bounds_check_policies: naga::proc::BoundsCheckPolicies {
-                    index: naga::proc::BoundsCheckPolicy::Restrict,
-                    buffer,
-                    image_load: naga::proc::BoundsCheckPolicy::Restrict,
-                    binding_array: naga::proc::BoundsCheckPolicy::Unchecked,
-                },
-                zero_initialize_workgroup_memory: spv::ZeroInitializeWorkgroupMemoryMode::None,
-                force_loop_bounding: true,
-                use_storage_input_output_16: true,
-                ..Default::default()
-            };
+            let options = spirv::vulkan_options(buffer);
             let (m, i) = naga::back::pipeline_constants::process_overrides(&module, &info, Some((ep.stage, &ep.name)), &Default::default())
                 .unwrap_or_else(|e| panic!("{ep_name}: process_overrides: {e}"));
             let po = spv::PipelineOptions { shader_stage: ep.stage, entry_point: ep.name.clone() };

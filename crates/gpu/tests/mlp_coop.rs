@@ -61,19 +61,7 @@ fn translate(name: &str, src: &str) -> Vec<(String, (usize, usize, usize))> {
     let info = v.validate(&module).unwrap_or_else(|e| panic!("{name}: naga validation: {e:?}"));
     let mut out = Vec::new();
     for buffer in [naga::proc::BoundsCheckPolicy::Restrict, naga::proc::BoundsCheckPolicy::Unchecked] {
-        let options = spv::Options {
-            lang_version: (1, 6),
-            bounds_check_policies: naga::proc::BoundsCheckPolicies {
-                index: naga::proc::BoundsCheckPolicy::Restrict,
-                buffer,
-                image_load: naga::proc::BoundsCheckPolicy::Restrict,
-                binding_array: naga::proc::BoundsCheckPolicy::Unchecked,
-            },
-            zero_initialize_workgroup_memory: spv::ZeroInitializeWorkgroupMemoryMode::None,
-            force_loop_bounding: true,
-            use_storage_input_output_16: true,
-            ..Default::default()
-        };
+        let options = spirv::vulkan_options(buffer);
         // The whole module at once, then entry point by entry point (what a pipeline compiles).
         spv::write_vec(&module, &info, &options, None)
             .unwrap_or_else(|e| panic!("{name}: SPIR-V translation of the whole module ({buffer:?}): {e}"));
@@ -182,6 +170,8 @@ fn uniform_layout_and_plan_match_the_shader_and_the_cpu_twin() {
 /// identifier (the "runtime zero" lets).
 #[path = "common/coop_emu.rs"]
 mod coop_emu;
+#[path = "common/spirv.rs"]
+mod spirv;
 
 fn emulated_source() -> String {
     coop_emu::emulate(&mlp_coop::source())
