@@ -233,6 +233,16 @@ pub(crate) struct PdfParams {
     pub(crate) _pad: [u32; 3],
 }
 
+/// `CompactParams` of `shaders/compact.wgsl` (16 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct CompactParams {
+    pub(crate) cap_rays: u32,
+    pub(crate) cap_out: u32,
+    pub(crate) t_threshold: f32,
+    pub(crate) _pad: u32,
+}
+
 // ---- sampling.rs ----
 /// One view's camera as `shaders/rays.wgsl` reads it (80 bytes).
 #[repr(C)]

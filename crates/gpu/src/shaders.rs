@@ -16,6 +16,8 @@ pub const COMPOSITE: &str = wgsl!("composite.wgsl");
 pub const RAYS: &str = wgsl!("rays.wgsl");
 /// Occupancy-grid marching and stratified sampling into the packed layout.
 pub const MARCH: &str = wgsl!("march.wgsl");
+/// Compaction of packed samples to those compositing reaches (training on compacted samples).
+pub const COMPACT: &str = wgsl!("compact.wgsl");
 /// Exclusive prefix sums (packed-layout offsets).
 pub const SCAN: &str = wgsl!("scan.wgsl");
 /// Occupancy-grid update (EMA of densities, threshold, bitfield).
@@ -49,6 +51,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("rays.wgsl", RAYS),
     ("march.wgsl", MARCH),
     ("scan.wgsl", SCAN),
+    ("compact.wgsl", COMPACT),
     ("occupancy.wgsl", OCCUPANCY),
     ("hash_grid.wgsl", HASH_GRID),
     ("sh.wgsl", SH),

@@ -22,6 +22,7 @@
 
 use nerf_core::Real;
 use nerf_core::par::{cut, for_ray_blocks, SplitAt};
+use rayon::prelude::*;
 
 /// Rays whose samples + rays total at most this many are composited on the calling thread.
 const GRAIN: usize = 16 * 1024;
@@ -195,6 +196,30 @@ impl<T: Real> RayComposite<T> {
     pub fn color(&self, background: [T; 3]) -> [T; 3] {
         std::array::from_fn(|c| self.rgb[c] + (T::one() - self.opacity) * background[c])
     }
+}
+
+/// Per ray, the number of its leading samples that [`composite_forward`] composites with the
+/// same `t_threshold`: those reached before the transmittance falls below it (all of them when
+/// the threshold is 0). The samples after them get zero weight and zero gradient, so training
+/// on only these (instant-ngp's compacted batch, after an inference pass over every marched
+/// sample) composites to the same colours and gradients. Uses [`RayComposite`]'s arithmetic, so
+/// the count is exactly where `composite_forward` stops. `out` gets `n_rays` counts.
+pub fn composited_counts<T: Real>(ray_offsets: &[u32], sigma: &[T], dt: &[T], t_threshold: T, out: &mut Vec<u32>) {
+    let n_rays = ray_offsets.len().saturating_sub(1);
+    let n = ray_offsets.last().copied().unwrap_or(0) as usize;
+    assert!(sigma.len() >= n && dt.len() >= n, "sigma and dt must hold the {n} samples the offsets describe");
+    out.clear();
+    out.resize(n_rays, 0);
+    out.par_iter_mut().with_min_len(256).enumerate().for_each(|(r, c)| {
+        let (s0, s1) = (ray_offsets[r] as usize, ray_offsets[r + 1] as usize);
+        let mut ray = RayComposite::default();
+        let mut k = s0;
+        while k < s1 && !ray.stopped(t_threshold) {
+            ray.add(sigma[k], [T::zero(); 3], dt[k], T::zero());
+            k += 1;
+        }
+        *c = (k - s0) as u32;
+    });
 }
 
 /// Composites packed samples into per-ray colour, opacity and depth (see the crate docs).

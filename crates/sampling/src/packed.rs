@@ -115,6 +115,37 @@ impl RaySamples {
             });
     }
 
+    /// Keeps the first `keep[r]` samples of each ray `r` (at most all of them) in `out`, in order:
+    /// training on compacted samples, where `keep` counts the samples compositing reaches before
+    /// early termination (`nerf_render::composited_counts` on an inference pass), so the
+    /// compacted batch composites to the same colours. At most `capacity` samples are kept: the
+    /// offsets are clipped there (`min(Σ_{j<r} keep_j, capacity)`), so the ray that crosses it
+    /// keeps a prefix and the rays after it none — the GPU twin's rule
+    /// (`nerf_gpu::compact`). `usize::MAX` keeps everything.
+    pub fn compact_into(&self, keep: &[u32], capacity: usize, out: &mut RaySamples) {
+        assert_eq!(keep.len(), self.n_rays, "keep must hold one count per ray");
+        out.ray_offsets.clear();
+        out.ray_offsets.push(0);
+        let mut total = 0usize;
+        for (r, &k) in keep.iter().enumerate() {
+            total += (k as usize).min(self.ray_len(r));
+            out.ray_offsets.push(total.min(capacity) as u32);
+        }
+        let n = total.min(capacity);
+        out.resize_samples(self.n_rays, n);
+        let src = self;
+        for_each_ray(out, 4096, |r, range, s| {
+            let from = src.ray_offsets[r] as usize;
+            let len = range.len();
+            let (a, b) = (range.start, range.end);
+            s.positions[3 * a..3 * b].copy_from_slice(&src.positions[3 * from..3 * (from + len)]);
+            s.dirs[3 * a..3 * b].copy_from_slice(&src.dirs[3 * from..3 * (from + len)]);
+            s.t[a..b].copy_from_slice(&src.t[from..from + len]);
+            s.dt[a..b].copy_from_slice(&src.dt[from..from + len]);
+            s.ray_indices[a..b].fill(r as u32);
+        });
+    }
+
     /// Resizes every per-sample vector to `n` samples and sets `n_rays` (contents unspecified
     /// except `ray_offsets`, which the caller fills). Reuses the allocations.
     pub(crate) fn resize_samples(&mut self, n_rays: usize, n: usize) {

@@ -121,6 +121,13 @@ pub struct TrainConfig {
     pub pixel_jitter: bool,
     /// Jitter samples within their strata while training (paper: perturb = 1).
     pub perturb: bool,
+    /// Train on compacted samples (instant-ngp): a density-only inference pass over every marched
+    /// sample finds where each ray's transmittance falls below `transmittance_threshold`; the
+    /// training forward and backward then run only on the samples before that point (those past
+    /// it get zero weight and zero gradient anyway), and `target_samples_per_step` counts these
+    /// trained samples, so a step takes more rays for the same backward work. Needs the
+    /// occupancy sampler and a positive `transmittance_threshold`. Default off.
+    pub compact_samples: bool,
     /// Stop compositing a ray once its transmittance falls below this (0 = never).
     pub transmittance_threshold: f32,
     /// Master seed: initialisation, ray batches and jitter all derive from it.
@@ -161,6 +168,7 @@ impl Default for TrainConfig {
             pixel_convention: PixelConvention::Center,
             pixel_jitter: false,
             perturb: true,
+            compact_samples: false,
             transmittance_threshold: 0.0,
             seed: 0,
             downscale: 1,
@@ -213,6 +221,17 @@ impl TrainConfig {
         if let Some(d) = self.loss.huber_delta() {
             if !(d.is_finite() && d > 0.0) {
                 return Err(format!("loss.delta must be a positive number (instant-ngp: 0.1), got {d}"));
+            }
+        }
+        if self.compact_samples {
+            if !matches!(self.sampler, SamplerConfig::Occupancy { .. }) {
+                return Err("compact_samples needs the occupancy sampler (sampler.kind = \"occupancy\")".into());
+            }
+            if self.transmittance_threshold.is_nan() || self.transmittance_threshold <= 0.0 {
+                return Err(format!(
+                    "compact_samples needs a positive transmittance_threshold (instant-ngp: 1e-4), got {}",
+                    self.transmittance_threshold
+                ));
             }
         }
         if self.gpu_profile.is_some_and(|w| w.steps == 0) {

@@ -13,6 +13,7 @@ use crate::trainer::{SceneBounds, StepStats};
 use crate::TrainError;
 use nerf_data::Dataset;
 use nerf_field::{GpuRadianceField, GpuSamples, RadianceField};
+use nerf_gpu::compact::GpuCompactor;
 use nerf_gpu::composite::{BatchParams, CompositeTargets, PackedBuffers};
 use nerf_gpu::occupancy::GpuOccupancyGrid;
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
@@ -141,6 +142,18 @@ struct Occupancy {
     chunks: Vec<(usize, usize, wgpu::Buffer)>,
 }
 
+/// Training on compacted samples (`compact_samples`): the marched samples of a step and their
+/// density (the inference pass), compacted into stage 0's buffers before the training forward.
+struct Compaction {
+    /// A marcher sized for the marched samples (the occupancy sampler's own marcher keeps the
+    /// stage's capacity for rendering).
+    marcher: GpuMarcher,
+    counters: wgpu::Buffer,
+    packed: PackedSamples,
+    sigma: wgpu::Buffer,
+    compactor: GpuCompactor,
+}
+
 enum Sampler {
     Occupancy(Box<Occupancy>),
     Stratified(GpuStratified),
@@ -167,6 +180,8 @@ pub(crate) struct GpuEngine {
     glue: TrainGlue,
     rays: GpuRays,
     stages: Vec<Stage>,
+    /// With `compact_samples`: the inference pass's buffers and the compaction kernels.
+    compaction: Option<Compaction>,
     /// Running mean of samples per ray (`[0]`), device side.
     spr: wgpu::Buffer,
     /// Samples evaluated so far: `[lo, hi]` u32, device side.
@@ -199,6 +214,14 @@ impl GpuEngine {
         group_names: &[Vec<String>],
     ) -> Result<Self, TrainError> {
         let (capacity_rays, capacity_samples) = capacities(config);
+        // With compaction the marched samples get their own buffers: with an adaptive batch (which
+        // targets the trained samples) twice the training batch's, as they are about trained /
+        // kept fraction; a fixed batch's capacity already holds every sample its rays can get.
+        // The field's capacity covers them for the density pass.
+        let capacity_marched = match (config.compact_samples, config.target_samples_per_step) {
+            (true, Some(_)) => 2 * capacity_samples,
+            _ => capacity_samples,
+        };
         if config.gpu_profile.is_some() && !ctx.features.timestamps {
             return Err(TrainError::Gpu(format!(
                 "gpu_profile needs timestamp queries, which the adapter {} lacks",
@@ -212,7 +235,8 @@ impl GpuEngine {
         };
         let mut fields = Vec::with_capacity(cpu_fields.len());
         for (i, f) in cpu_fields.iter().enumerate() {
-            match f.to_gpu(&ctx, stage_samples(i)) {
+            let capacity = if i == 0 { stage_samples(0).max(capacity_marched) } else { stage_samples(i) };
+            match f.to_gpu(&ctx, capacity) {
                 Some(g) => fields.push(g.map_err(|e| TrainError::Gpu(format!("field `{}` on the GPU: {e}", f.kind())))?),
                 None => {
                     return Err(TrainError::Gpu(format!(
@@ -240,6 +264,7 @@ impl GpuEngine {
         };
         let n_stages = config.sampler.n_fields();
         let stages: Vec<Stage> = (0..n_stages).map(|i| Stage::new(&ctx, capacity_rays, stage_samples(i))).collect();
+        let mut compaction = None;
         let sampler = match &config.sampler {
             SamplerConfig::Occupancy { grid, step_size, max_samples_per_ray } => {
                 let g = GpuOccupancyGrid::new(&ctx, grid, (bounds.aabb_min, bounds.aabb_max)).map_err(gerr)?;
@@ -254,6 +279,16 @@ impl GpuEngine {
                     max_samples_per_ray: *max_samples_per_ray as u32,
                 };
                 let marcher = GpuMarcher::new(&ctx, mc, capacity_rays, capacity_samples).map_err(gerr)?;
+                if config.compact_samples {
+                    compaction = Some(Compaction {
+                        marcher: GpuMarcher::new(&ctx, mc, capacity_rays, capacity_marched).map_err(gerr)?,
+                        counters: ctx.zeros("marched counters", 16),
+                        packed: PackedSamples::new(&ctx, capacity_rays, capacity_marched),
+                        sigma: ctx.zeros("marched sigma", 4 * capacity_marched),
+                        compactor: GpuCompactor::new(&ctx, capacity_rays, capacity_samples, config.transmittance_threshold)
+                            .map_err(gerr)?,
+                    });
+                }
                 Sampler::Occupancy(Box::new(Occupancy {
                     marcher,
                     step_size: *step_size,
@@ -314,6 +349,7 @@ impl GpuEngine {
             ema_backup,
             sampler,
             stages,
+            compaction,
             capacity_rays,
             capacity_samples,
             adaptive: config.target_samples_per_step.is_some(),
@@ -383,7 +419,10 @@ impl GpuEngine {
         ctx.profile_stage("rays");
         self.raygen.record(ctx, &mut enc, &s0.counters, images, &self.rays);
         let perturb = cfg.perturb;
-        self.record_first_stage(ctx, &mut enc, perturb.then(|| seed(3)));
+        match (&self.sampler, &self.compaction) {
+            (Sampler::Occupancy(o), Some(c)) => self.record_compacted(ctx, &mut enc, o, c, perturb.then(|| seed(3))),
+            _ => self.record_first_stage(ctx, &mut enc, perturb.then(|| seed(3))),
+        }
         self.record_stage_forward(ctx, &mut enc, 0, true);
         if let Sampler::Hierarchical(_, h) = &self.sampler {
             let (a, b) = self.stages.split_at(1);
@@ -505,6 +544,22 @@ impl GpuEngine {
                 self.capacity_rays,
             ),
         }
+    }
+
+    /// Training on compacted samples: marches every ray into the compaction's buffers, evaluates
+    /// the density there (inference), and keeps in stage 0 each ray's samples up to where its
+    /// transmittance falls below the threshold.
+    fn record_compacted(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, o: &Occupancy, c: &Compaction, jitter_seed: Option<u32>) {
+        let s0 = &self.stages[0];
+        ctx.profile_stage("sampling");
+        enc.copy_buffer_to_buffer(&s0.counters, 0, &c.counters, 0, Some(4));
+        c.marcher.set_seed(ctx, jitter_seed.unwrap_or(0), jitter_seed.is_some());
+        c.marcher.record(ctx, enc, &c.counters, o.grid.bitfield(), &self.rays.origins, &self.rays.dirs, &c.packed);
+        ctx.profile_stage("density inference");
+        let s = GpuSamples { counters: &c.counters, positions: &c.packed.positions, dirs: &c.packed.dirs, capacity: c.packed.capacity_samples };
+        self.fields[0].record_density(ctx, enc, s, &c.sigma);
+        ctx.profile_stage("compaction");
+        c.compactor.record(ctx, enc, &c.counters, &c.packed, &c.sigma, &s0.counters, &s0.packed);
     }
 
     /// The fine stage's samples from the coarse stage's weights (written to `fine.counters`).

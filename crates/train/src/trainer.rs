@@ -5,7 +5,7 @@ use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
 use nerf_optim::{Adam, AdamState, Ema, EmaState};
-use nerf_render::{composite_backward, composite_forward, photometric_loss_grad, CompositeOutputs};
+use nerf_render::{composite_backward, composite_forward, composited_counts, photometric_loss_grad, CompositeOutputs};
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, RaySamples};
 use std::sync::{Mutex, MutexGuard};
 
@@ -50,7 +50,8 @@ pub struct StepStats {
     pub loss: f32,
     /// Photometric MSE of the final stage (the image the user sees).
     pub mse: f32,
-    /// Field samples evaluated in this step (all stages).
+    /// Field samples trained on in this step (all stages; with `compact_samples` those left after
+    /// compaction, not the marched ones the density pass saw).
     pub n_samples: usize,
     /// Learning rate used.
     pub lr: f32,
@@ -79,6 +80,11 @@ pub struct Trainer {
     near: Vec<f32>,
     far: Vec<f32>,
     stages: Vec<Stage>,
+    /// With `compact_samples`: every marched sample and its density (the inference pass), and how
+    /// many leading samples of each ray compositing reaches.
+    marched: RaySamples,
+    marched_sigma: Vec<f32>,
+    keep: Vec<u32>,
     /// The occupancy grid of the `Occupancy` sampler.
     grid: Option<OccupancyGrid>,
     /// Running mean of samples per ray (sizes batches when `target_samples_per_step` is set).
@@ -152,6 +158,9 @@ impl Trainer {
             ema_version: 0,
             ema_fields,
             stages: (0..n).map(|_| Stage::default()).collect(),
+            marched: RaySamples::default(),
+            marched_sigma: Vec::new(),
+            keep: Vec::new(),
             config,
             bounds,
             fields,
@@ -287,16 +296,27 @@ impl Trainer {
                 grid.update(self.step, *step_size, &mut |p, s| field.density(p, s), &mut rng);
             }
         }
-        first_stage_samples(
-            cfg,
-            self.grid.as_ref(),
-            &b.origins,
-            &b.dirs,
-            &self.near,
-            &self.far,
-            perturb.then_some(&mut rng),
-            &mut self.stages[0].samples,
-        );
+        if cfg.compact_samples {
+            // instant-ngp's compacted batch: density of every marched sample (inference), then
+            // train on the samples compositing reaches before the transmittance threshold.
+            let m = &mut self.marched;
+            first_stage_samples(cfg, self.grid.as_ref(), &b.origins, &b.dirs, &self.near, &self.far, perturb.then_some(&mut rng), m);
+            self.marched_sigma.resize(m.len(), 0.0);
+            self.fields[0].density(&m.positions, &mut self.marched_sigma);
+            composited_counts(&m.ray_offsets, &self.marched_sigma, &m.dt, thr, &mut self.keep);
+            m.compact_into(&self.keep, usize::MAX, &mut self.stages[0].samples);
+        } else {
+            first_stage_samples(
+                cfg,
+                self.grid.as_ref(),
+                &b.origins,
+                &b.dirs,
+                &self.near,
+                &self.far,
+                perturb.then_some(&mut rng),
+                &mut self.stages[0].samples,
+            );
+        }
         forward_stage(self.fields[0].as_mut(), &mut self.stages[0], &b.background, thr);
         // Stage 1: importance samples from the coarse weights (detached, as in the paper).
         if let SamplerConfig::Hierarchical { n_fine, .. } = cfg.sampler {
