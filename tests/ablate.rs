@@ -203,6 +203,7 @@ fn the_example_ablations_parse_and_plan() {
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
     assert!(prof.iter().any(|p| p.config.adam.is_sparse("field/hash_grid")));
     assert!(prof.iter().any(|p| p.config.compact_samples && p.config.validate().is_ok()));
+    assert!(prof.iter().any(|p| p.config.field == "hash" && !p.config.compact_samples));
     let sparse = Ablation::load(&dir.join("sparse_adam.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert_eq!(sparse.iter().filter(|p| p.config.adam.is_sparse("field/hash_grid")).count(), 2);
     assert_eq!(sparse.len(), 4);

@@ -63,6 +63,8 @@ fn a_compacted_step_is_the_full_step_on_fewer_samples() {
             comp.n_samples,
             full.n_samples
         );
+        // The density pass saw exactly the samples the full step trained on.
+        assert_eq!((full.n_marched, comp.n_marched), (full.n_samples, full.n_samples), "{name}: marched samples");
         // The update: what the step moved, and how far apart the two results are.
         let moved: f64 = p_full.iter().zip(&before).map(|(a, b)| (a - b).abs() as f64).sum();
         let apart: f64 = p_full.iter().zip(&p_comp).map(|(a, b)| (a - b).abs() as f64).sum();

@@ -108,7 +108,7 @@ impl GpuRadianceField for GpuFreqNerf {
     }
 
     fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         ctx.profile_part("frequency encoding");
         self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
         ctx.profile_part("trunk MLP");
@@ -118,7 +118,7 @@ impl GpuRadianceField for GpuFreqNerf {
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         ctx.profile_part("frequency encoding");
         self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
         ctx.profile_part("trunk MLP");
@@ -131,7 +131,7 @@ impl GpuRadianceField for GpuFreqNerf {
     }
 
     fn record_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         ctx.profile_part("frequency encoding");
         self.pos_enc.record_forward(ctx, enc, s.counters, s.positions, &self.pos, cap);
         ctx.profile_part("trunk MLP");
@@ -144,7 +144,7 @@ impl GpuRadianceField for GpuFreqNerf {
     }
 
     fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         let g = &self.groups;
         ctx.profile_part("view MLP");
         self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[1].params, &self.color_tape, d_rgb, &g[1].grads, Some(&self.d_color_in), cap);

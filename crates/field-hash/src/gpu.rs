@@ -110,7 +110,7 @@ impl GpuRadianceField for GpuHashNerf {
     }
 
     fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
         ctx.profile_part("density MLP");
@@ -120,7 +120,7 @@ impl GpuRadianceField for GpuHashNerf {
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
         ctx.profile_part("density MLP");
@@ -133,7 +133,7 @@ impl GpuRadianceField for GpuHashNerf {
     }
 
     fn record_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
         ctx.profile_part("density MLP");
@@ -146,7 +146,7 @@ impl GpuRadianceField for GpuHashNerf {
     }
 
     fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {
-        let cap = self.capacity;
+        let cap = s.launch(self.capacity);
         let g = &self.groups;
         ctx.profile_part("colour MLP");
         self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[2].params, &self.color_tape, d_rgb, &g[2].grads, Some(&self.d_color_in), cap);

@@ -39,6 +39,21 @@ pub struct GpuSamples<'a> {
     pub capacity: usize,
 }
 
+impl GpuSamples<'_> {
+    /// The launch size of a field built for `field_capacity` samples on this batch: the batch's
+    /// capacity (a field's buffers may be larger — e.g. the training batch of a field whose
+    /// capacity also covers the marched samples of compaction). Panics when the batch claims more
+    /// samples than the field's buffers hold.
+    pub fn launch(&self, field_capacity: usize) -> usize {
+        assert!(
+            self.capacity <= field_capacity,
+            "a batch of {} samples for a field built for {field_capacity}",
+            self.capacity
+        );
+        self.capacity
+    }
+}
+
 /// A radiance field on a wgpu device (the twin of a CPU [`RadianceField`](crate::RadianceField)).
 /// Buffers are sized once, for the `capacity` given at creation.
 pub trait GpuRadianceField: Send {

@@ -51,6 +51,9 @@ struct Stage {
     sq_err: wgpu::Buffer,
     d_sigma: wgpu::Buffer,
     d_rgb: wgpu::Buffer,
+    /// `counters` as this step used them, copied before the next batch size overwrites
+    /// `[n_rays]` (read back with the loss).
+    logged: wgpu::Buffer,
 }
 
 impl Stage {
@@ -69,6 +72,7 @@ impl Stage {
             sq_err: f("sq err", rays),
             d_sigma: f("d sigma", samples),
             d_rgb: f("d rgb", 3 * samples),
+            logged: f("logged counters", 4),
         }
     }
 
@@ -191,7 +195,8 @@ pub(crate) struct GpuEngine {
     /// Rays of the first step (before the running mean exists).
     first_rays: usize,
     adaptive: bool,
-    last_n_samples: Cell<usize>,
+    /// Samples trained on and marched in the last step whose counters were read.
+    last_n_samples: Cell<(usize, usize)>,
     /// Rays per rendering chunk that last fitted the sample capacity.
     render_chunk: Cell<usize>,
     /// Frame-sized rendering buffers (rays in, image out), kept between frames.
@@ -353,7 +358,7 @@ impl GpuEngine {
             capacity_rays,
             capacity_samples,
             adaptive: config.target_samples_per_step.is_some(),
-            last_n_samples: Cell::new(0),
+            last_n_samples: Cell::new((0, 0)),
             render_chunk: Cell::new(capacity_rays),
             in_flight: Default::default(),
             frame: Default::default(),
@@ -448,6 +453,16 @@ impl GpuEngine {
         // Samples seen, batch size of the next step (from this step's first stage).
         let last = self.stages.len() - 1;
         ctx.profile_stage("batch bookkeeping");
+        let done = step + 1;
+        let read = done % cfg.log_every.max(1) == 0 || done == cfg.iters;
+        if read {
+            for st in &self.stages {
+                enc.copy_buffer_to_buffer(&st.counters, 0, &st.logged, 0, Some(8));
+            }
+            if let Some(c) = &self.compaction {
+                enc.copy_buffer_to_buffer(&c.counters, 0, &self.stages[0].logged, 8, Some(8));
+            }
+        }
         for st in &self.stages {
             self.glue.record_count(ctx, &mut enc, &st.counters, &self.seen);
         }
@@ -474,13 +489,15 @@ impl GpuEngine {
                 .poll(wgpu::PollType::Wait { submission_index: Some(oldest), timeout: None })
                 .map_err(|e| TrainError::Gpu(e.to_string()))?;
         }
-        let done = step + 1;
-        let read = done % cfg.log_every.max(1) == 0 || done == cfg.iters;
-        let (mut loss, mut mse, mut n_samples) = (f32::NAN, f32::NAN, self.last_n_samples.get());
+        let (mut loss, mut mse) = (f32::NAN, f32::NAN);
+        let (mut n_samples, mut n_marched) = self.last_n_samples.get();
         if read {
             let (mut l, mut total) = (0.0f64, 0usize);
             for (i, st) in self.stages.iter().enumerate() {
-                let c = ctx.read_u32(&st.counters, 2).map_err(gerr)?;
+                let c = ctx.read_u32(&st.logged, 4).map_err(gerr)?;
+                if i == 0 {
+                    n_marched = if self.compaction.is_some() { c[3] as usize } else { c[1] as usize };
+                }
                 let n_rays = (c[0] as usize).min(self.capacity_rays);
                 let sq = ctx.read_f32(&st.sq_err, n_rays).map_err(gerr)?;
                 let m = sq.iter().map(|&x| x as f64).sum::<f64>() / (3 * n_rays.max(1)) as f64;
@@ -492,9 +509,9 @@ impl GpuEngine {
             }
             loss = l as f32;
             n_samples = total;
-            self.last_n_samples.set(total);
+            self.last_n_samples.set((total, n_marched));
         }
-        Ok(StepStats { step, loss, mse, n_samples, lr })
+        Ok(StepStats { step, loss, mse, n_samples, n_marched, lr })
     }
 
     /// The profile of `TrainConfig::gpu_profile` once its window is complete (once), or with

@@ -164,7 +164,15 @@ pub fn run(
         if (done % config.log_every.max(1) == 0 || done == config.iters) && s.loss.is_finite() {
             let psnr = nerf_metrics::mse_to_psnr(s.mse as f64);
             pb.set_message(format!("loss {:.5} psnr {:.2} lr {:.2e}", s.loss, psnr, s.lr));
-            let line = json!({"step": done, "elapsed_secs": elapsed, "loss": s.loss, "train_psnr": psnr, "lr": s.lr});
+            let line = json!({
+                "step": done,
+                "elapsed_secs": elapsed,
+                "loss": s.loss,
+                "train_psnr": psnr,
+                "lr": s.lr,
+                "samples": s.n_samples,
+                "marched_samples": s.n_marched,
+            });
             writeln!(history, "{line}").map_err(io_err(&hist_path))?;
         }
         if config.checkpoint_every > 0 && done % config.checkpoint_every == 0 {

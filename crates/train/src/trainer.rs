@@ -53,6 +53,10 @@ pub struct StepStats {
     /// Field samples trained on in this step (all stages; with `compact_samples` those left after
     /// compaction, not the marched ones the density pass saw).
     pub n_samples: usize,
+    /// Samples the first stage's sampler produced before compaction (`compact_samples`; the
+    /// density pass saw them); without compaction the first stage's `n_samples`. On the GPU read
+    /// back with the loss, as `n_samples`.
+    pub n_marched: usize,
     /// Learning rate used.
     pub lr: f32,
 }
@@ -380,7 +384,8 @@ impl Trainer {
         }
         let spr = self.stages[0].samples.len() as f32 / n_rays.max(1) as f32;
         self.samples_per_ray = if self.samples_per_ray > 0.0 { 0.9 * self.samples_per_ray + 0.1 * spr } else { spr };
-        let stats = StepStats { step: self.step, loss, mse, n_samples, lr };
+        let n_marched = if cfg.compact_samples { self.marched.len() } else { self.stages[0].samples.len() };
+        let stats = StepStats { step: self.step, loss, mse, n_samples, n_marched, lr };
         self.samples_seen += n_samples as u64;
         self.step += 1;
         stats
