@@ -4,7 +4,7 @@
 # rendering in rounds that lavapipe cannot make, then the plain-vs-coop ablation
 # (examples/ablations/h100_coop.toml). Build here first (the binaries of a commit; .bin/COMMIT says which):
 #   cargo build --release -p nerf-cli && strip -o /tmp/nerf target/release/nerf && xz -c /tmp/nerf > .bin/nerf.xz
-#   cargo test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --no-run
+#   cargo test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --test compact --no-run
 #   cargo test --release -p nerf-field-hash --test gpu --no-run
 #   cargo test --release -p nerf-field-freq --test gpu --no-run     (strip it as freq_gpu-…)
 #   cargo bench -p nerf-gpu --bench kernels --no-run
