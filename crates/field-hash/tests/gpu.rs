@@ -68,3 +68,41 @@ fn the_cooperative_matrix_mlps_match_the_cpu_field_where_the_adapter_has_them() 
     // within 2 % of the largest value, gradients within 5 %.
     check_gpu_twin(&mut cpu, &ctx, aabb, 700, 3, 2e-2, 5e-2);
 }
+
+#[test]
+fn chunked_density_matches_the_cpu_field_beyond_the_fields_capacity() {
+    use nerf_field::{ChunkedDensity, RadianceField};
+    use rand::Rng as _;
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let mut cfg = HashNerfConfig::default();
+    cfg.grid.n_levels = 4;
+    cfg.grid.log2_hashmap_size = 12;
+    let aabb = ([-1.5f32; 3], [1.5f32; 3]);
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 9 };
+    let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+    let (chunk, total) = (300, 1000); // chunks of 300, 300, 300, 100
+    let gpu = cpu.to_gpu(&ctx, chunk).unwrap().unwrap();
+    let chunked = ChunkedDensity::new(&ctx, chunk, total);
+    let mut rng = nerf_core::rng(4, 0);
+    let pos: Vec<f32> = (0..3 * total).map(|_| rng.gen_range(-1.5f32..1.5)).collect();
+    let mut want = vec![0.0; total];
+    cpu.density(&pos, &mut want);
+    let positions = ctx.upload("positions", &pos);
+    for n in [0usize, 1, 299, 300, 301, 777, 1000] {
+        let sigma = ctx.upload("sigma", &vec![f32::NAN; total]);
+        let counters = ctx.upload("counters", &[0u32, n as u32]);
+        let mut enc = ctx.encoder("chunked density");
+        chunked.record(&ctx, &mut enc, gpu.as_ref(), &counters, &positions, &sigma);
+        ctx.queue.submit([enc.finish()]);
+        let got = ctx.read_f32(&sigma, total).unwrap();
+        let scale = want.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        for i in 0..n {
+            assert!((got[i] - want[i]).abs() <= 1e-4 * scale, "n = {n}: σ[{i}] gpu {} vs cpu {}", got[i], want[i]);
+        }
+        // Past the count, each chunk's σ is whatever the field left in its chunk buffer or NaN:
+        // the first chunk writes only its own count.
+        for (i, g) in got.iter().enumerate().take(chunk.min(total)).skip(n) {
+            assert!(g.is_nan(), "n = {n}: σ[{i}] written past the count");
+        }
+    }
+}

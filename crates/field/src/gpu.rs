@@ -127,6 +127,78 @@ pub trait GpuRadianceField: Send {
     }
 }
 
+/// A field's density query over a batch larger than the field's capacity (the marched samples of
+/// training on compacted samples): the batch is cut into chunks of the field's capacity; the
+/// first chunk is read and written in place, every later one goes through chunk buffers
+/// (positions copied in, σ copied out), each with its sample count computed on the device from
+/// the batch's `counters[1]`. Buffers and uniforms are made once.
+pub struct ChunkedDensity {
+    chunk: usize,
+    total: usize,
+    glue: nerf_gpu::TrainGlue,
+    /// (offset, size, chunk uniform) per chunk.
+    chunks: Vec<(usize, usize, wgpu::Buffer)>,
+    counters: wgpu::Buffer,
+    points: wgpu::Buffer,
+    dirs: wgpu::Buffer,
+    sigma: wgpu::Buffer,
+}
+
+impl ChunkedDensity {
+    /// For batches of up to `total` samples and a field of capacity `chunk`.
+    pub fn new(ctx: &GpuContext, chunk: usize, total: usize) -> Self {
+        let chunk = chunk.max(1);
+        let glue = nerf_gpu::TrainGlue::new(ctx, 1, nerf_gpu::composite::BatchParams::default());
+        let chunks = (0..total.max(1))
+            .step_by(chunk)
+            .map(|o| (o, chunk.min(total.max(1) - o), nerf_gpu::TrainGlue::chunk_uniform(ctx, o, chunk)))
+            .collect();
+        let spill = if total > chunk { chunk } else { 1 };
+        Self {
+            chunk,
+            total,
+            glue,
+            chunks,
+            counters: ctx.zeros("density chunk counters", 16),
+            points: ctx.zeros("density chunk points", 12 * spill),
+            dirs: ctx.zeros("density chunk dirs", 12 * spill),
+            sigma: ctx.zeros("density chunk sigma", 4 * spill),
+        }
+    }
+
+    /// Records σ of the first `counters[1]` (≤ `total`) samples of `positions` (`[total][3]`)
+    /// into `sigma` (`[total]`) with `field` (whose capacity is at least the chunk size).
+    pub fn record(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        field: &dyn GpuRadianceField,
+        counters: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        sigma: &wgpu::Buffer,
+    ) {
+        assert!(
+            positions.size() >= 12 * self.total as u64 && sigma.size() >= 4 * self.total as u64,
+            "ChunkedDensity: buffers hold fewer than {} samples",
+            self.total
+        );
+        for (offset, size, uniform) in &self.chunks {
+            self.glue.record_chunk_count(ctx, enc, uniform, counters, &self.counters);
+            let (o, n) = (*offset as u64, *size as u64);
+            if o == 0 {
+                // (A density query reads no directions.)
+                let s = GpuSamples { counters: &self.counters, positions, dirs: positions, capacity: self.chunk.min(self.total) };
+                field.record_density(ctx, enc, s, sigma);
+            } else {
+                enc.copy_buffer_to_buffer(positions, 12 * o, &self.points, 0, 12 * n);
+                let s = GpuSamples { counters: &self.counters, positions: &self.points, dirs: &self.dirs, capacity: *size };
+                field.record_density(ctx, enc, s, &self.sigma);
+                enc.copy_buffer_to_buffer(&self.sigma, 0, sigma, 4 * o, 4 * n);
+            }
+        }
+    }
+}
+
 /// Conformance check of a GPU twin against its CPU field (used by each field's tests): on `n`
 /// random samples in the box (random unit directions), density, query and training forward must
 /// match within `tol` (relative to the largest value) and the parameter gradients of a backward

@@ -14,7 +14,7 @@
 use serde::{Deserialize, Serialize};
 
 pub mod gpu;
-pub use gpu::{GpuParamGroup, GpuRadianceField, GpuSamples};
+pub use gpu::{ChunkedDensity, GpuParamGroup, GpuRadianceField, GpuSamples};
 pub use nerf_gpu::{GpuContext, GpuError};
 pub use nerf_optim::ParamGroupMut;
 

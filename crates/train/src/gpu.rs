@@ -12,7 +12,7 @@ use crate::profile::{GpuProfile, ProfileAccumulator};
 use crate::trainer::{SceneBounds, StepStats};
 use crate::TrainError;
 use nerf_data::Dataset;
-use nerf_field::{GpuRadianceField, GpuSamples, RadianceField};
+use nerf_field::{ChunkedDensity, GpuRadianceField, GpuSamples, RadianceField};
 use nerf_gpu::compact::GpuCompactor;
 use nerf_gpu::composite::{BatchParams, CompositeTargets, PackedBuffers};
 use nerf_gpu::occupancy::GpuOccupancyGrid;
@@ -156,6 +156,9 @@ struct Compaction {
     packed: PackedSamples,
     sigma: wgpu::Buffer,
     compactor: GpuCompactor,
+    /// The density pass, in chunks of the field's capacity (the stage's), so compaction does not
+    /// enlarge the field's buffers.
+    density: ChunkedDensity,
 }
 
 enum Sampler {
@@ -222,7 +225,7 @@ impl GpuEngine {
         // With compaction the marched samples get their own buffers: with an adaptive batch (which
         // targets the trained samples) twice the training batch's, as they are about trained /
         // kept fraction; a fixed batch's capacity already holds every sample its rays can get.
-        // The field's capacity covers them for the density pass.
+        // The density pass over them runs in chunks of the stage's capacity.
         let capacity_marched = match (config.compact_samples, config.target_samples_per_step) {
             (true, Some(_)) => 2 * capacity_samples,
             _ => capacity_samples,
@@ -240,8 +243,7 @@ impl GpuEngine {
         };
         let mut fields = Vec::with_capacity(cpu_fields.len());
         for (i, f) in cpu_fields.iter().enumerate() {
-            let capacity = if i == 0 { stage_samples(0).max(capacity_marched) } else { stage_samples(i) };
-            match f.to_gpu(&ctx, capacity) {
+            match f.to_gpu(&ctx, stage_samples(i)) {
                 Some(g) => fields.push(g.map_err(|e| TrainError::Gpu(format!("field `{}` on the GPU: {e}", f.kind())))?),
                 None => {
                     return Err(TrainError::Gpu(format!(
@@ -292,6 +294,7 @@ impl GpuEngine {
                         sigma: ctx.zeros("marched sigma", 4 * capacity_marched),
                         compactor: GpuCompactor::new(&ctx, capacity_rays, capacity_samples, config.transmittance_threshold)
                             .map_err(gerr)?,
+                        density: ChunkedDensity::new(&ctx, capacity_samples, capacity_marched),
                     });
                 }
                 Sampler::Occupancy(Box::new(Occupancy {
@@ -573,8 +576,7 @@ impl GpuEngine {
         c.marcher.set_seed(ctx, jitter_seed.unwrap_or(0), jitter_seed.is_some());
         c.marcher.record(ctx, enc, &c.counters, o.grid.bitfield(), &self.rays.origins, &self.rays.dirs, &c.packed);
         ctx.profile_stage("density inference");
-        let s = GpuSamples { counters: &c.counters, positions: &c.packed.positions, dirs: &c.packed.dirs, capacity: c.packed.capacity_samples };
-        self.fields[0].record_density(ctx, enc, s, &c.sigma);
+        c.density.record(ctx, enc, self.fields[0].as_ref(), &c.counters, &c.packed.positions, &c.sigma);
         ctx.profile_stage("compaction");
         c.compactor.record(ctx, enc, &c.counters, &c.packed, &c.sigma, &s0.counters, &s0.packed);
     }
