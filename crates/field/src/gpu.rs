@@ -41,9 +41,9 @@ pub struct GpuSamples<'a> {
 
 impl GpuSamples<'_> {
     /// The launch size of a field built for `field_capacity` samples on this batch: the batch's
-    /// capacity (a field's buffers may be larger — e.g. the training batch of a field whose
-    /// capacity also covers the marched samples of compaction). Panics when the batch claims more
-    /// samples than the field's buffers hold.
+    /// capacity, which may be smaller than the field's (e.g. the last chunk of a
+    /// [`ChunkedDensity`]). Panics when the batch claims more samples than the field's buffers
+    /// hold.
     pub fn launch(&self, field_capacity: usize) -> usize {
         assert!(
             self.capacity <= field_capacity,
