@@ -137,13 +137,8 @@ struct Occupancy {
     cells: wgpu::Buffer,
     sigma: wgpu::Buffer,
     counters: wgpu::Buffer,
-    /// The density query runs in chunks of the field's capacity: one chunk's points, σ, counters
-    /// and per-chunk uniforms.
-    chunk_points: wgpu::Buffer,
-    chunk_sigma: wgpu::Buffer,
-    chunk_counters: wgpu::Buffer,
-    chunk_dirs: wgpu::Buffer,
-    chunks: Vec<(usize, usize, wgpu::Buffer)>,
+    /// The density query at those points, in chunks of the field's capacity.
+    density: ChunkedDensity,
 }
 
 /// Training on compacted samples (`compact_samples`): the marched samples of a step and their
@@ -304,17 +299,7 @@ impl GpuEngine {
                     cells: ctx.zeros("occupancy cells", 4 * n_cells),
                     sigma: ctx.zeros("occupancy sigma", 4 * n_cells),
                     counters: ctx.zeros("occupancy counters", 16),
-                    chunk_points: ctx.zeros("chunk points", 12 * capacity_samples),
-                    chunk_sigma: ctx.zeros("chunk sigma", 4 * capacity_samples),
-                    chunk_counters: ctx.zeros("chunk counters", 16),
-                    chunk_dirs: ctx.zeros("chunk dirs", 12 * capacity_samples),
-                    chunks: (0..n_cells)
-                        .step_by(capacity_samples)
-                        .map(|o| {
-                            let size = capacity_samples.min(n_cells - o);
-                            (o, size, TrainGlue::chunk_uniform(&ctx, o, size))
-                        })
-                        .collect(),
+                    density: ChunkedDensity::new(&ctx, capacity_samples, n_cells),
                     grid: g,
                 }))
             }
@@ -406,19 +391,7 @@ impl GpuEngine {
                 ctx.profile_part("grid");
                 o.grid.record_choose(ctx, &mut enc, step, seed(1), &o.points, &o.cells, &o.counters);
                 // σ at the chosen points, a field-capacity chunk at a time.
-                for (offset, size, uniform) in &o.chunks {
-                    enc.copy_buffer_to_buffer(&o.points, 12 * *offset as u64, &o.chunk_points, 0, 12 * *size as u64);
-                    ctx.profile_part("chunk");
-                    self.glue.record_chunk_count(ctx, &mut enc, uniform, &o.counters, &o.chunk_counters);
-                    let s = GpuSamples {
-                        counters: &o.chunk_counters,
-                        positions: &o.chunk_points,
-                        dirs: &o.chunk_dirs,
-                        capacity: self.capacity_samples,
-                    };
-                    self.fields[0].record_density(ctx, &mut enc, s, &o.chunk_sigma);
-                    enc.copy_buffer_to_buffer(&o.chunk_sigma, 0, &o.sigma, 4 * *offset as u64, 4 * *size as u64);
-                }
+                o.density.record(ctx, &mut enc, self.fields[0].as_ref(), &o.counters, &o.points, &o.sigma);
                 ctx.profile_part("grid");
                 o.grid.record_apply(ctx, &mut enc, &o.cells, &o.sigma, o.step_size);
             }
