@@ -43,6 +43,15 @@ pub const MAX_RESOLUTION: u32 = 1 << 20;
 /// interleaving levels every 512 samples (the hashed tables of all levels together exceed the L3).
 const MIN_BLOCK: usize = 4096;
 
+/// Levels whose table is at least this large (bytes) are gathered with software prefetching: about
+/// half a core's L2, above which a random corner is usually a cache miss.
+const PREFETCH_MIN_BYTES: usize = 512 << 10;
+
+/// How many samples ahead the corners are prefetched: enough misses in flight to hide much of the
+/// latency, few enough that the lines are still in L1 when read (8 measured faster than 4 and 16 on
+/// the CI machine, docs/results.md).
+const PREFETCH_DISTANCE: usize = 8;
+
 /// Samples per block for a batch of `n` (≥ MIN_BLOCK): one block per rayon thread.
 fn block_size(n: usize) -> usize {
     n.div_ceil(rayon::current_num_threads().max(1))
@@ -208,6 +217,17 @@ struct Level {
     stride: usize,
     /// `T − 1` for hashed levels (T is a power of two).
     mask: u32,
+}
+
+impl Level {
+    /// Table slots of this level.
+    fn n_slots(&self) -> usize {
+        if self.dense {
+            self.stride * self.stride * self.stride
+        } else {
+            self.mask as usize + 1
+        }
+    }
 }
 
 /// A multiresolution hash grid encoding of 3-D points, generic over the parameter type so that the same
@@ -409,20 +429,36 @@ impl<T: Real> HashGrid<T> {
     /// Forward over one chunk of samples, level by level.
     fn forward_chunk<G: Table<T>, const F: usize>(&self, table: &G, input: &[T], out: &mut [T]) {
         let od = self.levels.len() * F;
+        let interpolate = |c: &Cell<T>, off: usize, o: &mut [T]| {
+            let v: [[T; F]; 8] = table.corners(off, &c.idx);
+            for j in 0..F {
+                let mut acc = T::zero();
+                for k in 0..8 {
+                    acc += c.w[k] * v[k][j];
+                }
+                o[j] = acc;
+            }
+        };
         for (li, lv) in self.levels.iter().enumerate() {
             let off = self.offsets[li];
             let res_t = T::c(lv.res as f64);
-            for (x, o) in input.chunks_exact(3).zip(out.chunks_exact_mut(od)) {
-                let c = cell::<T, F>(lv, res_t, x);
-                let v: [[T; F]; 8] = table.corners(off, &c.idx);
-                let o = &mut o[li * F..li * F + F];
-                for j in 0..F {
-                    let mut acc = T::zero();
-                    for k in 0..8 {
-                        acc += c.w[k] * v[k][j];
-                    }
-                    o[j] = acc;
+            let lo = li * F;
+            if table.level_bytes(lv, F) < PREFETCH_MIN_BYTES {
+                for (x, o) in input.chunks_exact(3).zip(out.chunks_exact_mut(od)) {
+                    interpolate(&cell::<T, F>(lv, res_t, x), off, &mut o[lo..lo + F]);
                 }
+                continue;
+            }
+            // A level larger than the caches: the gathers are cache misses. Prefetch the corners of
+            // the sample PREFETCH_DISTANCE ahead, so that several misses are in flight at once.
+            let n = input.len() / 3;
+            for (i, (x, o)) in input.chunks_exact(3).zip(out.chunks_exact_mut(od)).enumerate() {
+                let ahead = i + PREFETCH_DISTANCE;
+                if ahead < n {
+                    let c = cell::<T, F>(lv, res_t, &input[3 * ahead..3 * ahead + 3]);
+                    table.prefetch(off, &c.idx);
+                }
+                interpolate(&cell::<T, F>(lv, res_t, x), off, &mut o[lo..lo + F]);
             }
         }
     }
@@ -446,7 +482,18 @@ impl<T: Real> HashGrid<T> {
         let lv = &self.levels[li];
         let od = self.levels.len() * F;
         let res_t = T::c(lv.res as f64);
-        for (x, g) in input.chunks_exact(3).zip(d_out.chunks_exact(od)) {
+        let n = input.len() / 3;
+        // As in the forward pass: on a level larger than the caches, prefetch the corners of the
+        // sample PREFETCH_DISTANCE ahead (the pointer is only a hint; `d` is not read through it).
+        let prefetch = lv.n_slots() * F * std::mem::size_of::<T>() >= PREFETCH_MIN_BYTES;
+        for (i, (x, g)) in input.chunks_exact(3).zip(d_out.chunks_exact(od)).enumerate() {
+            let ahead = i + PREFETCH_DISTANCE;
+            if prefetch && ahead < n {
+                let c = cell::<T, F>(lv, res_t, &input[3 * ahead..3 * ahead + 3]);
+                for k in [0, 2, 4, 6] {
+                    prefetch_line(d.as_ptr().wrapping_add(c.idx[k]));
+                }
+            }
             let g: &[T; F] = g[li * F..li * F + F].try_into().unwrap();
             if g.iter().all(|v| *v == T::zero()) {
                 continue;
@@ -698,12 +745,38 @@ enum TableRef<'a, T> {
 /// Gathers the F features of 8 corners (`off` = the level's offset, `idx` = slot·F within the level).
 trait Table<T>: Sync {
     fn corners<const F: usize>(&self, off: usize, idx: &[usize; 8]) -> [[T; F]; 8];
+    /// Hints the CPU to load the corners' cache lines (no effect on the result). Corners 0, 2, 4, 6
+    /// only: corner `k + 1` (x + 1) is the neighbouring slot, mostly in the same 64-byte line.
+    fn prefetch(&self, off: usize, idx: &[usize; 8]);
+    /// Bytes of one level's table.
+    fn level_bytes(&self, lv: &Level, f: usize) -> usize;
+}
+
+/// Issues a prefetch of the cache line holding `p` into all cache levels (x86-64; a no-op elsewhere).
+#[inline(always)]
+fn prefetch_line<U>(p: *const U) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: a prefetch never faults and has no architectural effect, whatever the address.
+    unsafe {
+        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(p.cast());
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
 }
 
 /// The full-precision parameters.
 struct Full<'a, T>(&'a [T]);
 
 impl<T: Real> Table<T> for Full<'_, T> {
+    #[inline(always)]
+    fn prefetch(&self, off: usize, idx: &[usize; 8]) {
+        for k in [0, 2, 4, 6] {
+            prefetch_line(self.0.as_ptr().wrapping_add(off + idx[k]));
+        }
+    }
+    fn level_bytes(&self, lv: &Level, f: usize) -> usize {
+        lv.n_slots() * f * std::mem::size_of::<T>()
+    }
     #[inline(always)]
     fn corners<const F: usize>(&self, off: usize, idx: &[usize; 8]) -> [[T; F]; 8] {
         std::array::from_fn(|k| {
@@ -718,6 +791,15 @@ impl<T: Real> Table<T> for Full<'_, T> {
 struct Half<'a>(&'a [f16]);
 
 impl<T: Real> Table<T> for Half<'_> {
+    #[inline(always)]
+    fn prefetch(&self, off: usize, idx: &[usize; 8]) {
+        for k in [0, 2, 4, 6] {
+            prefetch_line(self.0.as_ptr().wrapping_add(off + idx[k]));
+        }
+    }
+    fn level_bytes(&self, lv: &Level, f: usize) -> usize {
+        lv.n_slots() * f * std::mem::size_of::<f16>()
+    }
     #[inline(always)]
     fn corners<const F: usize>(&self, off: usize, idx: &[usize; 8]) -> [[T; F]; 8] {
         // Gather all 8·F halves first (independent loads), then convert them in one vectorisable loop.
@@ -1266,6 +1348,34 @@ mod tests {
         g.backward(&x[..3 * h], &d[..32 * h], &mut dp, None);
         g.backward(&x[3 * h..], &d[32 * h..], &mut dp, None);
         assert!(dp == dp1);
+    }
+
+    #[test]
+    fn prefetched_levels_equal_single_samples() {
+        // The default 2^19 table: its hashed levels (4 MiB each) take the prefetching loops.
+        let g = HashGrid::<f32>::new(&HashGridConfig::default(), &mut nerf_core::rng(9, 0));
+        assert!((0..g.n_levels()).any(|l| g.level_size(l) * 2 * 4 >= PREFETCH_MIN_BYTES));
+        let mut r = nerf_core::rng(9, 1);
+        for n in [PREFETCH_DISTANCE - 1, PREFETCH_DISTANCE + 1, 300, 3 * MIN_BLOCK + 17] {
+            let x: Vec<f32> = (0..3 * n).map(|_| r.gen::<f32>()).collect();
+            let d: Vec<f32> = (0..32 * n).map(|_| r.gen::<f32>() - 0.5).collect();
+            let mut y = vec![f32::NAN; 32 * n];
+            g.forward(&x, &mut y);
+            let mut dp = vec![0.0f32; g.params().len()];
+            g.backward(&x, &d, &mut dp, None);
+            // One sample at a time (no look-ahead), in order: the same values, and the same per-slot
+            // sums in the same order, so bit for bit.
+            let mut ys = [0.0f32; 32];
+            let mut dps = vec![0.0f32; g.params().len()];
+            for k in 0..n.min(400) {
+                g.forward(&x[3 * k..3 * k + 3], &mut ys);
+                assert_eq!(&ys[..], &y[32 * k..32 * k + 32], "n {n}, sample {k}");
+                g.backward(&x[3 * k..3 * k + 3], &d[32 * k..32 * k + 32], &mut dps, None);
+            }
+            if n <= 400 {
+                assert!(dps == dp, "n {n}: d_params differ");
+            }
+        }
     }
 
     #[test]
