@@ -485,14 +485,12 @@ impl<T: Real> HashGrid<T> {
         let n = input.len() / 3;
         // As in the forward pass: on a level larger than the caches, prefetch the corners of the
         // sample PREFETCH_DISTANCE ahead (the pointer is only a hint; `d` is not read through it).
-        let prefetch = lv.n_slots() * F * std::mem::size_of::<T>() >= PREFETCH_MIN_BYTES;
+        let prefetch = Full(&d[..]).level_bytes(lv, F) >= PREFETCH_MIN_BYTES;
         for (i, (x, g)) in input.chunks_exact(3).zip(d_out.chunks_exact(od)).enumerate() {
             let ahead = i + PREFETCH_DISTANCE;
             if prefetch && ahead < n {
                 let c = cell::<T, F>(lv, res_t, &input[3 * ahead..3 * ahead + 3]);
-                for k in [0, 2, 4, 6] {
-                    prefetch_line(d.as_ptr().wrapping_add(c.idx[k]));
-                }
+                Full(&d[..]).prefetch(0, &c.idx);
             }
             let g: &[T; F] = g[li * F..li * F + F].try_into().unwrap();
             if g.iter().all(|v| *v == T::zero()) {
@@ -744,12 +742,23 @@ enum TableRef<'a, T> {
 
 /// Gathers the F features of 8 corners (`off` = the level's offset, `idx` = slot·F within the level).
 trait Table<T>: Sync {
+    /// The stored element (`T`, or `f16` for the mirror).
+    type Elem;
+    /// The whole table.
+    fn data(&self) -> &[Self::Elem];
     fn corners<const F: usize>(&self, off: usize, idx: &[usize; 8]) -> [[T; F]; 8];
     /// Hints the CPU to load the corners' cache lines (no effect on the result). Corners 0, 2, 4, 6
     /// only: corner `k + 1` (x + 1) is the neighbouring slot, mostly in the same 64-byte line.
-    fn prefetch(&self, off: usize, idx: &[usize; 8]);
+    #[inline(always)]
+    fn prefetch(&self, off: usize, idx: &[usize; 8]) {
+        for k in [0, 2, 4, 6] {
+            prefetch_line(self.data().as_ptr().wrapping_add(off + idx[k]));
+        }
+    }
     /// Bytes of one level's table.
-    fn level_bytes(&self, lv: &Level, f: usize) -> usize;
+    fn level_bytes(&self, lv: &Level, f: usize) -> usize {
+        lv.n_slots() * f * std::mem::size_of::<Self::Elem>()
+    }
 }
 
 /// Issues a prefetch of the cache line holding `p` into all cache levels (x86-64; a no-op elsewhere).
@@ -768,14 +777,9 @@ fn prefetch_line<U>(p: *const U) {
 struct Full<'a, T>(&'a [T]);
 
 impl<T: Real> Table<T> for Full<'_, T> {
-    #[inline(always)]
-    fn prefetch(&self, off: usize, idx: &[usize; 8]) {
-        for k in [0, 2, 4, 6] {
-            prefetch_line(self.0.as_ptr().wrapping_add(off + idx[k]));
-        }
-    }
-    fn level_bytes(&self, lv: &Level, f: usize) -> usize {
-        lv.n_slots() * f * std::mem::size_of::<T>()
+    type Elem = T;
+    fn data(&self) -> &[T] {
+        self.0
     }
     #[inline(always)]
     fn corners<const F: usize>(&self, off: usize, idx: &[usize; 8]) -> [[T; F]; 8] {
@@ -791,14 +795,9 @@ impl<T: Real> Table<T> for Full<'_, T> {
 struct Half<'a>(&'a [f16]);
 
 impl<T: Real> Table<T> for Half<'_> {
-    #[inline(always)]
-    fn prefetch(&self, off: usize, idx: &[usize; 8]) {
-        for k in [0, 2, 4, 6] {
-            prefetch_line(self.0.as_ptr().wrapping_add(off + idx[k]));
-        }
-    }
-    fn level_bytes(&self, lv: &Level, f: usize) -> usize {
-        lv.n_slots() * f * std::mem::size_of::<f16>()
+    type Elem = f16;
+    fn data(&self) -> &[f16] {
+        self.0
     }
     #[inline(always)]
     fn corners<const F: usize>(&self, off: usize, idx: &[usize; 8]) -> [[T; F]; 8] {
