@@ -219,17 +219,6 @@ struct Level {
     mask: u32,
 }
 
-impl Level {
-    /// Table slots of this level.
-    fn n_slots(&self) -> usize {
-        if self.dense {
-            self.stride * self.stride * self.stride
-        } else {
-            self.mask as usize + 1
-        }
-    }
-}
-
 /// A multiresolution hash grid encoding of 3-D points, generic over the parameter type so that the same
 /// code runs in `f32` (training, the default) and `f64` (gradient checks).
 ///
@@ -426,6 +415,12 @@ impl<T: Real> HashGrid<T> {
         n
     }
 
+    /// Whether level `li`'s lookups prefetch: its table (`elem_bytes` per value) is at least
+    /// [`PREFETCH_MIN_BYTES`].
+    fn is_prefetched(&self, li: usize, elem_bytes: usize) -> bool {
+        (self.offsets[li + 1] - self.offsets[li]) * elem_bytes >= PREFETCH_MIN_BYTES
+    }
+
     /// Forward over one chunk of samples, level by level.
     fn forward_chunk<G: Table<T>, const F: usize>(&self, table: &G, input: &[T], out: &mut [T]) {
         let od = self.levels.len() * F;
@@ -443,18 +438,13 @@ impl<T: Real> HashGrid<T> {
             let off = self.offsets[li];
             let res_t = T::c(lv.res as f64);
             let lo = li * F;
-            if table.level_bytes(lv, F) < PREFETCH_MIN_BYTES {
-                for (x, o) in input.chunks_exact(3).zip(out.chunks_exact_mut(od)) {
-                    interpolate(&cell::<T, F>(lv, res_t, x), off, &mut o[lo..lo + F]);
-                }
-                continue;
-            }
-            // A level larger than the caches: the gathers are cache misses. Prefetch the corners of
-            // the sample PREFETCH_DISTANCE ahead, so that several misses are in flight at once.
+            // On a level larger than the caches the gathers are cache misses: prefetch the corners
+            // of the sample PREFETCH_DISTANCE ahead, so that several misses are in flight at once.
+            let prefetch = self.is_prefetched(li, std::mem::size_of::<G::Elem>());
             let n = input.len() / 3;
             for (i, (x, o)) in input.chunks_exact(3).zip(out.chunks_exact_mut(od)).enumerate() {
                 let ahead = i + PREFETCH_DISTANCE;
-                if ahead < n {
+                if prefetch && ahead < n {
                     let c = cell::<T, F>(lv, res_t, &input[3 * ahead..3 * ahead + 3]);
                     table.prefetch(off, &c.idx);
                 }
@@ -485,7 +475,7 @@ impl<T: Real> HashGrid<T> {
         let n = input.len() / 3;
         // As in the forward pass: on a level larger than the caches, prefetch the corners of the
         // sample PREFETCH_DISTANCE ahead (the pointer is only a hint; `d` is not read through it).
-        let prefetch = Full(&d[..]).level_bytes(lv, F) >= PREFETCH_MIN_BYTES;
+        let prefetch = self.is_prefetched(li, std::mem::size_of::<T>());
         for (i, (x, g)) in input.chunks_exact(3).zip(d_out.chunks_exact(od)).enumerate() {
             let ahead = i + PREFETCH_DISTANCE;
             if prefetch && ahead < n {
@@ -754,10 +744,6 @@ trait Table<T>: Sync {
         for k in [0, 2, 4, 6] {
             prefetch_line(self.data().as_ptr().wrapping_add(off + idx[k]));
         }
-    }
-    /// Bytes of one level's table.
-    fn level_bytes(&self, lv: &Level, f: usize) -> usize {
-        lv.n_slots() * f * std::mem::size_of::<Self::Elem>()
     }
 }
 
