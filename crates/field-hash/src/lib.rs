@@ -94,6 +94,15 @@ struct Tape<T: Real> {
     d_enc: Vec<T>,
 }
 
+/// The position encodings of the last [`HashNerf::density_for_training_t`], reused by
+/// [`HashNerf::forward_rows_t`] while the parameters are unchanged.
+#[derive(Default)]
+struct DensityPass<T: Real> {
+    enc: Vec<T>,
+    n: usize,
+    valid: bool,
+}
+
 #[derive(Default)]
 struct Scratch<T: Real> {
     xn: Vec<T>,
@@ -116,6 +125,7 @@ pub struct HashNerf<T: Real> {
     density: Mlp<T>,
     color: Mlp<T>,
     tape: Tape<T>,
+    density_pass: DensityPass<T>,
 }
 
 /// Samples per inference chunk of [`RadianceField::query`] / [`RadianceField::density`].
@@ -177,6 +187,7 @@ impl<T: Real> HashNerf<T> {
             density,
             color,
             tape: Tape::default(),
+            density_pass: DensityPass::default(),
         })
     }
 
@@ -192,6 +203,7 @@ impl<T: Real> HashNerf<T> {
 
     /// The hash encoding, mutable (tests, custom initialisation).
     pub fn grid_mut(&mut self) -> &mut HashGrid<T> {
+        self.density_pass.valid = false;
         &mut self.grid
     }
 
@@ -202,6 +214,7 @@ impl<T: Real> HashNerf<T> {
 
     /// The density and colour MLPs, mutable.
     pub fn mlps_mut(&mut self) -> [&mut Mlp<T>; 2] {
+        self.density_pass.valid = false;
         [&mut self.density, &mut self.color]
     }
 
@@ -229,13 +242,74 @@ impl<T: Real> HashNerf<T> {
     /// Training forward; keeps the tape for [`Self::backward_t`].
     pub fn forward_t(&mut self, positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
         let n = positions.len() / 3;
-        assert_eq!(dirs.len(), 3 * n);
-        let (dd, enc_dim, sh_dim) = (self.dout_dim(), self.enc_dim(), self.sh_dim());
         let mut t = std::mem::take(&mut self.tape);
-        t.n = n;
+        self.normalise(positions, &mut t.xn);
+        t.enc.resize(n * self.enc_dim(), T::zero());
+        self.grid.forward(&t.xn, &mut t.enc);
+        self.forward_from_encoding(t, dirs, sigma, rgb);
+    }
+
+    /// The density pass of a compacted step ([`RadianceField::density_for_training`]): σ as
+    /// [`Self::density_t`], keeping every sample's position encoding for [`Self::forward_rows_t`].
+    pub fn density_for_training_t(&mut self, positions: &[T], sigma: &mut [T]) {
+        let n = positions.len() / 3;
+        let (dd, enc_dim) = (self.dout_dim(), self.enc_dim());
+        let mut pass = std::mem::take(&mut self.density_pass);
+        pass.enc.resize(n * enc_dim, T::zero());
+        let mut s = Scratch::<T>::default();
+        // The chunks of `infer`, so σ is that of `density_t` bit for bit.
+        for c0 in (0..n).step_by(QUERY_CHUNK) {
+            let c1 = (c0 + QUERY_CHUNK).min(n);
+            let m = c1 - c0;
+            self.normalise(&positions[3 * c0..3 * c1], &mut s.xn);
+            let enc = &mut pass.enc[c0 * enc_dim..c1 * enc_dim];
+            self.grid.forward(&s.xn, enc);
+            s.dout.resize(m * dd, T::zero());
+            self.density.infer(m, enc, &mut s.mlp, &mut s.dout);
+            for k in 0..m {
+                sigma[c0 + k] = s.dout[k * dd].min(T::c(MAX_LOG_DENSITY)).exp();
+            }
+        }
+        pass.n = n;
+        pass.valid = true;
+        self.density_pass = pass;
+    }
+
+    /// Training forward on samples `rows` of the last [`Self::density_for_training_t`]
+    /// (`positions`, `dirs`: theirs, gathered): the encodings are gathered from that pass instead
+    /// of recomputed. Falls back to [`Self::forward_t`] when the parameters changed since (an
+    /// optimiser step, `param_groups`, `grid_mut`, `mlps_mut`). Panics on a row outside that pass.
+    pub fn forward_rows_t(&mut self, rows: &[u32], positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
+        let n = positions.len() / 3;
+        assert_eq!(rows.len(), n, "forward_rows: {} rows for {n} positions", rows.len());
+        let pass = &self.density_pass;
+        if !pass.valid {
+            return self.forward_t(positions, dirs, sigma, rgb);
+        }
+        assert!(rows.iter().all(|&r| (r as usize) < pass.n), "forward_rows: a row beyond the density pass's {} samples", pass.n);
+        let enc_dim = self.enc_dim();
+        let mut t = std::mem::take(&mut self.tape);
         self.normalise(positions, &mut t.xn);
         t.enc.resize(n * enc_dim, T::zero());
-        self.grid.forward(&t.xn, &mut t.enc);
+        {
+            use rayon::prelude::*;
+            let src = &pass.enc;
+            t.enc.par_chunks_mut(enc_dim * 1024).zip(rows.par_chunks(1024)).for_each(|(dst, rows)| {
+                for (d, &r) in dst.chunks_exact_mut(enc_dim).zip(rows) {
+                    d.copy_from_slice(&src[r as usize * enc_dim..(r as usize + 1) * enc_dim]);
+                }
+            });
+        }
+        self.forward_from_encoding(t, dirs, sigma, rgb);
+    }
+
+    /// The rest of a training forward once `t.xn` and `t.enc` hold the samples' normalised
+    /// positions and encodings; stores the tape.
+    fn forward_from_encoding(&mut self, mut t: Tape<T>, dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
+        let n = t.xn.len() / 3;
+        assert_eq!(dirs.len(), 3 * n);
+        let (dd, sh_dim) = (self.dout_dim(), self.sh_dim());
+        t.n = n;
         let dout = self.density.forward(n, &t.enc, &mut t.density);
         t.sh.resize(n * sh_dim, T::zero());
         self.sh.forward(dirs, &mut t.sh);
@@ -343,6 +417,12 @@ impl RadianceField for HashNerf<f32> {
     fn forward(&mut self, positions: &[f32], dirs: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
         self.forward_t(positions, dirs, sigma, rgb)
     }
+    fn density_for_training(&mut self, positions: &[f32], sigma: &mut [f32]) {
+        self.density_for_training_t(positions, sigma)
+    }
+    fn forward_rows(&mut self, rows: &[u32], positions: &[f32], dirs: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
+        self.forward_rows_t(rows, positions, dirs, sigma, rgb)
+    }
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]) {
         self.backward_t(d_sigma, d_rgb)
     }
@@ -360,9 +440,11 @@ impl RadianceField for HashNerf<f32> {
         self.color.zero_grad();
     }
     fn after_optimizer_step(&mut self) {
+        self.density_pass.valid = false;
         self.grid.sync_storage();
     }
     fn param_groups(&mut self) -> Vec<ParamGroupMut<'_>> {
+        self.density_pass.valid = false; // the caller may change the parameters
         let wd = self.config.mlp_weight_decay;
         let (dp, dg) = self.density.params_and_grads_mut();
         let (cp, cg) = self.color.params_and_grads_mut();

@@ -162,6 +162,60 @@ fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
     assert_eq!(total, f.n_params());
 }
 
+/// σ, rgb and gradients of a field's training forward and backward on `pos`/`dirs`, run either
+/// directly or as rows of an earlier density pass over `all` (`rows` index `all`).
+fn train_pass(f: &mut dyn RadianceField, rows: Option<(&[u32], &[f32])>, pos: &[f32], dirs: &[f32], d: &[f32]) -> Vec<Vec<f32>> {
+    let n = pos.len() / 3;
+    let (mut s, mut c) = (vec![f32::NAN; n], vec![f32::NAN; 3 * n]);
+    f.zero_grad();
+    match rows {
+        Some((rows, all)) => {
+            let mut s_all = vec![f32::NAN; all.len() / 3];
+            f.density_for_training(all, &mut s_all);
+            let mut s_ref = vec![f32::NAN; all.len() / 3];
+            f.density(all, &mut s_ref);
+            assert_eq!(s_all, s_ref, "the density pass's σ is density()'s");
+            f.forward_rows(rows, pos, dirs, &mut s, &mut c);
+        }
+        None => f.forward(pos, dirs, &mut s, &mut c),
+    }
+    f.backward(&d[..n], &d[n..4 * n]);
+    let mut out = vec![s, c];
+    out.extend(f.param_groups().into_iter().map(|g| g.grads.to_vec()));
+    out
+}
+
+#[test]
+fn forward_on_rows_of_the_density_pass_equals_a_fresh_forward() {
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 4 };
+    let mut f = nerf_field_hash::build(&serde_json::json!({"grid": {"log2_hashmap_size": 14}}), &ctx).unwrap();
+    let mut rng = nerf_core::rng(5, 0);
+    let n_all = 40_000; // > one inference chunk
+    let all: Vec<f32> = (0..3 * n_all).map(|_| rng.gen_range(-1.6..1.6)).collect();
+    let rows: Vec<u32> = (0..n_all as u32).filter(|_| rng.gen_bool(0.6)).collect();
+    let gather = |v: &[f32]| rows.iter().flat_map(|&r| v[3 * r as usize..3 * r as usize + 3].to_vec()).collect::<Vec<_>>();
+    let pos = gather(&all);
+    let dirs: Vec<f32> = (0..pos.len()).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let d: Vec<f32> = (0..4 * rows.len()).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let fresh = train_pass(f.as_mut(), None, &pos, &dirs, &d);
+    let reused = train_pass(f.as_mut(), Some((&rows, &all)), &pos, &dirs, &d);
+    assert!(fresh[2].iter().any(|&g| g != 0.0), "the table gets gradients");
+    for (k, (a, b)) in fresh.iter().zip(&reused).enumerate() {
+        assert!(a == b, "output {k} differs between forward and forward_rows");
+    }
+    // Parameters changed after the density pass: its encodings are stale and must not be used.
+    let mut s_all = vec![0.0; n_all];
+    f.density_for_training(&all, &mut s_all);
+    for g in f.param_groups() {
+        g.params.iter_mut().for_each(|p| *p += 0.25);
+    }
+    let n = rows.len();
+    let (mut s1, mut c1, mut s2, mut c2) = (vec![0.0; n], vec![0.0; 3 * n], vec![1.0; n], vec![1.0; 3 * n]);
+    f.forward_rows(&rows, &pos, &dirs, &mut s1, &mut c1);
+    f.forward(&pos, &dirs, &mut s2, &mut c2);
+    assert!(s1 == s2 && c1 == c2, "forward_rows used encodings from before a parameter change");
+}
+
 #[test]
 fn default_dimensions_follow_instant_ngp() {
     let f = HashNerf::<f32>::new(HashNerfConfig::default(), &unit_ctx(0)).unwrap();

@@ -84,7 +84,28 @@ pub trait RadianceField: Send + Sync {
     /// needs. Buffers are reused between steps (no allocation once warmed up).
     fn forward(&mut self, positions: &[f32], dirs: &[f32], sigma: &mut [f32], rgb: &mut [f32]);
 
-    /// Backward pass of the last [`forward`](Self::forward): given dL/dσ (`n`) and dL/drgb (`3·n`),
+    /// The density pass of a compacted training step (instant-ngp's: density of every marched
+    /// sample, then training on those before each ray's early termination). Same σ as
+    /// [`density`](Self::density); a field may also keep what it computed on the way (e.g. the
+    /// position encodings) for the [`forward_rows`](Self::forward_rows) that follows. The default
+    /// keeps nothing.
+    fn density_for_training(&mut self, positions: &[f32], sigma: &mut [f32]) {
+        self.density(positions, sigma)
+    }
+
+    /// Training forward on the samples `rows` (indices into the last
+    /// [`density_for_training`](Self::density_for_training) call's samples) whose positions and
+    /// directions are `positions` and `dirs` (`3·rows.len()` each, gathered by the caller). Must
+    /// give what [`forward`](Self::forward) gives on the same samples; a field that kept work from
+    /// the density pass reuses it here, provided no parameter changed in between. The default is
+    /// [`forward`](Self::forward).
+    fn forward_rows(&mut self, rows: &[u32], positions: &[f32], dirs: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
+        let _ = rows;
+        self.forward(positions, dirs, sigma, rgb)
+    }
+
+    /// Backward pass of the last [`forward`](Self::forward) (or
+    /// [`forward_rows`](Self::forward_rows)): given dL/dσ (`n`) and dL/drgb (`3·n`),
     /// *accumulates* parameter gradients.
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]);
 

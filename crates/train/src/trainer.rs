@@ -89,6 +89,8 @@ pub struct Trainer {
     marched: RaySamples,
     marched_sigma: Vec<f32>,
     keep: Vec<u32>,
+    /// The row in `marched` of each compacted sample (the field reuses its density pass's work).
+    kept_rows: Vec<u32>,
     /// The occupancy grid of the `Occupancy` sampler.
     grid: Option<OccupancyGrid>,
     /// Running mean of samples per ray (sizes batches when `target_samples_per_step` is set).
@@ -165,6 +167,7 @@ impl Trainer {
             marched: RaySamples::default(),
             marched_sigma: Vec::new(),
             keep: Vec::new(),
+            kept_rows: Vec::new(),
             config,
             bounds,
             fields,
@@ -306,9 +309,13 @@ impl Trainer {
             let m = &mut self.marched;
             first_stage_samples(cfg, self.grid.as_ref(), &b.origins, &b.dirs, &self.near, &self.far, perturb.then_some(&mut rng), m);
             self.marched_sigma.resize(m.len(), 0.0);
-            self.fields[0].density(&m.positions, &mut self.marched_sigma);
+            self.fields[0].density_for_training(&m.positions, &mut self.marched_sigma);
             composited_counts(&m.ray_offsets, &self.marched_sigma, &m.dt, thr, &mut self.keep);
             m.compact_into(&self.keep, usize::MAX, &mut self.stages[0].samples);
+            compacted_rows(&m.ray_offsets, &self.stages[0].samples.ray_offsets, &mut self.kept_rows);
+            let rows = &self.kept_rows;
+            let st = &mut self.stages[0];
+            run_stage(st, &b.background, thr, |p, d, s, c| self.fields[0].forward_rows(rows, p, d, s, c));
         } else {
             first_stage_samples(
                 cfg,
@@ -320,8 +327,8 @@ impl Trainer {
                 perturb.then_some(&mut rng),
                 &mut self.stages[0].samples,
             );
+            forward_stage(self.fields[0].as_mut(), &mut self.stages[0], &b.background, thr);
         }
-        forward_stage(self.fields[0].as_mut(), &mut self.stages[0], &b.background, thr);
         // Stage 1: importance samples from the coarse weights (detached, as in the paper).
         if let SamplerConfig::Hierarchical { n_fine, .. } = cfg.sampler {
             let (s0, s1) = self.stages.split_at_mut(1);
@@ -696,6 +703,16 @@ fn first_stage_samples(
 
 fn forward_stage(field: &mut dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
     run_stage(st, background, thr, |p, d, s, c| field.forward(p, d, s, c));
+}
+
+/// The row in the marched samples (offsets `marched`) of each sample of their compaction
+/// (offsets `compacted`: a prefix of every ray, `RaySamples::compact_into`).
+fn compacted_rows(marched: &[u32], compacted: &[u32], rows: &mut Vec<u32>) {
+    rows.clear();
+    for (r, w) in compacted.windows(2).enumerate() {
+        let from = marched[r];
+        rows.extend(from..from + (w[1] - w[0]));
+    }
 }
 
 fn query_stage(field: &dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
