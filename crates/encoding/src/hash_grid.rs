@@ -423,6 +423,9 @@ impl<T: Real> HashGrid<T> {
 
     /// Forward over one chunk of samples, level by level.
     fn forward_chunk<G: Table<T>, const F: usize>(&self, table: &G, input: &[T], out: &mut [T]) {
+        if input.is_empty() {
+            return;
+        }
         let od = self.levels.len() * F;
         let interpolate = |c: &Cell<T>, off: usize, o: &mut [T]| {
             let v: [[T; F]; 8] = table.corners(off, &c.idx);
@@ -440,15 +443,29 @@ impl<T: Real> HashGrid<T> {
             let lo = li * F;
             // On a level larger than the caches the gathers are cache misses: prefetch the corners
             // of the sample PREFETCH_DISTANCE ahead, so that several misses are in flight at once.
-            let prefetch = self.is_prefetched(li, std::mem::size_of::<G::Elem>());
+            // The cells computed for the prefetch wait in a ring until their sample comes up.
             let n = input.len() / 3;
-            for (i, (x, o)) in input.chunks_exact(3).zip(out.chunks_exact_mut(od)).enumerate() {
-                let ahead = i + PREFETCH_DISTANCE;
-                if prefetch && ahead < n {
-                    let c = cell::<T, F>(lv, res_t, &input[3 * ahead..3 * ahead + 3]);
+            let outs = out.chunks_exact_mut(od);
+            if self.is_prefetched(li, std::mem::size_of::<G::Elem>()) {
+                let at = |i: usize| cell::<T, F>(lv, res_t, &input[3 * i..3 * i + 3]);
+                let mut ring: [Cell<T>; PREFETCH_DISTANCE] = std::array::from_fn(|i| at(i.min(n - 1)));
+                for c in ring.iter().take(n) {
                     table.prefetch(off, &c.idx);
                 }
-                interpolate(&cell::<T, F>(lv, res_t, x), off, &mut o[lo..lo + F]);
+                for (i, o) in outs.enumerate() {
+                    let slot = &mut ring[i % PREFETCH_DISTANCE];
+                    let c = *slot;
+                    let ahead = i + PREFETCH_DISTANCE;
+                    if ahead < n {
+                        *slot = at(ahead);
+                        table.prefetch(off, &slot.idx);
+                    }
+                    interpolate(&c, off, &mut o[lo..lo + F]);
+                }
+            } else {
+                for (x, o) in input.chunks_exact(3).zip(outs) {
+                    interpolate(&cell::<T, F>(lv, res_t, x), off, &mut o[lo..lo + F]);
+                }
             }
         }
     }
@@ -475,22 +492,39 @@ impl<T: Real> HashGrid<T> {
         let n = input.len() / 3;
         // As in the forward pass: on a level larger than the caches, prefetch the corners of the
         // sample PREFETCH_DISTANCE ahead (the pointer is only a hint; `d` is not read through it).
-        let prefetch = self.is_prefetched(li, std::mem::size_of::<T>());
-        for (i, (x, g)) in input.chunks_exact(3).zip(d_out.chunks_exact(od)).enumerate() {
-            let ahead = i + PREFETCH_DISTANCE;
-            if prefetch && ahead < n {
-                let c = cell::<T, F>(lv, res_t, &input[3 * ahead..3 * ahead + 3]);
-                Full(&d[..]).prefetch(0, &c.idx);
-            }
-            let g: &[T; F] = g[li * F..li * F + F].try_into().unwrap();
-            if g.iter().all(|v| *v == T::zero()) {
-                continue;
-            }
-            let c = cell::<T, F>(lv, res_t, x);
+        let scatter = |c: &Cell<T>, g: &[T; F], d: &mut [T]| {
             for k in 0..8 {
                 let dst: &mut [T; F] = (&mut d[c.idx[k]..c.idx[k] + F]).try_into().unwrap();
                 for j in 0..F {
                     dst[j] += c.w[k] * g[j];
+                }
+            }
+        };
+        let grads = d_out.chunks_exact(od).map(|g| -> &[T; F] { g[li * F..li * F + F].try_into().unwrap() });
+        let is_zero = |g: &[T; F]| g.iter().all(|v| *v == T::zero());
+        if n > 0 && self.is_prefetched(li, std::mem::size_of::<T>()) {
+            // As in the forward pass, the cells computed for the prefetch wait in a ring.
+            let at = |i: usize| cell::<T, F>(lv, res_t, &input[3 * i..3 * i + 3]);
+            let mut ring: [Cell<T>; PREFETCH_DISTANCE] = std::array::from_fn(|i| at(i.min(n - 1)));
+            for c in ring.iter().take(n) {
+                Full(&d[..]).prefetch(0, &c.idx);
+            }
+            for (i, g) in grads.enumerate() {
+                let slot = &mut ring[i % PREFETCH_DISTANCE];
+                let c = *slot;
+                let ahead = i + PREFETCH_DISTANCE;
+                if ahead < n {
+                    *slot = at(ahead);
+                    Full(&d[..]).prefetch(0, &slot.idx);
+                }
+                if !is_zero(g) {
+                    scatter(&c, g, d);
+                }
+            }
+        } else {
+            for (x, g) in input.chunks_exact(3).zip(grads) {
+                if !is_zero(g) {
+                    scatter(&cell::<T, F>(lv, res_t, x), g, d);
                 }
             }
         }
@@ -674,6 +708,7 @@ fn as_f32<T: Real>(params: &[T]) -> Option<&[f32]> {
 
 /// The cell of one sample at one level: the 8 corners' offsets within the level's table (slot·F) and
 /// their trilinear weights. Corner `k` has bit 0 = +x, bit 1 = +y, bit 2 = +z.
+#[derive(Clone, Copy)]
 struct Cell<T> {
     idx: [usize; 8],
     w: [T; 8],
