@@ -207,6 +207,20 @@ fn the_example_ablations_parse_and_plan() {
     let sparse = Ablation::load(&dir.join("sparse_adam.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert_eq!(sparse.iter().filter(|p| p.config.adam.is_sparse("field/hash_grid")).count(), 2);
     assert_eq!(sparse.len(), 4);
+    // The grid-schedule comparison: its three runs keep the hash preset and change only the
+    // refresh (the scene is ../shared's lego, absent without ../shared; planning does not read it).
+    let sched = Ablation::load(&dir.join("grid_schedule_lego400.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    let every: Vec<_> = sched
+        .iter()
+        .map(|p| match &p.config.sampler {
+            nerf::train::SamplerConfig::Occupancy { grid, step_size, .. } => {
+                assert!(p.config.compact_samples && *step_size == 0.005, "the preset is kept");
+                (grid.update_every, grid.warmup_steps)
+            }
+            s => panic!("grid_schedule_lego400: sampler {s:?}"),
+        })
+        .collect();
+    assert_eq!(every, [(16, 256), (32, 512), (64, 1024)]);
     let coop = Ablation::load(&dir.join("h100_coop.toml")).unwrap().plan(&nerf::registry()).unwrap();
     let paths: Vec<_> = coop.iter().map(|p| p.config.field_config["gpu_mlp"].as_str().unwrap().to_string()).collect();
     assert_eq!(paths, ["plain", "coop"]);
