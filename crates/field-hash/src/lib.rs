@@ -101,6 +101,8 @@ struct DensityPass<T: Real> {
     enc: Vec<T>,
     n: usize,
     valid: bool,
+    /// Kept between steps so the pass allocates nothing once warmed up.
+    scratch: Scratch<T>,
 }
 
 #[derive(Default)]
@@ -256,7 +258,7 @@ impl<T: Real> HashNerf<T> {
         let (dd, enc_dim) = (self.dout_dim(), self.enc_dim());
         let mut pass = std::mem::take(&mut self.density_pass);
         pass.enc.resize(n * enc_dim, T::zero());
-        let mut s = Scratch::<T>::default();
+        let s = &mut pass.scratch;
         // The chunks of `infer`, so σ is that of `density_t` bit for bit.
         for c0 in (0..n).step_by(QUERY_CHUNK) {
             let c1 = (c0 + QUERY_CHUNK).min(n);
