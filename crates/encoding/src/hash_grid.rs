@@ -503,7 +503,9 @@ impl<T: Real> HashGrid<T> {
         let grads = d_out.chunks_exact(od).map(|g| -> &[T; F] { g[li * F..li * F + F].try_into().unwrap() });
         let is_zero = |g: &[T; F]| g.iter().all(|v| *v == T::zero());
         if n > 0 && self.is_prefetched(li, std::mem::size_of::<T>()) {
-            // As in the forward pass, the cells computed for the prefetch wait in a ring.
+            // As in the forward pass, the cells computed for the prefetch wait in a ring. (One
+            // helper for both rings, with the loop bodies as closures, measured 6 % slower on the
+            // CPU hash step: 2 interleaved pairs of 500 steps, 2026-11-23; hence the two loops.)
             let at = |i: usize| cell::<T, F>(lv, res_t, &input[3 * i..3 * i + 3]);
             let mut ring: [Cell<T>; PREFETCH_DISTANCE] = std::array::from_fn(|i| at(i.min(n - 1)));
             for c in ring.iter().take(n) {
