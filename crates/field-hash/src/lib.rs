@@ -254,25 +254,11 @@ impl<T: Real> HashNerf<T> {
     /// The density pass of a compacted step ([`RadianceField::density_for_training`]): σ as
     /// [`Self::density_t`], keeping every sample's position encoding for [`Self::forward_rows_t`].
     pub fn density_for_training_t(&mut self, positions: &[T], sigma: &mut [T]) {
-        let n = positions.len() / 3;
-        let (dd, enc_dim) = (self.dout_dim(), self.enc_dim());
         let mut pass = std::mem::take(&mut self.density_pass);
-        pass.enc.resize(n * enc_dim, T::zero());
-        let s = &mut pass.scratch;
-        // The chunks of `infer`, so σ is that of `density_t` bit for bit.
-        for c0 in (0..n).step_by(QUERY_CHUNK) {
-            let c1 = (c0 + QUERY_CHUNK).min(n);
-            let m = c1 - c0;
-            self.normalise(&positions[3 * c0..3 * c1], &mut s.xn);
-            let enc = &mut pass.enc[c0 * enc_dim..c1 * enc_dim];
-            self.grid.forward(&s.xn, enc);
-            s.dout.resize(m * dd, T::zero());
-            self.density.infer(m, enc, &mut s.mlp, &mut s.dout);
-            for k in 0..m {
-                sigma[c0 + k] = s.dout[k * dd].min(T::c(MAX_LOG_DENSITY)).exp();
-            }
-        }
-        pass.n = n;
+        pass.n = positions.len() / 3;
+        pass.enc.resize(pass.n * self.enc_dim(), T::zero());
+        // `density_t`'s code and chunks, so σ is the same bit for bit.
+        self.infer(positions, None, sigma, None, Some(&mut pass.enc), &mut pass.scratch);
         pass.valid = true;
         self.density_pass = pass;
     }
@@ -357,18 +343,33 @@ impl<T: Real> HashNerf<T> {
     }
 
     /// Inference without a tape, chunked. `dirs = None` computes density only.
-    fn infer(&self, positions: &[T], dirs: Option<&[T]>, sigma: &mut [T], mut rgb: Option<&mut [T]>) {
+    /// `keep_enc` (`n·enc_dim`), when given, receives the position encodings (the density pass of
+    /// a compacted step keeps them); otherwise they live in `s` one chunk at a time.
+    fn infer(
+        &self,
+        positions: &[T],
+        dirs: Option<&[T]>,
+        sigma: &mut [T],
+        mut rgb: Option<&mut [T]>,
+        mut keep_enc: Option<&mut [T]>,
+        s: &mut Scratch<T>,
+    ) {
         let n = positions.len() / 3;
         let (dd, enc_dim, sh_dim) = (self.dout_dim(), self.enc_dim(), self.sh_dim());
-        let mut s = Scratch::<T>::default();
         for c0 in (0..n).step_by(QUERY_CHUNK) {
             let c1 = (c0 + QUERY_CHUNK).min(n);
             let m = c1 - c0;
             self.normalise(&positions[3 * c0..3 * c1], &mut s.xn);
-            s.enc.resize(m * enc_dim, T::zero());
-            self.grid.forward(&s.xn, &mut s.enc);
+            let enc = match keep_enc.as_deref_mut() {
+                Some(e) => &mut e[c0 * enc_dim..c1 * enc_dim],
+                None => {
+                    s.enc.resize(m * enc_dim, T::zero());
+                    &mut s.enc[..]
+                }
+            };
+            self.grid.forward(&s.xn, enc);
             s.dout.resize(m * dd, T::zero());
-            self.density.infer(m, &s.enc, &mut s.mlp, &mut s.dout);
+            self.density.infer(m, enc, &mut s.mlp, &mut s.dout);
             for k in 0..m {
                 sigma[c0 + k] = s.dout[k * dd].min(T::c(MAX_LOG_DENSITY)).exp();
             }
@@ -388,12 +389,12 @@ impl<T: Real> HashNerf<T> {
 
     /// Inference: σ and rgb.
     pub fn query_t(&self, positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
-        self.infer(positions, Some(dirs), sigma, Some(rgb))
+        self.infer(positions, Some(dirs), sigma, Some(rgb), None, &mut Scratch::default())
     }
 
     /// Density only.
     pub fn density_t(&self, positions: &[T], sigma: &mut [T]) {
-        self.infer(positions, None, sigma, None)
+        self.infer(positions, None, sigma, None, None, &mut Scratch::default())
     }
 }
 
