@@ -8,7 +8,11 @@
 //   compact_count  (counts[r] for r < n_rays = min(src_counters[0], cap_rays))
 //   GpuScan        (exclusive scan of the counts → raw offsets, raw[cap_rays] = total)
 //   compact_fill   (out offsets = min(raw, cap_out); out_counters = [n_rays, min(total, cap_out)];
-//                   positions, dirs, t, dt of the kept samples copied to their new places).
+//                   positions, dirs, t, dt of the kept samples copied to their new places,
+//                   and each kept sample's row in the source batch: out_rows).
+// A field that kept per-sample values of its density pass (the hash field's encodings) gathers
+// them for the kept samples with compact_gather (nerf_gpu::compact::GpuRowGather; CPU twin: a
+// gather by nerf_sampling::compacted_rows).
 //
 // The stop rule is composite.wgsl's, with the same arithmetic (T ← T·(1 + (exp(−σδ) − 1)),
 // checked before each sample), so a count ends exactly where the GPU's compositing stops.
@@ -38,6 +42,12 @@ struct CompactParams {
 @group(0) @binding(13) var<storage, read_write> out_dirs: array<f32>;
 @group(0) @binding(14) var<storage, read_write> out_t: array<f32>;
 @group(0) @binding(15) var<storage, read_write> out_dt: array<f32>;
+@group(0) @binding(16) var<storage, read_write> out_rows: array<u32>;      // [cap_out]
+// compact_gather: rows of ROW_FLOATS f32 from gather_src (indexed by out_rows) to gather_dst.
+@group(0) @binding(17) var<storage, read> gather_src: array<f32>;          // [S][ROW_FLOATS]
+@group(0) @binding(18) var<storage, read_write> gather_dst: array<f32>;    // [cap_out][ROW_FLOATS]
+
+override ROW_FLOATS: u32 = 1u;
 
 fn n_rays() -> u32 {
     return min(src_counters[0], P.cap_rays);
@@ -96,5 +106,19 @@ fn compact_fill(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         out_dirs[3u * b + 2u] = src_dirs[3u * a + 2u];
         out_t[b] = src_t[a];
         out_dt[b] = src_dt[a];
+        out_rows[b] = a;
     }
+}
+
+// Gathers the rows of the out_counters[1] kept samples: gather_dst[b][j] = gather_src[out_rows[b]][j].
+// One invocation per float (consecutive invocations copy consecutive floats of a row).
+@compute @workgroup_size(WG)
+fn compact_gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let b = i / ROW_FLOATS;
+    if (b >= out_counters[1]) {
+        return;
+    }
+    let j = i - b * ROW_FLOATS;
+    gather_dst[i] = gather_src[out_rows[b] * ROW_FLOATS + j];
 }

@@ -7,6 +7,7 @@
 use crate::{HashNerf, GROUP_NAMES};
 use nerf_field::gpu::wgpu;
 use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
+use nerf_gpu::compact::GpuRowGather;
 use nerf_gpu::encoding::{GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
 use nerf_gpu::mlp::{fused_nets, FusedMlpPath, FusedNet};
@@ -30,6 +31,17 @@ pub struct GpuHashNerf {
     d_color_in: wgpu::Buffer,
     d_dout: wgpu::Buffer,
     d_enc: wgpu::Buffer,
+    /// The position encodings of the density pass of a step on compacted samples
+    /// ([`GpuRadianceField::keep_density_pass`]), gathered for the kept samples by
+    /// `record_forward_rows` instead of being computed again.
+    kept: Option<KeptEncodings>,
+}
+
+/// The density pass's encodings: `rows` rows of the encoding's width.
+struct KeptEncodings {
+    enc: wgpu::Buffer,
+    rows: usize,
+    gather: GpuRowGather,
 }
 
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
@@ -86,6 +98,7 @@ impl GpuHashNerf {
             d_color_in: ctx.zeros_checked("d color in", f(glue.color_in_dim)).map_err(gpu_err)?,
             d_dout: ctx.zeros_checked("d density out", f(dd)).map_err(gpu_err)?,
             d_enc: ctx.zeros_checked("d enc", f(enc_dim)).map_err(gpu_err)?,
+            kept: None,
             glue,
             grid,
             sh,
@@ -93,6 +106,30 @@ impl GpuHashNerf {
             color,
             capacity,
         })
+    }
+
+    /// The density query with the encodings written to `encodings` (the field's own buffer, or
+    /// the kept encodings of a density pass).
+    fn record_density_via(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, encodings: &wgpu::Buffer) {
+        let cap = s.launch(self.capacity);
+        ctx.profile_part("hash encoding");
+        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, encodings, cap);
+        ctx.profile_part("density MLP");
+        self.density.record_inference(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, cap);
+        ctx.profile_part("glue");
+        self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma);
+    }
+
+    /// The training forward from the encodings already in the field's buffer.
+    fn record_forward_from_encodings(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
+        let cap = s.launch(self.capacity);
+        ctx.profile_part("density MLP");
+        self.density.record_forward(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, cap);
+        ctx.profile_part("SH + glue");
+        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
+        ctx.profile_part("colour MLP");
+        self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, &self.color_tape, cap);
     }
 }
 
@@ -110,13 +147,36 @@ impl GpuRadianceField for GpuHashNerf {
     }
 
     fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer) {
+        self.record_density_via(ctx, enc, s, sigma, &self.enc);
+    }
+
+    fn keep_density_pass(&mut self, ctx: &GpuContext, marched: usize) -> Result<(), FieldError> {
+        let width = self.grid.output_dim();
+        let rows = marched.max(1);
+        let enc = ctx.zeros_checked("kept hash enc", 4 * rows * width).map_err(gpu_err)?;
+        self.kept = Some(KeptEncodings { enc, rows, gather: GpuRowGather::new(ctx, width).map_err(gpu_err)? });
+        Ok(())
+    }
+
+    fn record_density_for_training(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, first_row: usize) {
+        let Some(k) = &self.kept else { return self.record_density(ctx, enc, s, sigma) };
         let cap = s.launch(self.capacity);
-        ctx.profile_part("hash encoding");
-        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
-        ctx.profile_part("density MLP");
-        self.density.record_inference(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, cap);
-        ctx.profile_part("glue");
-        self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma);
+        assert!(first_row + cap <= k.rows, "a density pass over rows {first_row}..{} keeps {} rows", first_row + cap, k.rows);
+        if first_row == 0 {
+            self.record_density_via(ctx, enc, s, sigma, &k.enc);
+        } else {
+            self.record_density(ctx, enc, s, sigma);
+            let row_bytes = 4 * self.grid.output_dim() as u64;
+            enc.copy_buffer_to_buffer(&self.enc, 0, &k.enc, row_bytes * first_row as u64, row_bytes * cap as u64);
+        }
+    }
+
+    fn record_forward_rows(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, rows: &wgpu::Buffer, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
+        let Some(k) = &self.kept else { return self.record_forward(ctx, enc, s, sigma, rgb) };
+        let cap = s.launch(self.capacity);
+        ctx.profile_part("hash encoding (gather)");
+        k.gather.record(ctx, enc, s.counters, rows, &k.enc, &self.enc, cap);
+        self.record_forward_from_encodings(ctx, enc, s, sigma, rgb);
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
@@ -136,13 +196,7 @@ impl GpuRadianceField for GpuHashNerf {
         let cap = s.launch(self.capacity);
         ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
-        ctx.profile_part("density MLP");
-        self.density.record_forward(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, cap);
-        ctx.profile_part("SH + glue");
-        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
-        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
-        ctx.profile_part("colour MLP");
-        self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, &self.color_tape, cap);
+        self.record_forward_from_encodings(ctx, enc, s, sigma, rgb);
     }
 
     fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {

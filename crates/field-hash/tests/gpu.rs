@@ -106,3 +106,114 @@ fn chunked_density_matches_the_cpu_field_beyond_the_fields_capacity() {
         }
     }
 }
+
+#[test]
+fn forward_on_rows_of_the_density_pass_equals_a_fresh_forward() {
+    use nerf_field::{ChunkedDensity, GpuRadianceField, GpuSamples, RadianceField};
+    use rand::Rng as _;
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let mut cfg = HashNerfConfig::default();
+    cfg.grid.n_levels = 5;
+    cfg.grid.log2_hashmap_size = 12;
+    cfg.grid.base_resolution = 4;
+    cfg.grid.max_resolution = 64;
+    let aabb = ([-1.5f32; 3], [1.5f32; 3]);
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 11 };
+    let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+    // A marched batch of up to 700 samples in chunks of 300 (the first in place, the others
+    // through the chunk buffers), n of them marched; m kept rows drawn from them (repeats too).
+    let (chunk, total, n, m) = (300, 700, 650, 280);
+    let mut rng = nerf_core::rng(5, 0);
+    let pos: Vec<f32> = (0..3 * total).map(|_| rng.gen_range(-1.5f32..1.5)).collect();
+    let dirs: Vec<f32> = (0..m)
+        .flat_map(|_| {
+            let d = [rng.gen_range(-1.0f32..1.0), rng.gen_range(-1.0f32..1.0), 0.5];
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            d.map(|x| x / l)
+        })
+        .collect();
+    let rows: Vec<u32> = (0..m).map(|b| if b % 7 == 3 { (n - 1) as u32 } else { rng.gen_range(0..n as u32) }).collect();
+    let kept_pos: Vec<f32> = rows.iter().flat_map(|&r| pos[3 * r as usize..3 * r as usize + 3].to_vec()).collect();
+    let pad = |v: &[f32], len: usize| {
+        let mut p = v.to_vec();
+        p.resize(len, f32::NAN);
+        p
+    };
+    let marched_counters = ctx.upload("marched counters", &[0u32, n as u32]);
+    let marched = ctx.upload("marched positions", &pos);
+    let marched_sigma = ctx.upload("marched sigma", &vec![f32::NAN; total]);
+    let counters = ctx.upload("counters", &[0u32, m as u32]);
+    let positions = ctx.upload("positions", &pad(&kept_pos, 3 * chunk));
+    let d = ctx.upload("dirs", &pad(&dirs, 3 * chunk));
+    let mut padded_rows = rows.clone();
+    padded_rows.resize(chunk, u32::MAX); // past the count: never read
+    let rows_buf = ctx.upload("rows", &padded_rows);
+    let s = GpuSamples { counters: &counters, positions: &positions, dirs: &d, capacity: chunk };
+    let d_sigma: Vec<f32> = (0..m).map(|_| rng.gen_range(-0.1f32..0.1)).collect();
+    let d_rgb: Vec<f32> = (0..3 * m).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+    let (dsb, drb) = (ctx.upload("d sigma", &pad(&d_sigma, chunk)), ctx.upload("d rgb", &pad(&d_rgb, 3 * chunk)));
+    let chunked = ChunkedDensity::new(&ctx, chunk, total);
+    let outputs = || (ctx.upload("sigma", &vec![f32::NAN; chunk]), ctx.upload("rgb", &vec![f32::NAN; 3 * chunk]));
+    let read = |g: &dyn GpuRadianceField, sigma: &nerf_field::gpu::wgpu::Buffer, rgb: &nerf_field::gpu::wgpu::Buffer| {
+        let grads: Vec<Vec<f32>> = g.groups().iter().map(|p| ctx.read_f32(&p.grads, p.len).unwrap()).collect();
+        (ctx.read_f32(sigma, m).unwrap(), ctx.read_f32(rgb, 3 * m).unwrap(), grads)
+    };
+
+    // The step on compacted samples: density pass (keeping the encodings), forward on the rows,
+    // backward.
+    let mut kept = cpu.to_gpu(&ctx, chunk).unwrap().unwrap();
+    kept.keep_density_pass(&ctx, total).unwrap();
+    let (sigma, rgb) = outputs();
+    let mut enc = ctx.encoder("compacted");
+    chunked.record_for_training(&ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
+    kept.record_forward_rows(&ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
+    kept.record_backward(&ctx, &mut enc, s, &dsb, &drb);
+    ctx.queue.submit([enc.finish()]);
+    let (ks, kc, kg) = read(kept.as_ref(), &sigma, &rgb);
+    // σ of the density pass is the field's density.
+    let mut want = vec![0.0; total];
+    cpu.density(&pos, &mut want);
+    let got = ctx.read_f32(&marched_sigma, n).unwrap();
+    let scale = want.iter().fold(0.0f32, |a, x| a.max(x.abs()));
+    for i in 0..n {
+        assert!((got[i] - want[i]).abs() <= 1e-4 * scale, "density pass σ[{i}]: gpu {} vs cpu {}", got[i], want[i]);
+    }
+
+    // The same samples through a fresh twin's plain forward.
+    let fresh = cpu.to_gpu(&ctx, chunk).unwrap().unwrap();
+    let (sigma, rgb) = outputs();
+    let mut enc = ctx.encoder("fresh");
+    fresh.record_forward(&ctx, &mut enc, s, &sigma, &rgb);
+    fresh.record_backward(&ctx, &mut enc, s, &dsb, &drb);
+    ctx.queue.submit([enc.finish()]);
+    let (fs, fc, fg) = read(fresh.as_ref(), &sigma, &rgb);
+    // Same encodings, same kernels after them: outputs bit for bit; gradients up to the order of
+    // the hash grid's atomic additions.
+    assert_eq!(ks.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), fs.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), "σ");
+    assert_eq!(kc.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), fc.iter().map(|x| x.to_bits()).collect::<Vec<_>>(), "rgb");
+    for (g, (a, b)) in kg.iter().zip(&fg).enumerate() {
+        let scale = b.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        assert!(scale > 0.0, "group {g}: no gradient");
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!((x - y).abs() <= 1e-5 * scale, "group {g}[{i}]: rows {x} vs fresh {y}");
+        }
+    }
+
+    // The forward on rows reads the pass's encodings, not fresh ones: with the table changed
+    // after the pass, it still gives the σ of the old table (a fresh forward does not).
+    let mut params = kept.export_params(&ctx).unwrap();
+    params[0].1.iter_mut().for_each(|x| *x += 0.5);
+    let (sigma, rgb) = outputs();
+    let mut enc = ctx.encoder("pass");
+    chunked.record_for_training(&ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
+    ctx.queue.submit([enc.finish()]);
+    kept.import_params(&ctx, &params).unwrap();
+    let mut enc = ctx.encoder("rows after a change");
+    kept.record_forward_rows(&ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
+    ctx.queue.submit([enc.finish()]);
+    assert_eq!(ctx.read_f32(&sigma, m).unwrap(), ks, "forward_rows computed the encodings again");
+    let mut enc = ctx.encoder("fresh after a change");
+    kept.record_forward(&ctx, &mut enc, s, &sigma, &rgb);
+    ctx.queue.submit([enc.finish()]);
+    assert_ne!(ctx.read_f32(&sigma, m).unwrap(), ks, "the change of the table must show in a fresh forward");
+}

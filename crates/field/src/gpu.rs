@@ -89,6 +89,50 @@ pub trait GpuRadianceField: Send {
         rgb: &wgpu::Buffer,
     );
 
+    /// Prepares the field to keep what its density pass over up to `marched` samples computes
+    /// ([`record_density_for_training`](Self::record_density_for_training)) for
+    /// [`record_forward_rows`](Self::record_forward_rows) (training on compacted samples). The
+    /// default keeps nothing; the hash field keeps its position encodings (`marched` rows of
+    /// them: buffers are sized here, once).
+    fn keep_density_pass(&mut self, ctx: &GpuContext, marched: usize) -> Result<(), crate::FieldError> {
+        let _ = (ctx, marched);
+        Ok(())
+    }
+
+    /// Records the density pass of a step on compacted samples over rows `first_row..` of the
+    /// marched batch (one chunk of a [`ChunkedDensity`]): σ as
+    /// [`record_density`](Self::record_density), and whatever the field keeps for
+    /// [`record_forward_rows`](Self::record_forward_rows). Default: `record_density`.
+    fn record_density_for_training(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        s: GpuSamples<'_>,
+        sigma: &wgpu::Buffer,
+        first_row: usize,
+    ) {
+        let _ = first_row;
+        self.record_density(ctx, enc, s, sigma);
+    }
+
+    /// Records the training forward of `s`, the compaction of the samples of the density pass
+    /// recorded last (by `record_density_for_training`, with the same parameters): sample `b` of
+    /// `s` is row `rows[b]` of that pass (u32, as `GpuCompactor`'s `out_rows`). Same results as
+    /// [`record_forward`](Self::record_forward) (the default), which a field may beat by
+    /// reusing what the pass computed.
+    fn record_forward_rows(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        s: GpuSamples<'_>,
+        rows: &wgpu::Buffer,
+        sigma: &wgpu::Buffer,
+        rgb: &wgpu::Buffer,
+    ) {
+        let _ = rows;
+        self.record_forward(ctx, enc, s, sigma, rgb);
+    }
+
     /// Records the backward of the last recorded forward: dL/dσ (`n`) and dL/drgb (`3·n`) in,
     /// parameter gradients *accumulated* into the groups' `grads`.
     fn record_backward(
@@ -177,6 +221,36 @@ impl ChunkedDensity {
         positions: &wgpu::Buffer,
         sigma: &wgpu::Buffer,
     ) {
+        self.record_chunks(ctx, enc, counters, positions, sigma, &mut |enc, s, sigma, _| field.record_density(ctx, enc, s, sigma));
+    }
+
+    /// As [`record`](Self::record), the density pass of a step on compacted samples: each chunk
+    /// through [`GpuRadianceField::record_density_for_training`] with its first row, so the
+    /// field can keep what it computes for [`GpuRadianceField::record_forward_rows`].
+    pub fn record_for_training(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        field: &dyn GpuRadianceField,
+        counters: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        sigma: &wgpu::Buffer,
+    ) {
+        self.record_chunks(ctx, enc, counters, positions, sigma, &mut |enc, s, sigma, first_row| {
+            field.record_density_for_training(ctx, enc, s, sigma, first_row)
+        });
+    }
+
+    /// The chunks: `query(enc, samples, σ out, first row)` per chunk.
+    fn record_chunks(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        sigma: &wgpu::Buffer,
+        query: &mut dyn FnMut(&mut wgpu::CommandEncoder, GpuSamples<'_>, &wgpu::Buffer, usize),
+    ) {
         assert!(
             positions.size() >= 12 * self.total as u64 && sigma.size() >= 4 * self.total as u64,
             "ChunkedDensity: buffers hold fewer than {} samples",
@@ -188,11 +262,11 @@ impl ChunkedDensity {
             if o == 0 {
                 // (A density query reads no directions.)
                 let s = GpuSamples { counters: &self.counters, positions, dirs: positions, capacity: self.chunk.min(self.total) };
-                field.record_density(ctx, enc, s, sigma);
+                query(enc, s, sigma, 0);
             } else {
                 enc.copy_buffer_to_buffer(positions, 12 * o, &self.points, 0, 12 * n);
                 let s = GpuSamples { counters: &self.counters, positions: &self.points, dirs: &self.dirs, capacity: *size };
-                field.record_density(ctx, enc, s, &self.sigma);
+                query(enc, s, &self.sigma, *offset);
                 enc.copy_buffer_to_buffer(&self.sigma, 0, sigma, 4 * o, 4 * n);
             }
         }

@@ -11,7 +11,7 @@ use crate::{shaders, GpuContext, GpuError};
 
 const WG: u32 = 64;
 /// Storage buffers `compact_fill` binds.
-const COMPACT_STORAGE_BINDINGS: u32 = 13;
+const COMPACT_STORAGE_BINDINGS: u32 = 14;
 
 /// Compacts packed samples (count, scan, fill) of up to `capacity_rays` rays into at most
 /// `capacity_out` samples. Buffers are sized once.
@@ -61,8 +61,9 @@ impl GpuCompactor {
 
     /// Records the compaction of `src` (`min(src_counters[0], capacity_rays)` rays, σ of its
     /// samples in `sigma`) into `out`, whose counters become `[n_rays, kept samples]`
-    /// (`out_counters` must not be `src_counters`). `out` must hold `capacity_out` samples and
-    /// `capacity_rays + 1` offsets.
+    /// (`out_counters` must not be `src_counters`), and `out_rows` (u32 per kept sample) its row
+    /// in `src` (`nerf_sampling::compacted_rows`). `out` and `out_rows` must hold `capacity_out`
+    /// samples, `out` `capacity_rays + 1` offsets.
     #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
@@ -73,11 +74,13 @@ impl GpuCompactor {
         sigma: &wgpu::Buffer,
         out_counters: &wgpu::Buffer,
         out: &GpuSamples,
+        out_rows: &wgpu::Buffer,
     ) {
         assert!(
             out.capacity_samples >= self.capacity_out && out.capacity_rays >= self.capacity_rays && src.capacity_rays >= self.capacity_rays,
             "buffers smaller than the compactor's capacities"
         );
+        assert!(out_rows.size() >= 4 * self.capacity_out as u64, "GpuCompactor: out_rows hold fewer than {} rows", self.capacity_out);
         self.count.record(
             ctx,
             enc,
@@ -103,6 +106,7 @@ impl GpuCompactor {
                 (13, &out.dirs),
                 (14, &out.t),
                 (15, &out.dt),
+                (16, out_rows),
             ],
             groups_1d(self.capacity_rays + 1, WG),
         );
@@ -111,5 +115,45 @@ impl GpuCompactor {
     /// Samples a compaction keeps at most.
     pub fn capacity_out(&self) -> usize {
         self.capacity_out
+    }
+}
+
+/// Gathers per-sample rows of a batch for the samples a [`GpuCompactor`] kept
+/// (`compact_gather`): `dst[b] = src[rows[b]]`, rows of `row_floats` f32, for the
+/// `counters[1]` kept samples. Used by a field that keeps values of its density pass (the hash
+/// field's encodings) so that the training forward does not compute them again.
+pub struct GpuRowGather {
+    kernel: Kernel,
+    row_floats: usize,
+}
+
+impl GpuRowGather {
+    /// The gather of rows of `row_floats` (≥ 1) f32.
+    pub fn new(ctx: &GpuContext, row_floats: usize) -> Result<Self, GpuError> {
+        if row_floats == 0 || row_floats > 1 << 16 {
+            return Err(GpuError::Unsupported(format!("a row gather needs 1..=65536 floats per row, got {row_floats}")));
+        }
+        Ok(Self { kernel: Kernel::new(ctx, &shaders::with_common(shaders::COMPACT), "compact_gather", &[("ROW_FLOATS", row_floats as f64)]), row_floats })
+    }
+
+    /// Records `dst[b][..] = src[rows[b]][..]` for `b < counters[1]` (counters as a compaction's
+    /// `out_counters`); `rows` and `dst` hold `capacity` rows, every `rows[b]` indexes a row of
+    /// `src`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        rows: &wgpu::Buffer,
+        src: &wgpu::Buffer,
+        dst: &wgpu::Buffer,
+        capacity: usize,
+    ) {
+        let floats = capacity * self.row_floats;
+        assert!(floats < u32::MAX as usize, "GpuRowGather: {capacity} rows of {} floats overflow u32 indices", self.row_floats);
+        assert!(rows.size() >= 4 * capacity as u64, "GpuRowGather: rows hold fewer than {capacity} entries");
+        assert!(dst.size() >= 4 * floats as u64, "GpuRowGather: dst holds fewer than {capacity} rows");
+        self.kernel.record(ctx, enc, &[(10, counters), (16, rows), (17, src), (18, dst)], groups_1d(floats, WG));
     }
 }

@@ -4,7 +4,8 @@
 //! poisoned before each run. Runs on any adapter (lavapipe in CI); prints a notice and returns
 //! where none exists.
 
-use nerf_gpu::compact::GpuCompactor;
+use nerf_gpu::compact::{GpuCompactor, GpuRowGather};
+use nerf_gpu::wgpu;
 use nerf_gpu::sampling::GpuSamples;
 use nerf_gpu::GpuContext;
 use nerf_render::composited_counts;
@@ -75,9 +76,10 @@ fn run(ctx: &GpuContext, c: &Case) {
         ctx.write(b, 0, &vec![f32::NAN; len]);
     }
     let out_counters = ctx.upload("out counters", &[u32::MAX, u32::MAX]);
+    let out_rows = ctx.upload("out rows", &vec![u32::MAX; cap_out]);
     let k = GpuCompactor::new(ctx, c.cap_rays, cap_out, c.thr).unwrap();
     let mut enc = ctx.encoder("compact");
-    k.record(ctx, &mut enc, &src_counters, &src, &sig, &out_counters, &out);
+    k.record(ctx, &mut enc, &src_counters, &src, &sig, &out_counters, &out, &out_rows);
     ctx.queue.submit([enc.finish()]);
 
     // Counts: the GPU's offsets give them (before clipping: compare on unclipped cases below).
@@ -127,9 +129,39 @@ fn run(ctx: &GpuContext, c: &Case) {
     same("dirs", ctx.read_f32(&out.dirs, 3 * m).unwrap(), &want.dirs);
     same("t", ctx.read_f32(&out.t, m).unwrap(), &want.t);
     same("dt", ctx.read_f32(&out.dt, m).unwrap(), &want.dt);
+    let mut want_rows = Vec::new();
+    nerf_sampling::compacted_rows(&s.ray_offsets, &want.ray_offsets, &mut want_rows);
+    assert_eq!(ctx.read_u32(&out_rows, m).unwrap(), want_rows, "rows");
+    gather_rows(ctx, &out_counters, &out_rows, &want_rows, n, c.seed);
     if c.thr > 0.0 && c.n_rays > 100 {
         assert!(kept < n * 9 / 10, "the case must drop samples ({kept} of {n} kept)");
     }
+}
+
+/// `GpuRowGather` after a compaction against the CPU gather by the same rows, for a few row
+/// widths (a field's encoding is 32 floats), destination poisoned.
+fn gather_rows(ctx: &GpuContext, counters: &wgpu::Buffer, rows: &wgpu::Buffer, want_rows: &[u32], n_src: usize, seed: u64) {
+    let m = want_rows.len();
+    let cap = m + 5;
+    let mut g = nerf_core::rng(seed, 9);
+    for width in [1usize, 3, 32] {
+        let src: Vec<f32> = (0..(n_src.max(1)) * width).map(|_| g.gen_range(-1.0f32..1.0)).collect();
+        let src_buf = ctx.upload("gather src", &src);
+        let dst = ctx.upload("gather dst", &vec![f32::NAN; cap * width]);
+        let gather = GpuRowGather::new(ctx, width).unwrap();
+        // Rows buffers hold the compactor's capacity (≥ m); launch for m + 5 rows: the extra ones stay.
+        let rows_cap = (rows.size() / 4) as usize;
+        let mut enc = ctx.encoder("gather");
+        gather.record(ctx, &mut enc, counters, rows, &src_buf, &dst, cap.min(rows_cap));
+        ctx.queue.submit([enc.finish()]);
+        let got = ctx.read_f32(&dst, cap * width).unwrap();
+        for (b, &r) in want_rows.iter().enumerate() {
+            let want = &src[r as usize * width..(r as usize + 1) * width];
+            assert_eq!(&got[b * width..(b + 1) * width], want, "width {width}: row {b} ← {r}");
+        }
+        assert!(got[m * width..].iter().all(|x| x.is_nan()), "width {width}: written past the kept samples");
+    }
+    assert!(GpuRowGather::new(ctx, 0).is_err());
 }
 
 #[test]

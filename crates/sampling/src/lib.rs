@@ -22,6 +22,6 @@ mod pdf;
 mod stratified;
 
 pub use occupancy::{march, OccupancyGrid, RayMarch, OccupancyGridConfig, DENSITY_CHUNK, MAX_RESOLUTION};
-pub use packed::RaySamples;
+pub use packed::{compacted_rows, RaySamples};
 pub use pdf::{hierarchical, sample_pdf};
 pub use stratified::stratified;

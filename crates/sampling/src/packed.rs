@@ -269,3 +269,15 @@ pub(crate) fn check_rays(origins: &[f32], dirs: &[f32], near: &[f32], far: &[f32
     n_rays
 }
 
+
+/// The row in the marched samples (offsets `marched`) of each sample of their compaction
+/// (offsets `compacted`: a prefix of every ray, [`RaySamples::compact_into`]), into `rows`
+/// (cleared first). A field that kept per-sample values of its pass over the marched samples
+/// gathers them for the compacted ones with it (the GPU's twin: `compact_fill`'s `out_rows`).
+pub fn compacted_rows(marched: &[u32], compacted: &[u32], rows: &mut Vec<u32>) {
+    rows.clear();
+    for (r, w) in compacted.windows(2).enumerate() {
+        let from = marched[r];
+        rows.extend(from..from + (w[1] - w[0]));
+    }
+}

@@ -156,6 +156,14 @@ fn compaction_clips_at_the_capacity() {
             assert_eq!(c.t[j], s.t[k]);
         }
     }
+    // The rows of the kept samples in the source batch (what a field gathers its kept values by).
+    let mut rows = vec![7u32; 3];
+    nerf_sampling::compacted_rows(&s.ray_offsets, &c.ray_offsets, &mut rows);
+    assert_eq!(rows.len(), cap);
+    for (j, &k) in rows.iter().enumerate() {
+        assert_eq!(c.positions[3 * j..3 * j + 3], s.positions[3 * k as usize..3 * k as usize + 3], "row {j} ← {k}");
+        assert_eq!((c.t[j], c.ray_indices[j]), (s.t[k as usize], s.ray_indices[k as usize]), "row {j} ← {k}");
+    }
     // Everything kept when it fits; a second compaction reuses the output's allocations.
     s.compact_into(&keep, usize::MAX, &mut c);
     assert_eq!(c.len(), total);

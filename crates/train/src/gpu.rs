@@ -154,6 +154,8 @@ struct Compaction {
     /// The density pass, in chunks of the field's capacity (the stage's), so compaction does not
     /// enlarge the field's buffers.
     density: ChunkedDensity,
+    /// Row in the marched samples of each kept one (`record_forward_rows`).
+    rows: wgpu::Buffer,
 }
 
 enum Sampler {
@@ -282,6 +284,10 @@ impl GpuEngine {
                 };
                 let marcher = GpuMarcher::new(&ctx, mc, capacity_rays, capacity_samples).map_err(gerr)?;
                 if config.compact_samples {
+                    // The field may keep what its density pass computes for the kept samples.
+                    fields[0]
+                        .keep_density_pass(&ctx, capacity_marched)
+                        .map_err(|e| TrainError::Gpu(format!("field `{}` on the GPU: {e}", cpu_fields[0].kind())))?;
                     compaction = Some(Compaction {
                         marcher: GpuMarcher::new(&ctx, mc, capacity_rays, capacity_marched).map_err(gerr)?,
                         counters: ctx.zeros("marched counters", 16),
@@ -290,6 +296,7 @@ impl GpuEngine {
                         compactor: GpuCompactor::new(&ctx, capacity_rays, capacity_samples, config.transmittance_threshold)
                             .map_err(gerr)?,
                         density: ChunkedDensity::new(&ctx, capacity_samples, capacity_marched),
+                        rows: ctx.zeros("compacted rows", 4 * capacity_samples.max(1)),
                     });
                 }
                 Sampler::Occupancy(Box::new(Occupancy {
@@ -549,9 +556,9 @@ impl GpuEngine {
         c.marcher.set_seed(ctx, jitter_seed.unwrap_or(0), jitter_seed.is_some());
         c.marcher.record(ctx, enc, &c.counters, o.grid.bitfield(), &self.rays.origins, &self.rays.dirs, &c.packed);
         ctx.profile_stage("density inference");
-        c.density.record(ctx, enc, self.fields[0].as_ref(), &c.counters, &c.packed.positions, &c.sigma);
+        c.density.record_for_training(ctx, enc, self.fields[0].as_ref(), &c.counters, &c.packed.positions, &c.sigma);
         ctx.profile_stage("compaction");
-        c.compactor.record(ctx, enc, &c.counters, &c.packed, &c.sigma, &s0.counters, &s0.packed);
+        c.compactor.record(ctx, enc, &c.counters, &c.packed, &c.sigma, &s0.counters, &s0.packed, &c.rows);
     }
 
     /// The fine stage's samples from the coarse stage's weights (written to `fine.counters`).
@@ -586,7 +593,10 @@ impl GpuEngine {
         let st = &self.stages[i];
         let s = st.samples();
         ctx.profile_stage(if i == 0 { "field forward" } else { "fine field forward" });
-        if train {
+        if let (true, 0, Some(c)) = (train, i, &self.compaction) {
+            // Stage 0 holds the compaction of the density pass recorded just before.
+            self.fields[0].record_forward_rows(ctx, enc, s, &c.rows, &st.sigma, &st.rgb);
+        } else if train {
             self.fields[i].record_forward(ctx, enc, s, &st.sigma, &st.rgb);
         } else {
             self.fields[i].record_query(ctx, enc, s, &st.sigma, &st.rgb);

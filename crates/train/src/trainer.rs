@@ -312,7 +312,7 @@ impl Trainer {
             self.fields[0].density_for_training(&m.positions, &mut self.marched_sigma);
             composited_counts(&m.ray_offsets, &self.marched_sigma, &m.dt, thr, &mut self.keep);
             m.compact_into(&self.keep, usize::MAX, &mut self.stages[0].samples);
-            compacted_rows(&m.ray_offsets, &self.stages[0].samples.ray_offsets, &mut self.kept_rows);
+            nerf_sampling::compacted_rows(&m.ray_offsets, &self.stages[0].samples.ray_offsets, &mut self.kept_rows);
             let rows = &self.kept_rows;
             let st = &mut self.stages[0];
             run_stage(st, &b.background, thr, |p, d, s, c| self.fields[0].forward_rows(rows, p, d, s, c));
@@ -703,16 +703,6 @@ fn first_stage_samples(
 
 fn forward_stage(field: &mut dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
     run_stage(st, background, thr, |p, d, s, c| field.forward(p, d, s, c));
-}
-
-/// The row in the marched samples (offsets `marched`) of each sample of their compaction
-/// (offsets `compacted`: a prefix of every ray, `RaySamples::compact_into`).
-fn compacted_rows(marched: &[u32], compacted: &[u32], rows: &mut Vec<u32>) {
-    rows.clear();
-    for (r, w) in compacted.windows(2).enumerate() {
-        let from = marched[r];
-        rows.extend(from..from + (w[1] - w[0]));
-    }
 }
 
 fn query_stage(field: &dyn RadianceField, st: &mut Stage, background: &[f32], thr: f32) {
