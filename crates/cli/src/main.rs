@@ -86,6 +86,10 @@ struct TrainArgs {
     /// Continue from `OUT/checkpoint.bin`.
     #[arg(long)]
     resume: bool,
+    /// Start over in an OUT that holds an interrupted run (by default that is an error, so that
+    /// re-running a command after Ctrl-C does not discard the run; a finished run is replaced).
+    #[arg(long, conflicts_with = "resume")]
+    overwrite: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -245,6 +249,7 @@ fn cmd_train(a: TrainArgs) -> Result<()> {
     );
     let mut opts = RunOptions::new(&a.out);
     opts.resume = a.resume;
+    opts.overwrite = a.overwrite;
     opts.progress = !a.quiet;
     opts.write_renders = !a.no_renders;
     opts.scene = a.scene.display().to_string();

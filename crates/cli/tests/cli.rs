@@ -167,27 +167,26 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
     assert!(run.join("eval/r_0.png").is_file());
 }
 
+/// Starts a long tiny run into `run`, interrupts it (SIGINT) once it has logged a few steps, and
+/// checks that it stopped cleanly and said how to resume; the checkpoint's step.
 #[cfg(unix)]
-#[test]
-fn ctrl_c_saves_a_checkpoint_and_resume_continues() {
-    let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
+fn interrupted_run(scene: &Path, run: &Path) -> u64 {
     let cfg = run.with_extension("toml");
-    // Start a long run, interrupt it once it has logged a few steps.
     write_tiny_config(&cfg);
+    let hist = run.join("history.jsonl");
+    // An earlier run's log would end the wait below at once.
+    let _ = std::fs::remove_file(&hist);
     let child = nerf()
         .arg("train")
-        .arg(&s)
+        .arg(scene)
         .arg("--config")
         .arg(&cfg)
         .arg("--out")
-        .arg(&run)
+        .arg(run)
         .args(["--quiet", "--no-renders", "--iters", "100000000"])
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let hist = run.join("history.jsonl");
     let t0 = std::time::Instant::now();
     while std::fs::read_to_string(&hist).map(|h| h.lines().count()).unwrap_or(0) < 3 {
         assert!(t0.elapsed().as_secs() < 120, "training did not start");
@@ -200,8 +199,28 @@ fn ctrl_c_saves_a_checkpoint_and_resume_continues() {
     assert_eq!(o.status.code(), Some(130), "{e}");
     assert!(e.contains("checkpoint") && e.contains("--resume"), "{e}");
     assert!(!e.contains("panicked"), "{e}");
-    let ck = nerf_train_step(&run);
+    let ck = nerf_train_step(run);
     assert!(ck >= 3, "checkpoint holds step {ck}");
+    ck
+}
+
+fn iterations(run: &Path) -> Option<u64> {
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).ok()?).unwrap();
+    m["iterations"].as_u64()
+}
+
+#[cfg(unix)]
+#[test]
+fn ctrl_c_saves_a_checkpoint_and_resume_continues() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let ck = interrupted_run(&s, &run);
+    // The same command again, without --resume: refused, the interrupted run left as it was.
+    let before = std::fs::read(run.join("checkpoint.bin")).unwrap();
+    let o = train_tiny(&s, &run, &["--iters", "2"]);
+    assert_clean_failure(&o, &["interrupted run", &format!("step {ck}"), "--resume", "--overwrite"]);
+    assert_eq!(std::fs::read(run.join("checkpoint.bin")).unwrap(), before, "the checkpoint was touched");
     // Resume to a fixed total and finish normally.
     let target = ck + 4;
     let o = train_tiny(&s, &run, &["--resume", "--iters", &target.to_string()]);
@@ -209,6 +228,33 @@ fn ctrl_c_saves_a_checkpoint_and_resume_continues() {
     let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
     assert_eq!(m["iterations"].as_u64(), Some(target));
     assert_eq!(m["steps_this_invocation"].as_u64(), Some(4));
+    // A finished run is replaced by a new one.
+    let o = train_tiny(&s, &run, &["--iters", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(iterations(&run), Some(2));
+}
+
+/// A new run that replaces a finished one and is interrupted leaves no stale metrics.json that
+/// would make it look finished; `--overwrite` starts over in a folder with an interrupted run.
+#[cfg(unix)]
+#[test]
+fn an_interrupted_run_is_never_taken_for_a_finished_one_and_overwrite_starts_over() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(iterations(&run), Some(2));
+    let ck = interrupted_run(&s, &run);
+    assert_eq!(iterations(&run), None, "the finished run's metrics.json survived a new run");
+    let o = train_tiny(&s, &run, &["--iters", "2"]);
+    assert_clean_failure(&o, &["interrupted run", &format!("step {ck}")]);
+    let o = train_tiny(&s, &run, &["--iters", "2", "--overwrite", "--resume"]);
+    assert!(!o.status.success() && stderr(&o).contains("--overwrite"), "{}", stderr(&o));
+    let o = train_tiny(&s, &run, &["--iters", "2", "--overwrite"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(iterations(&run), Some(2));
+    assert_eq!(nerf_train_step(&run), 2);
 }
 
 /// The step stored in a run's checkpoint.

@@ -128,15 +128,7 @@ impl Checkpoint {
         let mut f = std::fs::File::open(path).map_err(|e| TrainError::Io { path: path.to_path_buf(), source: e })?;
         let mut bytes = Vec::new();
         f.read_to_end(&mut bytes).map_err(|e| TrainError::Io { path: path.to_path_buf(), source: e })?;
-        if bytes.len() < 16 || &bytes[..8] != MAGIC {
-            return Err(ck_err(path, "not a nerf-rs checkpoint (bad magic)"));
-        }
-        let hlen = u64::from_le_bytes(bytes[8..16].try_into().unwrap()) as usize;
-        let body = bytes.get(16..16 + hlen).ok_or_else(|| ck_err(path, "truncated header"))?;
-        let h: Header = serde_json::from_slice(body).map_err(|e| ck_err(path, format!("bad header: {e}")))?;
-        if h.version != VERSION {
-            return Err(ck_err(path, format!("unsupported checkpoint version {}", h.version)));
-        }
+        let (h, hlen) = parse_header(path, &bytes)?;
         let mut pos = 16 + hlen;
         let mut take = |len: usize| -> Result<Vec<f32>, TrainError> {
             let end = pos + 4 * len;
@@ -179,6 +171,52 @@ impl Checkpoint {
     }
 }
 
+impl Checkpoint {
+    /// The step a checkpoint was written at, reading only its header (not the tensors).
+    pub fn read_step(path: &Path) -> Result<u64, TrainError> {
+        let io = |e| TrainError::Io { path: path.to_path_buf(), source: e };
+        let mut f = std::fs::File::open(path).map_err(io)?;
+        let mut prefix = [0u8; 16];
+        let got = read_up_to(&mut f, &mut prefix).map_err(io)?;
+        // A short or foreign file: let the parser name the problem.
+        let hlen = if got == 16 && &prefix[..8] == MAGIC {
+            u64::from_le_bytes(prefix[8..16].try_into().unwrap()) as usize
+        } else {
+            0
+        };
+        let mut bytes = prefix[..got].to_vec();
+        f.take(hlen as u64).read_to_end(&mut bytes).map_err(io)?;
+        Ok(parse_header(path, &bytes)?.0.step)
+    }
+}
+
+/// Reads until `buf` is full or the file ends; the bytes read.
+fn read_up_to(f: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match f.read(&mut buf[n..])? {
+            0 => break,
+            k => n += k,
+        }
+    }
+    Ok(n)
+}
+
+/// The header of a checkpoint whose bytes start `bytes` (at least the magic, the length and the
+/// header), and the header's length.
+fn parse_header(path: &Path, bytes: &[u8]) -> Result<(Header, usize), TrainError> {
+    if bytes.len() < 16 || &bytes[..8] != MAGIC {
+        return Err(ck_err(path, "not a nerf-rs checkpoint (bad magic)"));
+    }
+    let hlen = u64::from_le_bytes(bytes[8..16].try_into().unwrap()) as usize;
+    let body = bytes.get(16..16usize.saturating_add(hlen)).ok_or_else(|| ck_err(path, "truncated header"))?;
+    let h: Header = serde_json::from_slice(body).map_err(|e| ck_err(path, format!("bad header: {e}")))?;
+    if h.version != VERSION {
+        return Err(ck_err(path, format!("unsupported checkpoint version {}", h.version)));
+    }
+    Ok((h, hlen))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -214,7 +252,15 @@ mod tests {
         std::fs::write(&p, &bytes[..bytes.len() - 3]).unwrap();
         let e = Checkpoint::load(&p).unwrap_err().to_string();
         assert!(e.contains("c.bin") && e.contains("truncated"), "{e}");
+        // The header alone is intact: its step can still be read.
+        assert_eq!(Checkpoint::read_step(&p).unwrap(), 42);
+        std::fs::write(&p, &bytes[..40]).unwrap();
+        let e = Checkpoint::read_step(&p).unwrap_err().to_string();
+        assert!(e.contains("c.bin") && e.contains("truncated header"), "{e}");
         std::fs::write(&p, b"garbage").unwrap();
         assert!(Checkpoint::load(&p).unwrap_err().to_string().contains("magic"));
+        assert!(Checkpoint::read_step(&p).unwrap_err().to_string().contains("magic"));
+        let e = Checkpoint::read_step(&dir.path().join("none.bin")).unwrap_err().to_string();
+        assert!(e.contains("none.bin"), "{e}");
     }
 }

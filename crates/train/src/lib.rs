@@ -61,6 +61,19 @@ pub enum TrainError {
     /// The GPU path failed (no adapter, a field without a GPU twin, a failed read-back).
     #[error("GPU: {0}")]
     Gpu(String),
+    /// The output folder holds an interrupted run (a checkpoint without `metrics.json`) and the
+    /// new run neither resumes it nor may overwrite it.
+    #[error(
+        "{} holds an interrupted run (checkpoint at step {step}, no metrics.json): continue it with \
+         --resume, start over with --overwrite, or choose another --out",
+        out.display()
+    )]
+    OutDirInUse {
+        /// The output folder.
+        out: PathBuf,
+        /// The step of its checkpoint.
+        step: u64,
+    },
     /// Training was interrupted (Ctrl-C); the state was saved.
     #[error("interrupted at step {step}; checkpoint saved to {checkpoint} (resume with --resume)")]
     Interrupted {

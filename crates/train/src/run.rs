@@ -22,6 +22,11 @@ pub struct RunOptions {
     pub out_dir: PathBuf,
     /// Continue from `<out_dir>/checkpoint.bin` when it exists.
     pub resume: bool,
+    /// Start over in an `out_dir` that holds an interrupted run (a checkpoint without
+    /// `metrics.json`), replacing it. Without it (and without `resume`) such a folder is an error,
+    /// so re-running a command after Ctrl-C does not throw the interrupted run away. A finished
+    /// run (one with `metrics.json`) is always replaced.
+    pub overwrite: bool,
     /// Show a progress bar on stderr.
     pub progress: bool,
     /// Set (e.g. by a Ctrl-C handler) to stop after the current step and save a checkpoint.
@@ -41,6 +46,7 @@ impl RunOptions {
         Self {
             out_dir: out_dir.into(),
             resume: false,
+            overwrite: false,
             progress: true,
             stop: Arc::new(AtomicBool::new(false)),
             write_renders: true,
@@ -83,6 +89,25 @@ pub fn run(
     let out = &opts.out_dir;
     std::fs::create_dir_all(out).map_err(io_err(out))?;
     let ck_path = out.join("checkpoint.bin");
+    let metrics_path = out.join("metrics.json");
+    let resuming = opts.resume && ck_path.exists();
+    if !resuming {
+        if ck_path.exists() && !metrics_path.exists() && !opts.overwrite {
+            let step = Checkpoint::read_step(&ck_path)?;
+            return Err(TrainError::OutDirInUse { out: out.clone(), step });
+        }
+        if opts.resume {
+            eprintln!("note: {} holds no checkpoint; starting a new run", out.display());
+        }
+        // A new run: the previous run's results no longer describe this folder (and a
+        // metrics.json left beside an interrupted new run would make it look finished).
+        for stale in [&metrics_path, &out.join("gpu_profile.json")] {
+            match std::fs::remove_file(stale) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io_err(stale)(e)),
+                _ => {}
+            }
+        }
+    }
     let mut trainer = make_trainer(&config, registry, SceneBounds::of(train), opts.device)?;
     if config.gpu_profile.is_some() && trainer.device() == "cpu" {
         eprintln!("note: gpu_profile is ignored on the CPU path");
@@ -94,7 +119,7 @@ pub fn run(
         write_atomic(&profile_path, text.as_bytes())
     };
     let (mut elapsed, mut samples_seen) = (0.0f64, 0u64);
-    if opts.resume && ck_path.exists() {
+    if resuming {
         let ck = Checkpoint::load(&ck_path)?;
         let same = |a: &TrainConfig, b: &TrainConfig| {
             a.field == b.field && a.field_config == b.field_config && a.sampler == b.sampler && a.seed == b.seed
@@ -126,9 +151,9 @@ pub fn run(
     let hist_path = out.join("history.jsonl");
     let mut history = std::fs::OpenOptions::new()
         .create(true)
-        .append(opts.resume)
+        .append(resuming)
         .write(true)
-        .truncate(!opts.resume)
+        .truncate(!resuming)
         .open(&hist_path)
         .map_err(io_err(&hist_path))?;
 
@@ -228,7 +253,7 @@ pub fn run(
         metrics["gpu_profile"] = serde_json::to_value(p).expect("profile serialises");
     }
     let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
-    write_atomic(&out.join("metrics.json"), text.as_bytes())?;
+    write_atomic(&metrics_path, text.as_bytes())?;
     Ok(RunSummary { metrics, eval: report, iterations: iters })
 }
 
