@@ -224,4 +224,8 @@ fn the_example_ablations_parse_and_plan() {
     let coop = Ablation::load(&dir.join("h100_coop.toml")).unwrap().plan(&nerf::registry()).unwrap();
     let paths: Vec<_> = coop.iter().map(|p| p.config.field_config["gpu_mlp"].as_str().unwrap().to_string()).collect();
     assert_eq!(paths, ["plain", "coop"]);
+    // The jitter comparison at 400×400: the preset with and without jittered training rays.
+    let jit = Ablation::load(&dir.join("jitter_lego400.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    let jitter: Vec<_> = jit.iter().map(|p| (p.config.pixel_jitter, p.config.compact_samples, p.config.iters)).collect();
+    assert_eq!(jitter, [(false, true, 2000), (true, true, 2000)]);
 }
