@@ -2,16 +2,8 @@
 # On a lent GPU with cooperative matrices (the H100): the checks of the cooperative-matrix fused
 # MLP (shaders/mlp_fused_coop.wgsl), of the emulated cooperative-matrix kernels' hardware twin and of
 # rendering in rounds that lavapipe cannot make, then the plain-vs-coop ablation
-# (examples/ablations/h100_coop.toml). Build here first (the binaries of a commit; .bin/COMMIT says which):
-#   cargo build --release -p nerf-cli && strip -o /tmp/nerf target/release/nerf && xz -c /tmp/nerf > .bin/nerf.xz
-#   cargo test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --test compact --no-run
-#   cargo test --release -p nerf-field-hash --test gpu --no-run
-#   cargo test --release -p nerf-field-freq --test gpu --no-run     (strip it as freq_gpu-…)
-#   cargo bench -p nerf-gpu --bench kernels --no-run
-#   strip each printed executable into /tmp/t3/t3/ (the bench as kernels-bench), then
-#   tar cJf .bint/tests3.tar.xz -C /tmp/t3 t3
-# and copy the scene into .data/lego (benches/device/h100_lego.sh says how); carry .gl, .bin, .bint,
-# .data (~60 MB).
+# (examples/ablations/h100_coop.toml). Build and pack here first: `bash benches/device/prepare.sh`
+# (the binaries of a commit; .bin/COMMIT says which); carry .gl, .bin, .bint, .data (~61 MB).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf) && tar xJf .bint/tests3.tar.xz -C .bin

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # On the lent H100: the lego 800x800 ablation (examples/ablations/h100_lego.toml, 5 minutes, PSNR
-# every minute, rendering frames/s at 800x800). Expects .bin/nerf.xz and .data/lego (see h100_lego.sh).
+# every minute, rendering frames/s at 800x800). Expects .gl, .bin/nerf.xz and .data/lego (bash benches/device/prepare.sh makes them).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)

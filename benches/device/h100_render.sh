@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # On the lent H100: a short hash-field run on lego 800x800 (20 s) and its evaluation on 25 test
 # views, for the rendering frames/s at 800x800 and a check of the final build on the device.
-# Expects .bin/nerf.xz and .data/lego (see h100_lego.sh).
+# Expects .gl, .bin/nerf.xz and .data/lego (bash benches/device/prepare.sh makes them).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)

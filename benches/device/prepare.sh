@@ -1,0 +1,77 @@
+#!/usr/bin/env bash
+# Run HERE (not on the device), in the repository root, before the h100_*.sh scripts: builds and
+# packs everything they expect into the git-ignored folders the device tool carries.
+#   .gl/    the Vulkan loader and GLVND packages the device image lacks (../shared/docs/gpu-device.md)
+#   .bin/   nerf.xz: the stripped release binary; COMMIT: the commit it was built from
+#   .bint/  tests3.tar.xz: the stripped GPU test executables and the kernel bench (h100_coop.sh)
+#   .data/  lego: ../shared's lego scene, all train views and every 8th test view (h100_lego.sh,
+#           h100_final.sh, h100_render.sh, h100_coop.sh)
+# Then run e.g.:  run(command="bash benches/device/h100_profile.sh", carry=[".gl", ".bin"])
+# (carry what the script's header names; the total must stay under the tool's 64 MiB).
+# Each part is skipped when already there; `--rebuild` redoes .bin and .bint.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+rebuild=0; [ "${1:-}" = "--rebuild" ] && rebuild=1
+
+if ! ls .gl/*.deb >/dev/null 2>&1; then
+  echo "== .gl: downloading the Vulkan loader and GLVND packages"
+  mkdir -p .gl /tmp/amd64/partial
+  o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
+  apt-get $o update -qq
+  (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
+fi
+
+if [ $rebuild = 1 ] || [ ! -f .bin/nerf.xz ]; then
+  echo "== .bin: release binary"
+  mkdir -p .bin
+  cargo build --release -p nerf-cli
+  strip -o /tmp/nerf-stripped target/release/nerf
+  xz -T0 -c /tmp/nerf-stripped > .bin/nerf.xz
+  git rev-parse HEAD > .bin/COMMIT
+  git diff --quiet HEAD || echo "(the working tree has uncommitted changes)" >> .bin/COMMIT
+fi
+
+if [ $rebuild = 1 ] || [ ! -f .bint/tests3.tar.xz ]; then
+  echo "== .bint: GPU test executables and the kernel bench"
+  rm -rf /tmp/t3 && mkdir -p /tmp/t3/t3 .bint
+  # The executables cargo built, from its JSON messages: "<name>\t<path>".
+  executables() {
+    cargo "$@" --message-format=json 2>/dev/null | python3 -c '
+import json, sys
+for line in sys.stdin:
+    try: m = json.loads(line)
+    except ValueError: continue
+    if m.get("reason") == "compiler-artifact" and m.get("executable"):
+        print(m["target"]["name"] + "\t" + m["package_id"].split("#")[0].rstrip("/").split("/")[-1] + "\t" + m["executable"])'
+  }
+  {
+    executables test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --test compact --no-run
+    executables test --release -p nerf-field-hash --test gpu --no-run
+    executables test --release -p nerf-field-freq --test gpu --no-run
+    executables bench -p nerf-gpu --bench kernels --no-run
+  } | while IFS=$'\t' read -r name pkg exe; do
+    case "$pkg:$name" in
+      *kernels) out=kernels-bench ;;
+      *freq*:gpu) out=freq_gpu ;;
+      *hash*:gpu) out=hash_gpu ;;
+      *) out=$name ;;
+    esac
+    strip -o "/tmp/t3/t3/$out" "$exe"
+    echo "   $out <- $exe"
+  done
+  tar cJf .bint/tests3.tar.xz -C /tmp/t3 t3
+fi
+
+if [ ! -f .data/lego/transforms_train.json ]; then
+  src=../shared/data/nerf_synthetic/lego
+  [ -d "$src" ] || { echo "no $src: the lego scene cannot be copied (.data/lego is needed by h100_lego/final/render/coop)"; exit 1; }
+  echo "== .data/lego: the train views and every 8th test view of $src"
+  mkdir -p .data/lego/test
+  cp "$src"/transforms_*.json .data/lego/
+  cp -r "$src/train" .data/lego/
+  for i in $(seq 0 8 199); do cp "$src/test/r_$i.png" .data/lego/test/; done
+fi
+
+du -sh .gl .bin .bint .data 2>/dev/null
+echo "carry what the script needs (h100_profile: .gl .bin; h100_final/render: .gl .bin .data;"
+echo "h100_coop: .gl .bin .bint .data); the device tool takes 64 MiB in all."
