@@ -7,7 +7,7 @@
 
 use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
 use nerf::gpu::GpuContext;
-use nerf::train::{LossConfig, SamplerConfig, SceneBounds, TrainConfig, Trainer};
+use nerf::train::{LossConfig, SamplerConfig, SceneBounds, TrainConfig, TrainError, Trainer};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -58,5 +58,48 @@ fn jitter_and_huber_loss_reach_the_step_on_both_devices() {
             let changed = p.iter().zip(&p0).filter(|(a, b)| a != b).count();
             assert!(changed > 100, "{name}: {what} changed only {changed} parameters");
         }
+    }
+}
+
+/// A step whose loss comes out NaN is an error (`TrainError::Diverged`), not a run that goes on
+/// training and evaluating NaN parameters: on the CPU at that step, on the GPU at the next
+/// loss read-back (every `log_every` steps).
+#[test]
+fn non_finite_parameters_stop_training_with_a_divergence_error() {
+    let train = load();
+    let gpu = GpuContext::for_tests().map(Arc::new);
+    let c = TrainConfig { log_every: 3, ..config() };
+    for dev in std::iter::once(None).chain(gpu.map(Some)) {
+        let name = if dev.is_some() { "gpu" } else { "cpu" };
+        let mut t = Trainer::new_on(c.clone(), &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
+        t.step(&train).unwrap();
+        // A NaN in every weight of the colour network: every rendered colour is NaN.
+        let mut fields = t.export_fields().unwrap();
+        let (_, w) = fields[0].iter_mut().find(|(n, _)| n == "color_mlp").expect("the hash field's colour network");
+        w.fill(f32::NAN);
+        let (adam, sampler) = (t.adam_state().unwrap(), t.sampler_state().unwrap());
+        t.restore(1, &fields, adam, &sampler).unwrap();
+        let mut outcome = Vec::new();
+        for _ in 0..3 {
+            match t.step(&train) {
+                Ok(s) => outcome.push(Ok(s.loss)),
+                Err(e) => {
+                    outcome.push(Err(e));
+                    break;
+                }
+            }
+        }
+        // CPU: the first step after the poisoning; GPU: the read-back after step 3.
+        let want_step = if dev.is_some() { 3 } else { 2 };
+        match outcome.last() {
+            Some(Err(TrainError::Diverged { step, loss })) => {
+                assert_eq!(*step, want_step, "{name}");
+                assert!(!loss.is_finite(), "{name}");
+                let msg = outcome.last().unwrap().as_ref().unwrap_err().to_string();
+                assert!(msg.contains("diverged") && msg.contains("learning rate"), "{name}: {msg}");
+            }
+            other => panic!("{name}: expected a divergence error, got {other:?}"),
+        }
+        assert_eq!(outcome.len() as u64, want_step - 1, "{name}: {outcome:?}");
     }
 }

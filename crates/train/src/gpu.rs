@@ -491,6 +491,9 @@ impl GpuEngine {
                 }
             }
             loss = l as f32;
+            if !loss.is_finite() {
+                return Err(TrainError::Diverged { step: done, loss });
+            }
             n_samples = total;
             self.last_n_samples.set((total, n_marched));
         }

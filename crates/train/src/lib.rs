@@ -74,6 +74,18 @@ pub enum TrainError {
         /// The step of its checkpoint.
         step: u64,
     },
+    /// The loss of a step came out NaN or infinite: the parameters are no longer finite. Nothing
+    /// is saved (the last checkpoint written before it stays as it was).
+    #[error(
+        "training diverged: the loss after step {step} is {loss}; no checkpoint was written for it \
+         (the last one, if any, is kept); lower the learning rate"
+    )]
+    Diverged {
+        /// Steps completed, the diverged one included.
+        step: u64,
+        /// The loss read.
+        loss: f32,
+    },
     /// Training was interrupted (Ctrl-C); the state was saved.
     #[error("interrupted at step {step}; checkpoint saved to {checkpoint} (resume with --resume)")]
     Interrupted {

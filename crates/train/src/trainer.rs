@@ -262,13 +262,28 @@ impl Trainer {
     /// On the GPU the step is recorded and submitted without waiting; the loss is read back only
     /// every `log_every` steps (and on the last step), otherwise [`StepStats::loss`] and
     /// [`StepStats::mse`] are NaN and [`StepStats::n_samples`] is the last value read.
+    ///
+    /// A loss that is computed (every CPU step; every read-back on the GPU) and not finite is
+    /// [`TrainError::Diverged`]: NaN or infinite parameters never train on silently.
     pub fn step(&mut self, data: &Dataset) -> Result<StepStats, TrainError> {
-        if let Some(g) = self.gpu.as_mut() {
-            let s = g.step(data, &self.config, self.step)?;
-            self.step += 1;
-            return Ok(s);
+        match self.gpu.as_mut() {
+            Some(g) => {
+                // The GPU path returns `Diverged` itself (a NaN loss there also means "not read").
+                let r = g.step(data, &self.config, self.step);
+                if matches!(r, Ok(_) | Err(TrainError::Diverged { .. })) {
+                    self.step += 1; // submitted
+                }
+                r
+            }
+            None => {
+                let s = self.cpu_step(data);
+                if s.loss.is_finite() {
+                    Ok(s)
+                } else {
+                    Err(TrainError::Diverged { step: s.step + 1, loss: s.loss })
+                }
+            }
         }
-        Ok(self.cpu_step(data))
     }
 
     fn cpu_step(&mut self, data: &Dataset) -> StepStats {
