@@ -229,3 +229,42 @@ fn the_example_ablations_parse_and_plan() {
     let jitter: Vec<_> = jit.iter().map(|p| (p.config.pixel_jitter, p.config.compact_samples, p.config.iters)).collect();
     assert_eq!(jitter, [(false, true, 2000), (true, true, 2000)]);
 }
+
+/// A run whose loss turns NaN (a learning rate of 1e30) is reported as diverged and left out;
+/// the ablation goes on with the others and writes its outputs, also when every run diverged.
+#[test]
+fn a_diverging_run_is_left_out_and_the_ablation_goes_on() {
+    let tmp = tempfile::tempdir().unwrap();
+    tiny_scene(tmp.path());
+    let registry = nerf::registry();
+    let head = r#"
+scenes = ["lego_tiny"]
+test_views = "all"
+[budget]
+iters = 6
+[eval]
+every_iters = 3
+[base]
+field = "hash"
+target_samples_per_step = 2048
+field_config = { grid = { log2_hashmap_size = 12, n_levels = 4 } }
+"#;
+    let diverging = "[[runs]]\nname = \"huge_lr\"\nconfig = { lr = { kind = \"constant\", lr = 1e30 } }\n";
+    let fine = "[[runs]]\nname = \"fine\"\nconfig = {}\n";
+    for (name, runs, n_fine) in [("mixed", format!("{diverging}{fine}"), 1), ("all_diverge", diverging.to_string(), 0)] {
+        let file = tmp.path().join(format!("{name}.toml"));
+        std::fs::write(&file, format!("name = \"{name}\"\n{head}{runs}")).unwrap();
+        let out = tmp.path().join(name);
+        let opts = AblateOptions { out_dir: out.clone(), verbose: false, device: nerf::gpu::DevicePreference::Cpu };
+        let report = run_ablation(&Ablation::load(&file).unwrap(), &registry, &opts).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(report.runs.len(), n_fine, "{name}");
+        assert!(report.runs.iter().all(|r| r.metrics.test_psnr.is_finite() && r.metrics.iterations == 6), "{name}");
+        assert_eq!(report.diverged.len(), 1, "{name}");
+        let (id, step) = &report.diverged[0];
+        assert!(id.contains("huge_lr") && (1..=6).contains(step), "{name}: {id} {step}");
+        let md = read(&report.results_md);
+        assert!(md.contains("Diverged") && md.contains(id.as_str()), "{name}: {md}");
+        assert!(!out.join("runs").join(id).join("metrics.json").exists(), "{name}: a diverged run must not look finished");
+        assert!(report.psnr_vs_time.exists() && report.psnr_vs_iter.exists(), "{name}");
+    }
+}

@@ -5,7 +5,7 @@ use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
 use nerf_data::{load_blender, Dataset, LoadOptions, Split};
 use nerf_field::Registry;
-use nerf_train::{evaluate, make_trainer, SceneBounds, TrainConfig, Trainer};
+use nerf_train::{evaluate, make_trainer, SceneBounds, TrainConfig, TrainError, Trainer};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -105,6 +105,10 @@ pub struct AblationReport {
     pub psnr_vs_time: PathBuf,
     /// `psnr_vs_iter.png`.
     pub psnr_vs_iter: PathBuf,
+    /// Runs whose loss turned NaN or infinite (`TrainError::Diverged`): `(run id, step)`. They
+    /// are left out of `runs`, the tables and the plots, and listed at the end of `results.md`;
+    /// the other runs go on (a learning-rate sweep is expected to diverge at its high end).
+    pub diverged: Vec<(String, u64)>,
 }
 
 /// Options of [`run_ablation`].
@@ -260,6 +264,7 @@ pub fn run_ablation(
     let s = &ablation.spec;
     let mut cache: HashMap<PathBuf, (Dataset, Dataset)> = HashMap::new();
     let mut outcomes = Vec::with_capacity(plans.len());
+    let mut diverged = Vec::new();
     for (k, plan) in plans.into_iter().enumerate() {
         let dir = out.join("runs").join(&plan.id);
         let mpath = dir.join("metrics.json");
@@ -288,7 +293,14 @@ pub fn run_ablation(
         if opts.verbose {
             eprintln!("[{}] {} ({}) starting", k + 1, plan.id, plan.config.field);
         }
-        let m = train_run(ablation, &plan, registry, train, test, opts.device)?;
+        let m = match train_run(ablation, &plan, registry, train, test, opts.device) {
+            Err(AblateError::Train { id, error: TrainError::Diverged { step, loss } }) => {
+                eprintln!("[{}] {id} diverged: loss {loss} after step {step}; left out of the results", k + 1);
+                diverged.push((id, step));
+                continue;
+            }
+            r => r?,
+        };
         std::fs::create_dir_all(&dir).map_err(io_err(&dir))?;
         let mut csv = String::from("iter,seconds,psnr,ssim\n");
         for p in &m.curve {
@@ -314,5 +326,5 @@ pub fn run_ablation(
         outcomes.push(RunOutcome { plan, skipped: false, metrics: m });
     }
     let keys: Vec<String> = s.grid.keys().cloned().collect();
-    write_summary(out, &ablation.name(), &keys, outcomes)
+    write_summary(out, &ablation.name(), &keys, outcomes, diverged)
 }

@@ -203,13 +203,21 @@ pub(crate) fn write_summary(
     title: &str,
     grid_keys: &[String],
     outcomes: Vec<RunOutcome>,
+    diverged: Vec<(String, u64)>,
 ) -> Result<AblationReport, AblateError> {
     std::fs::create_dir_all(out).map_err(io_err(out))?;
     let runs: Vec<RunMetrics> = outcomes.iter().map(|o| o.metrics.clone()).collect();
     let p = |n: &str| -> PathBuf { out.join(n) };
     let (csv, md, pt, pi) = (p("results.csv"), p("results.md"), p("psnr_vs_time.png"), p("psnr_vs_iter.png"));
     write_atomic(&csv, results_csv(&runs, grid_keys).as_bytes())?;
-    write_atomic(&md, results_md(title, &runs, grid_keys).as_bytes())?;
+    let mut text = results_md(title, &runs, grid_keys);
+    if !diverged.is_empty() {
+        text.push_str("\nDiverged (the loss turned NaN or infinite; left out above):\n\n");
+        for (id, step) in &diverged {
+            text.push_str(&format!("- {id}: after step {step}\n"));
+        }
+    }
+    write_atomic(&md, text.as_bytes())?;
     plot_curves(&pt, &runs, "training time (s)", |q| q.seconds)?;
     plot_curves(&pi, &runs, "iteration", |q| q.iter as f64)?;
     Ok(AblationReport {
@@ -219,6 +227,7 @@ pub(crate) fn write_summary(
         results_md: md,
         psnr_vs_time: pt,
         psnr_vs_iter: pi,
+        diverged,
     })
 }
 
