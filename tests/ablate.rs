@@ -267,4 +267,17 @@ field_config = { grid = { log2_hashmap_size = 12, n_levels = 4 } }
         assert!(!out.join("runs").join(id).join("metrics.json").exists(), "{name}: a diverged run must not look finished");
         assert!(report.psnr_vs_time.exists() && report.psnr_vs_iter.exists(), "{name}");
     }
+    // On the GPU the loss is read back every `log_every` steps (here only at the last step): an
+    // evaluation point in between renders NaN parameters and reports the divergence there.
+    if nerf::gpu::GpuContext::for_tests().is_none() {
+        return;
+    }
+    let file = tmp.path().join("gpu.toml");
+    let text = format!("name = \"gpu\"\n{head}log_every = 1000\n{diverging}").replace("every_iters = 3", "every_iters = 2");
+    std::fs::write(&file, text).unwrap();
+    let opts = AblateOptions { out_dir: tmp.path().join("gpu"), verbose: false, device: nerf::gpu::DevicePreference::Gpu };
+    let report = run_ablation(&Ablation::load(&file).unwrap(), &registry, &opts).unwrap();
+    assert_eq!(report.diverged.len(), 1);
+    let step = report.diverged[0].1;
+    assert!(step == 2 || step == 4, "caught at step {step}, not by an evaluation point");
 }

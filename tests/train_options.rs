@@ -103,3 +103,39 @@ fn non_finite_parameters_stop_training_with_a_divergence_error() {
         assert_eq!(outcome.len() as u64, want_step - 1, "{name}: {outcome:?}");
     }
 }
+
+/// On the GPU the loss is read back only every `log_every` steps; a run that diverges between
+/// two read-backs is caught when it would save a checkpoint (here the periodic one at step 2,
+/// long before the read-back at the last step), and nothing is written.
+#[test]
+fn a_gpu_run_never_checkpoints_non_finite_parameters() {
+    let Some(gpu) = GpuContext::for_tests() else { return };
+    drop(gpu);
+    let train = load();
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    let test = load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1) }).unwrap();
+    let c = TrainConfig {
+        lr: nerf::optim::LrSchedule::Constant { lr: 1e30 },
+        iters: 6,
+        log_every: 1000,
+        checkpoint_every: 2,
+        ..config()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let opts = nerf::train::RunOptions {
+        progress: false,
+        write_renders: false,
+        device: nerf::gpu::DevicePreference::Gpu,
+        ..nerf::train::RunOptions::new(dir.path())
+    };
+    match nerf::train::run(c, &nerf::registry(), &train, &test, &opts) {
+        Err(TrainError::Diverged { step, .. }) => assert!(step < 6, "caught by the read-back at step {step}, not by the save"),
+        Err(e) => panic!("expected a divergence, got {e}"),
+        Ok(s) => panic!("a run with a learning rate of 1e30 finished: {}", s.metrics),
+    }
+    // Whichever periodic checkpoint came before the divergence holds finite parameters only.
+    if let Ok(ck) = nerf::train::Checkpoint::load(&dir.path().join("checkpoint.bin")) {
+        assert!(ck.fields.iter().flatten().all(|(_, v)| v.iter().all(|x| x.is_finite())));
+    }
+    assert!(!dir.path().join("metrics.json").exists());
+}

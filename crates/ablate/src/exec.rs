@@ -176,6 +176,10 @@ pub fn train_run(
     let render_fps = std::cell::Cell::new(0.0f64);
     let eval_point = |t: &Trainer, elapsed: f64, curve: &mut Vec<CurvePoint>| {
         let r = evaluate(t, test, None, |_, _| {}).map_err(terr)?;
+        if r.psnr.is_nan() {
+            // NaN parameters between two GPU loss read-backs: the run diverged.
+            return Err(terr(TrainError::Diverged { step: t.step_count(), loss: f32::NAN }));
+        }
         curve.push(CurvePoint { iter: t.step_count(), seconds: elapsed, psnr: r.psnr, ssim: r.ssim });
         if r.render_seconds > 0.0 {
             render_fps.set(r.views.len() as f64 / r.render_seconds);

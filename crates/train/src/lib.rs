@@ -74,16 +74,17 @@ pub enum TrainError {
         /// The step of its checkpoint.
         step: u64,
     },
-    /// The loss of a step came out NaN or infinite: the parameters are no longer finite. Nothing
-    /// is saved (the last checkpoint written before it stays as it was).
+    /// The loss of a step came out NaN or infinite, or the parameters did (found when saving or
+    /// evaluating between two GPU loss read-backs). Nothing is saved (the last checkpoint written
+    /// before it stays as it was).
     #[error(
-        "training diverged: the loss after step {step} is {loss}; no checkpoint was written for it \
-         (the last one, if any, is kept); lower the learning rate"
+        "training diverged by step {step}: NaN or infinite values (loss {loss}); no checkpoint was \
+         written for it (the last one, if any, is kept); lower the learning rate"
     )]
     Diverged {
         /// Steps completed, the diverged one included.
         step: u64,
-        /// The loss read.
+        /// The loss read (NaN where the parameters were found non-finite instead).
         loss: f32,
     },
     /// Training was interrupted (Ctrl-C); the state was saved.

@@ -136,12 +136,18 @@ pub fn run(
     }
     let base_samples = samples_seen;
     let save = |t: &Trainer, elapsed: f64| -> Result<(), TrainError> {
+        let fields = t.export_fields()?;
+        // The GPU reads the loss back only every `log_every` steps: a time budget or Ctrl-C can
+        // end a run between a divergence and its read-back. Never checkpoint (or evaluate) it.
+        if fields.iter().flatten().any(|(_, v)| v.iter().any(|x| !x.is_finite())) {
+            return Err(TrainError::Diverged { step: t.step_count(), loss: f32::NAN });
+        }
         Checkpoint {
             step: t.step_count(),
             elapsed_secs: elapsed,
             samples_seen: base_samples + t.samples_seen()?,
             config: t.config().clone(),
-            fields: t.export_fields()?,
+            fields,
             adam: t.adam_state()?,
             sampler: t.sampler_state()?,
         }
