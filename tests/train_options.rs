@@ -11,6 +11,15 @@ use nerf::train::{LossConfig, SamplerConfig, SceneBounds, TrainConfig, TrainErro
 use std::path::Path;
 use std::sync::Arc;
 
+/// The tests of this file take turns on the device: the reproducibility check below compares two
+/// GPU runs bit for bit, and the hash grid's backward sums with float atomics, whose order
+/// lavapipe keeps only while no other test's kernels share its threads.
+static DEVICE: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn take_device() -> std::sync::MutexGuard<'static, ()> {
+    DEVICE.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 fn load() -> Dataset {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
     load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::First(10) }).unwrap()
@@ -42,6 +51,7 @@ fn params_after(c: &TrainConfig, train: &Dataset, dev: Option<Arc<GpuContext>>, 
 
 #[test]
 fn jitter_and_huber_loss_reach_the_step_on_both_devices() {
+    let _device = take_device();
     let train = load();
     let gpu = GpuContext::for_tests().map(Arc::new);
     let base = config();
@@ -66,6 +76,7 @@ fn jitter_and_huber_loss_reach_the_step_on_both_devices() {
 /// loss read-back (every `log_every` steps).
 #[test]
 fn non_finite_parameters_stop_training_with_a_divergence_error() {
+    let _device = take_device();
     let train = load();
     let gpu = GpuContext::for_tests().map(Arc::new);
     let c = TrainConfig { log_every: 3, ..config() };
@@ -109,6 +120,7 @@ fn non_finite_parameters_stop_training_with_a_divergence_error() {
 /// long before the read-back at the last step), and nothing is written.
 #[test]
 fn a_gpu_run_never_checkpoints_non_finite_parameters() {
+    let _device = take_device();
     let Some(gpu) = GpuContext::for_tests() else { return };
     drop(gpu);
     let train = load();
