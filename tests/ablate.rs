@@ -281,3 +281,44 @@ field_config = { grid = { log2_hashmap_size = 12, n_levels = 4 } }
     let step = report.diverged[0].1;
     assert!(step == 2 || step == 4, "caught at step {step}, not by an evaluation point");
 }
+
+/// A GPU run whose step does not fit the adapter's storage bindings trains with fewer samples per
+/// step; the run's metrics and results.md say so (its config and hash stay as configured, so a
+/// re-run still finds it finished).
+#[test]
+fn a_run_fitted_to_the_adapter_says_so_in_the_results() {
+    let Some(ctx) = nerf::gpu::GpuContext::for_tests() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    tiny_scene(tmp.path());
+    // ≥ 64 floats per sample in the colour network's tape, for 2 · target samples: ≥ 2 × the limit.
+    let target = ctx.max_storage_bytes() / (8 * 32);
+    drop(ctx);
+    let text = format!(
+        r#"name = "fit"
+scenes = ["lego_tiny"]
+test_views = "all"
+[budget]
+iters = 2
+[base]
+field = "hash"
+field_config = {{ grid = {{ log2_hashmap_size = 12, n_levels = 4 }} }}
+[[runs]]
+name = "big"
+config = {{ target_samples_per_step = {target} }}
+"#
+    );
+    let file = tmp.path().join("fit.toml");
+    std::fs::write(&file, text).unwrap();
+    let registry = nerf::registry();
+    let opts = AblateOptions { out_dir: tmp.path().join("fit"), verbose: false, device: nerf::gpu::DevicePreference::Gpu };
+    let ablation = Ablation::load(&file).unwrap();
+    let report = run_ablation(&ablation, &registry, &opts).unwrap();
+    let m = &report.runs[0].metrics;
+    assert_eq!(m.config.target_samples_per_step, Some(target as usize));
+    let note = m.device_note.as_deref().expect("the fit is recorded");
+    assert!(note.contains(&format!("instead of {target}")), "{note}");
+    let md = read(&report.results_md);
+    assert!(md.contains("Fitted to the adapter") && md.contains(note), "{md}");
+    let again = run_ablation(&ablation, &registry, &opts).unwrap();
+    assert!(again.runs[0].skipped && again.runs[0].metrics.device_note.as_deref() == Some(note));
+}

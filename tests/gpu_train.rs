@@ -195,3 +195,58 @@ fn a_gpu_run_writes_its_profile() {
         assert_eq!(summary.metrics["gpu_profile"]["steps"], expect);
     }
 }
+
+/// A step whose per-sample buffers exceed the adapter's storage binding limit (lavapipe's is
+/// 128 MiB) is fitted to it: fewer samples per step, said on stderr, in `Trainer::config`,
+/// `Trainer::device_note` and `metrics.json` — where the presets used to stop with an error.
+#[test]
+fn a_step_larger_than_the_adapters_binding_limit_is_fitted_to_it() {
+    let Some(ctx) = device() else { return };
+    let train = load(Split::Train, ViewSelection::First(10));
+    let test = load(Split::Test, ViewSelection::First(1));
+    let registry = nerf::registry();
+    let mut config = small_hash_config(2);
+    // The colour network's tape holds `fps` floats for each of the 2·target samples a step has
+    // room for (at least 64: one hidden layer); this target needs ≥ twice the limit.
+    let limit = ctx.max_storage_bytes();
+    let asked = (limit / (8 * 32)) as usize;
+    config.target_samples_per_step = Some(asked);
+    let cfg: nerf::field_hash::HashNerfConfig = serde_json::from_value(config.field_config.clone()).unwrap();
+    let bounds = SceneBounds::of(&train);
+    let fctx = nerf::field::FieldContext { aabb_min: bounds.aabb_min, aabb_max: bounds.aabb_max, seed: 1 };
+    let cpu = nerf::field_hash::HashNerf::<f32>::new(cfg, &fctx).unwrap();
+    let fps = nerf::gpu::mlp::FusedMlp::new(&ctx, &cpu.mlps()[1].config).unwrap().tape_floats_per_sample() as u64;
+    assert!(2 * asked as u64 * 4 * fps >= 2 * limit, "the test's step must not fit ({fps} floats per sample)");
+
+    let mut t = Trainer::new_on(config.clone(), &registry, bounds, Some(ctx.clone())).unwrap();
+    let fitted = t.config().target_samples_per_step.unwrap();
+    // The colour tape (the largest per-sample buffer) fits, and the step did not shrink much
+    // more than it had to.
+    assert!(2 * fitted as u64 * 4 * fps <= limit, "{fitted} samples per step do not fit {limit} bytes");
+    assert!(fitted as u64 * 8 * fps * 2 >= limit, "{fitted} samples per step: shrunk more than twice what was needed");
+    assert_eq!(fitted % 1024, 0);
+    let note = t.device_note().expect("a note says what was fitted").to_string();
+    assert!(note.contains(&format!("target_samples_per_step = {fitted} instead of {asked}")) && note.contains("MiB"), "{note}");
+    for _ in 0..2 {
+        t.step(&train).unwrap();
+    }
+    t.finish().unwrap();
+    assert!(t.samples_seen().unwrap() > 0);
+
+    // A fixed batch (no target) is fitted through batch_rays; `run` records it in metrics.json.
+    let dir = tempfile::tempdir().unwrap();
+    config.target_samples_per_step = None;
+    config.batch_rays = (limit / (4 * 32 * 512)) as usize * 2;
+    config.iters = 1;
+    let opts = nerf::train::RunOptions {
+        progress: false,
+        write_renders: false,
+        device: nerf::gpu::DevicePreference::Gpu,
+        ..nerf::train::RunOptions::new(dir.path())
+    };
+    let summary = nerf::train::run(config.clone(), &registry, &train, &test, &opts).unwrap();
+    let rays = summary.metrics["config"]["batch_rays"].as_u64().unwrap();
+    assert!(rays < config.batch_rays as u64 && rays * 512 * 4 * fps <= limit, "{rays} rays");
+    let note = summary.metrics["device_note"].as_str().unwrap();
+    assert!(note.contains(&format!("batch_rays = {rays} instead of {}", config.batch_rays)), "{note}");
+}

@@ -72,8 +72,11 @@ pub struct RunMetrics {
     pub curve: Vec<CurvePoint>,
     /// See [`crate::config_hash`].
     pub config_hash: String,
-    /// The resolved training config.
+    /// The resolved training config (as asked: see `device_note` for what the device changed).
     pub config: TrainConfig,
+    /// What the GPU path changed to fit the adapter (fewer samples per step), if anything.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device_note: Option<String>,
     /// Per-kernel GPU timings of the steps `config.gpu_profile` asked for (GPU runs only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gpu_profile: Option<nerf_train::GpuProfile>,
@@ -252,6 +255,7 @@ pub fn train_run(
         curve,
         config_hash: plan.config_hash.clone(),
         config: cfg.clone(),
+        device_note: trainer.device_note().map(str::to_string),
         gpu_profile: profile,
     })
 }

@@ -217,6 +217,13 @@ pub(crate) fn write_summary(
             text.push_str(&format!("- {id}: after step {step}\n"));
         }
     }
+    let fitted: Vec<&RunMetrics> = runs.iter().filter(|r| r.device_note.is_some()).collect();
+    if !fitted.is_empty() {
+        text.push_str("\nFitted to the adapter (trained with fewer samples per step than configured):\n\n");
+        for r in fitted {
+            text.push_str(&format!("- {}: {}\n", r.id, r.device_note.as_deref().unwrap_or_default()));
+        }
+    }
     write_atomic(&md, text.as_bytes())?;
     plot_curves(&pt, &runs, "training time (s)", |q| q.seconds)?;
     plot_curves(&pi, &runs, "iteration", |q| q.iter as f64)?;

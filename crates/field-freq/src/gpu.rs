@@ -32,7 +32,7 @@ pub struct GpuFreqNerf {
 }
 
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
-    FieldError::InvalidConfig { field: "freq".into(), message: e.to_string() }
+    FieldError::Gpu { field: "freq".into(), source: e }
 }
 
 impl GpuFreqNerf {
@@ -73,17 +73,31 @@ impl GpuFreqNerf {
                 grads: ctx.zeros(name, 4 * v.len()),
             })
             .collect();
-        let f = |n: usize| 4 * n * capacity;
+        let [pos, dir, head, color_in, trunk_tape, color_tape, d_color_in, d_head] = ctx
+            .zeros_per_sample(
+                capacity,
+                [
+                    ("pos enc", pd),
+                    ("dir enc", dd),
+                    ("trunk out", 1 + w),
+                    ("color in", glue.color_in_dim),
+                    ("trunk tape", trunk.tape_floats_per_sample()),
+                    ("color tape", color.tape_floats_per_sample()),
+                    ("d color in", glue.color_in_dim),
+                    ("d trunk out", 1 + w),
+                ],
+            )
+            .map_err(gpu_err)?;
         Ok(Self {
             groups,
-            pos: ctx.zeros_checked("pos enc", f(pd)).map_err(gpu_err)?,
-            dir: ctx.zeros_checked("dir enc", f(dd)).map_err(gpu_err)?,
-            head: ctx.zeros_checked("trunk out", f(1 + w)).map_err(gpu_err)?,
-            color_in: ctx.zeros_checked("color in", f(glue.color_in_dim)).map_err(gpu_err)?,
-            trunk_tape: ctx.zeros_checked("trunk tape", f(trunk.tape_floats_per_sample())).map_err(gpu_err)?,
-            color_tape: ctx.zeros_checked("color tape", f(color.tape_floats_per_sample())).map_err(gpu_err)?,
-            d_color_in: ctx.zeros_checked("d color in", f(glue.color_in_dim)).map_err(gpu_err)?,
-            d_head: ctx.zeros_checked("d trunk out", f(1 + w)).map_err(gpu_err)?,
+            pos,
+            dir,
+            head,
+            color_in,
+            trunk_tape,
+            color_tape,
+            d_color_in,
+            d_head,
             glue,
             pos_enc,
             dir_enc,

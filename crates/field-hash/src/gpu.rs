@@ -45,7 +45,7 @@ struct KeptEncodings {
 }
 
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
-    FieldError::InvalidConfig { field: "hash".into(), message: e.to_string() }
+    FieldError::Gpu { field: "hash".into(), source: e }
 }
 
 impl GpuHashNerf {
@@ -86,18 +86,33 @@ impl GpuHashNerf {
                 grads: ctx.zeros(name, 4 * v.len()),
             })
             .collect();
-        let f = |n: usize| 4 * n * capacity;
+        let [enc, dout, sh_out, color_in, density_tape, color_tape, d_color_in, d_dout, d_enc] = ctx
+            .zeros_per_sample(
+                capacity,
+                [
+                    ("hash enc", enc_dim),
+                    ("density out", dd),
+                    ("sh", sh_dim),
+                    ("color in", glue.color_in_dim),
+                    ("density tape", density.tape_floats_per_sample()),
+                    ("color tape", color.tape_floats_per_sample()),
+                    ("d color in", glue.color_in_dim),
+                    ("d density out", dd),
+                    ("d enc", enc_dim),
+                ],
+            )
+            .map_err(gpu_err)?;
         Ok(Self {
             groups,
-            enc: ctx.zeros_checked("hash enc", f(enc_dim)).map_err(gpu_err)?,
-            dout: ctx.zeros_checked("density out", f(dd)).map_err(gpu_err)?,
-            sh_out: ctx.zeros_checked("sh", f(sh_dim)).map_err(gpu_err)?,
-            color_in: ctx.zeros_checked("color in", f(glue.color_in_dim)).map_err(gpu_err)?,
-            density_tape: ctx.zeros_checked("density tape", f(density.tape_floats_per_sample())).map_err(gpu_err)?,
-            color_tape: ctx.zeros_checked("color tape", f(color.tape_floats_per_sample())).map_err(gpu_err)?,
-            d_color_in: ctx.zeros_checked("d color in", f(glue.color_in_dim)).map_err(gpu_err)?,
-            d_dout: ctx.zeros_checked("d density out", f(dd)).map_err(gpu_err)?,
-            d_enc: ctx.zeros_checked("d enc", f(enc_dim)).map_err(gpu_err)?,
+            enc,
+            dout,
+            sh_out,
+            color_in,
+            density_tape,
+            color_tape,
+            d_color_in,
+            d_dout,
+            d_enc,
             kept: None,
             glue,
             grid,

@@ -49,6 +49,16 @@ pub enum FieldError {
         /// What is wrong.
         message: String,
     },
+    /// The field's GPU twin could not be built on this adapter (its kernels do not support the
+    /// config, or a buffer exceeds the adapter's limits: [`GpuError::CapacityTooLarge`] says by
+    /// how much, so the caller can launch fewer samples).
+    #[error("invalid config for field `{field}` on the GPU: {source}")]
+    Gpu {
+        /// Field name.
+        field: String,
+        /// What the GPU crate reported.
+        source: GpuError,
+    },
     /// Parameters loaded from a checkpoint do not match the field's layout.
     #[error("parameter group `{group}` mismatch: {message}")]
     ParamMismatch {

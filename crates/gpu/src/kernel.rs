@@ -189,21 +189,43 @@ impl GpuContext {
         l.max_buffer_size.min(l.max_storage_buffer_binding_size)
     }
 
-    /// As [`GpuContext::zeros`] for buffers whose size follows the run's configuration: an
-    /// [`GpuError::Unsupported`] that names the buffer, its size and the device's limit when
+    /// As [`GpuContext::zeros`] for buffers whose size follows the samples per launch: a
+    /// [`GpuError::CapacityTooLarge`] that names the buffer, its size and the device's limit when
     /// `bytes` exceeds [`GpuContext::max_storage_bytes`] (wgpu would panic on it).
     pub fn zeros_checked(&self, label: &str, bytes: usize) -> Result<wgpu::Buffer, GpuError> {
         let limit = self.max_storage_bytes();
         if bytes as u64 > limit {
-            return Err(GpuError::Unsupported(format!(
-                "the `{label}` buffer needs {:.1} MiB, more than the {:.1} MiB one storage binding may hold on {} \
-                 (lower target_samples_per_step or batch_rays)",
-                bytes as f64 / 1048576.0,
-                limit as f64 / 1048576.0,
-                self.info.name
-            )));
+            return Err(GpuError::CapacityTooLarge {
+                label: label.to_string(),
+                bytes: bytes as u64,
+                limit,
+                adapter: self.info.name.clone(),
+            });
         }
         Ok(self.zeros(label, bytes))
+    }
+
+    /// The buffers of `capacity` samples each of a field or stage, `(label, floats per sample)`,
+    /// as [`GpuContext::zeros_checked`]; all sizes are checked before any is made, so an error
+    /// names the largest buffer, whose overshoot says how many samples fit.
+    pub fn zeros_per_sample<const N: usize>(
+        &self,
+        capacity: usize,
+        buffers: [(&str, usize); N],
+    ) -> Result<[wgpu::Buffer; N], GpuError> {
+        let bytes = |floats: usize| 4usize.saturating_mul(floats).saturating_mul(capacity);
+        if let Some(&(label, floats)) = buffers.iter().max_by_key(|(_, floats)| *floats) {
+            let limit = self.max_storage_bytes();
+            if bytes(floats) as u64 > limit {
+                return Err(GpuError::CapacityTooLarge {
+                    label: label.to_string(),
+                    bytes: bytes(floats) as u64,
+                    limit,
+                    adapter: self.info.name.clone(),
+                });
+            }
+        }
+        Ok(buffers.map(|(label, floats)| self.zeros(label, bytes(floats))))
     }
 
     /// A storage buffer holding `data` (an empty slice gives a 4-byte buffer: bindings must not be empty).

@@ -51,6 +51,25 @@ pub enum GpuError {
     /// A configuration the GPU kernels do not support (the message says which limit).
     #[error("not supported on the GPU path: {0}")]
     Unsupported(String),
+    /// A buffer whose size follows the samples per launch is larger than one storage binding may
+    /// be on this adapter. Buffers sized per sample scale linearly with the capacity, so
+    /// `limit / bytes` of it fits (the trainer fits its batch with it).
+    #[error(
+        "the `{label}` buffer needs {:.1} MiB, more than the {:.1} MiB one storage binding may hold on {adapter} \
+         (lower target_samples_per_step or batch_rays)",
+        *bytes as f64 / 1048576.0,
+        *limit as f64 / 1048576.0
+    )]
+    CapacityTooLarge {
+        /// The buffer.
+        label: String,
+        /// Bytes it needs.
+        bytes: u64,
+        /// The adapter's largest storage binding in bytes.
+        limit: u64,
+        /// Adapter name.
+        adapter: String,
+    },
     /// A buffer could not be read back.
     #[error("GPU read-back failed: {0}")]
     ReadBack(String),

@@ -39,6 +39,26 @@ fn context() -> Option<GpuContext> {
     GpuContext::for_tests()
 }
 
+/// Per-sample buffers: an overshoot names the largest buffer (not the first) with its bytes and
+/// the limit; within the limit every buffer holds `capacity` rows.
+#[test]
+fn per_sample_buffers_report_their_largest_overshoot() {
+    let Some(ctx) = context() else { return };
+    let limit = ctx.max_storage_bytes();
+    let fits = (limit / (4 * 10)) as usize;
+    let [a, b, c] = ctx.zeros_per_sample(fits, [("a", 3), ("b", 10), ("c", 7)]).unwrap();
+    assert_eq!([a.size(), b.size(), c.size()], [12 * fits as u64, 40 * fits as u64, 28 * fits as u64]);
+    drop((a, b, c));
+    match ctx.zeros_per_sample(fits + 1, [("a", 3), ("b", 10), ("c", 7)]) {
+        Err(nerf_gpu::GpuError::CapacityTooLarge { label, bytes, limit: l, .. }) => {
+            assert_eq!((label.as_str(), bytes, l), ("b", 40 * (fits as u64 + 1), limit));
+        }
+        other => panic!("expected CapacityTooLarge, got {:?}", other.map(|_| ())),
+    }
+    let e = ctx.zeros_checked("big", limit as usize + 4).unwrap_err().to_string();
+    assert!(e.contains("`big`") && e.contains("MiB") && e.contains("batch_rays"), "{e}");
+}
+
 /// A random packed batch: rays with 0..40 samples, sorted t, mixed densities.
 fn batch(seed: u64, n_rays: usize) -> (Vec<u32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
     let mut rng = nerf_core::rng(seed, 0);

@@ -25,7 +25,23 @@ use std::cell::Cell;
 use std::sync::Arc;
 
 fn gerr(e: nerf_gpu::GpuError) -> TrainError {
-    TrainError::Gpu(e.to_string())
+    match e {
+        nerf_gpu::GpuError::CapacityTooLarge { bytes, limit, .. } => {
+            TrainError::GpuCapacity { message: e.to_string(), bytes, limit }
+        }
+        e => TrainError::Gpu(e.to_string()),
+    }
+}
+
+/// A field's GPU twin failed to build: [`TrainError::GpuCapacity`] where one of its per-sample
+/// buffers exceeds the adapter's binding limit (the trainer then launches fewer samples).
+fn field_err(kind: &str) -> impl FnOnce(nerf_field::FieldError) -> TrainError + '_ {
+    move |e| match e {
+        nerf_field::FieldError::Gpu { source: nerf_gpu::GpuError::CapacityTooLarge { bytes, limit, .. }, .. } => {
+            TrainError::GpuCapacity { message: format!("field `{kind}` on the GPU: {e}"), bytes, limit }
+        }
+        e => TrainError::Gpu(format!("field `{kind}` on the GPU: {e}")),
+    }
 }
 
 /// Bounds on the adaptive number of rays per step (as the CPU path).
@@ -241,7 +257,7 @@ impl GpuEngine {
         let mut fields = Vec::with_capacity(cpu_fields.len());
         for (i, f) in cpu_fields.iter().enumerate() {
             match f.to_gpu(&ctx, stage_samples(i)) {
-                Some(g) => fields.push(g.map_err(|e| TrainError::Gpu(format!("field `{}` on the GPU: {e}", f.kind())))?),
+                Some(g) => fields.push(g.map_err(field_err(f.kind()))?),
                 None => {
                     return Err(TrainError::Gpu(format!(
                         "field `{}` has no GPU implementation (use --device cpu)",
@@ -287,7 +303,7 @@ impl GpuEngine {
                     // The field may keep what its density pass computes for the kept samples.
                     fields[0]
                         .keep_density_pass(&ctx, capacity_marched)
-                        .map_err(|e| TrainError::Gpu(format!("field `{}` on the GPU: {e}", cpu_fields[0].kind())))?;
+                        .map_err(field_err(cpu_fields[0].kind()))?;
                     compaction = Some(Compaction {
                         marcher: GpuMarcher::new(&ctx, mc, capacity_rays, capacity_marched).map_err(gerr)?,
                         counters: ctx.zeros("marched counters", 16),
@@ -921,6 +937,51 @@ fn max_samples_per_ray(s: &SamplerConfig) -> usize {
     }
 }
 
+/// `config` with fewer samples per step, so that a buffer sized per sample that needs `bytes`
+/// fits the adapter's `limit` (such buffers scale linearly with the step's samples):
+/// `target_samples_per_step` (rounded down to a multiple of 1024) or `batch_rays` (to a multiple
+/// of 64) scaled by `limit / bytes`. `None` when nothing smaller can be trained.
+pub(crate) fn fit_to_binding_limit(config: &TrainConfig, bytes: u64, limit: u64) -> Option<TrainConfig> {
+    let scale = |n: usize, multiple: usize| -> usize {
+        let fitted = (n as u128 * limit as u128 / bytes.max(1) as u128) as usize;
+        let fitted = if fitted >= multiple { fitted / multiple * multiple } else { fitted };
+        // A buffer that was just over the limit must still shrink.
+        fitted.min(n.saturating_sub(1))
+    };
+    let mut fitted = config.clone();
+    match config.target_samples_per_step {
+        Some(target) => {
+            let t = scale(target, 1024);
+            if t < 4 * MIN_BATCH_RAYS {
+                return None;
+            }
+            fitted.target_samples_per_step = Some(t);
+        }
+        None => {
+            let b = scale(config.batch_rays, 64);
+            if b == 0 {
+                return None;
+            }
+            fitted.batch_rays = b;
+        }
+    }
+    Some(fitted)
+}
+
+/// What [`fit_to_binding_limit`] changed, for the user: `bytes` and `limit` of the first buffer
+/// that did not fit, the config asked for and the one trained.
+pub(crate) fn fit_note(asked: &TrainConfig, fitted: &TrainConfig, bytes: u64, limit: u64) -> String {
+    let change = match (asked.target_samples_per_step, fitted.target_samples_per_step) {
+        (Some(from), Some(to)) => format!("target_samples_per_step = {to} instead of {from}"),
+        _ => format!("batch_rays = {} instead of {}", fitted.batch_rays, asked.batch_rays),
+    };
+    format!(
+        "a per-sample buffer needs {:.1} MiB, more than the adapter's {:.1} MiB storage binding limit: training with {change}",
+        bytes as f64 / 1048576.0,
+        limit as f64 / 1048576.0
+    )
+}
+
 /// `(rays, samples per stage)` the buffers are sized for.
 fn capacities(config: &TrainConfig) -> (usize, usize) {
     match (config.target_samples_per_step, &config.sampler) {
@@ -934,5 +995,42 @@ fn capacities(config: &TrainConfig) -> (usize, usize) {
             let rays = config.batch_rays.max(1);
             (rays, rays * max_samples_per_ray(s))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MIB: u64 = 1 << 20;
+
+    #[test]
+    fn a_step_is_fitted_by_the_overshoot_of_its_largest_buffer() {
+        // An adaptive batch: 2^18 samples that need 3 × the limit → a third, to a multiple of 1024.
+        let asked = TrainConfig { target_samples_per_step: Some(1 << 18), ..TrainConfig::default() };
+        let fitted = fit_to_binding_limit(&asked, 384 * MIB, 128 * MIB).unwrap();
+        assert_eq!(fitted.target_samples_per_step, Some(87040)); // ⌊262144 / 3 / 1024⌋ · 1024
+        assert_eq!(fitted.batch_rays, asked.batch_rays);
+        let note = fit_note(&asked, &fitted, 384 * MIB, 128 * MIB);
+        assert!(note.contains("384.0 MiB") && note.contains("128.0 MiB"), "{note}");
+        assert!(note.contains("target_samples_per_step = 87040 instead of 262144"), "{note}");
+
+        // A fixed batch: rays scaled, to a multiple of 64; the rest of the config is kept.
+        let asked = TrainConfig { batch_rays: 4096, iters: 77, ..TrainConfig::default() };
+        let fitted = fit_to_binding_limit(&asked, 576 * MIB, 128 * MIB).unwrap();
+        assert_eq!((fitted.batch_rays, fitted.iters, fitted.target_samples_per_step), (896, 77, None));
+        assert!(fit_note(&asked, &fitted, 576 * MIB, 128 * MIB).contains("batch_rays = 896 instead of 4096"));
+
+        // Just over the limit still shrinks (by one multiple, or by one below the multiple).
+        let fitted = fit_to_binding_limit(&asked, 128 * MIB + 4, 128 * MIB).unwrap();
+        assert_eq!(fitted.batch_rays, 4032);
+        let few = TrainConfig { batch_rays: 40, ..TrainConfig::default() };
+        assert_eq!(fit_to_binding_limit(&few, 41, 40).unwrap().batch_rays, 39);
+
+        // Nothing smaller to train: one ray over the limit, or fewer samples than 4 · the minimum rays.
+        let one = TrainConfig { batch_rays: 1, ..TrainConfig::default() };
+        assert!(fit_to_binding_limit(&one, 2 * MIB, MIB).is_none());
+        let small = TrainConfig { target_samples_per_step: Some(4096), ..TrainConfig::default() };
+        assert!(fit_to_binding_limit(&small, 64 * MIB, MIB).is_none());
     }
 }

@@ -61,6 +61,18 @@ pub enum TrainError {
     /// The GPU path failed (no adapter, a field without a GPU twin, a failed read-back).
     #[error("GPU: {0}")]
     Gpu(String),
+    /// A buffer sized per sample is larger than the adapter's storage binding limit.
+    /// [`Trainer::new_on`] fits the step's samples to the adapter instead of returning this; it
+    /// comes out only where even the smallest batch does not fit.
+    #[error("GPU: {message}")]
+    GpuCapacity {
+        /// What did not fit, and on which adapter.
+        message: String,
+        /// Bytes the buffer needs.
+        bytes: u64,
+        /// The adapter's limit in bytes.
+        limit: u64,
+    },
     /// The output folder holds an interrupted run (a checkpoint without `metrics.json`) and the
     /// new run neither resumes it nor may overwrite it.
     #[error(

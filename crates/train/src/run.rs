@@ -252,7 +252,9 @@ pub fn run(
         "height": test.height,
         "n_params": trainer.n_params(),
         "threads": rayon::current_num_threads(),
-        "config": config,
+        // As trained: the GPU path may have fitted the samples per step to the adapter.
+        "config": trainer.config(),
+        "device_note": trainer.device_note(),
         "per_view": report.views,
     });
     if let Some(p) = &profile {
@@ -283,8 +285,8 @@ pub fn make_trainer(
             // `auto` falls back to the CPU when the GPU path cannot take this run (a field without
             // a GPU twin, a config its kernels do not support, a buffer larger than the adapter
             // allows); `gpu` reports it.
-            Err(TrainError::Gpu(msg)) if pref == DevicePreference::Auto => {
-                eprintln!("note: {msg}; training on the CPU");
+            Err(TrainError::Gpu(message) | TrainError::GpuCapacity { message, .. }) if pref == DevicePreference::Auto => {
+                eprintln!("note: {message}; training on the CPU");
                 Trainer::new(config.clone(), registry, bounds)
             }
             other => other,

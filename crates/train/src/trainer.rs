@@ -105,6 +105,8 @@ pub struct Trainer {
     ema_version: u64,
     /// Rendering instances of the field holding the average (CPU path with `ema_decay`).
     ema_fields: Option<Mutex<EmaFields>>,
+    /// What `new_on` changed in the config to fit the adapter's limits.
+    device_note: Option<String>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -163,6 +165,7 @@ impl Trainer {
             ema,
             ema_version: 0,
             ema_fields,
+            device_note: None,
             stages: (0..n).map(|_| Stage::default()).collect(),
             marched: RaySamples::default(),
             marched_sigma: Vec::new(),
@@ -183,6 +186,11 @@ impl Trainer {
     /// As [`Trainer::new`], on `device` when given: every field instance is moved to the GPU
     /// (its `to_gpu` twin, same initial parameters) and the whole step runs there. Errors when the
     /// field has no GPU implementation.
+    ///
+    /// Where a buffer sized per sample would exceed the adapter's storage binding limit (lavapipe
+    /// and some other adapters allow 128 MiB), the step's samples are fitted to the adapter:
+    /// `target_samples_per_step` or `batch_rays` is scaled down, a note on stderr says so, and
+    /// [`Trainer::config`] and [`Trainer::device_note`] hold what was changed.
     pub fn new_on(
         config: TrainConfig,
         registry: &Registry,
@@ -191,7 +199,34 @@ impl Trainer {
     ) -> Result<Self, TrainError> {
         let mut t = Self::new(config, registry, bounds)?;
         if let Some(ctx) = device {
-            t.gpu = Some(crate::gpu::GpuEngine::new(ctx, &t.config, bounds, &t.fields, &t.group_names)?);
+            // Each fit scales the step by the overshoot of the buffer that failed; a few tries
+            // cover buffers that do not scale exactly linearly (ray-sized ones, clamps) and the
+            // fine stage of a hierarchical sampler (built after the coarse one).
+            let mut config = t.config.clone();
+            let mut first_overshoot = None;
+            let engine = loop {
+                match crate::gpu::GpuEngine::new(ctx.clone(), &config, bounds, &t.fields, &t.group_names) {
+                    Err(TrainError::GpuCapacity { message, bytes, limit }) => {
+                        let tries = first_overshoot.map_or(0, |(_, _, k)| k);
+                        match crate::gpu::fit_to_binding_limit(&config, bytes, limit) {
+                            Some(fitted) if tries < 6 => {
+                                config = fitted;
+                                let (b, l) = first_overshoot.map_or((bytes, limit), |(b, l, _)| (b, l));
+                                first_overshoot = Some((b, l, tries + 1));
+                            }
+                            _ => return Err(TrainError::GpuCapacity { message, bytes, limit }),
+                        }
+                    }
+                    other => break other?,
+                }
+            };
+            if let Some((bytes, limit, _)) = first_overshoot {
+                let note = crate::gpu::fit_note(&t.config, &config, bytes, limit);
+                eprintln!("note: {note} ({})", ctx.describe());
+                t.device_note = Some(note);
+                t.config = config;
+            }
+            t.gpu = Some(engine);
             // The device keeps (and renders with) its own average.
             t.ema = None;
             t.ema_fields = None;
@@ -236,9 +271,15 @@ impl Trainer {
         }
     }
 
-    /// The run's config.
+    /// The run's config (on the GPU, with the samples per step fitted to the adapter where
+    /// [`Trainer::new_on`] had to).
     pub fn config(&self) -> &TrainConfig {
         &self.config
+    }
+
+    /// What [`Trainer::new_on`] changed in the config to fit the adapter, if anything.
+    pub fn device_note(&self) -> Option<&str> {
+        self.device_note.as_deref()
     }
 
     /// Steps taken so far.
