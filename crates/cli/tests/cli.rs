@@ -113,6 +113,19 @@ fn nan_pose_names_the_file_and_frame() {
     assert_clean_failure(&o, &["transforms_train.json", "frame 1"]);
 }
 
+/// An LLFF scene (fern, from ../shared) is recognised by its poses_bounds.npy; a downscale with no
+/// image folder says which factors the scene has.
+#[test]
+fn an_llff_scene_is_recognised_and_a_missing_image_folder_named() {
+    let Some(fern) = nerf::core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else {
+        eprintln!("NOTICE: ../shared/data/nerf_llff_data/fern is absent; not checked");
+        return;
+    };
+    let d = tempfile::tempdir().unwrap();
+    let o = nerf().arg("train").arg(&fern).args(["--field", "hash", "--iters", "1"]).arg("--out").arg(d.path()).output().unwrap();
+    assert_clean_failure(&o, &["fern/images", "images_4, images_8", "--downscale 8"]);
+}
+
 #[test]
 fn empty_split_is_an_error() {
     let d = tempfile::tempdir().unwrap();

@@ -1,5 +1,5 @@
-//! Datasets: the Blender (NeRF synthetic) format, image loading and downscaling, backgrounds,
-//! random ray batches.
+//! Datasets: the Blender (NeRF synthetic) and LLFF (real forward-facing, [`llff`]) formats, image
+//! loading and downscaling, backgrounds, random ray batches. [`load_scene`] tells the two apart.
 //!
 //! The Blender format is a scene folder with `transforms_{train,val,test}.json`, each holding
 //! `camera_angle_x` (horizontal field of view, radians) and `frames[]` of
@@ -15,6 +15,9 @@
 use std::path::{Path, PathBuf};
 
 use nerf_rays::{Aabb, Camera, Intrinsics, PixelConvention};
+
+pub mod llff;
+pub use llff::{is_llff, load_llff};
 use rand::Rng as _;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -703,6 +706,16 @@ fn downscale_rgba(px: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
         }
     }
     out
+}
+
+/// Loads one split of a scene in either format: LLFF ([`load_llff`]) where the folder holds
+/// `poses_bounds.npy`, else Blender ([`load_blender`]).
+pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
+    if is_llff(root) {
+        load_llff(root, split, opts)
+    } else {
+        load_blender(root, split, opts)
+    }
 }
 
 /// Loads one split of a Blender-format scene: reads `root/transforms_<split>.json`, selects
