@@ -126,9 +126,10 @@ struct EvalArgs {
 struct RenderArgs {
     /// A run folder written by `nerf train` (holds checkpoint.bin).
     run: PathBuf,
-    /// The scene the run was trained on: its training cameras define the orbit.
+    /// The scene the run was trained on: its training cameras define the path (an orbit; for an
+    /// LLFF scene, nerf-pytorch's spiral of two turns in front of the cameras).
     scene: PathBuf,
-    /// Frames of the orbit (evenly spaced over 360°).
+    /// Frames of the path (evenly spaced).
     #[arg(long, default_value_t = 60)]
     frames: usize,
     /// Frame width in pixels (default: the training images'); the height keeps their aspect.
@@ -307,8 +308,14 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     k.validate().map_err(|e| anyhow::anyhow!("--width {}: {e}", k.width))?;
     let center = nerf::rays::glam::Vec3::from_array(train.aabb.center());
-    let path = nerf::rays::orbit(&train.cameras, center, k, a.frames)
-        .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?;
+    // Forward-facing captures get nerf-pytorch's spiral; object-centred ones a turntable orbit.
+    let path = if nerf::data::is_llff(&a.scene) {
+        nerf::data::llff::render_path(&train, k, a.frames)
+            .with_context(|| format!("{}: the training cameras do not define a spiral", a.scene.display()))?
+    } else {
+        nerf::rays::orbit(&train.cameras, center, k, a.frames)
+            .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?
+    };
     let out = a.out.unwrap_or_else(|| a.run.join("render"));
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;
     let n = (k.width * k.height) as usize;

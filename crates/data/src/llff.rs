@@ -336,3 +336,14 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         aabb: Aabb { min: lo.to_array(), max: hi.to_array() },
     })
 }
+
+/// The novel-view path nerf-pytorch renders for an LLFF scene: [`nerf_rays::spiral`] about the
+/// cameras of `ds` (its training split), focused as nerf-pytorch does from the depth bounds
+/// (`0.9 · min bound` = `ds.near`, and `5 · max bound`, recovered from `ds.far`), with
+/// `intrinsics` for every frame.
+pub fn render_path(ds: &Dataset, intrinsics: Intrinsics, n: usize) -> Option<Vec<Camera>> {
+    let k = ds.cameras.first()?.intrinsics;
+    let corner = DVec3::new(0.5 * k.width as f64 / k.fx as f64, 0.5 * k.height as f64 / k.fy as f64, 1.0).length();
+    let max_bound = ds.far as f64 / corner;
+    nerf_rays::spiral(&ds.cameras, ds.near, (5.0 * max_bound) as f32, intrinsics, n)
+}

@@ -375,6 +375,51 @@ pub fn orbit(cameras: &[Camera], center: Vec3, intrinsics: Intrinsics, n: usize)
     )
 }
 
+/// nerf-pytorch's `render_path_spiral` for forward-facing captures (LLFF): `n` cameras on a
+/// spiral of two turns about the mean camera, in its image plane with a depth swing of half the
+/// rate, every one looking at a point `focus` in front of the mean camera; `intrinsics` for every
+/// frame. The spiral's radii are the 90th percentile of `|position|` per axis of the mean
+/// camera's frame (nerf-pytorch's `rads`); `focus` follows nerf-pytorch: `1 / (0.25 / near +
+/// 0.75 / far)` for the nearest and farthest scene depths (it passes `0.9 · min bound` and
+/// `5 · max bound`). `None` for no cameras or a degenerate mean.
+pub fn spiral(cameras: &[Camera], near: f32, far: f32, intrinsics: Intrinsics, n: usize) -> Option<Vec<Camera>> {
+    if cameras.is_empty() || !(near > 0.0 && far > near) {
+        return None;
+    }
+    let k = cameras.len() as f32;
+    // nerf-pytorch's poses_avg.
+    let center = cameras.iter().map(|c| c.position).sum::<Vec3>() / k;
+    let z = cameras.iter().map(|c| c.rotation.z_axis).sum::<Vec3>().try_normalize()?;
+    let up = cameras.iter().map(|c| c.rotation.y_axis).sum::<Vec3>();
+    let x = up.cross(z).try_normalize()?;
+    let avg = Mat3::from_cols(x, z.cross(x), z);
+    let percentile90 = |axis: usize| {
+        let mut v: Vec<f32> = cameras.iter().map(|c| (avg.transpose() * (c.position - center))[axis].abs()).collect();
+        v.sort_by(f32::total_cmp);
+        // numpy's linear interpolation between order statistics.
+        let r = 0.9 * (v.len() - 1) as f32;
+        let (lo, hi) = (r.floor() as usize, r.ceil() as usize);
+        v[lo] + (v[hi] - v[lo]) * (r - lo as f32)
+    };
+    let rads = Vec3::new(percentile90(0), percentile90(1), percentile90(2));
+    let focus = 1.0 / (0.25 / near + 0.75 / far);
+    let target = center + avg * Vec3::new(0.0, 0.0, -focus);
+    Some(
+        (0..n)
+            .map(|j| {
+                let theta = 2.0 * std::f32::consts::TAU * j as f32 / n as f32;
+                let local = Vec3::new(theta.cos(), -theta.sin(), -(0.5 * theta).sin()) * rads;
+                let position = center + avg * local;
+                // nerf-pytorch's viewmatrix(z, up, position): the camera looks at `target`.
+                let z = (position - target).normalize();
+                let x = up.cross(z).normalize();
+                let y = z.cross(x);
+                Camera { intrinsics, rotation: Mat3::from_cols(x, y, z), position }
+            })
+            .collect(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -508,5 +553,41 @@ mod tests {
         assert!(orbit(&[], centre, k, 8).is_none());
         let at_centre = Camera { position: centre, ..ring[0] };
         assert!(orbit(&[at_centre], centre, k, 8).is_none());
+    }
+
+    #[test]
+    fn spiral_cameras_circle_the_mean_camera_twice_and_look_at_the_focus() {
+        let k = Intrinsics::from_fov_x(40, 30, 0.9);
+        // A forward-facing rig: 11 cameras in the plane z = 0, looking down −z; offsets up to
+        // 0.5 in x, 0.25 in y, 0.05 in z, in the rig's frame (yawed by 0.3 about y, moved).
+        let yaw = Mat3::from_rotation_y(0.3);
+        let shift = Vec3::new(1.0, 2.0, -0.5);
+        let rig: Vec<Camera> = (0..11)
+            .map(|i| {
+                let u = i as f32 / 10.0 * 2.0 - 1.0;
+                let local = Vec3::new(0.5 * u, 0.25 * (3.0 * u).sin(), 0.05 * u * u);
+                Camera { intrinsics: k, rotation: yaw, position: shift + yaw * local }
+            })
+            .collect();
+        let center = rig.iter().map(|c| c.position).sum::<Vec3>() / 11.0;
+        let (near, far) = (1.0, 20.0);
+        let focus = 1.0 / (0.25 / near + 0.75 / far);
+        let target = center + yaw * Vec3::new(0.0, 0.0, -focus);
+        let path = spiral(&rig, near, far, k, 8).unwrap();
+        assert_eq!(path.len(), 8);
+        for (j, c) in path.iter().enumerate() {
+            // In the rig's frame, within the 90th-percentile radii (0.5, 0.24, 0.03 here) of its centre.
+            let local = yaw.transpose() * (c.position - center);
+            assert!(local.x.abs() <= 0.5 + 1e-5 && local.y.abs() <= 0.25 && local.z.abs() <= 0.05, "{local}");
+            let ray = c.ray_at(20.0, 15.0);
+            assert!(ray.dir.dot((target - c.position).normalize()) > 1.0 - 1e-6, "frame {j} does not look at the focus");
+            assert!((c.rotation.determinant() - 1.0).abs() < 1e-5 && c.rotation.y_axis.y > 0.9);
+        }
+        // Two turns: frame 4 of 8 is back at the start; frame 1 is a quarter turn (−y).
+        assert!((path[4].position - path[0].position).length() < 1e-5);
+        let q = yaw.transpose() * (path[1].position - center);
+        assert!(q.x.abs() < 1e-5 && q.y < -0.2, "{q}");
+        assert!(spiral(&[], near, far, k, 8).is_none());
+        assert!(spiral(&rig, far, near, k, 8).is_none());
     }
 }
