@@ -378,3 +378,30 @@ fn render_writes_an_orbit_of_novel_views() {
     let o = nerf().arg("render").arg(d.path().join("nope")).arg(&s).output().unwrap();
     assert_clean_failure(&o, &["checkpoint.bin"]);
 }
+
+/// Every config shipped in configs/ is accepted by `nerf train` (one step on the in-repo scene,
+/// CPU): a renamed key or a typo there is an error the user would meet first.
+#[test]
+fn every_shipped_config_trains() {
+    let dir = std::fs::read_dir(repo().join("configs")).unwrap();
+    let mut n = 0;
+    for entry in dir {
+        let path = entry.unwrap().path();
+        if path.extension().is_none_or(|e| e != "toml") {
+            continue;
+        }
+        let d = tempfile::tempdir().unwrap();
+        let o = nerf()
+            .arg("train")
+            .arg(repo().join("scenes/lego_100"))
+            .arg("--config")
+            .arg(&path)
+            .args(["--iters", "1", "--test-views", "first:1", "--device", "cpu", "--quiet", "--no-renders", "--out"])
+            .arg(d.path())
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}: {}", path.display(), stderr(&o));
+        n += 1;
+    }
+    assert!(n >= 3, "only {n} configs found");
+}
