@@ -52,7 +52,7 @@ struct AblateArgs {
 #[derive(Args)]
 struct TrainArgs {
     /// Scene folder: Blender format (transforms_train.json, transforms_test.json) or LLFF
-    /// (poses_bounds.npy, images_<k>/; every 8th image is a test view).
+    /// (poses_bounds.npy, images_K/; every 8th image is a test view).
     scene: PathBuf,
     /// Field to train (see `nerf fields`).
     #[arg(long)]
@@ -66,7 +66,7 @@ struct TrainArgs {
     /// Wall-clock budget for training, seconds.
     #[arg(long = "time-budget")]
     time_budget: Option<f64>,
-    /// Image downscale factor (2 = half resolution; LLFF: picks images_<k>/, e.g. 8 for the
+    /// Image downscale factor (2 = half resolution; LLFF: picks images_K/, e.g. 8 for the
     /// NeRF paper's 504×378 fern).
     #[arg(long)]
     downscale: Option<u32>,

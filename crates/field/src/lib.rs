@@ -52,7 +52,7 @@ pub enum FieldError {
     /// The field's GPU twin could not be built on this adapter (its kernels do not support the
     /// config, or a buffer exceeds the adapter's limits: [`GpuError::CapacityTooLarge`] says by
     /// how much, so the caller can launch fewer samples).
-    #[error("invalid config for field `{field}` on the GPU: {source}")]
+    #[error("field `{field}` on the GPU: {source}")]
     Gpu {
         /// Field name.
         field: String,

@@ -36,11 +36,19 @@ fn gerr(e: nerf_gpu::GpuError) -> TrainError {
 /// A field's GPU twin failed to build: [`TrainError::GpuCapacity`] where one of its per-sample
 /// buffers exceeds the adapter's binding limit (the trainer then launches fewer samples).
 fn field_err(kind: &str) -> impl FnOnce(nerf_field::FieldError) -> TrainError + '_ {
-    move |e| match e {
-        nerf_field::FieldError::Gpu { source: nerf_gpu::GpuError::CapacityTooLarge { bytes, limit, .. }, .. } => {
-            TrainError::GpuCapacity { message: format!("field `{kind}` on the GPU: {e}"), bytes, limit }
+    use nerf_field::FieldError;
+    move |e| {
+        // `FieldError::Gpu` already names the field and the device.
+        let message = match &e {
+            FieldError::Gpu { .. } => e.to_string(),
+            _ => format!("field `{kind}` on the GPU: {e}"),
+        };
+        match e {
+            FieldError::Gpu { source: nerf_gpu::GpuError::CapacityTooLarge { bytes, limit, .. }, .. } => {
+                TrainError::GpuCapacity { message, bytes, limit }
+            }
+            _ => TrainError::Gpu(message),
         }
-        e => TrainError::Gpu(format!("field `{kind}` on the GPU: {e}")),
     }
 }
 
