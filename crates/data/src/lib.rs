@@ -708,6 +708,51 @@ fn downscale_rgba(px: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
     out
 }
 
+/// Decodes `paths` in parallel and downscales each by `k` (a k×k box average); all must have the
+/// size of the first, and `k` must divide it. Returns that size (before downscaling) and the
+/// images; an error names the first failing image in order.
+fn decode_views(paths: &[&Path], k: u32) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
+    let decoded: Vec<Result<Decoded, DataError>> = paths
+        .par_iter()
+        .map(|&path| {
+            let (w, h, px) = decode_rgba(path)?;
+            if w % k != 0 || h % k != 0 {
+                return Err(DataError::BadDownscale {
+                    path: path.to_path_buf(),
+                    k,
+                    reason: format!("it does not divide the image size {w}x{h}"),
+                });
+            }
+            if w == 0 || h == 0 {
+                return Err(DataError::BadDownscale { path: path.to_path_buf(), k, reason: "the image is empty".into() });
+            }
+            Ok((w, h, downscale_rgba(&px, w as usize, h as usize, k as usize)))
+        })
+        .collect();
+    let mut images = Vec::with_capacity(decoded.len());
+    let mut size: Option<(u32, u32, &Path)> = None;
+    for (&path, d) in paths.iter().zip(decoded) {
+        let (w, h, px) = d?;
+        match size {
+            None => size = Some((w, h, path)),
+            Some((fw, fh, first)) if (fw, fh) != (w, h) => {
+                return Err(DataError::SizeMismatch {
+                    path: path.to_path_buf(),
+                    width: w,
+                    height: h,
+                    first: first.to_path_buf(),
+                    first_width: fw,
+                    first_height: fh,
+                })
+            }
+            _ => {}
+        }
+        images.push(px);
+    }
+    let (w, h, _) = size.expect("at least one view");
+    Ok((w, h, images))
+}
+
 /// Loads one split of a scene in either format: LLFF ([`load_llff`]) where the folder holds
 /// `poses_bounds.npy`, else Blender ([`load_blender`]).
 pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
@@ -832,53 +877,8 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
         }
     }
 
-    // Decode (and downscale) in parallel; report the first failing frame in order.
-    let decoded: Vec<Result<Decoded, DataError>> = frames
-        .par_iter()
-        .map(|f| {
-            let (w, h, px) = decode_rgba(&f.image)?;
-            if w % k != 0 || h % k != 0 {
-                return Err(DataError::BadDownscale {
-                    path: f.image.clone(),
-                    k,
-                    reason: format!("it does not divide the image size {w}x{h}"),
-                });
-            }
-            if w == 0 || h == 0 {
-                return Err(DataError::BadDownscale {
-                    path: f.image.clone(),
-                    k,
-                    reason: "the image is empty".into(),
-                });
-            }
-            Ok((
-                w,
-                h,
-                downscale_rgba(&px, w as usize, h as usize, k as usize),
-            ))
-        })
-        .collect();
-    let mut images = Vec::with_capacity(decoded.len());
-    let mut size = None;
-    for (f, d) in frames.iter().zip(decoded) {
-        let (w, h, px) = d?;
-        match size {
-            None => size = Some((w, h, f.image.clone())),
-            Some((fw, fh, ref first)) if (fw, fh) != (w, h) => {
-                return Err(DataError::SizeMismatch {
-                    path: f.image.clone(),
-                    width: w,
-                    height: h,
-                    first: first.clone(),
-                    first_width: fw,
-                    first_height: fh,
-                })
-            }
-            _ => {}
-        }
-        images.push(px);
-    }
-    let (w0, h0, _) = size.expect("at least one view");
+    let paths: Vec<&Path> = frames.iter().map(|f| f.image.as_path()).collect();
+    let (w0, h0, images) = decode_views(&paths, k)?;
     let intr = Intrinsics::from_fov_x(w0, h0, angle).downscaled(k);
     let cameras = frames
         .iter()

@@ -20,9 +20,8 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
 use nerf_rays::{Aabb, Camera, Intrinsics};
-use rayon::prelude::*;
 
-use crate::{decode_rgba, downscale_rgba, DataError, Dataset, LoadOptions, Split};
+use crate::{DataError, Dataset, LoadOptions, Split};
 
 /// The file that marks an LLFF scene.
 pub const POSES_FILE: &str = "poses_bounds.npy";
@@ -239,41 +238,9 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
     }
 
     let sub = k / j;
-    let decoded: Vec<Result<crate::Decoded, DataError>> = selected
-        .par_iter()
-        .map(|&i| {
-            let (w, h, px) = decode_rgba(&files[i])?;
-            if w == 0 || h == 0 || w % sub != 0 || h % sub != 0 {
-                return Err(DataError::BadDownscale {
-                    path: files[i].clone(),
-                    k,
-                    reason: format!("{sub} (from {}) does not divide the image size {w}x{h}", dir.display()),
-                });
-            }
-            Ok((w, h, downscale_rgba(&px, w as usize, h as usize, sub as usize)))
-        })
-        .collect();
-    let mut images = Vec::with_capacity(selected.len());
-    let mut size: Option<(u32, u32, PathBuf)> = None;
-    for (&i, d) in selected.iter().zip(decoded) {
-        let (w, h, px) = d?;
-        match &size {
-            None => size = Some((w, h, files[i].clone())),
-            Some((fw, fh, first)) if (*fw, *fh) != (w, h) => {
-                return Err(DataError::SizeMismatch {
-                    path: files[i].clone(),
-                    width: w,
-                    height: h,
-                    first: first.clone(),
-                    first_width: *fw,
-                    first_height: *fh,
-                })
-            }
-            _ => {}
-        }
-        images.push(px);
-    }
-    let (w, h, first) = size.expect("at least one view");
+    let paths: Vec<&Path> = selected.iter().map(|&i| files[i].as_path()).collect();
+    let (w, h, images) = crate::decode_views(&paths, sub)?;
+    let first = files[selected[0]].clone();
 
     // Intrinsics: the poses hold the full-resolution (h, w, focal); the folder's images are that
     // divided by their factor, so the focal scales with the image width (nerf-pytorch takes the
