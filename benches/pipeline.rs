@@ -42,7 +42,7 @@ fn encoding(c: &mut Criterion) {
 
 fn training_iteration(c: &mut Criterion) {
     let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    let data = load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::All })
+    let data = load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::All, ..Default::default() })
         .expect("in-repo scene loads");
     let registry = nerf::registry();
     let mut g = c.benchmark_group("train_step");
@@ -109,7 +109,7 @@ fn training_iteration_gpu(c: &mut Criterion) {
     };
     eprintln!("train_step_gpu on {}", ctx.describe());
     let scene = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    let data = load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::All })
+    let data = load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::All, ..Default::default() })
         .expect("in-repo scene loads");
     let registry = nerf::registry();
     let mut g = c.benchmark_group("train_step_gpu");

@@ -3,12 +3,14 @@
 // nerf_sampling::stratified and nerf_sampling::hierarchical, same formulas in the same order).
 // Packed layout: offsets [R+1] u32 (ray r owns offsets[r]..offsets[r+1]), positions [S][3],
 // dirs [S][3], t [S], dt [S] with δ_i = t_{i+1} − t_i and the last δ = far − t_last (clamped ≥ 0).
-// Rays: origins [R][3], dirs [R][3] (unit), near/far scalars from the uniform.
+// Rays: origins [R][3], dirs [R][3] (unit), near/far scalars from the uniform; with clip = 1 each
+// ray's segment is [near, far] ∩ box, or [near, near] on a miss (`segment`, the CPU's
+// nerf_sampling::segment: NDC scenes), and far below means that ray's far.
 // Random numbers: stratified jitter u = rand_f32(seed, 0, r·N + k); hierarchical jitter
 // ξ = rand_f32(seed, 1, r·n_fine + k), u_k = min((k + ξ)·(1/n_fine), 1).
 //
 // stratified:   one invocation per sample (coalesced writes); it recomputes its neighbour's t for δ.
-//               n_rays = counters[0]; writes counters[1] = n_rays·N (0 samples if !(far > near)).
+//               n_rays = counters[0]; writes counters[1] = n_rays·N (0 samples if !(far ≥ near)).
 // hier_offsets: one workgroup: out offsets = coarse offsets + n_fine·(# earlier rays with ≥ 3
 //               coarse samples); counters_out = [n_rays, total].
 // hierarchical: one invocation per ray, the CPU's algorithm literally (cdf walk over sorted u,
@@ -21,9 +23,11 @@ struct PdfParams {
     far: f32,
     jitter: u32,     // 0: bin centres (stratified) / linspace u (hierarchical)
     seed: u32,
-    _pad0: u32,
+    clip: u32,       // 1: [near, far] ∩ box per ray
     _pad1: u32,
     _pad2: u32,
+    box_min: vec4<f32>,
+    box_max: vec4<f32>,
 }
 
 override WG: u32 = 64u;
@@ -53,13 +57,44 @@ fn write_geometry(r: u32, s: u32, t: f32) {
     }
 }
 
-// t of stratified sample k of ray r (the CPU's expression, clamped to its bin).
-fn strat_t(r: u32, k: u32, step: f32) -> f32 {
+// Ray r's segment: (near, far), or with prm.clip = 1 [near, far] ∩ box (slab test as the
+// occupancy marcher's), [near, near] when that is empty.
+fn segment(r: u32) -> vec2<f32> {
+    if (prm.clip == 0u) {
+        return vec2<f32>(prm.near, prm.far);
+    }
+    var t0 = -3.4028235e38;
+    var t1 = 3.4028235e38;
+    for (var a = 0u; a < 3u; a++) {
+        let o = origins[3u * r + a];
+        let d = ray_dirs[3u * r + a];
+        if (d == 0.0) {
+            if (!(o >= prm.box_min[a] && o <= prm.box_max[a])) {
+                return vec2<f32>(prm.near, prm.near);
+            }
+        } else {
+            let inv = 1.0 / d;
+            let x = (prm.box_min[a] - o) * inv;
+            let y = (prm.box_max[a] - o) * inv;
+            t0 = max(t0, min(x, y));
+            t1 = min(t1, max(x, y));
+        }
+    }
+    let a = max(prm.near, t0);
+    let b = min(prm.far, t1);
+    if (b > a) {
+        return vec2<f32>(a, b);
+    }
+    return vec2<f32>(prm.near, prm.near);
+}
+
+// t of stratified sample k of a ray with segment starting at a (the CPU's expression, clamped
+// to its bin).
+fn strat_t(r: u32, k: u32, a: f32, step: f32) -> f32 {
     var u = 0.5;
     if (prm.jitter != 0u) {
         u = rand_f32(prm.seed, 0u, r * prm.n_per_ray + k);
     }
-    let a = prm.near;
     return min(a + (f32(k) + u) * step, a + f32(k + 1u) * step);
 }
 
@@ -68,7 +103,7 @@ fn stratified(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     let i = linear_id(gid, nwg, WG);
     let n_rays = counters[0];
     var n = prm.n_per_ray;
-    if (!(prm.far > prm.near)) {
+    if (!(prm.far >= prm.near)) {
         n = 0u;
     }
     if (i <= n_rays) {
@@ -82,11 +117,12 @@ fn stratified(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     }
     let r = i / n;
     let k = i - r * n;
-    let step = (prm.far - prm.near) / f32(n);
-    let t = strat_t(r, k, step);
-    var next = prm.far;
+    let seg = segment(r);
+    let step = (seg.y - seg.x) / f32(n);
+    let t = strat_t(r, k, seg.x, step);
+    var next = seg.y;
     if (k + 1u < n) {
-        next = strat_t(r, k + 1u, step);
+        next = strat_t(r, k + 1u, seg.x, step);
     }
     t_out[i] = t;
     dt_out[i] = max(next - t, 0.0);
@@ -232,9 +268,10 @@ fn hierarchical(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         }
     }
     let n_out = offsets_out[r + 1u] - obase;
+    let far = segment(r).y;
     for (var x = 0u; x < n_out; x++) {
         let t = t_out[obase + x];
-        var next = prm.far;
+        var next = far;
         if (x + 1u < n_out) {
             next = t_out[obase + x + 1u];
         }

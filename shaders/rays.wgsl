@@ -9,6 +9,8 @@
 //   (u, v) = (col + off, row + off), off = 0.5 (pixel centres) or 0 (integer convention);
 //   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
 // Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays).
+// NDC scenes (I.ndc = 1): the ray is then warped as nerf_rays::Ndc::ray_or_miss (nerf-pytorch's
+// ndc_rays, unit direction; a ray with d_z ≥ 0 becomes the miss ray (0, 0, 2) + t·(0, 0, 1)).
 // Background: white, black, or (random) rand_f32(seed, 0x52410006 + c, r) per channel c.
 // Target: rgb·a + (1 − a)·bg (straight alpha, as nerf_data).
 //
@@ -29,6 +31,10 @@ struct RayGenParams {
 struct ImagesInfo {
     n_views: u32,
     format: u32,       // 1 RGBA8, 2 RGBA16
+    ndc: u32,          // 1: warp rays to NDC
+    ndc_near: f32,     // near plane distance n
+    ndc_sx: f32,       // 2·fx / W
+    ndc_sy: f32,       // 2·fy / H
     _p0: u32,
     _p1: u32,
 }
@@ -51,6 +57,19 @@ struct Cam {
 @group(0) @binding(6) var<storage, read_write> out_dirs: array<f32>;
 @group(0) @binding(7) var<storage, read_write> out_target: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_background: array<f32>;
+
+// nerf_rays::Ndc::ray_or_miss: (origin, unit direction) of the NDC ray.
+fn ndc_ray(o_in: vec3<f32>, d: vec3<f32>) -> array<vec3<f32>, 2> {
+    if (!(d.z < 0.0)) {
+        return array<vec3<f32>, 2>(vec3<f32>(0.0, 0.0, 2.0), vec3<f32>(0.0, 0.0, 1.0));
+    }
+    let n = I.ndc_near;
+    let t = -(n + o_in.z) / d.z;
+    let o = o_in + t * d;
+    let on = vec3<f32>(-I.ndc_sx * o.x / o.z, -I.ndc_sy * o.y / o.z, 1.0 + 2.0 * n / o.z);
+    let dn = vec3<f32>(-I.ndc_sx * (d.x / d.z - o.x / o.z), -I.ndc_sy * (d.y / d.z - o.y / o.z), -2.0 * n / o.z);
+    return array<vec3<f32>, 2>(on, normalize(dn));
+}
 
 fn texel(pix: u32) -> vec4<f32> {
     if (I.format == 1u) {
@@ -87,7 +106,7 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         cam.r1.x * dc.x + cam.r1.y * dc.y + cam.r1.z * dc.z,
         cam.r2.x * dc.x + cam.r2.y * dc.y + cam.r2.z * dc.z,
     );
-    let dir = dw * (1.0 / sqrt(dot(dw, dw)));
+    var dir = dw * (1.0 / sqrt(dot(dw, dw)));
     var bg = vec3<f32>(1.0);
     if (P.background == 1u) {
         bg = vec3<f32>(0.0);
@@ -97,7 +116,12 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     let px = texel(cam.size.z + row * w + col);
     let a = px.w;
     let tgt = px.xyz * a + (1.0 - a) * bg;
-    let o = vec3<f32>(cam.r0.w, cam.r1.w, cam.r2.w);
+    var o = vec3<f32>(cam.r0.w, cam.r1.w, cam.r2.w);
+    if (I.ndc != 0u) {
+        let w = ndc_ray(o, dir);
+        o = w[0];
+        dir = w[1];
+    }
     for (var c = 0u; c < 3u; c = c + 1u) {
         out_origins[3u * r + c] = o[c];
         out_dirs[3u * r + c] = dir[c];

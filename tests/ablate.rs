@@ -12,7 +12,7 @@ fn tiny_scene(dir: &Path) -> PathBuf {
     let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
     let dst = dir.join("lego_tiny");
     for (split, n) in [(Split::Train, 3), (Split::Test, 1)] {
-        let ds = load_blender(&src, split, &LoadOptions { downscale: 4, views: ViewSelection::First(n) }).unwrap();
+        let ds = load_blender(&src, split, &LoadOptions { downscale: 4, views: ViewSelection::First(n), ..Default::default() }).unwrap();
         write_blender(&ds, &dst, None).unwrap();
     }
     dst

@@ -30,7 +30,7 @@ fn the_hash_field_learns_fern() {
         return;
     };
     // images_8 box-averaged by 2: 252×189.
-    let opts = |views| LoadOptions { downscale: 16, views };
+    let opts = |views| LoadOptions { downscale: 16, views, ..Default::default() };
     let train = load_scene(&fern, Split::Train, &opts(ViewSelection::All)).unwrap();
     let test = load_scene(&fern, Split::Test, &opts(ViewSelection::All)).unwrap();
     assert_eq!((train.n_views(), test.n_views(), train.width, train.height), (17, 3, 252, 189));

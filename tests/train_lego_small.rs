@@ -12,7 +12,7 @@ fn scene() -> std::path::PathBuf {
 }
 
 fn load(split: Split, views: ViewSelection) -> Dataset {
-    load_blender(&scene(), split, &LoadOptions { downscale: 1, views }).unwrap()
+    load_blender(&scene(), split, &LoadOptions { downscale: 1, views, ..Default::default() }).unwrap()
 }
 
 /// The README demo's config, read from the file the README points at (so this test also keeps

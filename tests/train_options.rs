@@ -22,7 +22,7 @@ fn take_device() -> std::sync::MutexGuard<'static, ()> {
 
 fn load() -> Dataset {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::First(10) }).unwrap()
+    load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::First(10), ..Default::default() }).unwrap()
 }
 
 fn config() -> TrainConfig {
@@ -125,7 +125,7 @@ fn a_gpu_run_never_checkpoints_non_finite_parameters() {
     drop(gpu);
     let train = load();
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    let test = load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1) }).unwrap();
+    let test = load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1), ..Default::default() }).unwrap();
     let c = TrainConfig {
         lr: nerf::optim::LrSchedule::Constant { lr: 1e30 },
         iters: 6,

@@ -10,7 +10,7 @@ use std::path::Path;
 /// The in-repo scene (`scenes/lego_100`, 100×100).
 pub fn load(split: Split, views: ViewSelection) -> Dataset {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, split, &LoadOptions { downscale: 1, views }).unwrap()
+    load_blender(&scene, split, &LoadOptions { downscale: 1, views, ..Default::default() }).unwrap()
 }
 
 /// The hash field's registry preset scaled down: a 2^13-sample batch, a 2^15 table and a 32³

@@ -290,7 +290,7 @@ pub fn run_ablation(
         }
         if !cache.contains_key(&plan.scene) {
             let load = |split, views| {
-                load_blender(&plan.scene, split, &LoadOptions { downscale: s.downscale, views })
+                load_blender(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ..Default::default() })
                     .map_err(|e| AblateError::Scene { path: plan.scene.clone(), message: e.to_string() })
             };
             let train = load(Split::Train, s.train_views.clone())?;

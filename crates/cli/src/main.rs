@@ -70,6 +70,10 @@ struct TrainArgs {
     /// NeRF paper's 504×378 fern).
     #[arg(long)]
     downscale: Option<u32>,
+    /// Forward-facing (LLFF) scenes: Euclidean rays instead of the paper's NDC (nerf-pytorch's
+    /// --no_ndc); eval and render follow the run.
+    #[arg(long = "no-ndc")]
+    no_ndc: bool,
     /// Output folder.
     #[arg(long, default_value = "runs/latest")]
     out: PathBuf,
@@ -220,6 +224,9 @@ fn build_config(a: &TrainArgs) -> Result<TrainConfig> {
     if let Some(x) = a.downscale {
         c.downscale = x;
     }
+    if a.no_ndc {
+        c.ndc = false;
+    }
     if let Some(x) = a.seed {
         c.seed = x;
     }
@@ -236,7 +243,7 @@ fn build_config(a: &TrainArgs) -> Result<TrainConfig> {
 fn cmd_train(a: TrainArgs) -> Result<()> {
     let config = build_config(&a)?;
     let load = |split, views: &ViewSelection| {
-        load_scene(&a.scene, split, &LoadOptions { downscale: config.downscale, views: views.clone() })
+        load_scene(&a.scene, split, &LoadOptions { downscale: config.downscale, views: views.clone(), ndc: config.ndc })
     };
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
@@ -277,7 +284,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let ck_path = a.run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
-    let test = load_scene(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views })?;
+    let test = load_scene(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc })?;
     let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&test), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
@@ -297,7 +304,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     let ck_path = a.run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
-    let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All })?;
+    let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
     let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let mut k = train.cameras[0].intrinsics;
@@ -325,6 +332,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let mut render_seconds = 0.0;
     for (i, cam) in path.iter().enumerate() {
         cam.rays_into(ck.config.pixel_convention, &mut o, &mut d);
+        train.warp_rays(&mut o, &mut d);
         let t = std::time::Instant::now();
         trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
         render_seconds += t.elapsed().as_secs_f64();
@@ -347,7 +355,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         bail!("{}: destination must differ from the source", a.dst.display());
     }
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let ds = load_blender(&a.src, split, &LoadOptions { downscale: a.downscale, views: views.clone() })?;
+        let ds = load_blender(&a.src, split, &LoadOptions { downscale: a.downscale, views: views.clone(), ..Default::default() })?;
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;
         println!("{:?}: {} views at {}x{} -> {}", split, ds.n_views(), ds.width, ds.height, a.dst.display());
     }

@@ -127,6 +127,38 @@ fn an_llff_scene_is_recognised_and_a_missing_image_folder_named() {
 }
 
 #[test]
+fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
+    let Some(fern) = nerf::core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else {
+        eprintln!("NOTICE: ../shared/data/nerf_llff_data/fern is absent; not checked");
+        return;
+    };
+    let d = tempfile::tempdir().unwrap();
+    // images_8 box-averaged by 6: 84×63; two hash steps, one test view.
+    for (flag, space) in [(None, "ndc"), (Some("--no-ndc"), "euclidean")] {
+        let run = d.path().join(space);
+        let mut cmd = nerf();
+        cmd.arg("train").arg(&fern).args(["--field", "hash", "--iters", "2", "--downscale", "48", "--test-views", "first:1"]);
+        cmd.args(["--device", "cpu", "--quiet", "--no-renders"]).arg("--out").arg(&run).args(flag);
+        let o = cmd.output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+        assert_eq!(m["ray_space"], space, "{m}");
+        assert_eq!(m["config"].get("ndc").and_then(|v| v.as_bool()).unwrap_or(true), space == "ndc");
+        // eval loads the scene in the run's ray space: the same PSNR (the other space would give
+        // the field rays it never saw).
+        let o = nerf().arg("eval").arg(&run).arg(&fern).args(["--device", "cpu"]).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let e: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
+        let (a, b) = (m["test_psnr"].as_f64().unwrap(), e["test_psnr"].as_f64().unwrap());
+        assert!((a - b).abs() < 1e-9, "{space}: eval must reproduce the run's PSNR: {a} vs {b}");
+        let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "2", "--width", "32", "--device", "cpu"]).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(run.join("render/frame_0001.png").is_file());
+    }
+}
+
+#[test]
 fn empty_split_is_an_error() {
     let d = tempfile::tempdir().unwrap();
     let s = small_scene(d.path());

@@ -14,7 +14,8 @@
 
 use std::path::{Path, PathBuf};
 
-use nerf_rays::{Aabb, Camera, Intrinsics, PixelConvention};
+use nerf_rays::glam::Vec3;
+use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention, Ray};
 
 pub mod llff;
 pub use llff::{is_llff, load_llff};
@@ -302,14 +303,19 @@ pub struct LoadOptions {
     pub downscale: u32,
     /// Which views of the split to load.
     pub views: ViewSelection,
+    /// Forward-facing (LLFF) scenes in NeRF's normalised device coordinates, as the paper trains
+    /// them ([`Dataset::ndc`]); `false` gives Euclidean rays (nerf-pytorch's `--no_ndc`). Blender
+    /// scenes ignore it.
+    pub ndc: bool,
 }
 
 impl Default for LoadOptions {
-    /// Full resolution, all views.
+    /// Full resolution, all views, NDC for forward-facing scenes.
     fn default() -> Self {
         Self {
             downscale: 1,
             views: ViewSelection::All,
+            ndc: true,
         }
     }
 }
@@ -337,6 +343,14 @@ pub struct Dataset {
     pub far: f32,
     /// Scene bounds (Blender scenes: the cube of half-extent 1.5).
     pub aabb: Aabb,
+    /// The NDC warp of a forward-facing scene: when set, every ray this dataset gives out
+    /// ([`Dataset::sample_rays`], [`Dataset::view_rays`], [`Dataset::warp_rays`]) is the unit NDC
+    /// ray of the camera ray, `near`/`far`/`aabb` are in NDC space, and a ray's segment is its
+    /// part inside `aabb` (`z' ∈ [−1, 1]`: near plane to infinite depth).
+    pub ndc: Option<Ndc>,
+    /// LLFF: the nearest and farthest depth bounds of `poses_bounds.npy`, in the scene's
+    /// (scaled) world units (novel-view paths are focused from them); `None` for Blender scenes.
+    pub depth_bounds: Option<[f32; 2]>,
 }
 
 impl std::fmt::Debug for Dataset {
@@ -350,6 +364,7 @@ impl std::fmt::Debug for Dataset {
             .field("near", &self.near)
             .field("far", &self.far)
             .field("aabb", &self.aabb)
+            .field("ndc", &self.ndc)
             .finish_non_exhaustive()
     }
 }
@@ -421,6 +436,29 @@ impl Dataset {
         self.cameras.len()
     }
 
+    /// A camera ray in this dataset's ray space: unchanged, or its NDC ray ([`Dataset::ndc`]; a
+    /// ray that cannot be warped becomes [`Ndc::MISS`], which renders as background).
+    #[inline]
+    pub fn warp(&self, ray: Ray) -> Ray {
+        match &self.ndc {
+            Some(n) => n.ray_or_miss(ray.origin, ray.dir),
+            None => ray,
+        }
+    }
+
+    /// Puts camera rays (flat `origins` / `dirs`, e.g. from [`Camera::rays_into`] for a novel
+    /// view) into this dataset's ray space in place; a no-op without [`Dataset::ndc`].
+    pub fn warp_rays(&self, origins: &mut [f32], dirs: &mut [f32]) {
+        if self.ndc.is_none() {
+            return;
+        }
+        origins.par_chunks_mut(3).zip(dirs.par_chunks_mut(3)).for_each(|(o, d)| {
+            let r = self.warp(Ray { origin: Vec3::from_slice(o), dir: Vec3::from_slice(d) });
+            o.copy_from_slice(&r.origin.to_array());
+            d.copy_from_slice(&r.dir.to_array());
+        });
+    }
+
     /// Fills `out` (reusing its allocations) with `n` rays drawn uniformly over all pixels of all
     /// views: random view, random pixel, optional sub-pixel jitter (`u, v` uniform over the
     /// pixel's square instead of its position under `conv`; with [`PixelConvention::Integer`]
@@ -476,7 +514,7 @@ impl Dataset {
                         fixed => fixed.fixed_rgb(),
                     };
                     let cam = &self.cameras[view as usize];
-                    let ray = cam.ray_at(u, v);
+                    let ray = self.warp(cam.ray_at(u, v));
                     let pix = row * w + col;
                     let px = &self.images[view as usize][4 * pix as usize..4 * pix as usize + 4];
                     let s = 3 * k..3 * k + 3;
@@ -521,7 +559,7 @@ impl Dataset {
             .enumerate()
             .for_each(|(row, (o, d, t, b, vi, pi))| {
                 for col in 0..w {
-                    let ray = cam.ray(col as u32, row as u32, conv);
+                    let ray = self.warp(cam.ray(col as u32, row as u32, conv));
                     let pix = row * w + col;
                     let s = 3 * col..3 * col + 3;
                     o[s.clone()].copy_from_slice(&ray.origin.to_array());
@@ -900,6 +938,8 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
         near: 2.0,
         far: 6.0,
         aabb: Aabb::cube(1.5),
+        ndc: None,
+        depth_bounds: None,
     })
 }
 

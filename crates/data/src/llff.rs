@@ -10,16 +10,19 @@
 //! - held-out views: every 8th image (`llffhold = 8`) is the test split (and the validation
 //!   split, as in nerf-pytorch); the others are the training split.
 //!
-//! Rays are Euclidean, as nerf-pytorch's `--no_ndc`: `near = 0.9 · min bound`, `far = max bound`
-//! stretched by the largest `|d|` of a camera-space pixel direction `(x, y, −1)`, so that every
-//! pixel's ray reaches the far depth bound; the scene box covers every camera's frustum between
-//! those. The paper's NDC warp is not implemented: the shared ray, sampling and compositing
-//! code and the GPU kernels work in this Euclidean space unchanged.
+//! Rays are in NeRF's normalised device coordinates by default (`LoadOptions::ndc`, the paper's
+//! protocol; [`nerf_rays::Ndc`] with the near plane at `z = −1` and the images' intrinsics):
+//! `near = 0`, the scene box is the NDC hull of every camera's frustum with `z' ∈ [−1, 1]`, and a
+//! ray's segment is its part inside that box (near plane to infinite depth, linear in
+//! disparity). Without NDC (nerf-pytorch's `--no_ndc`) rays are Euclidean: `near = 0.9 · min
+//! bound`, `far = max bound` stretched by the largest `|d|` of a camera-space pixel direction
+//! `(x, y, −1)`, so that every pixel's ray reaches the far depth bound; the scene box covers
+//! every camera's frustum between those.
 
 use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
-use nerf_rays::{Aabb, Camera, Intrinsics};
+use nerf_rays::{Aabb, Camera, Intrinsics, Ndc};
 
 use crate::{DataError, Dataset, LoadOptions, Split};
 
@@ -259,37 +262,59 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         Intrinsics { width: wj as u32, height: hj as u32, fx: f, fy: f, cx: wj as f32 * 0.5, cy: hj as f32 * 0.5 }
             .downscaled(sub);
 
-    // The farthest pixel ray: |(x, y, −1)| at an image corner.
-    let corner = DVec3::new(0.5 * intr.width as f64 / intr.fx as f64, 0.5 * intr.height as f64 / intr.fy as f64, 1.0);
-    let near = 0.9 * near_bound;
-    let far = far_bound * corner.length();
-    let mut lo = DVec3::splat(f64::INFINITY);
-    let mut hi = DVec3::splat(f64::NEG_INFINITY);
-    for p in &poses {
-        lo = lo.min(p.t);
-        hi = hi.max(p.t);
-        for (sx, sy) in [(-1.0, -1.0), (-1.0, 1.0), (1.0, -1.0), (1.0, 1.0)] {
-            let d = p.r * DVec3::new(sx * corner.x, sy * corner.y, -1.0);
-            for depth in [near_bound * 0.9, far_bound] {
-                let q = p.t + d * depth;
-                lo = lo.min(q);
-                hi = hi.max(q);
-            }
-        }
-    }
-    let pad = (hi - lo) * 0.02;
-    let (lo, hi) = ((lo - pad).as_vec3(), (hi + pad).as_vec3());
-
-    let cameras = selected
+    let all_cameras = poses
         .iter()
-        .map(|&i| {
-            let p = &poses[i];
+        .enumerate()
+        .map(|(i, p)| {
             let c2w: Vec<[f32; 4]> = (0..3)
                 .map(|r| [p.r.x_axis[r] as f32, p.r.y_axis[r] as f32, p.r.z_axis[r] as f32, p.t[r] as f32])
                 .collect();
             Camera::from_c2w(intr, &c2w).map_err(|_| DataError::NonFinitePose { path: poses_path.clone(), frame: i })
         })
         .collect::<Result<Vec<_>, _>>()?;
+    let cameras: Vec<Camera> = selected.iter().map(|&i| all_cameras[i]).collect();
+
+    let (near, far, aabb, ndc) = if opts.ndc {
+        // NDC (the paper): near plane z = −1 in the recentred, bd_factor-scaled world; every
+        // ray's segment is its part inside the box, z' ∈ [−1, 1].
+        let ndc = Ndc::new(&intr, Ndc::NEAR_PLANE);
+        let aabb = ndc.scene_box(&all_cameras, 0.05).ok_or_else(|| {
+            bad_poses(&poses_path, "a camera looks away from the scene's mean viewing direction: not a forward-facing capture, so NDC does not apply (train with --no-ndc)")
+        })?;
+        // Longest NDC segment among the corner rays: a far bound the box clip always reaches.
+        let far = all_cameras
+            .iter()
+            .flat_map(|c| {
+                let k = c.intrinsics;
+                [(0.0, 0.0), (k.width as f32, k.height as f32), (0.0, k.height as f32), (k.width as f32, 0.0)]
+                    .map(|(u, v)| ndc.ray_unnormalized(c.position, c.dir_at_unnormalized(u, v)).map_or(0.0, |(_, d)| d.length()))
+            })
+            .fold(0.0f32, f32::max);
+        (0.0f32, 2.0 * far, aabb, Some(ndc))
+    } else {
+        // The farthest pixel ray: |(x, y, −1)| at an image corner.
+        let corner = DVec3::new(0.5 * intr.width as f64 / intr.fx as f64, 0.5 * intr.height as f64 / intr.fy as f64, 1.0);
+        let near = 0.9 * near_bound;
+        let far = far_bound * corner.length();
+        let mut lo = DVec3::splat(f64::INFINITY);
+        let mut hi = DVec3::splat(f64::NEG_INFINITY);
+        for p in &poses {
+            lo = lo.min(p.t);
+            hi = hi.max(p.t);
+            for (sx, sy) in [(-1.0, -1.0), (-1.0, 1.0), (1.0, -1.0), (1.0, 1.0)] {
+                let d = p.r * DVec3::new(sx * corner.x, sy * corner.y, -1.0);
+                for depth in [near_bound * 0.9, far_bound] {
+                    let q = p.t + d * depth;
+                    lo = lo.min(q);
+                    hi = hi.max(q);
+                }
+            }
+        }
+        let pad = (hi - lo) * 0.02;
+        let (lo, hi) = ((lo - pad).as_vec3(), (hi + pad).as_vec3());
+        (near as f32, far as f32, Aabb { min: lo.to_array(), max: hi.to_array() }, None)
+    };
+
     Ok(Dataset {
         root: root.to_path_buf(),
         split,
@@ -298,19 +323,19 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         cameras,
         images,
         file_paths: selected.iter().map(|&i| files[i].clone()).collect(),
-        near: near as f32,
-        far: far as f32,
-        aabb: Aabb { min: lo.to_array(), max: hi.to_array() },
+        near,
+        far,
+        aabb,
+        ndc,
+        depth_bounds: Some([near_bound as f32, far_bound as f32]),
     })
 }
 
 /// The novel-view path nerf-pytorch renders for an LLFF scene: [`nerf_rays::spiral`] about the
 /// cameras of `ds` (its training split), focused as nerf-pytorch does from the depth bounds
-/// (`0.9 · min bound` = `ds.near`, and `5 · max bound`, recovered from `ds.far`), with
-/// `intrinsics` for every frame.
+/// (`0.9 · min bound` and `5 · max bound`, [`Dataset::depth_bounds`]), with `intrinsics` for
+/// every frame. `None` for a scene without depth bounds (not LLFF) or cameras.
 pub fn render_path(ds: &Dataset, intrinsics: Intrinsics, n: usize) -> Option<Vec<Camera>> {
-    let k = ds.cameras.first()?.intrinsics;
-    let corner = DVec3::new(0.5 * k.width as f64 / k.fx as f64, 0.5 * k.height as f64 / k.fy as f64, 1.0).length();
-    let max_bound = ds.far as f64 / corner;
-    nerf_rays::spiral(&ds.cameras, ds.near, (5.0 * max_bound) as f32, intrinsics, n)
+    let [lo, hi] = ds.depth_bounds?;
+    nerf_rays::spiral(&ds.cameras, 0.9 * lo, 5.0 * hi, intrinsics, n)
 }

@@ -61,6 +61,8 @@ fn synthetic(n: usize, w: u32, h: u32, seed: u64) -> Dataset {
         near: 2.0,
         far: 6.0,
         aabb: Aabb::cube(1.5),
+        ndc: None,
+        depth_bounds: None,
     }
 }
 
@@ -68,6 +70,7 @@ fn opts(k: u32, views: ViewSelection) -> LoadOptions {
     LoadOptions {
         downscale: k,
         views,
+        ..Default::default()
     }
 }
 

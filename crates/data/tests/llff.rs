@@ -6,7 +6,8 @@
 use std::path::Path;
 
 use glam::{DMat3, DVec3, Vec3};
-use nerf_data::{load_llff, load_scene, save_png, DataError, Dataset, LoadOptions, Split, ViewSelection};
+use nerf_data::{load_llff, load_scene, save_png, Background, DataError, Dataset, LoadOptions, RayBatch, Split, ViewSelection};
+use nerf_rays::PixelConvention;
 
 /// Writes `rows` (each 17 values) as a C-ordered little-endian f64 `.npy` file (format 1.0).
 fn write_npy(path: &Path, rows: &[[f64; 17]]) {
@@ -68,8 +69,14 @@ fn scene(dir: &Path, rows: &[[f64; 17]], factors: &[u32]) {
     }
 }
 
+/// Euclidean rays (`--no-ndc`): the loader's geometry checked in world units.
 fn opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false }
+}
+
+/// The default: NDC rays.
+fn ndc_opts(k: u32) -> LoadOptions {
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true }
 }
 
 fn poses(ds: &Dataset) -> Vec<(glam::Mat3, Vec3)> {
@@ -138,6 +145,57 @@ fn poses_are_recentred_scaled_and_split_as_nerf_pytorch_does() {
     }
     // load_scene picks the LLFF loader.
     assert_eq!(names(&load_scene(dir.path(), Split::Test, &opts(2)).unwrap()), names(&test));
+}
+
+#[test]
+fn ndc_rays_are_nerf_pytorchs_and_the_box_holds_their_whole_segment() {
+    let dir = tempfile::tempdir().unwrap();
+    scene(dir.path(), &rig(10, DMat3::IDENTITY, DVec3::ZERO, 1.0), &[2]);
+    let euclid = load_llff(dir.path(), Split::Test, &opts(2)).unwrap();
+    let ds = load_llff(dir.path(), Split::Test, &ndc_opts(2)).unwrap();
+    assert!(euclid.ndc.is_none());
+    let ndc = ds.ndc.expect("LLFF loads in NDC by default");
+    // Same cameras; the near plane z = −1 of nerf-pytorch, scales 2f/W and 2f/H.
+    assert_same_poses_only(&ds, &euclid);
+    assert_eq!((ndc.near, ndc.scale_x, ndc.scale_y), (1.0, 2.0 * 30.0 / 32.0, 2.0 * 30.0 / 24.0));
+    assert_eq!(ds.near, 0.0);
+    assert_eq!((ds.aabb.min[2], ds.aabb.max[2]), (-1.0, 1.0));
+    let sc = 1.0 / (2.0 * 0.75);
+    let [lo, hi] = ds.depth_bounds.unwrap();
+    assert!((lo - (2.0 * sc) as f32).abs() < 1e-6 && (hi - (9.0 * sc) as f32).abs() < 1e-5, "{lo} {hi}");
+    // Every pixel's ray is the NDC ray of its camera ray, unit length, starting on z' = −1, and
+    // its part inside the box is its whole NDC segment [0, |d'|] (near plane to infinity).
+    let mut b = RayBatch::default();
+    for v in 0..ds.n_views() {
+        ds.view_rays(v, Background::White, PixelConvention::Center, &mut b);
+        let cam = &ds.cameras[v];
+        for r in 0..b.len() {
+            let (o, d) = (Vec3::from_slice(&b.origins[3 * r..]), Vec3::from_slice(&b.dirs[3 * r..]));
+            let world = cam.ray((r % 32) as u32, (r / 32) as u32, PixelConvention::Center);
+            let (eo, ed) = ndc.ray_unnormalized(world.origin, world.dir).unwrap();
+            assert!(o.abs_diff_eq(eo, 1e-5) && d.abs_diff_eq(ed.normalize(), 1e-5), "view {v} ray {r}");
+            let (t0, t1) = ds.aabb.intersect(o.to_array(), d.to_array()).expect("in the box");
+            assert!(t0 < 1e-5 && (t1 - ed.length()).abs() < 1e-4, "view {v} ray {r}: {t0}..{t1} vs {}", ed.length());
+            // The scene's depth range lies on that segment: the far bound maps inside the box.
+            let p = ndc.point(world.origin + world.dir * (hi / world.dir.dot(-cam.rotation.z_axis)));
+            assert!(ds.aabb.contains(p.to_array()), "{p}");
+        }
+    }
+    // A camera turned away from the others is not a forward-facing capture: NDC is refused with
+    // a message naming the file and the way out; Euclidean rays still load.
+    let mut rows = rig(10, DMat3::IDENTITY, DVec3::ZERO, 1.0);
+    rows[3] = llff_row(DMat3::from_rotation_y(1.7), DVec3::ZERO, [48.0, 64.0, 60.0], [2.0, 9.0]);
+    let bad = tempfile::tempdir().unwrap();
+    scene(bad.path(), &rows, &[2]);
+    let e = load_llff(bad.path(), Split::Train, &ndc_opts(2)).unwrap_err().to_string();
+    assert!(e.contains("poses_bounds.npy") && e.contains("forward-facing") && e.contains("--no-ndc"), "{e}");
+    assert!(load_llff(bad.path(), Split::Train, &opts(2)).is_ok());
+}
+
+fn assert_same_poses_only(a: &Dataset, b: &Dataset) {
+    for (i, ((ra, ta), (rb, tb))) in poses(a).iter().zip(poses(b)).enumerate() {
+        assert!(ra.abs_diff_eq(rb, 1e-6) && ta.abs_diff_eq(tb, 1e-6), "camera {i}");
+    }
 }
 
 #[test]
@@ -253,4 +311,9 @@ fn fern_loads_as_nerf_pytorch_splits_it() {
         assert!(c.rotation.z_axis.dot(Vec3::Z) > 20f32.to_radians().cos(), "{:?}", c.rotation);
         assert!(c.position.length() < 0.5 * train.near, "{}", c.position);
     }
+    // In NDC (the default), every camera's frustum fits the box and the box is not much wider
+    // than the image plane's [−1, 1]² (the cameras are close to the mean one).
+    let ndc = load_scene(&fern, Split::Train, &ndc_opts(8)).unwrap();
+    assert!(ndc.ndc.is_some() && ndc.near == 0.0);
+    assert!(ndc.aabb.min[..2].iter().all(|&v| v > -1.6 && v < -0.9) && ndc.aabb.max[..2].iter().all(|&v| v < 1.6 && v > 0.9), "{:?}", ndc.aabb);
 }

@@ -12,7 +12,7 @@ fn scene() -> PathBuf {
 }
 
 fn load(split: Split, views: ViewSelection) -> Dataset {
-    load_blender(&scene(), split, &LoadOptions { downscale: 1, views }).unwrap()
+    load_blender(&scene(), split, &LoadOptions { downscale: 1, views, ..Default::default() }).unwrap()
 }
 
 /// Trainer defaults ← the field's registry preset, as `nerf train --field voxel` would build it.

@@ -230,7 +230,12 @@ pub(crate) struct PdfParams {
     pub(crate) far: f32,
     pub(crate) jitter: u32,
     pub(crate) seed: u32,
-    pub(crate) _pad: [u32; 3],
+    /// 1: each ray's segment is `[near, far] ∩ box` (`nerf_sampling::clip_segments`).
+    pub(crate) clip: u32,
+    pub(crate) _pad: [u32; 2],
+    /// Box corners (xyz, w unused).
+    pub(crate) box_min: [f32; 4],
+    pub(crate) box_max: [f32; 4],
 }
 
 /// `CompactParams` of `shaders/compact.wgsl` (16 bytes).
@@ -263,6 +268,11 @@ pub struct GpuCamera {
 pub(crate) struct ImagesInfo {
     pub(crate) n_views: u32,
     pub(crate) format: u32,
+    /// 1: rays are warped to NDC (`nerf_rays::Ndc`) with the three fields below.
+    pub(crate) ndc: u32,
+    pub(crate) ndc_near: f32,
+    pub(crate) ndc_scale_x: f32,
+    pub(crate) ndc_scale_y: f32,
     pub(crate) _pad: [u32; 2],
 }
 

@@ -4,7 +4,8 @@
 //!
 //! Both write the packed layout of [`crate::sampling`]: `offsets [R+1]` u32, `positions [S][3]`,
 //! `dirs [S][3]`, `t [S]`, `dt [S]` (δ_i = t_{i+1} − t_i, last δ = far − t_last). Rays come as
-//! `origins [R][3]` and unit `dirs [R][3]`; near/far are scalars (the trainer's dataset bounds).
+//! `origins [R][3]` and unit `dirs [R][3]`; near/far are scalars (the trainer's dataset bounds),
+//! or with `clip_to_box` each ray's `[near, far] ∩ box` (twin: [`nerf_sampling::clip_segments`]).
 //! The number of rays is read on the device from `counters[0]`.
 //!
 //! Random numbers are counter-based ([`crate::rng`]) so the host twins below reproduce them:
@@ -17,6 +18,12 @@ use crate::{shaders, GpuContext, GpuError};
 use crate::layout::{PdfParams};
 
 const WG: u32 = 64;
+
+/// The box fields of [`PdfParams`] (the rest zero).
+fn clip_params(clip: Option<([f32; 3], [f32; 3])>) -> PdfParams {
+    let Some((lo, hi)) = clip else { return PdfParams::default() };
+    PdfParams { clip: 1, box_min: [lo[0], lo[1], lo[2], 0.0], box_max: [hi[0], hi[1], hi[2], 0.0], ..Default::default() }
+}
 
 fn module(ctx: &GpuContext) -> wgpu::ShaderModule {
     ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -44,13 +51,14 @@ pub struct GpuStratified {
     n_samples: usize,
     near: f32,
     far: f32,
+    clip: Option<([f32; 3], [f32; 3])>,
     uniform: wgpu::Buffer,
     kernel: Kernel,
 }
 
 impl GpuStratified {
-    /// `n_samples ≥ 1` per ray between the scalars `near` and `far` (when `!(far > near)` every
-    /// ray gets no samples, as on the CPU). Errors on `n_samples == 0` or non-finite bounds.
+    /// `n_samples ≥ 1` per ray between the scalars `near` and `far` (when `!(far ≥ near)` every
+    /// ray gets no samples, as on the CPU; `far == near` gives zero-length samples). Errors on `n_samples == 0` or non-finite bounds.
     pub fn new(ctx: &GpuContext, n_samples: usize, near: f32, far: f32) -> Result<Self, GpuError> {
         if n_samples == 0 || n_samples > u32::MAX as usize || !near.is_finite() || !far.is_finite() {
             return Err(GpuError::Unsupported(format!(
@@ -62,9 +70,17 @@ impl GpuStratified {
             n_samples,
             near,
             far,
+            clip: None,
             uniform: ctx.uniform("stratified.params", &p),
             kernel: Kernel::from_module(ctx, &module(ctx), "stratified", &[("WG", WG as f64)]),
         })
+    }
+
+    /// Samples each ray's `[near, far] ∩ box` instead (a miss: `[near, near]`, zero-length
+    /// intervals), as [`nerf_sampling::clip_segments`]: NDC scenes.
+    pub fn clip_to_box(mut self, aabb_min: [f32; 3], aabb_max: [f32; 3]) -> Self {
+        self.clip = Some((aabb_min, aabb_max));
+        self
     }
 
     /// Samples per ray.
@@ -93,7 +109,7 @@ impl GpuStratified {
             far: self.far,
             jitter: jitter.is_some() as u32,
             seed: jitter.unwrap_or(0),
-            _pad: [0; 3],
+            ..clip_params(self.clip)
         };
         ctx.write(&self.uniform, 0, &[p]);
         let n = (capacity_rays * self.n_samples).max(capacity_rays + 1);
@@ -121,7 +137,9 @@ impl GpuStratified {
 /// [`nerf_sampling::hierarchical`].
 pub struct GpuHierarchical {
     n_fine: usize,
+    near: f32,
     far: f32,
+    clip: Option<([f32; 3], [f32; 3])>,
     uniform: wgpu::Buffer,
     offsets_kernel: Kernel,
     kernel: Kernel,
@@ -138,11 +156,22 @@ impl GpuHierarchical {
         let p = PdfParams { n_per_ray: n_fine as u32, far, ..Default::default() };
         Ok(Self {
             n_fine,
+            near: 0.0,
             far,
+            clip: None,
             uniform: ctx.uniform("hierarchical.params", &p),
             offsets_kernel: Kernel::from_module(ctx, &m, "hier_offsets", &[("WG", 256.0)]),
             kernel: Kernel::from_module(ctx, &m, "hierarchical", &[("WG", WG as f64)]),
         })
+    }
+
+    /// Closes each ray's last interval at its `[near, far] ∩ box` end instead (`near` on a
+    /// miss), as the CPU's hierarchical pass given [`nerf_sampling::clip_segments`]' far: the
+    /// same box as the coarse pass's [`GpuStratified::clip_to_box`].
+    pub fn clip_to_box(mut self, near: f32, aabb_min: [f32; 3], aabb_max: [f32; 3]) -> Self {
+        self.near = near;
+        self.clip = Some((aabb_min, aabb_max));
+        self
     }
 
     /// Fine samples per ray.
@@ -179,11 +208,11 @@ impl GpuHierarchical {
     ) {
         let p = PdfParams {
             n_per_ray: self.n_fine as u32,
-            near: 0.0,
+            near: self.near,
             far: self.far,
             jitter: jitter.is_some() as u32,
             seed: jitter.unwrap_or(0),
-            _pad: [0; 3],
+            ..clip_params(self.clip)
         };
         ctx.write(&self.uniform, 0, &[p]);
         self.offsets_kernel.record(

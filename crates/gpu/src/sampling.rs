@@ -142,7 +142,16 @@ impl GpuImages {
                 }
             })
             .collect();
-        let info = ImagesInfo { n_views: n_views as u32, format: words_per_pixel as u32, _pad: [0; 2] };
+        let ndc = dataset.ndc.unwrap_or(nerf_rays::Ndc { scale_x: 0.0, scale_y: 0.0, near: 0.0 });
+        let info = ImagesInfo {
+            n_views: n_views as u32,
+            format: words_per_pixel as u32,
+            ndc: dataset.ndc.is_some() as u32,
+            ndc_near: ndc.near,
+            ndc_scale_x: ndc.scale_x,
+            ndc_scale_y: ndc.scale_y,
+            _pad: [0; 2],
+        };
         Ok(Self {
             pixels: ctx.upload("images", &words),
             cameras: ctx.upload("cameras", &cams),
@@ -240,7 +249,7 @@ impl GpuRayGen {
 }
 
 /// CPU twin of [`GpuRayGen`]: `n_rays` rays drawn with [`crate::rng`] on the same streams, each
-/// built with [`nerf_rays::Camera::ray_at`] and composited with `nerf_data`'s rule
+/// built with [`nerf_rays::Camera::ray_at`] (then [`Dataset::warp`]: NDC scenes) and composited with `nerf_data`'s rule
 /// `rgb·a + (1 − a)·bg` (straight alpha). Fills `view_ids` and `pixel_ids` too.
 ///
 /// # Panics
@@ -263,7 +272,7 @@ pub fn ray_batch_cpu(dataset: &Dataset, seed: u32, n_rays: usize, background: Ba
             Background::Random => std::array::from_fn(|c| rng::rand_f32(seed, RAY_STREAM_BACKGROUND + c as u32, r)),
             fixed => fixed.fixed_rgb(),
         };
-        let ray = dataset.cameras[view as usize].ray_at(u, v);
+        let ray = dataset.warp(dataset.cameras[view as usize].ray_at(u, v));
         let pix = row * w + col;
         let px = &dataset.images[view as usize][4 * pix as usize..4 * pix as usize + 4];
         let a = px[3];

@@ -172,9 +172,13 @@ fn stratified_matches_the_cpu() {
             assert_ne!(gpu.t, cpu.t, "jitter moved the samples");
         }
     }
-    // An empty interval gives no samples (as the CPU).
+    // An inverted interval gives no samples (as the CPU); an empty one zero-length samples.
     let (o, d) = rays(5, 10);
     let k = GpuStratified::new(&ctx, 4, 3.0, 3.0).unwrap();
+    let (gpu, count) = run_stratified(&ctx, &k, &o, &d, Some(1));
+    assert_eq!(count, 40);
+    assert!(gpu.t.iter().all(|&t| t == 3.0) && gpu.dt.iter().all(|&dt| dt == 0.0));
+    let k = GpuStratified::new(&ctx, 4, 3.0, 2.5).unwrap();
     let (gpu, count) = run_stratified(&ctx, &k, &o, &d, Some(1));
     assert_eq!(count, 0);
     assert_eq!(gpu.ray_offsets, vec![0; 11]);
@@ -270,5 +274,59 @@ fn hierarchical_matches_the_cpu() {
             let t = &gpu.t[gpu.ray_range(r)];
             assert!(t.windows(2).all(|p| p[0] <= p[1]), "ray {r} not sorted");
         }
+    }
+}
+
+#[test]
+fn samplers_clipped_to_a_box_match_the_cpu_given_clip_segments() {
+    let Some(ctx) = context() else { return };
+    let (lo, hi) = ([-1.0f32, -0.8, -1.0], [1.2f32, 1.0, 1.0]);
+    let (near, far) = (0.0f32, 10.0f32);
+    for (seed, n_rays, n) in [(31u64, 400usize, 32usize), (32, 3, 5)] {
+        let (o, d) = rays(seed, n_rays);
+        let (mut sn, mut sf) = (vec![0.0; n_rays], vec![0.0; n_rays]);
+        nerf_sampling::clip_segments(lo, hi, &o, &d, near, far, &mut sn, &mut sf);
+        if n_rays > 100 {
+            let hits = sn.iter().zip(&sf).filter(|(a, b)| b > a).count();
+            assert!(hits > n_rays / 10 && hits < n_rays, "{hits} of {n_rays} rays cross the box: both cases are covered");
+        }
+        // Coarse: each ray's [near, far] ∩ box.
+        let k = GpuStratified::new(&ctx, n, near, far).unwrap().clip_to_box(lo, hi);
+        let mut cpu = RaySamples::default();
+        stratified(&o, &d, &sn, &sf, n, None, &mut cpu);
+        let (gpu, count) = run_stratified(&ctx, &k, &o, &d, None);
+        assert_eq!(count as usize, n_rays * n);
+        same_samples("clipped centres", &gpu, &cpu, 2e-5);
+        // Samples lie in the box (or, for a miss, are zero-length intervals at near).
+        for r in 0..n_rays {
+            for i in cpu.ray_range(r) {
+                if sf[r] > sn[r] {
+                    assert!((0..3).all(|a| cpu.positions[3 * i + a] >= lo[a] - 1e-4 && cpu.positions[3 * i + a] <= hi[a] + 1e-4));
+                } else {
+                    assert_eq!(cpu.dt[i], 0.0);
+                }
+            }
+        }
+        // Fine: the last interval closes at each ray's clipped far.
+        let (c, w) = coarse(seed, n_rays, 24);
+        let h = GpuHierarchical::new(&ctx, 8, far).unwrap().clip_to_box(near, lo, hi);
+        let cap = h.capacity_samples(n_rays, c.len());
+        let out = out_buffers(&ctx, n_rays, cap);
+        let counters_out = ctx.upload("counters_out", &[u32::MAX; 2]);
+        let bufs = (
+            ctx.upload("counters_in", &[n_rays as u32, c.len() as u32]),
+            ctx.upload("c_off", &c.ray_offsets),
+            ctx.upload("c_t", &c.t),
+            ctx.upload("c_w", &w),
+            ctx.upload("o", &o),
+            ctx.upload("d", &d),
+        );
+        let mut enc = ctx.encoder("hierarchical");
+        h.record(&ctx, &mut enc, &bufs.0, &bufs.1, &bufs.2, &bufs.3, &bufs.4, &bufs.5, None, &counters_out, &out.packed(), n_rays);
+        ctx.queue.submit([enc.finish()]);
+        let gpu = out.read(&ctx, n_rays);
+        let mut cpu = RaySamples::default();
+        hierarchical(&c, &w, &o, &d, &sf, 8, None, &mut cpu);
+        same_fine_samples("clipped fine", &gpu, &cpu, 2e-5);
     }
 }

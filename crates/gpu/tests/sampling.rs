@@ -10,7 +10,7 @@ use nerf_gpu::sampling::{
     ray_batch_cpu, GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples, GpuScan, MarchConfig, PixelFormat, MARCH_STREAM_U,
 };
 use nerf_gpu::{shaders, GpuContext};
-use nerf_rays::{Aabb, Camera, Intrinsics, PixelConvention};
+use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention};
 use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples};
 use rand::Rng as _;
 
@@ -133,6 +133,8 @@ fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset 
         near: 2.0,
         far: 6.0,
         aabb: Aabb::cube(1.5),
+        ndc: None,
+        depth_bounds: None,
     }
 }
 
@@ -195,6 +197,59 @@ fn ray_generation_matches_its_cpu_twin() {
                 assert!(b[..3 * m].iter().any(|&x| x < 0.5) && b[..3 * m].iter().any(|&x| x > 0.5));
             }
         }
+    }
+}
+
+#[test]
+fn ray_generation_in_ndc_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let cap = 2000;
+    for (seed, jitter) in [(21u32, false), (22, true)] {
+        let mut ds = dataset(seed as u64, 4, 17, 11, false);
+        // Forward-facing cameras near the origin looking down −z (small random turns), and one
+        // that looks sideways: its rays that cannot be warped must become the miss ray on both.
+        let mut rng = nerf_core::rng(seed as u64, 1);
+        for (i, cam) in ds.cameras.iter_mut().enumerate() {
+            let a = if i == 3 { 1.4f32 } else { rng.gen_range(-0.2f32..0.2) };
+            let (c, s) = (a.cos(), a.sin());
+            let p = [rng.gen_range(-0.3f32..0.3), rng.gen_range(-0.3f32..0.3), rng.gen_range(-0.2f32..0.2)];
+            let c2w = [[c, 0.0, s, p[0]], [0.0, 1.0, 0.0, p[1]], [-s, 0.0, c, p[2]]];
+            *cam = Camera::from_c2w(cam.intrinsics, &c2w).unwrap();
+        }
+        ds.ndc = Some(Ndc::new(&ds.cameras[0].intrinsics, Ndc::NEAR_PLANE));
+        let images = GpuImages::new(&ctx, &ds).unwrap();
+        let gen = GpuRayGen::new(&ctx, Background::White, PixelConvention::Center, jitter);
+        let nan = vec![f32::NAN; 3 * cap];
+        let rays = GpuRays {
+            origins: ctx.upload("o", &nan),
+            dirs: ctx.upload("d", &nan),
+            target: ctx.upload("t", &nan),
+            background: ctx.upload("b", &nan),
+            capacity: cap,
+        };
+        let counters = ctx.upload("counters", &[cap as u32, 0]);
+        gen.set_seed(&ctx, seed);
+        let mut enc = ctx.encoder("rays");
+        gen.record(&ctx, &mut enc, &counters, &images, &rays);
+        submit(&ctx, enc);
+        let cpu = ray_batch_cpu(&ds, seed, cap, Background::White, PixelConvention::Center, jitter);
+        let (o, d) = (ctx.read_f32(&rays.origins, 3 * cap).unwrap(), ctx.read_f32(&rays.dirs, 3 * cap).unwrap());
+        let (mut warped, mut missed) = (0, 0);
+        for r in 0..cap {
+            let (co, cd) = (&cpu.origins[3 * r..3 * r + 3], &cpu.dirs[3 * r..3 * r + 3]);
+            if co == [0.0, 0.0, 2.0] {
+                missed += 1;
+            } else {
+                warped += 1;
+                assert!((co[2] + 1.0).abs() < 1e-5, "seed {seed}: ray {r} starts on the near plane z' = -1: {co:?}");
+            }
+            for c in 0..3 {
+                // The warp divides by o_z and d_z: a few f32 ulps of values of order 1.
+                assert!((o[3 * r + c] - co[c]).abs() <= 2e-5 * (1.0 + co[c].abs()), "seed {seed}: origin {r}: {:?} vs {co:?}", &o[3 * r..3 * r + 3]);
+                assert!((d[3 * r + c] - cd[c]).abs() <= 2e-5, "seed {seed}: dir {r}: {:?} vs {cd:?}", &d[3 * r..3 * r + 3]);
+            }
+        }
+        assert!(warped > cap / 2 && missed > 0, "seed {seed}: {warped} warped, {missed} missed");
     }
 }
 

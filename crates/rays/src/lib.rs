@@ -10,10 +10,14 @@
 //! - [`PixelConvention`] says where pixel `(col, row)` sits: at its centre `(col + ½, row + ½)`
 //!   (the default, as in instant-ngp and nerfstudio) or at the integer corner `(col, row)`
 //!   (nerf-pytorch).
+//! - [`Ndc`] warps the rays of a forward-facing scene into NeRF's normalised device coordinates.
 //! - [`Ray::dir`] is always unit length; [`Camera::pixel_dir_unnormalized`] gives the
 //!   nerf-pytorch direction whose camera-space z component is −1.
 
+mod ndc;
+
 pub use glam;
+pub use ndc::Ndc;
 use glam::{Mat3, Vec3};
 use serde::{Deserialize, Serialize};
 

@@ -4,6 +4,8 @@
 //!   compositor: flat per-sample arrays (`positions`, `dirs`, `t`, `dt`, `ray_indices`) plus
 //!   `ray_offsets` so that ray `r` owns samples `ray_offsets[r]..ray_offsets[r+1]`.
 //! * [`stratified`] — jittered (or bin-centre) samples in `[near, far]` per ray (NeRF's coarse pass).
+//! * [`clip_segments`] — per-ray `[near, far] ∩ box` for those two (NDC scenes, where segments
+//!   differ from ray to ray).
 //! * [`sample_pdf`] — nerf-pytorch's inverse-CDF sampler for one ray, conventions included.
 //! * [`hierarchical`] — the coarse-to-fine pass over a whole packed batch.
 //! * [`OccupancyGrid`] and [`march`] — Instant-NGP's empty-space skipping: an EMA occupancy grid
@@ -19,9 +21,11 @@ mod occupancy;
 mod packed;
 
 mod pdf;
+mod segment;
 mod stratified;
 
 pub use occupancy::{march, OccupancyGrid, RayMarch, OccupancyGridConfig, DENSITY_CHUNK, MAX_RESOLUTION};
 pub use packed::{compacted_rows, RaySamples};
 pub use pdf::{hierarchical, sample_pdf};
+pub use segment::{clip_segments, segment};
 pub use stratified::stratified;

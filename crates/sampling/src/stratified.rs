@@ -14,8 +14,9 @@ pub(crate) const GRAIN: usize = 16 * 1024;
 /// (`δ_{N−1} = far − t_{N−1}`), so `Σ δ_i = far − t_0`.
 ///
 /// `origins`/`dirs` hold `3·n_rays` values (unit directions), `near`/`far` one value per ray, so
-/// AABB-clipped rays work too. A ray with `!(far > near)` (a miss, or NaN bounds) gets **no
-/// samples**. With `rng`, one `u64` is drawn from it per call and ray `r` uses
+/// AABB-clipped rays work too. A ray with `!(far ≥ near)` (inverted or NaN bounds) gets **no
+/// samples**; an empty segment `far == near` (a miss of [`crate::clip_segments`]) gets `N`
+/// samples of zero length, which composite to nothing (the GPU twin's fixed `N` per ray). With `rng`, one `u64` is drawn from it per call and ray `r` uses
 /// `nerf_core::rng(seed, r)`, so the result does not depend on the number of threads.
 /// `out`'s allocations are reused.
 pub fn stratified(
@@ -34,7 +35,7 @@ pub fn stratified(
     out.ray_offsets.push(0);
     let mut total = 0usize;
     for r in 0..n_rays {
-        if far[r] > near[r] {
+        if far[r] >= near[r] {
             total += n_samples;
         }
         assert!(

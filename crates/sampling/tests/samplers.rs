@@ -144,8 +144,10 @@ fn stratified_skips_missed_rays() {
     let far = [6.0, 3.0, 5.0, 0.5];
     let mut s = RaySamples::default();
     stratified(&o, &d, &near, &far, 4, None, &mut s);
-    assert_eq!(s.ray_offsets, vec![0, 4, 4, 4, 4]);
+    // Inverted and NaN bounds: no samples; an empty segment (a clipped miss): four of length 0.
+    assert_eq!(s.ray_offsets, vec![0, 4, 8, 8, 8]);
     assert!(s.t[..4].iter().all(|&t| (2.0..6.0).contains(&t)));
+    assert!(s.t[4..8].iter().all(|&t| t == 3.0) && s.dt[4..8].iter().all(|&dt| dt == 0.0));
     check_layout(&s, &o, &d, &far);
 }
 
@@ -448,4 +450,20 @@ fn fine_samples_concentrate_where_the_coarse_weights_are() {
     let (fc, ff) = (frac(&coarse), frac(&fine));
     assert!(fc < 0.15, "coarse fraction {fc}");
     assert!(ff > 0.6, "fine fraction {ff} (coarse {fc})");
+}
+
+#[test]
+fn clip_segments_intersects_near_far_with_the_box() {
+    // Along +x from x = −3 through the box [−1, 1]³; along +x at y = 5 (a miss); from inside;
+    // and one whose box exit lies beyond far.
+    let o = [-3.0f32, 0.0, 0.0, -3.0, 5.0, 0.0, 0.5, 0.0, 0.0, -3.0, 0.0, 0.0];
+    let d = [1.0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0];
+    let (mut near, mut far) = (vec![0.0; 4], vec![0.0; 4]);
+    nerf_sampling::clip_segments([-1.0; 3], [1.0; 3], &o, &d, 0.5, 10.0, &mut near, &mut far);
+    assert_eq!((near[0], far[0]), (2.0, 4.0));
+    assert_eq!((near[1], far[1]), (0.5, 0.5), "a miss gets the empty segment at near");
+    assert_eq!((near[2], far[2]), (0.5, 0.5), "from inside: near, then the exit at 0.5 is not past it");
+    nerf_sampling::clip_segments([-1.0; 3], [1.0; 3], &o, &d, 0.0, 3.0, &mut near, &mut far);
+    assert_eq!((near[2], far[2]), (0.0, 0.5));
+    assert_eq!((near[3], far[3]), (2.0, 3.0), "far cuts the box segment");
 }

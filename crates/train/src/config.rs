@@ -134,6 +134,12 @@ pub struct TrainConfig {
     pub seed: u64,
     /// Image downscale factor applied when loading (2 = nerf-pytorch half_res).
     pub downscale: u32,
+    /// Forward-facing (LLFF) scenes are loaded in NeRF's normalised device coordinates (the
+    /// paper's protocol, `nerf_data::LoadOptions::ndc`); `false` = Euclidean rays (nerf-pytorch's
+    /// `--no_ndc`). Blender scenes ignore it. Serialised only when `false`, so the configs (and
+    /// ablation hashes) of runs made before it existed are unchanged.
+    #[serde(skip_serializing_if = "is_true")]
+    pub ndc: bool,
     /// Which test views to evaluate on.
     pub test_views: ViewSelection,
     /// Log (and update the progress bar message) every this many steps.
@@ -172,6 +178,7 @@ impl Default for TrainConfig {
             transmittance_threshold: 0.0,
             seed: 0,
             downscale: 1,
+            ndc: true,
             test_views: ViewSelection::Every(8),
             log_every: 100,
             checkpoint_every: 1000,
@@ -179,6 +186,10 @@ impl Default for TrainConfig {
             gpu_profile: None,
         }
     }
+}
+
+fn is_true(b: &bool) -> bool {
+    *b
 }
 
 impl TrainConfig {

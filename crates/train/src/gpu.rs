@@ -335,11 +335,11 @@ impl GpuEngine {
                 }))
             }
             SamplerConfig::Stratified { n_samples } => {
-                Sampler::Stratified(GpuStratified::new(&ctx, *n_samples, bounds.near, bounds.far).map_err(gerr)?)
+                Sampler::Stratified(clip_coarse(GpuStratified::new(&ctx, *n_samples, bounds.near, bounds.far).map_err(gerr)?, &bounds))
             }
             SamplerConfig::Hierarchical { n_coarse, n_fine } => Sampler::Hierarchical(
-                GpuStratified::new(&ctx, *n_coarse, bounds.near, bounds.far).map_err(gerr)?,
-                Box::new(GpuHierarchical::new(&ctx, *n_fine, bounds.far).map_err(gerr)?),
+                clip_coarse(GpuStratified::new(&ctx, *n_coarse, bounds.near, bounds.far).map_err(gerr)?, &bounds),
+                Box::new(clip_fine(GpuHierarchical::new(&ctx, *n_fine, bounds.far).map_err(gerr)?, &bounds)),
             ),
         };
         let max_rays = capacity_rays.min(MAX_BATCH_RAYS);
@@ -937,6 +937,16 @@ impl GpuEngine {
 }
 
 /// Upper bound on the samples one ray can get from the first stage.
+/// The coarse sampler of an NDC scene takes each ray's segment inside the box.
+fn clip_coarse(s: GpuStratified, b: &SceneBounds) -> GpuStratified {
+    if b.clip_to_box { s.clip_to_box(b.aabb_min, b.aabb_max) } else { s }
+}
+
+/// The fine sampler closes each ray's last interval where the coarse one's segment ends.
+fn clip_fine(s: GpuHierarchical, b: &SceneBounds) -> GpuHierarchical {
+    if b.clip_to_box { s.clip_to_box(b.near, b.aabb_min, b.aabb_max) } else { s }
+}
+
 fn max_samples_per_ray(s: &SamplerConfig) -> usize {
     match *s {
         SamplerConfig::Stratified { n_samples } => n_samples,

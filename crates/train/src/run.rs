@@ -237,6 +237,8 @@ pub fn run(
         "device": trainer.device(),
         "adapter": trainer.adapter(),
         "scene": opts.scene,
+        // Where the rays live: NDC for forward-facing scenes (unless `ndc = false`).
+        "ray_space": if test.ndc.is_some() { "ndc" } else { "euclidean" },
         "iterations": iters,
         "wall_seconds": elapsed,
         "ms_per_iter": if iters > 0 { 1e3 * elapsed / iters as f64 } else { 0.0 },

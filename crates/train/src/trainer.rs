@@ -20,12 +20,29 @@ pub struct SceneBounds {
     pub near: f32,
     /// Far distance along unit rays.
     pub far: f32,
+    /// Stratified and hierarchical sampling take each ray's `[near, far] ∩ box`
+    /// ([`nerf_sampling::clip_segments`]) instead of `[near, far]`: NDC scenes, where the box
+    /// (`z' ∈ [−1, 1]`) gives every ray its NDC segment. The occupancy marcher always clips.
+    pub clip_to_box: bool,
 }
 
 impl SceneBounds {
-    /// The bounds of a loaded dataset.
+    /// The bounds of a loaded dataset (clipped to the box in NDC scenes).
     pub fn of(ds: &Dataset) -> Self {
-        Self { aabb_min: ds.aabb.min, aabb_max: ds.aabb.max, near: ds.near, far: ds.far }
+        Self { aabb_min: ds.aabb.min, aabb_max: ds.aabb.max, near: ds.near, far: ds.far, clip_to_box: ds.ndc.is_some() }
+    }
+
+    /// Per-ray segments into `near`/`far` (resized to the rays): `[near, far]`, clipped to the
+    /// box when [`SceneBounds::clip_to_box`].
+    pub fn segments(&self, origins: &[f32], dirs: &[f32], near: &mut Vec<f32>, far: &mut Vec<f32>) {
+        let n = origins.len() / 3;
+        near.clear();
+        near.resize(n, self.near);
+        far.clear();
+        far.resize(n, self.far);
+        if self.clip_to_box {
+            nerf_sampling::clip_segments(self.aabb_min, self.aabb_max, origins, dirs, self.near, self.far, near, far);
+        }
     }
 }
 
@@ -341,10 +358,7 @@ impl Trainer {
         };
         data.sample_rays(n_rays, cfg.train_background, cfg.pixel_convention, cfg.pixel_jitter, &mut rng, &mut self.batch);
         let n_rays = self.batch.len();
-        self.near.clear();
-        self.near.resize(n_rays, self.bounds.near);
-        self.far.clear();
-        self.far.resize(n_rays, self.bounds.far);
+        self.bounds.segments(&self.batch.origins, &self.batch.dirs, &mut self.near, &mut self.far);
         for f in self.fields.iter_mut() {
             f.zero_grad();
         }
@@ -507,10 +521,7 @@ impl Trainer {
         for r0 in (0..n).step_by(chunk) {
             let r1 = (r0 + chunk).min(n);
             let (o, d, bg) = (&origins[3 * r0..3 * r1], &dirs[3 * r0..3 * r1], &background[3 * r0..3 * r1]);
-            near.clear();
-            near.resize(r1 - r0, self.bounds.near);
-            far.clear();
-            far.resize(r1 - r0, self.bounds.far);
+            self.bounds.segments(o, d, &mut near, &mut far);
             first_stage_samples(&self.config, self.grid.as_ref(), o, d, &near, &far, None, &mut stages[0].samples);
             query_stage(fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
             if let SamplerConfig::Hierarchical { n_fine, .. } = self.config.sampler {
