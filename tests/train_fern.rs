@@ -1,6 +1,6 @@
 //! LLFF end to end: the hash field trained on fern (../shared/data, NeRF's real forward-facing
-//! scene, 17 train and 3 held-out views) learns it on the CPU, and the GPU path (lavapipe in CI)
-//! trains the same scene with its non-cubic box and 4:3 images. Prints a notice and returns where
+//! scene, 17 train and 3 held-out views, in NDC) learns it on the CPU, and the GPU path (lavapipe
+//! in CI) trains the same scene with its 4:3 images as the CPU does. Prints a notice and returns where
 //! the shared data (or, for the GPU part, an adapter) is absent.
 
 use nerf::data::{load_scene, LoadOptions, Split, ViewSelection};
@@ -10,8 +10,8 @@ use std::sync::Arc;
 
 mod common;
 
-/// The hash preset scaled to the CI: 2^14 samples per step, a 64³ grid, 0.02 steps (the box is
-/// ~9 × 6 × 7 scene units), a 2^15 table.
+/// The hash preset scaled to the CI: 2^14 samples per step, a 64³ grid, 0.02 steps (~110 along
+/// an NDC ray), a 2^15 table.
 fn config(iters: u64) -> nerf::train::TrainConfig {
     let mut c = common::small_hash_config(iters, 16, 64);
     c.target_samples_per_step = Some(1 << 14);
@@ -46,24 +46,29 @@ fn the_hash_field_learns_fern() {
     }
     let cpu = evaluate(&t, &test, None, |_, _| {}).unwrap();
     println!("cpu: {untrained:.2} dB untrained, {:.2} dB (SSIM {:.3}) after {} steps", cpu.psnr, cpu.ssim, cfg.iters);
-    // Measured: 19.7 dB after 300 steps, from 12.3 dB untrained (an empty field: the white
-    // background). A wrong pose convention or box stays near the blur of the mean colour.
-    assert!(cpu.psnr > 17.5 && cpu.psnr > untrained + 6.0, "{:.2} dB", cpu.psnr);
+    // Measured: 20.6 dB after 300 steps in NDC (19.7 dB with Euclidean rays), from 12.1 dB
+    // untrained (an empty field: the white background). A wrong pose convention, warp or box
+    // stays near the blur of the mean colour.
+    assert!(cpu.psnr > 18.5 && cpu.psnr > untrained + 7.0, "{:.2} dB", cpu.psnr);
 
     // The GPU (lavapipe takes ~1 s per step here and minutes per full view): fewer, smaller
-    // steps, scored on every 64th pixel of the held-out views. Same initial field as the CPU's.
+    // steps, scored on every 64th pixel of the held-out views against the CPU after the same
+    // steps of the same config (same initial field).
     let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
     let mut cfg = config(40);
     cfg.target_samples_per_step = Some(1 << 13);
+    let mut c = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
     let mut g = Trainer::new_on(cfg.clone(), &registry, bounds, Some(ctx)).unwrap();
     for _ in 0..cfg.iters {
+        c.step(&train).unwrap();
         g.step(&train).unwrap();
     }
     g.finish().unwrap();
-    let gpu = sparse_psnr(&g, &test, 64);
-    println!("gpu: {gpu:.2} dB after {} steps (every 64th pixel)", cfg.iters);
-    // Measured: 16.7 dB after 40 steps of 2^14 samples (12.3 dB untrained).
-    assert!(gpu > untrained + 2.5, "{gpu:.2} dB (untrained {untrained:.2} dB)");
+    let (gpu, cpu40) = (sparse_psnr(&g, &test, 64), sparse_psnr(&c, &test, 64));
+    println!("gpu: {gpu:.2} dB after {} steps (every 64th pixel; cpu {cpu40:.2} dB)", cfg.iters);
+    // Measured: 13.9 dB on the GPU, 13.7 dB on the CPU (12.1 dB untrained); with Euclidean rays
+    // 16.8 and 17.0 dB (NDC starts slower at this batch size and overtakes by 300 steps).
+    assert!((gpu - cpu40).abs() < 1.0 && gpu > untrained + 1.0, "{gpu:.2} dB vs cpu {cpu40:.2} dB (untrained {untrained:.2} dB)");
 }
 
 /// PSNR over every `stride`th pixel of the views of `ds` (white background), rendered by `t`.

@@ -11,6 +11,7 @@
 //! Ray batches ([`RayBatch`]) are flat `f32` arrays (`3·n` per quantity) refilled in place, so the
 //! training loop does not allocate: [`Dataset::sample_rays`] for training (uniform over all pixels
 //! of all views, optional jitter and random backgrounds), [`Dataset::view_rays`] for evaluation.
+//! Forward-facing scenes give their rays in NDC ([`Dataset::ndc`], [`Dataset::warp`]).
 
 use std::path::{Path, PathBuf};
 
