@@ -75,7 +75,7 @@ impl Ndc {
     /// into the scene (`d.z < 0`, finite input) and its origin, moved to the near plane, stays
     /// finite.
     pub fn ray_unnormalized(&self, origin: Vec3, dir: Vec3) -> Option<(Vec3, Vec3)> {
-        if !(dir.z < 0.0) || !origin.is_finite() || !dir.is_finite() {
+        if !origin.is_finite() || !dir.is_finite() || dir.z >= 0.0 {
             return None;
         }
         let t = -(self.near + origin.z) / dir.z;
