@@ -322,3 +322,40 @@ config = {{ target_samples_per_step = {target} }}
     let again = run_ablation(&ablation, &registry, &opts).unwrap();
     assert!(again.runs[0].skipped && again.runs[0].metrics.device_note.as_deref() == Some(note));
 }
+
+#[test]
+fn an_llff_ablation_sweeps_the_ray_space() {
+    let Some(fern) = nerf::core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else {
+        eprintln!("NOTICE: ../shared/data/nerf_llff_data/fern is absent; not checked");
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("fern.toml");
+    // images_8 box-averaged by 6 (84×63), one held-out view, three small hash steps per space.
+    let text = format!(
+        r#"
+scenes = [{:?}]
+downscale = 48
+test_views = "first:1"
+[budget]
+iters = 3
+[[runs]]
+name = "hash"
+config = {{ field = "hash", target_samples_per_step = 4096, field_config = {{ grid = {{ log2_hashmap_size = 12, n_levels = 4 }} }} }}
+[grid]
+ndc = [true, false]
+"#,
+        fern.to_string_lossy()
+    );
+    std::fs::write(&file, text).unwrap();
+    let opts = AblateOptions { out_dir: tmp.path().join("out"), verbose: false, device: nerf::gpu::DevicePreference::Cpu };
+    let report = run_ablation(&Ablation::load(&file).unwrap(), &nerf::registry(), &opts).unwrap();
+    let ids: Vec<&str> = report.runs.iter().map(|r| r.plan.id.as_str()).collect();
+    assert_eq!(ids, ["hash__ndc=true__fern__s0", "hash__ndc=false__fern__s0"]);
+    let psnr: Vec<f64> = report.runs.iter().map(|r| r.metrics.test_psnr).collect();
+    assert!(psnr.iter().all(|p| p.is_finite() && *p > 5.0), "{psnr:?}");
+    // Different ray spaces give the field different inputs: different results.
+    assert_ne!(psnr[0], psnr[1]);
+    let md = read(&tmp.path().join("out/results.md"));
+    assert!(md.contains("| `ndc` |") && md.contains("| hash | fern | 0 | false |"), "{md}");
+}

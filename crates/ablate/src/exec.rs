@@ -3,7 +3,7 @@
 use crate::report::write_summary;
 use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
-use nerf_data::{load_blender, Dataset, LoadOptions, Split};
+use nerf_data::{load_scene, Dataset, LoadOptions, Split};
 use nerf_field::Registry;
 use nerf_train::{evaluate, make_trainer, SceneBounds, TrainConfig, TrainError, Trainer};
 use serde::{Deserialize, Serialize};
@@ -270,7 +270,8 @@ pub fn run_ablation(
     let plans = ablation.plan(registry)?;
     let out = &opts.out_dir;
     let s = &ablation.spec;
-    let mut cache: HashMap<PathBuf, (Dataset, Dataset)> = HashMap::new();
+    // Loaded scenes by folder and ray space (a run's `ndc` picks it for forward-facing scenes).
+    let mut cache: HashMap<(PathBuf, bool), (Dataset, Dataset)> = HashMap::new();
     let mut outcomes = Vec::with_capacity(plans.len());
     let mut diverged = Vec::new();
     for (k, plan) in plans.into_iter().enumerate() {
@@ -288,16 +289,17 @@ pub fn run_ablation(
             outcomes.push(RunOutcome { plan, skipped: true, metrics: m });
             continue;
         }
-        if !cache.contains_key(&plan.scene) {
+        let key = (plan.scene.clone(), plan.config.ndc);
+        if !cache.contains_key(&key) {
             let load = |split, views| {
-                load_blender(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ..Default::default() })
+                load_scene(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ndc: plan.config.ndc })
                     .map_err(|e| AblateError::Scene { path: plan.scene.clone(), message: e.to_string() })
             };
             let train = load(Split::Train, s.train_views.clone())?;
             let test = load(Split::Test, s.test_views.clone())?;
-            cache.insert(plan.scene.clone(), (train, test));
+            cache.insert(key.clone(), (train, test));
         }
-        let (train, test) = &cache[&plan.scene];
+        let (train, test) = &cache[&key];
         if opts.verbose {
             eprintln!("[{}] {} ({}) starting", k + 1, plan.id, plan.config.field);
         }

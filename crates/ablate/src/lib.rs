@@ -5,7 +5,7 @@
 //! # File format (TOML)
 //! ```toml
 //! name = "fields"                      # optional; default: the file stem
-//! scenes = ["../../scenes/lego_100"]   # relative to the file's folder (absolute allowed)
+//! scenes = ["../../scenes/lego_100"]   # Blender or LLFF folders, relative to the file's folder (absolute allowed)
 //! downscale = 1                        # default 1
 //! train_views = "all"                  # all | every:K | first:N (default all)
 //! test_views = "every:3"               # default every:8
@@ -27,6 +27,7 @@
 //! "field_config.grid.n_levels" = [8, 16]
 //! "field_config.grid.log2_hashmap_size" = [15, 19]
 //! ```
+//! LLFF scenes load in NDC unless a run sets `ndc = false` (a grid key too: `ndc = [true, false]`).
 //! Unknown keys are rejected. A run's config is `TrainConfig::default()` ← the field's registry
 //! `train_preset` ← `[base]` ← the run's `config` ← the grid point (merged as JSON with
 //! [`nerf_field::merge_json`]), then `iters` = `budget.iters` (or `u64::MAX`),

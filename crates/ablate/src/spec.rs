@@ -308,6 +308,10 @@ impl Ablation {
         };
         let entry = registry.get(&field).map_err(|e| ctx(e.to_string()))?;
         let mut v = serde_json::to_value(TrainConfig::default()).expect("TrainConfig serialises");
+        // `ndc` is serialised only when off; it still exists for grid keys.
+        if let Value::Object(m) = &mut v {
+            m.entry("ndc").or_insert(Value::Bool(true));
+        }
         merge_json(&mut v, &(entry.train_preset)());
         merge_json(&mut v, &s.base);
         merge_json(&mut v, &run.config);
@@ -648,5 +652,16 @@ mod tests {
         }
         // The run name is not part of the config: renaming keeps the hash.
         assert_eq!(h(&text.replace("name = \"r\"", "name = \"q\""))[0], base[0]);
+    }
+
+    #[test]
+    fn the_ray_space_is_a_grid_key_and_its_default_keeps_old_hashes() {
+        let plans = parse(&format!("{MIN}[grid]\nndc = [true, false]\n")).unwrap().plan(&registry()).unwrap();
+        assert_eq!(plans.iter().map(|p| p.config.ndc).collect::<Vec<_>>(), [true, false]);
+        assert!(plans[0].id.contains("ndc=true") && plans[1].id.contains("ndc=false"), "{}", plans[1].id);
+        // `ndc = true` is the default and is not serialised: the same hash as a file without it.
+        let plain = parse(MIN).unwrap().plan(&registry()).unwrap();
+        assert_eq!(plans[0].config_hash, plain[0].config_hash);
+        assert_ne!(plans[1].config_hash, plain[0].config_hash);
     }
 }
