@@ -142,6 +142,10 @@ struct RenderArgs {
     /// Where to write frame_0000.png, … and render.json (default: `RUN/render`).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Also write depth_0000.png, …: expected depth, near bright and far dark, over the range of
+    /// the first frame's surfaces (1st to 99th percentile; NDC scenes: NDC depth, i.e. disparity).
+    #[arg(long)]
+    depth: bool,
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
@@ -330,6 +334,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let (mut o, mut d) = (Vec::new(), Vec::new());
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
     let mut render_seconds = 0.0;
+    let (mut depth_range, mut gray) = (None, Vec::new());
     for (i, cam) in path.iter().enumerate() {
         cam.rays_into(ck.config.pixel_convention, &mut o, &mut d);
         train.warp_rays(&mut o, &mut d);
@@ -337,12 +342,19 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
         render_seconds += t.elapsed().as_secs_f64();
         nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
+        if a.depth {
+            // One range for the whole path (the first frame with surfaces), so frames compare.
+            depth_range = depth_range.or_else(|| nerf::render::depth_range(&depth, &opacity));
+            nerf::render::depth_to_gray(&depth, &opacity, depth_range.unwrap_or((0.0, 1.0)), &mut gray);
+            nerf::data::save_png(&out.join(format!("depth_{i:04}.png")), k.width, k.height, &gray)?;
+        }
     }
     let fps = a.frames as f64 / render_seconds.max(1e-9);
     let cameras: Vec<_> = path.iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(),
         "frames": a.frames, "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;
     nerf::train::run::write_atomic(&out.join("render.json"), text.as_bytes())?;

@@ -152,9 +152,9 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
             serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
         let (a, b) = (m["test_psnr"].as_f64().unwrap(), e["test_psnr"].as_f64().unwrap());
         assert!((a - b).abs() < 1e-9, "{space}: eval must reproduce the run's PSNR: {a} vs {b}");
-        let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "2", "--width", "32", "--device", "cpu"]).output().unwrap();
+        let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "2", "--width", "32", "--device", "cpu", "--depth"]).output().unwrap();
         assert!(o.status.success(), "{}", stderr(&o));
-        assert!(run.join("render/frame_0001.png").is_file());
+        assert!(run.join("render/frame_0001.png").is_file() && run.join("render/depth_0001.png").is_file());
     }
 }
 

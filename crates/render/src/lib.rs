@@ -17,9 +17,12 @@
 //! The kernels are generic over [`nerf_core::Real`] so that finite-difference gradient checks run
 //! the same code in `f64`. They are allocation-free (outputs are caller-owned and reused), `O(n)`
 //! per ray, and run in parallel over blocks of rays with rayon for large batches.
+//!
+//! [`depth_range`] and [`depth_to_gray`] turn the expected depth into a viewable image.
 
+mod depth;
 
-
+pub use depth::{depth_range, depth_to_gray};
 use nerf_core::Real;
 use nerf_core::par::{cut, for_ray_blocks, SplitAt};
 use rayon::prelude::*;
