@@ -156,6 +156,11 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(run.join("render/frame_0001.png").is_file() && run.join("render/depth_0001.png").is_file());
     }
+    // Resuming in the other ray space is refused, naming the checkpoint.
+    let run = d.path().join("ndc");
+    let o = nerf().arg("train").arg(&fern).args(["--field", "hash", "--iters", "3", "--downscale", "48", "--test-views", "first:1"])
+        .args(["--device", "cpu", "--quiet", "--no-renders", "--resume", "--no-ndc"]).arg("--out").arg(&run).output().unwrap();
+    assert_clean_failure(&o, &["checkpoint.bin", "NDC rays", "without --no-ndc"]);
 }
 
 #[test]

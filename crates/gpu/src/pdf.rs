@@ -58,7 +58,8 @@ pub struct GpuStratified {
 
 impl GpuStratified {
     /// `n_samples ≥ 1` per ray between the scalars `near` and `far` (when `!(far ≥ near)` every
-    /// ray gets no samples, as on the CPU; `far == near` gives zero-length samples). Errors on `n_samples == 0` or non-finite bounds.
+    /// ray gets no samples, as on the CPU; `far == near` gives zero-length samples). Errors on
+    /// `n_samples == 0` or non-finite bounds.
     pub fn new(ctx: &GpuContext, n_samples: usize, near: f32, far: f32) -> Result<Self, GpuError> {
         if n_samples == 0 || n_samples > u32::MAX as usize || !near.is_finite() || !far.is_finite() {
             return Err(GpuError::Unsupported(format!(

@@ -936,7 +936,6 @@ impl GpuEngine {
     }
 }
 
-/// Upper bound on the samples one ray can get from the first stage.
 /// The coarse sampler of an NDC scene takes each ray's segment inside the box.
 fn clip_coarse(s: GpuStratified, b: &SceneBounds) -> GpuStratified {
     if b.clip_to_box { s.clip_to_box(b.aabb_min, b.aabb_max) } else { s }
@@ -947,6 +946,7 @@ fn clip_fine(s: GpuHierarchical, b: &SceneBounds) -> GpuHierarchical {
     if b.clip_to_box { s.clip_to_box(b.near, b.aabb_min, b.aabb_max) } else { s }
 }
 
+/// Upper bound on the samples one ray can get from the first stage.
 fn max_samples_per_ray(s: &SamplerConfig) -> usize {
     match *s {
         SamplerConfig::Stratified { n_samples } => n_samples,

@@ -130,6 +130,16 @@ pub fn run(
                 message: "was written by a run with a different field, field config, sampler or seed".into(),
             });
         }
+        if ck.config.ndc != config.ndc {
+            return Err(TrainError::Checkpoint {
+                path: ck_path,
+                message: format!(
+                    "was trained with {} rays; resume it in the same ray space ({})",
+                    if ck.config.ndc { "NDC" } else { "Euclidean" },
+                    if ck.config.ndc { "without --no-ndc" } else { "with --no-ndc" }
+                ),
+            });
+        }
         trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
         elapsed = ck.elapsed_secs;
         samples_seen = ck.samples_seen;
