@@ -21,3 +21,27 @@ fn rand_f32(seed: u32, stream: u32, i: u32) -> f32 {
 fn linear_id(gid: vec3<u32>, nwg: vec3<u32>, wg: u32) -> u32 {
     return gid.x + gid.y * nwg.x * wg;
 }
+
+// Slab test of the ray o + t·d against the box [lo, hi] (CPU twin: nerf_sampling's slab):
+// (t_enter, t_exit, hit) with t_enter/t_exit starting at ∓3e38; a zero direction component keeps
+// the ray only when o lies between that slab's planes (hit = 0 otherwise). An empty result has
+// t_exit ≤ t_enter.
+fn slab(o: vec3<f32>, d: vec3<f32>, lo: vec3<f32>, hi: vec3<f32>) -> vec3<f32> {
+    var t0 = -3.0e38;
+    var t1 = 3.0e38;
+    var hit = 1.0;
+    for (var a = 0u; a < 3u; a = a + 1u) {
+        if (d[a] == 0.0) {
+            if (!(o[a] >= lo[a] && o[a] <= hi[a])) {
+                hit = 0.0;
+            }
+        } else {
+            let inv = 1.0 / d[a];
+            let x = (lo[a] - o[a]) * inv;
+            let y = (hi[a] - o[a]) * inv;
+            t0 = max(t0, min(x, y));
+            t1 = min(t1, max(x, y));
+        }
+    }
+    return vec3<f32>(t0, t1, hit);
+}

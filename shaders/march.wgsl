@@ -79,26 +79,10 @@ fn setup(r: u32) -> RaySetup {
     var s: RaySetup;
     s.o = vec3<f32>(origins[3u * r], origins[3u * r + 1u], origins[3u * r + 2u]);
     s.d = vec3<f32>(dirs[3u * r], dirs[3u * r + 1u], dirs[3u * r + 2u]);
-    var a0 = -BIG;
-    var a1 = BIG;
-    var hit = true;
-    for (var a = 0u; a < 3u; a = a + 1u) {
-        let o = s.o[a];
-        let d = s.d[a];
-        if (d == 0.0) {
-            if (!(o >= P.aabb_min[a] && o <= P.aabb_max[a])) {
-                hit = false;
-            }
-        } else {
-            let inv = 1.0 / d;
-            let x = (P.aabb_min[a] - o) * inv;
-            let y = (P.aabb_max[a] - o) * inv;
-            a0 = max(a0, min(x, y));
-            a1 = min(a1, max(x, y));
-        }
-    }
-    s.t0 = max(P.near, a0);
-    s.t1 = min(P.far, a1);
+    let box = slab(s.o, s.d, P.aabb_min, P.aabb_max);
+    let hit = box.z != 0.0;
+    s.t0 = max(P.near, box.x);
+    s.t1 = min(P.far, box.y);
     s.u = 0.5;
     if (P.jitter != 0u) {
         s.u = rand_f32(P.seed, 0x4d415243u, r);

@@ -57,31 +57,20 @@ fn write_geometry(r: u32, s: u32, t: f32) {
     }
 }
 
-// Ray r's segment: (near, far), or with prm.clip = 1 [near, far] ∩ box (slab test as the
-// occupancy marcher's), [near, near] when that is empty.
+// Ray r's segment: (near, far), or with prm.clip = 1 [near, far] ∩ box (common.wgsl's slab, as
+// the occupancy marcher's), [near, near] when that is empty.
 fn segment(r: u32) -> vec2<f32> {
     if (prm.clip == 0u) {
         return vec2<f32>(prm.near, prm.far);
     }
-    var t0 = -3.4028235e38;
-    var t1 = 3.4028235e38;
-    for (var a = 0u; a < 3u; a++) {
-        let o = origins[3u * r + a];
-        let d = ray_dirs[3u * r + a];
-        if (d == 0.0) {
-            if (!(o >= prm.box_min[a] && o <= prm.box_max[a])) {
-                return vec2<f32>(prm.near, prm.near);
-            }
-        } else {
-            let inv = 1.0 / d;
-            let x = (prm.box_min[a] - o) * inv;
-            let y = (prm.box_max[a] - o) * inv;
-            t0 = max(t0, min(x, y));
-            t1 = min(t1, max(x, y));
-        }
+    let o = vec3<f32>(origins[3u * r], origins[3u * r + 1u], origins[3u * r + 2u]);
+    let d = vec3<f32>(ray_dirs[3u * r], ray_dirs[3u * r + 1u], ray_dirs[3u * r + 2u]);
+    let box = slab(o, d, prm.box_min.xyz, prm.box_max.xyz);
+    if (box.z == 0.0) {
+        return vec2<f32>(prm.near, prm.near);
     }
-    let a = max(prm.near, t0);
-    let b = min(prm.far, t1);
+    let a = max(prm.near, box.x);
+    let b = min(prm.far, box.y);
     if (b > a) {
         return vec2<f32>(a, b);
     }

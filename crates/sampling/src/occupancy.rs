@@ -491,6 +491,7 @@ impl OccupancyGrid {
 }
 
 /// Clips the ray `o + t·d` to the box: `(t_enter, t_exit)`, empty (`!(exit > enter)`) on a miss.
+/// GPU twin: `slab` in `shaders/common.wgsl`.
 #[inline]
 pub(crate) fn slab(o: [f32; 3], d: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> (f32, f32) {
     let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
