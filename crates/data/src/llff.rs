@@ -281,16 +281,9 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         let aabb = ndc.scene_box(&all_cameras, 0.05).ok_or_else(|| {
             bad_poses(&poses_path, "a camera looks away from the scene's mean viewing direction: not a forward-facing capture, so NDC does not apply (train with --no-ndc)")
         })?;
-        // Longest NDC segment among the corner rays: a far bound the box clip always reaches.
-        let far = all_cameras
-            .iter()
-            .flat_map(|c| {
-                let k = c.intrinsics;
-                [(0.0, 0.0), (k.width as f32, k.height as f32), (0.0, k.height as f32), (k.width as f32, 0.0)]
-                    .map(|(u, v)| ndc.ray_unnormalized(c.position, c.dir_at_unnormalized(u, v)).map_or(0.0, |(_, d)| d.length()))
-            })
-            .fold(0.0f32, f32::max);
-        (0.0f32, 2.0 * far, aabb, Some(ndc))
+        // Any segment inside the box is shorter than its diagonal: a far bound the clip reaches.
+        let far = aabb.extent().iter().map(|e| e * e).sum::<f32>().sqrt();
+        (0.0f32, far, aabb, Some(ndc))
     } else {
         // The farthest pixel ray: |(x, y, −1)| at an image corner.
         let corner = DVec3::new(0.5 * intr.width as f64 / intr.fx as f64, 0.5 * intr.height as f64 / intr.fy as f64, 1.0);
