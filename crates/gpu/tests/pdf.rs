@@ -226,6 +226,33 @@ fn hierarchical_twin(c: &RaySamples, w: &[f32], o: &[f32], d: &[f32], far: f32, 
     s
 }
 
+/// Runs the fine pass over the coarse batch `(c, w)` of rays `(o, d)` with output buffers
+/// poisoned and sized for `cap_rays` rays; checks the counters it writes.
+#[allow(clippy::too_many_arguments)]
+fn run_hierarchical(
+    ctx: &GpuContext,
+    k: &GpuHierarchical,
+    c: &RaySamples,
+    w: &[f32],
+    o: &[f32],
+    d: &[f32],
+    jitter: Option<u32>,
+    cap_rays: usize,
+) -> RaySamples {
+    let n_rays = c.n_rays;
+    let out = out_buffers(ctx, cap_rays, k.capacity_samples(cap_rays, c.len()));
+    let counters_out = ctx.upload("counters_out", &[u32::MAX; 2]);
+    let counters_in = ctx.upload("counters_in", &[n_rays as u32, c.len() as u32]);
+    let (c_off, c_t, c_w) = (ctx.upload("c_off", &c.ray_offsets), ctx.upload("c_t", &c.t), ctx.upload("c_w", w));
+    let (ob, db) = (ctx.upload("o", o), ctx.upload("d", d));
+    let mut enc = ctx.encoder("hierarchical");
+    k.record(ctx, &mut enc, &counters_in, &c_off, &c_t, &c_w, &ob, &db, jitter, &counters_out, &out.packed(), cap_rays);
+    ctx.queue.submit([enc.finish()]);
+    let s = out.read(ctx, n_rays);
+    assert_eq!(ctx.read_u32(&counters_out, 2).unwrap(), vec![n_rays as u32, s.len() as u32]);
+    s
+}
+
 #[test]
 fn hierarchical_matches_the_cpu() {
     let Some(ctx) = context() else { return };
@@ -234,27 +261,7 @@ fn hierarchical_matches_the_cpu() {
         let (c, w) = coarse(seed, n_rays, max_n);
         let (o, d) = rays(seed + 10, n_rays);
         let k = GpuHierarchical::new(&ctx, n_fine, far).unwrap();
-        let cap_rays = n_rays + 2;
-        let cap = k.capacity_samples(cap_rays, c.len());
-        let bufs = (
-            ctx.upload("counters_in", &[n_rays as u32, c.len() as u32]),
-            ctx.upload("c_off", &c.ray_offsets),
-            ctx.upload("c_t", &c.t),
-            ctx.upload("c_w", &w),
-            ctx.upload("o", &o),
-            ctx.upload("d", &d),
-        );
-        let run = |jitter: Option<u32>| {
-            let out = out_buffers(&ctx, cap_rays, cap);
-            let counters_out = ctx.upload("counters_out", &[u32::MAX; 2]);
-            let mut enc = ctx.encoder("hierarchical");
-            k.record(&ctx, &mut enc, &bufs.0, &bufs.1, &bufs.2, &bufs.3, &bufs.4, &bufs.5, jitter, &counters_out, &out.packed(), cap_rays);
-            ctx.queue.submit([enc.finish()]);
-            let s = out.read(&ctx, n_rays);
-            let co = ctx.read_u32(&counters_out, 2).unwrap();
-            assert_eq!(co, vec![n_rays as u32, s.len() as u32]);
-            s
-        };
+        let run = |jitter: Option<u32>| run_hierarchical(&ctx, &k, &c, &w, &o, &d, jitter, n_rays + 2);
         // Deterministic u: the CPU function itself.
         let mut cpu = RaySamples::default();
         hierarchical(&c, &w, &o, &d, &vec![far; n_rays], n_fine, None, &mut cpu);
@@ -310,21 +317,7 @@ fn samplers_clipped_to_a_box_match_the_cpu_given_clip_segments() {
         // Fine: the last interval closes at each ray's clipped far.
         let (c, w) = coarse(seed, n_rays, 24);
         let h = GpuHierarchical::new(&ctx, 8, far).unwrap().clip_to_box(near, lo, hi);
-        let cap = h.capacity_samples(n_rays, c.len());
-        let out = out_buffers(&ctx, n_rays, cap);
-        let counters_out = ctx.upload("counters_out", &[u32::MAX; 2]);
-        let bufs = (
-            ctx.upload("counters_in", &[n_rays as u32, c.len() as u32]),
-            ctx.upload("c_off", &c.ray_offsets),
-            ctx.upload("c_t", &c.t),
-            ctx.upload("c_w", &w),
-            ctx.upload("o", &o),
-            ctx.upload("d", &d),
-        );
-        let mut enc = ctx.encoder("hierarchical");
-        h.record(&ctx, &mut enc, &bufs.0, &bufs.1, &bufs.2, &bufs.3, &bufs.4, &bufs.5, None, &counters_out, &out.packed(), n_rays);
-        ctx.queue.submit([enc.finish()]);
-        let gpu = out.read(&ctx, n_rays);
+        let gpu = run_hierarchical(&ctx, &h, &c, &w, &o, &d, None, n_rays);
         let mut cpu = RaySamples::default();
         hierarchical(&c, &w, &o, &d, &sf, 8, None, &mut cpu);
         same_fine_samples("clipped fine", &gpu, &cpu, 2e-5);

@@ -138,6 +138,18 @@ fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset 
     }
 }
 
+/// Ray buffers for `cap` rays filled with NaN, so a slot the kernel skips fails the comparison.
+fn poisoned_rays(ctx: &GpuContext, cap: usize) -> GpuRays {
+    let nan = vec![f32::NAN; 3 * cap];
+    GpuRays {
+        origins: ctx.upload("o", &nan),
+        dirs: ctx.upload("d", &nan),
+        target: ctx.upload("t", &nan),
+        background: ctx.upload("b", &nan),
+        capacity: cap,
+    }
+}
+
 #[test]
 fn ray_generation_matches_its_cpu_twin() {
     let Some(ctx) = context() else { return };
@@ -155,14 +167,7 @@ fn ray_generation_matches_its_cpu_twin() {
         assert_eq!(images.n_views(), 3);
         assert_eq!(images.format(), if sixteen { PixelFormat::Rgba16 } else { PixelFormat::Rgba8 });
         let gen = GpuRayGen::new(&ctx, bg, conv, jitter);
-        let nan = vec![f32::NAN; 3 * cap];
-        let rays = GpuRays {
-            origins: ctx.upload("o", &nan),
-            dirs: ctx.upload("d", &nan),
-            target: ctx.upload("t", &nan),
-            background: ctx.upload("b", &nan),
-            capacity: cap,
-        };
+        let rays = poisoned_rays(&ctx, cap);
         let counters = ctx.upload("counters", &[n as u32, 0]);
         gen.set_seed(&ctx, seed * 7919);
         let mut enc = ctx.encoder("rays");
@@ -219,14 +224,7 @@ fn ray_generation_in_ndc_matches_its_cpu_twin() {
         ds.ndc = Some(Ndc::new(&ds.cameras[0].intrinsics, Ndc::NEAR_PLANE));
         let images = GpuImages::new(&ctx, &ds).unwrap();
         let gen = GpuRayGen::new(&ctx, Background::White, PixelConvention::Center, jitter);
-        let nan = vec![f32::NAN; 3 * cap];
-        let rays = GpuRays {
-            origins: ctx.upload("o", &nan),
-            dirs: ctx.upload("d", &nan),
-            target: ctx.upload("t", &nan),
-            background: ctx.upload("b", &nan),
-            capacity: cap,
-        };
+        let rays = poisoned_rays(&ctx, cap);
         let counters = ctx.upload("counters", &[cap as u32, 0]);
         gen.set_seed(&ctx, seed);
         let mut enc = ctx.encoder("rays");
