@@ -10,7 +10,7 @@ use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
 use nerf_gpu::encoding::GpuFrequencyEncoding;
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
 use nerf_gpu::linear::{GpuMlp, LinearPath};
-use nerf_gpu::GpuContext;
+use nerf_gpu::{GpuContext, Launch};
 
 /// [`FreqNerf`] on the GPU.
 pub struct GpuFreqNerf {
@@ -128,7 +128,7 @@ impl GpuRadianceField for GpuFreqNerf {
         ctx.profile_part("trunk MLP");
         self.trunk.record_inference(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, cap);
         ctx.profile_part("glue");
-        self.glue.record_density(ctx, enc, s.counters, &self.head, sigma);
+        self.glue.record_density(ctx, enc, s.counters, &self.head, sigma, Launch::direct(cap));
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
@@ -139,7 +139,7 @@ impl GpuRadianceField for GpuFreqNerf {
         self.trunk.record_inference(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, cap);
         ctx.profile_part("frequency encoding + glue");
         self.dir_enc.record_forward(ctx, enc, s.counters, s.dirs, &self.dir, cap);
-        self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in, Launch::direct(cap));
         ctx.profile_part("view MLP");
         self.color.record_inference(ctx, enc, s.counters, &self.color_in, &self.groups[1].params, rgb, cap);
     }
@@ -152,7 +152,7 @@ impl GpuRadianceField for GpuFreqNerf {
         self.trunk.record_forward(ctx, enc, s.counters, &self.pos, &self.groups[0].params, &self.head, &self.trunk_tape, cap);
         ctx.profile_part("frequency encoding + glue");
         self.dir_enc.record_forward(ctx, enc, s.counters, s.dirs, &self.dir, cap);
-        self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.head, &self.dir, sigma, &self.color_in, Launch::direct(cap));
         ctx.profile_part("view MLP");
         self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[1].params, rgb, &self.color_tape, cap);
     }
@@ -163,7 +163,7 @@ impl GpuRadianceField for GpuFreqNerf {
         ctx.profile_part("view MLP");
         self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[1].params, &self.color_tape, d_rgb, &g[1].grads, Some(&self.d_color_in), cap);
         ctx.profile_part("glue");
-        self.glue.record_backward(ctx, enc, s.counters, &self.head, &self.d_color_in, d_sigma, &self.d_head);
+        self.glue.record_backward(ctx, enc, s.counters, &self.head, &self.d_color_in, d_sigma, &self.d_head, Launch::direct(cap));
         ctx.profile_part("trunk MLP");
         self.trunk.record_backward(ctx, enc, s.counters, &self.pos, &g[0].params, &self.trunk_tape, &self.d_head, &g[0].grads, None, cap);
     }

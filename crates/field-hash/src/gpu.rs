@@ -11,7 +11,7 @@ use nerf_gpu::compact::GpuRowGather;
 use nerf_gpu::encoding::{GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
 use nerf_gpu::mlp::{fused_nets, FusedMlpPath, FusedNet};
-use nerf_gpu::GpuContext;
+use nerf_gpu::{DispatchArgs, GpuContext, Launch};
 
 /// [`HashNerf`] on the GPU.
 pub struct GpuHashNerf {
@@ -22,6 +22,8 @@ pub struct GpuHashNerf {
     color: Box<dyn FusedNet>,
     glue: FieldGlue,
     capacity: usize,
+    /// Launches of a batch's kernels for its device-side count (rewritten by each entry point).
+    args: DispatchArgs,
     enc: wgpu::Buffer,
     dout: wgpu::Buffer,
     sh_out: wgpu::Buffer,
@@ -114,6 +116,7 @@ impl GpuHashNerf {
             d_dout,
             d_enc,
             kept: None,
+            args: DispatchArgs::new(ctx, capacity),
             glue,
             grid,
             sh,
@@ -123,28 +126,42 @@ impl GpuHashNerf {
         })
     }
 
+    /// The launch of the batch `s`: its dispatch arguments, recorded for its device-side count.
+    fn launch<'a>(&'a self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: &GpuSamples<'_>) -> Launch<'a> {
+        ctx.profile_part("dispatch arguments");
+        self.args.record(ctx, enc, s.counters, s.launch(self.capacity))
+    }
+
     /// The density query with the encodings written to `encodings` (the field's own buffer, or
     /// the kept encodings of a density pass).
     fn record_density_via(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, encodings: &wgpu::Buffer) {
-        let cap = s.launch(self.capacity);
+        let l = self.launch(ctx, enc, &s);
         ctx.profile_part("hash encoding");
-        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, encodings, cap);
+        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, encodings, l);
         ctx.profile_part("density MLP");
-        self.density.record_inference(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, cap);
+        self.density.record_inference(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, l);
         ctx.profile_part("glue");
-        self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma);
+        self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma, l);
     }
 
     /// The training forward from the encodings already in the field's buffer.
-    fn record_forward_from_encodings(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
-        let cap = s.launch(self.capacity);
+    #[allow(clippy::too_many_arguments)]
+    fn record_forward_from_encodings(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        s: GpuSamples<'_>,
+        sigma: &wgpu::Buffer,
+        rgb: &wgpu::Buffer,
+        l: Launch<'_>,
+    ) {
         ctx.profile_part("density MLP");
-        self.density.record_forward(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, cap);
+        self.density.record_forward(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, l);
         ctx.profile_part("SH + glue");
-        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
-        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
+        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, l);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in, l);
         ctx.profile_part("colour MLP");
-        self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, &self.color_tape, cap);
+        self.color.record_forward(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, &self.color_tape, l);
     }
 }
 
@@ -188,42 +205,42 @@ impl GpuRadianceField for GpuHashNerf {
 
     fn record_forward_rows(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, rows: &wgpu::Buffer, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
         let Some(k) = &self.kept else { return self.record_forward(ctx, enc, s, sigma, rgb) };
-        let cap = s.launch(self.capacity);
+        let l = self.launch(ctx, enc, &s);
         ctx.profile_part("hash encoding (gather)");
-        k.gather.record(ctx, enc, s.counters, rows, &k.enc, &self.enc, cap);
-        self.record_forward_from_encodings(ctx, enc, s, sigma, rgb);
+        k.gather.record(ctx, enc, s.counters, rows, &k.enc, &self.enc, l);
+        self.record_forward_from_encodings(ctx, enc, s, sigma, rgb, l);
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
-        let cap = s.launch(self.capacity);
+        let l = self.launch(ctx, enc, &s);
         ctx.profile_part("hash encoding");
-        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
+        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, l);
         ctx.profile_part("density MLP");
-        self.density.record_inference(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, cap);
+        self.density.record_inference(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, l);
         ctx.profile_part("SH + glue");
-        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, cap);
-        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in);
+        self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, l);
+        self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in, l);
         ctx.profile_part("colour MLP");
-        self.color.record_inference(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, cap);
+        self.color.record_inference(ctx, enc, s.counters, &self.color_in, &self.groups[2].params, rgb, l);
     }
 
     fn record_forward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {
-        let cap = s.launch(self.capacity);
+        let l = self.launch(ctx, enc, &s);
         ctx.profile_part("hash encoding");
-        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, cap);
-        self.record_forward_from_encodings(ctx, enc, s, sigma, rgb);
+        self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, l);
+        self.record_forward_from_encodings(ctx, enc, s, sigma, rgb, l);
     }
 
     fn record_backward(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_sigma: &wgpu::Buffer, d_rgb: &wgpu::Buffer) {
-        let cap = s.launch(self.capacity);
+        let l = self.launch(ctx, enc, &s);
         let g = &self.groups;
         ctx.profile_part("colour MLP");
-        self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[2].params, &self.color_tape, d_rgb, &g[2].grads, Some(&self.d_color_in), cap);
+        self.color.record_backward(ctx, enc, s.counters, &self.color_in, &g[2].params, &self.color_tape, d_rgb, &g[2].grads, Some(&self.d_color_in), l);
         ctx.profile_part("glue");
-        self.glue.record_backward(ctx, enc, s.counters, &self.dout, &self.d_color_in, d_sigma, &self.d_dout);
+        self.glue.record_backward(ctx, enc, s.counters, &self.dout, &self.d_color_in, d_sigma, &self.d_dout, l);
         ctx.profile_part("density MLP");
-        self.density.record_backward(ctx, enc, s.counters, &self.enc, &g[1].params, &self.density_tape, &self.d_dout, &g[1].grads, Some(&self.d_enc), cap);
+        self.density.record_backward(ctx, enc, s.counters, &self.enc, &g[1].params, &self.density_tape, &self.d_dout, &g[1].grads, Some(&self.d_enc), l);
         ctx.profile_part("hash encoding");
-        self.grid.record_backward(ctx, enc, s.counters, s.positions, &self.d_enc, &g[0].grads, cap);
+        self.grid.record_backward(ctx, enc, s.counters, s.positions, &self.d_enc, &g[0].grads, l);
     }
 }

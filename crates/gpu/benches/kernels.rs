@@ -56,10 +56,10 @@ fn kernels(c: &mut Criterion) {
     let feat = ctx.zeros("features", 4 * n * grid.output_dim());
     let d_feat = ctx.upload("d features", &random(n * grid.output_dim(), -1.0, 1.0, 3));
     g.bench_function(BenchmarkId::new("hash_grid_forward", n), |b| {
-        b.iter(|| run(&ctx, |e| grid.record_forward(&ctx, e, &counters, &pos, &params, &feat, n)))
+        b.iter(|| run(&ctx, |e| grid.record_forward(&ctx, e, &counters, &pos, &params, &feat, n.into())))
     });
     g.bench_function(BenchmarkId::new("hash_grid_backward", n), |b| {
-        b.iter(|| run(&ctx, |e| grid.record_backward(&ctx, e, &counters, &pos, &d_feat, &grads, n)))
+        b.iter(|| run(&ctx, |e| grid.record_backward(&ctx, e, &counters, &pos, &d_feat, &grads, n.into())))
     });
 
     // The hash field's fused MLPs.
@@ -83,13 +83,13 @@ fn kernels(c: &mut Criterion) {
         let dy = ctx.upload("dy", &random(n * cfg.output_dim, -1.0, 1.0, 6));
         let dx = ctx.zeros("dx", 4 * n * cfg.input_dim);
         g.bench_function(BenchmarkId::new(format!("fused_mlp_{name}_forward"), n), |b| {
-            b.iter(|| run(&ctx, |e| net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n)))
+            b.iter(|| run(&ctx, |e| net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n.into())))
         });
         g.bench_function(BenchmarkId::new(format!("fused_mlp_{name}_forward_backward"), n), |b| {
             b.iter(|| {
                 run(&ctx, |e| {
-                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n);
-                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, Some(&dx), n);
+                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n.into());
+                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, Some(&dx), n.into());
                 })
             })
         });
@@ -107,13 +107,13 @@ fn kernels(c: &mut Criterion) {
             let dy = ctx.upload("dy", &random(n * cfg.output_dim, -1.0, 1.0, 6));
             let dx = ctx.zeros("dx", 4 * n * cfg.input_dim);
             g.bench_function(BenchmarkId::new(format!("fused_mlp_coop_{name}_forward"), n), |b| {
-                b.iter(|| run(&ctx, |e| net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n)))
+                b.iter(|| run(&ctx, |e| net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n.into())))
             });
             g.bench_function(BenchmarkId::new(format!("fused_mlp_coop_{name}_forward_backward"), n), |b| {
                 b.iter(|| {
                     run(&ctx, |e| {
-                        net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n);
-                        net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, Some(&dx), n);
+                        net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n.into());
+                        net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, Some(&dx), n.into());
                     })
                 })
             });
@@ -148,8 +148,8 @@ fn kernels(c: &mut Criterion) {
         g.bench_function(BenchmarkId::new(name, m), |b| {
             b.iter(|| {
                 run(&ctx, |e| {
-                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, m);
-                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, None, m);
+                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, m.into());
+                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, None, m.into());
                 })
             })
         });

@@ -4,6 +4,7 @@
 //! training forward and backward run. Kernels in `shaders/compact.wgsl`; CPU twins
 //! `nerf_render::composited_counts` and `nerf_sampling::RaySamples::compact_into`.
 
+use crate::dispatch::Launch;
 use crate::kernel::{groups_1d, Kernel};
 use crate::layout::{CompactParams, COUNTER_N_RAYS};
 use crate::sampling::{GpuSamples, GpuScan};
@@ -137,8 +138,8 @@ impl GpuRowGather {
     }
 
     /// Records `dst[b][..] = src[rows[b]][..]` for `b < counters[1]` (counters as a compaction's
-    /// `out_counters`); `rows` and `dst` hold `capacity` rows, every `rows[b]` indexes a row of
-    /// `src`.
+    /// `out_counters`); `rows` and `dst` hold `launch.capacity()` rows, every `rows[b]` indexes a
+    /// row of `src`.
     #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
@@ -148,12 +149,14 @@ impl GpuRowGather {
         rows: &wgpu::Buffer,
         src: &wgpu::Buffer,
         dst: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         let floats = capacity * self.row_floats;
         assert!(floats < u32::MAX as usize, "GpuRowGather: {capacity} rows of {} floats overflow u32 indices", self.row_floats);
         assert!(rows.size() >= 4 * capacity as u64, "GpuRowGather: rows hold fewer than {capacity} entries");
         assert!(dst.size() >= 4 * floats as u64, "GpuRowGather: dst holds fewer than {capacity} rows");
-        self.kernel.record(ctx, enc, &[(10, counters), (16, rows), (17, src), (18, dst)], groups_1d(floats, WG));
+        let b = [(10, counters), (16, rows), (17, src), (18, dst)];
+        launch.record(&self.kernel, ctx, enc, &b, self.row_floats as u32, WG, 1);
     }
 }

@@ -9,6 +9,7 @@
 //! launches cover a host-known `capacity` and the invocations past `n` return. All arrays are
 //! row-major `f32`, laid out as on the CPU.
 
+use crate::dispatch::Launch;
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_encoding::{FrequencyEncodingConfig, HashGrid, HashGridConfig, ShConfig};
@@ -231,14 +232,9 @@ impl GpuHashGrid {
         &self.params
     }
 
-    fn groups(&self, capacity: usize) -> [u32; 3] {
-        let [x, y, _] = groups_1d(capacity, HASH_WG);
-        [x, y, self.n_levels() as u32]
-    }
-
     /// Records the forward: `features[i][l·F + j]` for the `n = counters[1]` samples of
     /// `positions` (`[n][3]`, world units), reading `params` (`n_params()` f32). Buffers hold at
-    /// least `capacity` samples; `n ≤ capacity`.
+    /// least `launch.capacity()` samples; `n ≤` that.
     #[allow(clippy::too_many_arguments)]
     pub fn record_forward(
         &self,
@@ -248,8 +244,9 @@ impl GpuHashGrid {
         positions: &wgpu::Buffer,
         params: &wgpu::Buffer,
         features: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         assert!(positions.size() >= 12 * capacity as u64, "GpuHashGrid: positions hold fewer than {capacity} samples");
         assert!(
             features.size() >= 4 * (capacity * self.output_dim()) as u64,
@@ -258,7 +255,7 @@ impl GpuHashGrid {
         );
         assert!(params.size() >= 4 * self.n_params() as u64, "GpuHashGrid: params hold fewer than {} floats", self.n_params());
         let b = [(0, &self.uniform), (1, counters), (2, positions), (3, params), (4, features)];
-        self.forward.record(ctx, enc, &b, self.groups(capacity));
+        launch.record(&self.forward, ctx, enc, &b, 1, HASH_WG, self.n_levels() as u32);
     }
 
     /// Records the backward: ADDS dL/dparams to `grads` (`n_params()` f32, the params' layout)
@@ -274,8 +271,9 @@ impl GpuHashGrid {
         positions: &wgpu::Buffer,
         d_features: &wgpu::Buffer,
         grads: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         assert!(positions.size() >= 12 * capacity as u64, "GpuHashGrid: positions hold fewer than {capacity} samples");
         assert!(
             d_features.size() >= 4 * (capacity * self.output_dim()) as u64,
@@ -285,7 +283,7 @@ impl GpuHashGrid {
         assert!(grads.size() >= 4 * self.n_params() as u64, "GpuHashGrid: grads hold fewer than {} floats", self.n_params());
         let slot = if self.float_atomics { 7 } else { 6 };
         let b = [(0, &self.uniform), (1, counters), (2, positions), (5, d_features), (slot, grads)];
-        self.backward.record(ctx, enc, &b, self.groups(capacity));
+        launch.record(&self.backward, ctx, enc, &b, 1, HASH_WG, self.n_levels() as u32);
     }
 }
 
@@ -319,7 +317,7 @@ impl GpuSphericalHarmonics {
     }
 
     /// Records the encoding of the `n = counters[1]` directions of `dirs` (`[n][3]`) into `out`
-    /// (`[n][degree²]`); both hold at least `capacity` samples.
+    /// (`[n][degree²]`); both hold at least `launch.capacity()` samples.
     pub fn record_forward(
         &self,
         ctx: &GpuContext,
@@ -327,15 +325,16 @@ impl GpuSphericalHarmonics {
         counters: &wgpu::Buffer,
         dirs: &wgpu::Buffer,
         out: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         assert!(dirs.size() >= 12 * capacity as u64, "GpuSphericalHarmonics: dirs hold fewer than {capacity} samples");
         assert!(
             out.size() >= 4 * (capacity * self.output_dim()) as u64,
             "GpuSphericalHarmonics: out holds fewer than {capacity}·{} floats",
             self.output_dim()
         );
-        self.kernel.record(ctx, enc, &[(0, counters), (1, dirs), (2, out)], groups_1d(capacity, ENC_WG));
+        launch.record(&self.kernel, ctx, enc, &[(0, counters), (1, dirs), (2, out)], 1, ENC_WG, 1);
     }
 }
 

@@ -1,7 +1,8 @@
 //! [`FieldGlue`]: the kernels of `shaders/field_glue.wgsl` that join a field's density network, its
 //! σ activation and its colour network (used by the hash-grid and the paper's field).
 
-use crate::kernel::{groups_1d, Kernel};
+use crate::dispatch::Launch;
+use crate::kernel::Kernel;
 use crate::{shaders, GpuContext};
 pub use crate::layout::{GlueParams};
 
@@ -55,6 +56,11 @@ impl FieldGlue {
         }
     }
 
+    /// The launch of a batch of `launch`'s samples (at most the glue's capacity).
+    fn check(&self, launch: &Launch<'_>) {
+        assert!(launch.capacity() <= self.capacity, "FieldGlue: a batch of {} samples for a glue made for {}", launch.capacity(), self.capacity);
+    }
+
     /// σ and the colour input from the density outputs and the direction encoding.
     #[allow(clippy::too_many_arguments)]
     pub fn record_assemble(
@@ -66,18 +72,25 @@ impl FieldGlue {
         dir_enc: &wgpu::Buffer,
         sigma: &wgpu::Buffer,
         color_in: &wgpu::Buffer,
+        launch: Launch<'_>,
     ) {
-        self.assemble.record(
-            ctx,
-            enc,
-            &[(0, &self.params), (1, counters), (2, dout), (3, dir_enc), (4, sigma), (5, color_in)],
-            groups_1d(self.capacity, 64),
-        );
+        self.check(&launch);
+        let b = [(0, &self.params), (1, counters), (2, dout), (3, dir_enc), (4, sigma), (5, color_in)];
+        launch.record(&self.assemble, ctx, enc, &b, 1, 64, 1);
     }
 
     /// σ only.
-    pub fn record_density(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, counters: &wgpu::Buffer, dout: &wgpu::Buffer, sigma: &wgpu::Buffer) {
-        self.density_only.record(ctx, enc, &[(0, &self.params), (1, counters), (2, dout), (4, sigma)], groups_1d(self.capacity, 64));
+    pub fn record_density(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        dout: &wgpu::Buffer,
+        sigma: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        self.check(&launch);
+        launch.record(&self.density_only, ctx, enc, &[(0, &self.params), (1, counters), (2, dout), (4, sigma)], 1, 64, 1);
     }
 
     /// dL/d(density outputs) from dL/dσ and dL/d(colour input); `dout` is the forward's.
@@ -91,12 +104,10 @@ impl FieldGlue {
         d_color_in: &wgpu::Buffer,
         d_sigma: &wgpu::Buffer,
         d_dout: &wgpu::Buffer,
+        launch: Launch<'_>,
     ) {
-        self.backward.record(
-            ctx,
-            enc,
-            &[(0, &self.params), (1, counters), (2, dout), (6, d_color_in), (7, d_sigma), (8, d_dout)],
-            groups_1d(self.capacity, 64),
-        );
+        self.check(&launch);
+        let b = [(0, &self.params), (1, counters), (2, dout), (6, d_color_in), (7, d_sigma), (8, d_dout)];
+        launch.record(&self.backward, ctx, enc, &b, 1, 64, 1);
     }
 }

@@ -8,6 +8,7 @@
 
 pub mod compact;
 pub mod composite;
+pub mod dispatch;
 pub mod encoding;
 pub mod glue;
 pub mod kernel;
@@ -24,6 +25,7 @@ pub mod sampling;
 pub mod shaders;
 
 pub use composite::{CompositeGrads, CompositeOutputs, Compositor, TrainGlue};
+pub use dispatch::{DispatchArgs, Launch};
 pub use kernel::{groups_1d, Kernel};
 
 use std::str::FromStr;
@@ -136,6 +138,9 @@ pub struct GpuContext {
     pub info: wgpu::AdapterInfo,
     /// Detected features (those requested from the device).
     pub features: GpuFeatures,
+    /// Whether per-sample kernels are launched from device-written arguments
+    /// ([`dispatch::DispatchArgs`]); off under `NERF_NO_INDIRECT` (for A/B timing).
+    pub indirect_dispatch: bool,
     /// The pass timer of [`profile`] (made on first use).
     profiler: std::sync::Mutex<Option<profile::Recorder>>,
 }
@@ -152,7 +157,15 @@ impl GpuContext {
         if pref == DevicePreference::Cpu {
             return Ok(None);
         }
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
+        // wgpu checks the arguments of every indirect dispatch with a dispatch of its own (and two
+        // barriers) unless told not to; ours come from `shaders/dispatch.wgsl`, which keeps them
+        // within the per-dimension limit (tested against its CPU twin). WGPU_VALIDATION_INDIRECT_CALL
+        // turns the check back on.
+        if std::env::var_os("WGPU_VALIDATION_INDIRECT_CALL").is_none() {
+            desc.flags.remove(wgpu::InstanceFlags::VALIDATION_INDIRECT_CALL);
+        }
+        let instance = wgpu::Instance::new(desc);
         let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
             force_fallback_adapter: false,
@@ -199,7 +212,8 @@ impl GpuContext {
             trace: wgpu::Trace::Off,
         }))
         .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
-        Ok(Some(Self { device, queue, info, features, profiler: Default::default() }))
+        let indirect_dispatch = std::env::var_os("NERF_NO_INDIRECT").is_none();
+        Ok(Some(Self { device, queue, info, features, indirect_dispatch, profiler: Default::default() }))
     }
 
     /// For tests and benches: any adapter (software ones such as lavapipe included, the

@@ -6,11 +6,13 @@
 //! Parameters and gradients are caller-owned f32 storage buffers in exactly the CPU layout (layer by
 //! layer: `W` `out × fan_in` row-major, then `b`), so [`nerf_mlp::Mlp::params`] uploads as is. The
 //! number of samples of a call is read on the device from `counters[COUNTER_N_SAMPLES]` (slot 1);
-//! launches are sized for a host-known `capacity ≥ n`. Every `record_*` only records into the caller's
+//! launches cover either a host-known `capacity ≥ n` or, from a [`crate::DispatchArgs`] table,
+//! exactly the tiles of n ([`Launch`]). Every `record_*` only records into the caller's
 //! encoder (no submission, no read-back, no buffer creation besides its bind groups).
 
+use crate::dispatch::Launch;
 use crate::kernel::Kernel;
-use crate::{groups_1d, shaders, GpuContext, GpuError};
+use crate::{shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, MlpConfig};
 pub use crate::layout::{MlpParams, MlpLayerDesc};
 
@@ -232,12 +234,8 @@ impl FusedMlp {
         self.check("params", params, self.n_params);
     }
 
-    fn tile_groups(capacity: usize) -> [u32; 3] {
-        groups_1d(capacity, TILE as u32)
-    }
-
     /// Records inference: `output [n][output_dim] = mlp(input [n][input_dim])`, n = `counters[1]` ≤
-    /// `capacity`. Writes only the first n rows of `output`.
+    /// `launch.capacity()`. Writes only the first n rows of `output`.
     #[allow(clippy::too_many_arguments)]
     pub fn record_inference(
         &self,
@@ -247,11 +245,13 @@ impl FusedMlp {
         input: &wgpu::Buffer,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
-        self.forward.record(
+        launch.record(
+            &self.forward,
             ctx,
             enc,
             &[
@@ -263,7 +263,9 @@ impl FusedMlp {
                 (5, output),
                 (6, &self.dummy),
             ],
-            Self::tile_groups(capacity),
+            1,
+            TILE as u32,
+            1,
         );
     }
 
@@ -279,12 +281,14 @@ impl FusedMlp {
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
         tape: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
         self.check("tape", tape, capacity * self.fps);
-        self.forward.record(
+        launch.record(
+            &self.forward,
             ctx,
             enc,
             &[
@@ -296,7 +300,9 @@ impl FusedMlp {
                 (5, output),
                 (6, tape),
             ],
-            Self::tile_groups(capacity),
+            1,
+            TILE as u32,
+            1,
         );
     }
 
@@ -322,8 +328,9 @@ impl FusedMlp {
         d_output: &wgpu::Buffer,
         grads: &wgpu::Buffer,
         d_input: Option<&wgpu::Buffer>,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("tape", tape, capacity * self.fps);
         self.check("d_output", d_output, capacity * self.config.output_dim);
@@ -335,7 +342,8 @@ impl FusedMlp {
             Some(d) => (&self.u_dx, d),
             None => (&self.u_plain, &self.dummy),
         };
-        self.backward.record(
+        launch.record(
+            &self.backward,
             ctx,
             enc,
             &[
@@ -347,7 +355,9 @@ impl FusedMlp {
                 (7, d_output),
                 (8, dx),
             ],
-            Self::tile_groups(capacity),
+            1,
+            TILE as u32,
+            1,
         );
         self.wgrad.record(
             ctx,
@@ -393,7 +403,7 @@ pub trait FusedNet: Send + Sync {
         input: &wgpu::Buffer,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     );
     /// Training forward (stores the tape).
     fn record_forward(
@@ -405,7 +415,7 @@ pub trait FusedNet: Send + Sync {
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
         tape: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     );
     /// Backward of the last training forward: gradients accumulated, `d_input` written.
     fn record_backward(
@@ -419,7 +429,7 @@ pub trait FusedNet: Send + Sync {
         d_output: &wgpu::Buffer,
         grads: &wgpu::Buffer,
         d_input: Option<&wgpu::Buffer>,
-        capacity: usize,
+        launch: Launch<'_>,
     );
 }
 
@@ -440,9 +450,9 @@ macro_rules! impl_fused_net {
                 input: &wgpu::Buffer,
                 params: &wgpu::Buffer,
                 output: &wgpu::Buffer,
-                capacity: usize,
+                launch: Launch<'_>,
             ) {
-                <$t>::record_inference(self, ctx, enc, counters, input, params, output, capacity)
+                <$t>::record_inference(self, ctx, enc, counters, input, params, output, launch)
             }
             fn record_forward(
                 &self,
@@ -453,9 +463,9 @@ macro_rules! impl_fused_net {
                 params: &wgpu::Buffer,
                 output: &wgpu::Buffer,
                 tape: &wgpu::Buffer,
-                capacity: usize,
+                launch: Launch<'_>,
             ) {
-                <$t>::record_forward(self, ctx, enc, counters, input, params, output, tape, capacity)
+                <$t>::record_forward(self, ctx, enc, counters, input, params, output, tape, launch)
             }
             fn record_backward(
                 &self,
@@ -468,9 +478,9 @@ macro_rules! impl_fused_net {
                 d_output: &wgpu::Buffer,
                 grads: &wgpu::Buffer,
                 d_input: Option<&wgpu::Buffer>,
-                capacity: usize,
+                launch: Launch<'_>,
             ) {
-                <$t>::record_backward(self, ctx, enc, counters, input, params, tape, d_output, grads, d_input, capacity)
+                <$t>::record_backward(self, ctx, enc, counters, input, params, tape, d_output, grads, d_input, launch)
             }
         }
     };

@@ -22,6 +22,7 @@
 //! product; gradients are scaled by 128 before the rounding (so small ones are not flushed) and
 //! unscaled in f32. Expect ~1e-3 relative agreement with the f32 CPU twin, not bit equality.
 
+use crate::dispatch::Launch;
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, MlpConfig};
@@ -361,10 +362,6 @@ impl FusedMlpCoop {
         self.check("params", params, self.n_params);
     }
 
-    fn tile_groups(capacity: usize) -> [u32; 3] {
-        groups_1d(capacity, TILE as u32)
-    }
-
     /// Splits worth launching for `capacity`: a split holds at least `MIN_CHUNK` = 64 samples (see
     /// `split_chunk` in the shader), so with n ≤ capacity no split past `capacity / 64` has work.
     fn launched_splits(&self, capacity: usize) -> usize {
@@ -377,7 +374,7 @@ impl FusedMlpCoop {
     }
 
     /// Records inference: `output [n][output_dim] = mlp(input [n][input_dim])`, n = `counters[1]` ≤
-    /// `capacity`. Writes only the first n rows of `output`. (Two dispatches: the f16 weight copy,
+    /// `launch.capacity()`. Writes only the first n rows of `output`. (Two dispatches: the f16 weight copy,
     /// then the fused forward.)
     #[allow(clippy::too_many_arguments)]
     pub fn record_inference(
@@ -388,12 +385,14 @@ impl FusedMlpCoop {
         input: &wgpu::Buffer,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
         self.record_convert(ctx, enc, params);
-        self.kernels.forward.record(
+        launch.record(
+            &self.kernels.forward,
             ctx,
             enc,
             &[
@@ -405,7 +404,9 @@ impl FusedMlpCoop {
                 (5, output),
                 (6, &self.dummy),
             ],
-            Self::tile_groups(capacity),
+            1,
+            TILE as u32,
+            1,
         );
     }
 
@@ -421,13 +422,15 @@ impl FusedMlpCoop {
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
         tape: &wgpu::Buffer,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
         self.check("tape", tape, capacity * self.fps);
         self.record_convert(ctx, enc, params);
-        self.kernels.forward.record(
+        launch.record(
+            &self.kernels.forward,
             ctx,
             enc,
             &[
@@ -439,7 +442,9 @@ impl FusedMlpCoop {
                 (5, output),
                 (6, tape),
             ],
-            Self::tile_groups(capacity),
+            1,
+            TILE as u32,
+            1,
         );
     }
 
@@ -460,8 +465,9 @@ impl FusedMlpCoop {
         d_output: &wgpu::Buffer,
         grads: &wgpu::Buffer,
         d_input: Option<&wgpu::Buffer>,
-        capacity: usize,
+        launch: Launch<'_>,
     ) {
+        let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("tape", tape, capacity * self.fps);
         self.check("d_output", d_output, capacity * self.config.output_dim);
@@ -474,11 +480,14 @@ impl FusedMlpCoop {
             None => (&self.u_plain, &self.dummy),
         };
         self.record_convert(ctx, enc, params);
-        self.kernels.backward.record(
+        launch.record(
+            &self.kernels.backward,
             ctx,
             enc,
             &[(0, uniform), (1, counters), (2, d_output), (4, &self.w16), (6, tape), (7, dx)],
-            Self::tile_groups(capacity),
+            1,
+            TILE as u32,
+            1,
         );
         self.kernels.wgrad.record(
             ctx,

@@ -44,6 +44,8 @@ pub const FIELD_GLUE: &str = wgsl!("field_glue.wgsl");
 pub const ADAM: &str = wgsl!("adam.wgsl");
 /// Inverse-transform (hierarchical) sampling.
 pub const PDF: &str = wgsl!("pdf.wgsl");
+/// Indirect-dispatch arguments from a device-side count ([`crate::dispatch`]).
+pub const DISPATCH: &str = wgsl!("dispatch.wgsl");
 
 /// Every kernel family with its file name (`common.wgsl` is part of each).
 pub const ALL: &[(&str, &str)] = &[
@@ -64,6 +66,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("train.wgsl", TRAIN),
     ("field_glue.wgsl", FIELD_GLUE),
     ("pdf.wgsl", PDF),
+    ("dispatch.wgsl", DISPATCH),
 ];
 
 /// `source` with `common.wgsl` inserted after its leading `enable …;` directives (which WGSL

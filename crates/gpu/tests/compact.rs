@@ -7,7 +7,7 @@
 use nerf_gpu::compact::{GpuCompactor, GpuRowGather};
 use nerf_gpu::wgpu;
 use nerf_gpu::sampling::GpuSamples;
-use nerf_gpu::GpuContext;
+use nerf_gpu::{DispatchArgs, GpuContext};
 use nerf_render::composited_counts;
 use nerf_sampling::RaySamples;
 use rand::Rng as _;
@@ -149,10 +149,14 @@ fn gather_rows(ctx: &GpuContext, counters: &wgpu::Buffer, rows: &wgpu::Buffer, w
         let src_buf = ctx.upload("gather src", &src);
         let dst = ctx.upload("gather dst", &vec![f32::NAN; cap * width]);
         let gather = GpuRowGather::new(ctx, width).unwrap();
-        // Rows buffers hold the compactor's capacity (≥ m); launch for m + 5 rows: the extra ones stay.
+        // Rows buffers hold the compactor's capacity (≥ m); a batch of m + 5 rows: the extra ones
+        // stay. Launched from the device's count (rows of 1 and 32 floats: 64 and 2 rows per
+        // workgroup) or, where the table has no entry (3 floats), for the capacity.
         let rows_cap = (rows.size() / 4) as usize;
         let mut enc = ctx.encoder("gather");
-        gather.record(ctx, &mut enc, counters, rows, &src_buf, &dst, cap.min(rows_cap));
+        let args = DispatchArgs::new(ctx, cap.min(rows_cap));
+        let launch = args.record(ctx, &mut enc, counters, cap.min(rows_cap));
+        gather.record(ctx, &mut enc, counters, rows, &src_buf, &dst, launch);
         ctx.queue.submit([enc.finish()]);
         let got = ctx.read_f32(&dst, cap * width).unwrap();
         for (b, &r) in want_rows.iter().enumerate() {

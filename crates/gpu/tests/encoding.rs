@@ -9,7 +9,7 @@ use nerf_encoding::{
 };
 use nerf_gpu::encoding::{AtomicMode, GpuFrequencyEncoding, GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::layout::COUNTER_N_SAMPLES;
-use nerf_gpu::GpuContext;
+use nerf_gpu::{DispatchArgs, GpuContext, Launch};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
@@ -34,6 +34,16 @@ fn run_and_read(ctx: &GpuContext, out: &wgpu::Buffer, len: usize, record: impl F
     record(&mut enc);
     ctx.queue.submit([enc.finish()]);
     ctx.read_f32(out, len).unwrap()
+}
+
+/// The launch of a batch of `cap` samples counted in `cnt`: recorded from `args` (the device's
+/// count) when `indirect`, else for the capacity.
+fn launch<'a>(ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, args: &'a DispatchArgs, cnt: &wgpu::Buffer, cap: usize, indirect: bool) -> Launch<'a> {
+    if indirect {
+        args.record(ctx, enc, cnt, cap)
+    } else {
+        Launch::direct(cap)
+    }
 }
 
 /// `out[..n·dim]` matches `cpu` within `tol(i)` and `out[n·dim..]` kept its NaN poison.
@@ -163,7 +173,12 @@ fn hash_grid_forward_matches_its_cpu_twin() {
             let mut cpu = vec![0.0f32; n * od];
             grid.forward(&normalise(&pos[..3 * n]), &mut cpu);
             let (cnt, pos_b, out) = (counters(&ctx, n), ctx.upload("positions", &pos), poisoned(&ctx, cap * od));
-            let got = run_and_read(&ctx, &out, cap * od, |enc| gpu.record_forward(&ctx, enc, &cnt, &pos_b, &params, &out, cap));
+            // Launched for the capacity (n = 1) and from the device's count (the others).
+            let args = DispatchArgs::new(&ctx, cap);
+            let got = run_and_read(&ctx, &out, cap * od, |enc| {
+                let l = launch(&ctx, enc, &args, &cnt, cap, n != 1);
+                gpu.record_forward(&ctx, enc, &cnt, &pos_b, &params, &out, l)
+            });
             // The cell, slots and weights are computed with the same f32 operations; only the
             // 8-term weighted sum may be contracted to FMAs (|params| ≤ 1: a few ulp of 1).
             check(&format!("config {ci} n {n} features"), &got, &cpu, |_| 2e-6);
@@ -208,7 +223,12 @@ fn hash_grid_backward_matches_its_cpu_twin_with_both_atomic_paths() {
             assert_eq!(gpu.uses_float_atomics(), mode == AtomicMode::Auto);
             let (cnt, pos_b, d_b) = (counters(&ctx, n), ctx.upload("positions", &pos), ctx.upload("d_features", &d));
             let grads = ctx.upload("grads", &prefill);
-            let got = run_and_read(&ctx, &grads, np, |enc| gpu.record_backward(&ctx, enc, &cnt, &pos_b, &d_b, &grads, cap));
+            // The compare-and-swap path launched from the device's count, atomic<f32> for the capacity.
+            let args = DispatchArgs::new(&ctx, cap);
+            let got = run_and_read(&ctx, &grads, np, |enc| {
+                let l = launch(&ctx, enc, &args, &cnt, cap, mode == AtomicMode::CompareExchange);
+                gpu.record_backward(&ctx, enc, &cnt, &pos_b, &d_b, &grads, l)
+            });
             // f32 sums in another (atomic) order on both sides: ≤ (terms per slot ≲ 40)·2^-24·scale.
             check(&format!("config {ci} {mode:?} grads"), &got, &cpu, |i| 4e-6 * mag[i]);
         }
@@ -237,7 +257,11 @@ fn spherical_harmonics_match_their_cpu_twin() {
         let mut cpu = vec![0.0f32; n * od];
         cpu_enc.forward(&dirs[..3 * n], &mut cpu);
         let (cnt, d_b, out) = (counters(&ctx, n), ctx.upload("dirs", &dirs), poisoned(&ctx, cap * od));
-        let got = run_and_read(&ctx, &out, cap * od, |enc| gpu.record_forward(&ctx, enc, &cnt, &d_b, &out, cap));
+        let args = DispatchArgs::new(&ctx, cap);
+        let got = run_and_read(&ctx, &out, cap * od, |enc| {
+            let l = launch(&ctx, enc, &args, &cnt, cap, degree % 2 == 0);
+            gpu.record_forward(&ctx, enc, &cnt, &d_b, &out, l)
+        });
         // Same products in the same order; FMA contraction of the sums of squares: a few ulp of
         // the largest term (|terms| ≲ 3·1.5³).
         check(&format!("sh degree {degree}"), &got, &cpu, |i| 1e-6 * (1.0 + 4.0 * cpu[i].abs().max(1.0)));

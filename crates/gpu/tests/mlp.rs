@@ -4,7 +4,7 @@
 //! with NaN so that a skipped slot fails, and slots past n left untouched.
 
 use nerf_gpu::mlp::{self, FusedMlp};
-use nerf_gpu::{shaders, GpuContext, GpuError};
+use nerf_gpu::{shaders, DispatchArgs, GpuContext, GpuError, Launch};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
 
 fn context() -> Option<GpuContext> {
@@ -48,7 +48,8 @@ struct Run {
 }
 
 /// Runs inference, the training forward and the backward on the device for n samples in buffers of
-/// `capacity`; checks that nothing past n is written (poison stays NaN).
+/// `capacity`, launched for the capacity or (`indirect`) from a `DispatchArgs` table for n; checks
+/// that nothing past n is written (poison stays NaN).
 #[allow(clippy::too_many_arguments)]
 fn run_gpu(
     ctx: &GpuContext,
@@ -60,6 +61,7 @@ fn run_gpu(
     grads0: &[f32],
     d_output: &[f32],
     with_dx: bool,
+    indirect: bool,
 ) -> Run {
     let c = net.config();
     let (din, dout) = (c.input_dim, c.output_dim);
@@ -78,8 +80,10 @@ fn run_gpu(
     let grads_b = ctx.upload("grads", grads0);
     let d_in_b = ctx.upload("d_input", &nan(capacity * din));
     let mut enc = ctx.encoder("mlp test");
-    net.record_inference(ctx, &mut enc, &counters, &input_b, &params_b, &out_inf, capacity);
-    net.record_forward(ctx, &mut enc, &counters, &input_b, &params_b, &out_fwd, &tape, capacity);
+    let args = DispatchArgs::new(ctx, capacity);
+    let launch = if indirect { args.record(ctx, &mut enc, &counters, capacity) } else { Launch::direct(capacity) };
+    net.record_inference(ctx, &mut enc, &counters, &input_b, &params_b, &out_inf, launch);
+    net.record_forward(ctx, &mut enc, &counters, &input_b, &params_b, &out_fwd, &tape, launch);
     net.record_backward(
         ctx,
         &mut enc,
@@ -90,7 +94,7 @@ fn run_gpu(
         &d_out_b,
         &grads_b,
         with_dx.then_some(&d_in_b),
-        capacity,
+        launch,
     );
     ctx.queue.submit([enc.finish()]);
     let read = |b, len| ctx.read_f32(b, len).unwrap();
@@ -133,7 +137,8 @@ fn fused_mlp_matches_the_cpu_mlp() {
                 let d_output = random(&mut rng, n * config.output_dim, 1.0);
                 let grads0 = random(&mut rng, cpu.n_params(), 1.0);
                 let with_dx = n != 517;
-                let gpu = run_gpu(&ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx);
+                // Every other case launches from the device's count.
+                let gpu = run_gpu(&ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed % 2 == 0);
                 let what = format!("{name} (n = {n}, f32 atomics {f32_atomics})");
                 // Inference and the training forward run the same code: bit-identical.
                 assert_eq!(
@@ -177,7 +182,7 @@ fn saturating_activations_stay_finite() {
     let input = random(&mut rng, n * 4, 50.0);
     let d_output = random(&mut rng, n * 2, 1.0);
     let grads0 = vec![0.0f32; cpu.n_params()];
-    let gpu = run_gpu(&ctx, &net, n, n, &input, cpu.params(), &grads0, &d_output, true);
+    let gpu = run_gpu(&ctx, &net, n, n, &input, cpu.params(), &grads0, &d_output, true, true);
     let mut tape = MlpTape::default();
     let out = cpu.forward(n, &input, &mut tape).to_vec();
     assert_close("saturated output", &gpu.forward, &out, 1e-4, 1e-5);

@@ -14,7 +14,7 @@
 
 use half::f16;
 use nerf_gpu::mlp_coop::{self, CoopMlpParams, FusedMlpCoop};
-use nerf_gpu::{shaders, GpuContext, GpuError};
+use nerf_gpu::{shaders, DispatchArgs, GpuContext, GpuError, Launch};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
 
 fn context() -> Option<GpuContext> {
@@ -344,7 +344,8 @@ struct Run {
 }
 
 /// Runs inference, the training forward and the backward on the device for n samples in buffers of
-/// `capacity`; checks that nothing past n is written (poison stays NaN).
+/// `capacity`, launched for the capacity or (`indirect`) from a `DispatchArgs` table for n; checks
+/// that nothing past n is written (poison stays NaN).
 #[allow(clippy::too_many_arguments)]
 fn run_gpu(
     ctx: &GpuContext,
@@ -356,6 +357,7 @@ fn run_gpu(
     grads0: &[f32],
     d_output: &[f32],
     with_dx: bool,
+    indirect: bool,
 ) -> Run {
     let c = net.config();
     let (din, dout) = (c.input_dim, c.output_dim);
@@ -374,9 +376,11 @@ fn run_gpu(
     let grads_b = ctx.upload("grads", grads0);
     let d_in_b = ctx.upload("d_input", &nan(capacity * din));
     let mut enc = ctx.encoder("mlp coop test");
-    net.record_inference(ctx, &mut enc, &counters, &input_b, &params_b, &out_inf, capacity);
-    net.record_forward(ctx, &mut enc, &counters, &input_b, &params_b, &out_fwd, &tape, capacity);
-    net.record_backward(ctx, &mut enc, &counters, &input_b, &params_b, &tape, &d_out_b, &grads_b, with_dx.then_some(&d_in_b), capacity);
+    let args = DispatchArgs::new(ctx, capacity);
+    let launch = if indirect { args.record(ctx, &mut enc, &counters, capacity) } else { Launch::direct(capacity) };
+    net.record_inference(ctx, &mut enc, &counters, &input_b, &params_b, &out_inf, launch);
+    net.record_forward(ctx, &mut enc, &counters, &input_b, &params_b, &out_fwd, &tape, launch);
+    net.record_backward(ctx, &mut enc, &counters, &input_b, &params_b, &tape, &d_out_b, &grads_b, with_dx.then_some(&d_in_b), launch);
     ctx.queue.submit([enc.finish()]);
     let read = |b, len| ctx.read_f32(b, len).unwrap();
     let (inference, forward) = (read(&out_inf, capacity * dout), read(&out_fwd, capacity * dout));
@@ -418,7 +422,8 @@ fn compare_all(ctx: &GpuContext, make: impl Fn(&MlpConfig) -> Result<FusedMlpCoo
             let d_output = random(&mut rng, n * config.output_dim, 1.0);
             let grads0 = random(&mut rng, cpu.n_params(), 1.0);
             let with_dx = n != 517 && n != 33;
-            let gpu = run_gpu(ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx);
+            // Every other case launches from the device's count.
+            let gpu = run_gpu(ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed % 2 == 0);
             let what = format!("{name} (n = {n}, seed {seed})");
             // Inference and the training forward run the same code: bit-identical.
             assert_eq!(
@@ -497,8 +502,8 @@ fn coop_gradients_accumulate() {
     let input = random(&mut rng, n * 32, 1.0);
     let d_output = random(&mut rng, n * 16, 1.0);
     let zeros = vec![0.0f32; net.n_params()];
-    let once = run_gpu(&ctx, &net, n, n, &input, cpu.params(), &zeros, &d_output, false).grads;
-    let twice = run_gpu(&ctx, &net, n, n, &input, cpu.params(), &once, &d_output, false).grads;
+    let once = run_gpu(&ctx, &net, n, n, &input, cpu.params(), &zeros, &d_output, false, true).grads;
+    let twice = run_gpu(&ctx, &net, n, n, &input, cpu.params(), &once, &d_output, false, false).grads;
     assert!(once.iter().any(|v| v.abs() > 1e-3), "gradients are all ~0");
     for (i, (a, b)) in once.iter().zip(&twice).enumerate() {
         assert!((2.0 * a - b).abs() <= 1e-5 * (1.0 + a.abs()), "grad {i}: once {a}, twice {b}");
