@@ -10,3 +10,11 @@ for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/t
 cp /tmp/prof/results.md /tmp/prof/results.csv "$OUT/" 2>/dev/null
 for d in /tmp/prof/runs/*/; do cp "$d/metrics.json" "$OUT/$(basename "$d").json" 2>/dev/null; done
 grep -E "GPU profile|^\| [a-z]" "$OUT/profile.log" | head -150; cat "$OUT/results.md"
+# The same hash run launched for the capacity (NERF_NO_INDIRECT) and from the device's count
+# (~2 min): the A/B of indirect dispatch.
+for mode in direct indirect; do
+  env $([ $mode = direct ] && echo NERF_NO_INDIRECT=1) .bin/nerf ablate examples/ablations/h100_indirect.toml \
+    --device gpu --out /tmp/ind_$mode > "$OUT/indirect_$mode.log" 2>&1
+  cp /tmp/ind_$mode/results.md "$OUT/indirect_$mode.md" 2>/dev/null
+  echo "== $mode"; cat "$OUT/indirect_$mode.md"
+done

@@ -73,7 +73,7 @@ impl Launch<'_> {
     /// `wg` invocations, `z` workgroups along the third dimension. Indirect when this launch has a
     /// table and it holds the shape (`wg / items_per_sample` a power of two ≤ 1024, `z ≤ 32`);
     /// otherwise direct, for the capacity.
-    #[allow(clippy::too_many_arguments)]
+    #[allow(clippy::too_many_arguments, clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
     pub fn record(
         &self,
         kernel: &Kernel,

@@ -56,7 +56,7 @@ impl FieldGlue {
         }
     }
 
-    /// The launch of a batch of `launch`'s samples (at most the glue's capacity).
+    /// Panics when a batch holds more samples than the glue was made for.
     fn check(&self, launch: &Launch<'_>) {
         assert!(launch.capacity() <= self.capacity, "FieldGlue: a batch of {} samples for a glue made for {}", launch.capacity(), self.capacity);
     }
