@@ -20,10 +20,13 @@ pub const MAX_K: u32 = 10;
 /// Largest third launch dimension the table covers.
 pub const MAX_Z: u32 = 32;
 const ENTRIES: u32 = MAX_Z * (MAX_K + 1);
+/// Most items a [`DispatchArgs`] table launches: 65 535 × 65 535 workgroups of one item.
+pub const MAX_ITEMS: u32 = MAX_GROUPS_PER_DIM * MAX_GROUPS_PER_DIM;
 
 /// Workgroup counts `[x, y, z]` for `n` items at `per_group` (a power of two ≤ 1024) items per
 /// workgroup and `z` workgroups along the third dimension: `shaders/dispatch.wgsl`'s CPU twin.
-/// As [`groups_1d`] except that `n = 0` gives an empty launch.
+/// As [`groups_1d`] except that `n = 0` gives an empty launch. Within the per-dimension limit for
+/// `n ≤` [`MAX_ITEMS`] (the most a table is made for).
 pub fn groups_for(n: u32, per_group: u32, z: u32) -> [u32; 3] {
     assert!(per_group.is_power_of_two() && per_group <= 1 << MAX_K, "per_group {per_group}");
     let g = n.div_ceil(per_group);
@@ -118,9 +121,11 @@ impl DispatchArgs {
         Self::for_slot(ctx, capacity, crate::layout::COUNTER_N_SAMPLES)
     }
 
-    /// As [`DispatchArgs::new`] for the count in `counters[slot]`.
+    /// As [`DispatchArgs::new`] for the count in `counters[slot]`. Panics when `capacity` exceeds
+    /// [`MAX_ITEMS`] (no launch of one item per workgroup could cover it; no storage binding holds
+    /// that many samples either).
     pub fn for_slot(ctx: &GpuContext, capacity: usize, slot: usize) -> Self {
-        let capacity = capacity.min(u32::MAX as usize);
+        assert!(capacity as u64 <= MAX_ITEMS as u64, "dispatch arguments for {capacity} items (at most {MAX_ITEMS})");
         Self {
             kernel: Kernel::new(ctx, &shaders::with_common(shaders::DISPATCH), "dispatch_args", &[("SLOT", slot as f64)]),
             capacity,
@@ -153,7 +158,7 @@ mod tests {
 
     #[test]
     fn groups_cover_the_count_within_the_per_dimension_limit() {
-        for n in [0u32, 1, 2, 63, 64, 65, 65_535, 65_536, 64 * 65_535 + 1, 1 << 24, u32::MAX] {
+        for n in [0u32, 1, 2, 63, 64, 65, 65_535, 65_536, 64 * 65_535 + 1, 1 << 24, MAX_ITEMS - 1, MAX_ITEMS] {
             for k in 0..=MAX_K {
                 let per = 1u32 << k;
                 let [x, y, z] = groups_for(n, per, 3);

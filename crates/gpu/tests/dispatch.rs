@@ -2,7 +2,7 @@
 //! indirect launch that needs the second dimension (more than 65 535 workgroups).
 
 use nerf_gpu::compact::GpuRowGather;
-use nerf_gpu::dispatch::{entry_offset, groups_for, MAX_K, MAX_Z};
+use nerf_gpu::dispatch::{entry_offset, groups_for, MAX_ITEMS, MAX_K, MAX_Z};
 use nerf_gpu::{DispatchArgs, GpuContext};
 use rand::Rng as _;
 
@@ -27,7 +27,7 @@ fn dispatch_arguments_match_their_cpu_twin() {
         (65, 3, 1000),
         (5000, 1, 4000), // more than the capacity: clamped
         (65_535 * 4 + 1, 9, 1 << 20),
-        (u32::MAX, 2, u32::MAX as usize),
+        (u32::MAX, 2, MAX_ITEMS as usize), // the largest table, a count above it
     ];
     for _ in 0..8 {
         let cap = r.gen_range(1usize..(1 << 26));
