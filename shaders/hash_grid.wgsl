@@ -210,3 +210,40 @@ fn hash_backward_atomic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(
     }
 }
 //#end f32-atomics
+
+//#begin f16-mirror
+// An f16 mirror of the table (HashGridConfig::storage = "f16", F = 2 only; the host strips this
+// section for other F): one u32 per slot holding its two features as pack2x16float, written from
+// the f32 master by hash_mirror_f16 (round to nearest; CPU twin: HashGrid::sync_storage) and read
+// by hash_forward_f16, which is hash_forward with half the bytes per lookup. The backward and the
+// optimiser use the f32 master.
+@group(0) @binding(8) var<storage, read> table16: array<u32>;
+@group(0) @binding(9) var<storage, read_write> mirror: array<u32>;
+
+@compute @workgroup_size(WG)
+fn hash_mirror_f16(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    if (i >= arrayLength(&mirror)) {
+        return;
+    }
+    mirror[i] = pack2x16float(vec2<f32>(table[i]));
+}
+
+@compute @workgroup_size(WG)
+fn hash_forward_f16(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let l = gid.z;
+    let nl = P.n_levels;
+    if (i >= n_samples(arrayLength(&features), nl) || l >= nl) {
+        return;
+    }
+    let lv = P.levels[l];
+    let c = cell(unit_position(i), lv);
+    let base = lv.y / 2u;
+    var acc = vec2<f32>(0.0);
+    for (var k = 0u; k < 8u; k++) {
+        acc += c.w[k] * unpack2x16float(table16[base + c.slot[k]]);
+    }
+    features[i * nl + l] = Feat(acc);
+}
+//#end f16-mirror

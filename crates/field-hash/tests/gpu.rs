@@ -23,6 +23,23 @@ fn gpu_hash_field_matches_the_cpu_field() {
     check_gpu_twin(&mut cpu, &ctx, aabb, 700, 3, 1e-4, 2e-3);
 }
 
+/// The same with the table read through an f16 mirror (`grid.storage = "f16"`) on both devices
+/// (the plumbing; `crates/gpu/tests/encoding.rs` checks the mirror's rounding itself).
+#[test]
+fn gpu_hash_field_with_an_f16_table_matches_the_cpu_field() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let mut cfg = HashNerfConfig::default();
+    cfg.grid.n_levels = 6;
+    cfg.grid.log2_hashmap_size = 12;
+    cfg.grid.base_resolution = 4;
+    cfg.grid.max_resolution = 64;
+    cfg.grid.storage = nerf_encoding::Precision::F16;
+    let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 8 };
+    let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+    check_gpu_twin(&mut cpu, &ctx, aabb, 700, 3, 1e-4, 2e-3);
+}
+
 #[test]
 fn a_capacity_beyond_the_devices_binding_limit_is_a_clear_error() {
     let Some(ctx) = GpuContext::for_tests() else { return };

@@ -12,7 +12,7 @@
 use crate::dispatch::Launch;
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
-use nerf_encoding::{FrequencyEncodingConfig, HashGrid, HashGridConfig, ShConfig};
+use nerf_encoding::{FrequencyEncodingConfig, HashGrid, HashGridConfig, Precision, ShConfig};
 pub use crate::layout::{HashGridParams};
 
 /// Largest number of levels the hash-grid uniform holds (`HashGridConfig::validate` allows 64).
@@ -41,9 +41,11 @@ pub enum AtomicMode {
 ///
 /// Work split: one invocation per (sample, level), the level in the workgroup's `z` index, so a
 /// workgroup reads a single level's table (cache locality, as tiny-cuda-nn). The forward reads the
-/// `F` features of a corner with one vector load (`f32`/`vec2`/`vec4`). The table is always read
-/// in `f32`: [`nerf_encoding::Precision::F16`] in the config is ignored here (the GPU keeps no
-/// `f16` mirror).
+/// `F` features of a corner with one vector load (`f32`/`vec2`/`vec4`). With
+/// [`nerf_encoding::Precision::F16`] in the config (F = 2 only) the forward reads an `f16` mirror
+/// of the table instead (half the bytes per lookup; the f32 parameters stay the master that the
+/// backward and the optimiser use): each [`GpuHashGrid::record_forward`] first rewrites the mirror
+/// from the parameters it is given (one pass over the table), so the mirror can never be stale.
 ///
 /// Measured on the H100 (wgpu 30, Vulkan; L = 16, F = 2, T = 2^19, 2^18–2^20 samples): forward
 /// 700–980 M samples/s, backward with `atomic<f32>` 270–350 M samples/s, with the
@@ -58,6 +60,15 @@ pub struct GpuHashGrid {
     forward: Kernel,
     backward: Kernel,
     float_atomics: bool,
+    mirror: Option<F16Mirror>,
+}
+
+/// The `f16` mirror of the table and its kernels (`storage = "f16"`).
+struct F16Mirror {
+    words: usize,
+    buffer: wgpu::Buffer,
+    sync: Kernel,
+    forward: Kernel,
 }
 
 /// Workgroup size of the hash-grid kernels.
@@ -79,8 +90,29 @@ fn inv_extent(aabb_min: [f32; 3], aabb_max: [f32; 3]) -> Result<[f32; 3], GpuErr
     Ok(inv)
 }
 
+/// `src` without the lines between `//#begin NAME` and `//#end NAME`.
+fn strip_section(src: &str, name: &str) -> String {
+    let (begin, end) = (format!("//#begin {name}"), format!("//#end {name}"));
+    assert!(src.contains(&begin) && src.contains(&end), "hash_grid.wgsl lost its `{name}` section");
+    let mut out = String::with_capacity(src.len());
+    let mut skipping = false;
+    for line in src.lines() {
+        let t = line.trim();
+        if t == begin {
+            skipping = true;
+        } else if t == end {
+            skipping = false;
+        } else if !skipping {
+            out.push_str(line);
+            out.push('\n');
+        }
+    }
+    out
+}
+
 /// The hash-grid WGSL for `f` features per level, with the `atomic<f32>` section kept or
-/// stripped, and the number of `Feat` vectors per slot.
+/// stripped (and the f16-mirror section, which needs F = 2, stripped for other F), and the number
+/// of `Feat` vectors per slot.
 fn hash_grid_source(f: usize, float_atomics: bool) -> (String, u32) {
     const ALIAS: &str = "alias Feat = vec2<f32>;";
     let (ty, per_slot) = match f {
@@ -91,25 +123,13 @@ fn hash_grid_source(f: usize, float_atomics: bool) -> (String, u32) {
         other => unreachable!("n_features_per_level {other} passed validation"),
     };
     assert!(shaders::HASH_GRID.contains(ALIAS), "hash_grid.wgsl lost its `{ALIAS}` line");
-    let src = shaders::HASH_GRID.replacen(ALIAS, &format!("alias Feat = {ty};"), 1);
-    let src = if float_atomics {
-        src
-    } else {
-        let mut out = String::with_capacity(src.len());
-        let mut skipping = false;
-        for line in src.lines() {
-            match line.trim() {
-                "//#begin f32-atomics" => skipping = true,
-                "//#end f32-atomics" => skipping = false,
-                _ if !skipping => {
-                    out.push_str(line);
-                    out.push('\n');
-                }
-                _ => {}
-            }
-        }
-        out
-    };
+    let mut src = shaders::HASH_GRID.replacen(ALIAS, &format!("alias Feat = {ty};"), 1);
+    if !float_atomics {
+        src = strip_section(&src, "f32-atomics");
+    }
+    if f != 2 {
+        src = strip_section(&src, "f16-mirror");
+    }
     (shaders::with_common(&src), per_slot)
 }
 
@@ -166,6 +186,20 @@ impl GpuHashGrid {
         let forward = Kernel::from_module(ctx, &module, "hash_forward", &constants);
         let backward_entry = if float_atomics { "hash_backward_atomic" } else { "hash_backward_cas" };
         let backward = Kernel::from_module(ctx, &module, backward_entry, &constants);
+        let mirror = match cfg.storage {
+            Precision::F32 => None,
+            Precision::F16 if f != 2 => {
+                return Err(GpuError::Unsupported(format!(
+                    "hash grid: storage = \"f16\" needs 2 features per level on the GPU (got {f}); use storage = \"f32\""
+                )))
+            }
+            Precision::F16 => Some(F16Mirror {
+                words: n_params / 2,
+                buffer: ctx.zeros("hash table f16", 2 * n_params),
+                sync: Kernel::from_module(ctx, &module, "hash_mirror_f16", &constants),
+                forward: Kernel::from_module(ctx, &module, "hash_forward_f16", &constants),
+            }),
+        };
         Ok(Self {
             cfg: cfg.clone(),
             resolutions: grid.resolutions().to_vec(),
@@ -176,6 +210,7 @@ impl GpuHashGrid {
             forward,
             backward,
             float_atomics,
+            mirror,
         })
     }
 
@@ -227,6 +262,17 @@ impl GpuHashGrid {
         self.float_atomics
     }
 
+    /// Whether the forward reads an `f16` mirror of the table (`storage = "f16"`).
+    pub fn uses_f16_mirror(&self) -> bool {
+        self.mirror.is_some()
+    }
+
+    /// The `f16` mirror as the last forward wrote it (`u32` words, two features each), or `None`
+    /// for `storage = "f32"` (tests compare it with the CPU's mirror).
+    pub fn mirror_buffer(&self) -> Option<&wgpu::Buffer> {
+        self.mirror.as_ref().map(|m| &m.buffer)
+    }
+
     /// The scene box's lower corner and `1/extent` the kernels normalise with.
     pub fn params(&self) -> &HashGridParams {
         &self.params
@@ -254,8 +300,18 @@ impl GpuHashGrid {
             self.output_dim()
         );
         assert!(params.size() >= 4 * self.n_params() as u64, "GpuHashGrid: params hold fewer than {} floats", self.n_params());
-        let b = [(0, &self.uniform), (1, counters), (2, positions), (3, params), (4, features)];
-        launch.record(&self.forward, ctx, enc, &b, 1, HASH_WG, self.n_levels() as u32);
+        let z = self.n_levels() as u32;
+        match &self.mirror {
+            None => {
+                let b = [(0, &self.uniform), (1, counters), (2, positions), (3, params), (4, features)];
+                launch.record(&self.forward, ctx, enc, &b, 1, HASH_WG, z);
+            }
+            Some(m) => {
+                m.sync.record(ctx, enc, &[(3, params), (9, &m.buffer)], groups_1d(m.words, HASH_WG));
+                let b = [(0, &self.uniform), (1, counters), (2, positions), (8, &m.buffer), (4, features)];
+                launch.record(&m.forward, ctx, enc, &b, 1, HASH_WG, z);
+            }
+        }
     }
 
     /// Records the backward: ADDS dL/dparams to `grads` (`n_params()` f32, the params' layout)

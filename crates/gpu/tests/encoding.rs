@@ -186,6 +186,59 @@ fn hash_grid_forward_matches_its_cpu_twin() {
     }
 }
 
+/// `storage = "f16"`: the mirror the forward writes against the CPU's `sync_storage` (f32 → f16,
+/// round to nearest: at most one f16 ulp apart), and the forward that reads it against the CPU
+/// forward on its own mirror. F ≠ 2 is refused with a clear error.
+#[test]
+fn hash_grid_f16_mirror_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    for (ci, mut cfg) in grid_configs().into_iter().enumerate() {
+        cfg.storage = Precision::F16;
+        if cfg.n_features_per_level != 2 {
+            let e = GpuHashGrid::new(&ctx, &cfg, AABB_MIN, AABB_MAX).err().expect("F ≠ 2 with an f16 mirror").to_string();
+            assert!(e.contains("f16") && e.contains("2 features"), "{e}");
+            continue;
+        }
+        let mut grid = HashGrid::<f32>::new(&cfg, &mut nerf_core::rng(700 + ci as u64, 0));
+        // Values across f16's range, including ones that round (f32 mantissa bits below f16's).
+        let mut r = nerf_core::rng(701 + ci as u64, 0);
+        grid.params_mut().iter_mut().for_each(|p| *p = r.gen_range(-1.0f32..1.0) * [1.0, 1e-3, 30.0][r.gen_range(0..3)]);
+        grid.sync_storage();
+        let gpu = GpuHashGrid::new(&ctx, &cfg, AABB_MIN, AABB_MAX).unwrap();
+        assert!(gpu.uses_f16_mirror());
+        let od = gpu.output_dim();
+        let params = ctx.upload("params", grid.params());
+        let (n, cap) = (1500usize, 1537usize);
+        let pos = positions(702 + ci as u64, cap, grid.resolutions());
+        let mut cpu = vec![0.0f32; n * od];
+        grid.forward(&normalise(&pos[..3 * n]), &mut cpu);
+        let (cnt, pos_b, out) = (counters(&ctx, n), ctx.upload("positions", &pos), poisoned(&ctx, cap * od));
+        let args = DispatchArgs::new(&ctx, cap);
+        let got = run_and_read(&ctx, &out, cap * od, |enc| {
+            let l = launch(&ctx, enc, &args, &cnt, cap, true);
+            gpu.record_forward(&ctx, enc, &cnt, &pos_b, &params, &out, l)
+        });
+        let words = ctx.read_u32(gpu.mirror_buffer().unwrap(), grid.n_params() / 2).unwrap();
+        let mut exact = 0;
+        for (i, w) in words.iter().enumerate() {
+            for (j, bits) in [(w & 0xffff) as u16, (w >> 16) as u16].into_iter().enumerate() {
+                let want = half::f16::from_f32(grid.params()[2 * i + j]);
+                let ulps = (bits as i32 - want.to_bits() as i32).abs();
+                assert!(ulps <= 1, "config {ci}: mirror word {i}.{j}: {bits:#06x}, CPU {:#06x}", want.to_bits());
+                exact += (ulps == 0) as usize;
+            }
+        }
+        eprintln!("config {ci}: {exact} of {} mirror values bit-equal to the CPU's", grid.n_params());
+        // The same f16 values weighted in f32. Where the adapter rounded every value as the CPU
+        // did (lavapipe), only FMA contraction of the 8-term sum may differ: a few f32 ulp of the
+        // largest corner value (|p| ≤ 30), far below the f16 rounding the forward must show
+        // (reading the f32 table instead is off by up to 2^-11 relative). Elsewhere one f16 ulp of
+        // the largest corner value (2^-6) per lookup.
+        let tol = if exact == grid.n_params() { 4e-5 } else { 2e-2 };
+        check(&format!("config {ci} f16 features"), &got, &cpu, |_| tol);
+    }
+}
+
 #[test]
 fn hash_grid_backward_matches_its_cpu_twin_with_both_atomic_paths() {
     let Some(ctx) = context() else { return };
