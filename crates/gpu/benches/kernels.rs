@@ -61,6 +61,13 @@ fn kernels(c: &mut Criterion) {
     g.bench_function(BenchmarkId::new("hash_grid_backward", n), |b| {
         b.iter(|| run(&ctx, |e| grid.record_backward(&ctx, e, &counters, &pos, &d_feat, &grads, n.into())))
     });
+    // The forward through the f16 mirror (`storage = "f16"`), the mirror's rewrite from the f32
+    // table included (as every forward does it).
+    let cfg16 = HashGridConfig { storage: nerf_encoding::Precision::F16, ..cfg.clone() };
+    let grid16 = GpuHashGrid::new(&ctx, &cfg16, [-1.5; 3], [1.5; 3]).unwrap();
+    g.bench_function(BenchmarkId::new("hash_grid_forward_f16_table", n), |b| {
+        b.iter(|| run(&ctx, |e| grid16.record_forward(&ctx, e, &counters, &pos, &params, &feat, n.into())))
+    });
 
     // The hash field's fused MLPs.
     let mlp = |input, output, layers, out_act| MlpConfig {
