@@ -6,38 +6,34 @@ use nerf_field::gpu::check_gpu_twin;
 use nerf_field::{FieldContext, GpuContext};
 use nerf_field_hash::{HashNerf, HashNerfConfig};
 
-#[test]
-fn gpu_hash_field_matches_the_cpu_field() {
+/// A small grid (dense and hashed levels) with the default MLP shapes, its table stored as
+/// `storage`, checked against its GPU twin.
+fn check_small_field(storage: nerf_encoding::Precision, seed: u64) {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    // A small grid (dense and hashed levels) with the default MLP shapes.
     let mut cfg = HashNerfConfig::default();
     cfg.grid.n_levels = 6;
     cfg.grid.log2_hashmap_size = 12;
     cfg.grid.base_resolution = 4;
     cfg.grid.max_resolution = 64;
+    cfg.grid.storage = storage;
     let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
-    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 7 };
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed };
     let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
     // Outputs: f32 sums in another order (trilinear interpolation, 64-wide dot products), exp of
     // σ. Gradients: sums over 700 samples in another order (atomics, split-K reductions).
     check_gpu_twin(&mut cpu, &ctx, aabb, 700, 3, 1e-4, 2e-3);
 }
 
+#[test]
+fn gpu_hash_field_matches_the_cpu_field() {
+    check_small_field(nerf_encoding::Precision::F32, 7);
+}
+
 /// The same with the table read through an f16 mirror (`grid.storage = "f16"`) on both devices
 /// (the plumbing; `crates/gpu/tests/encoding.rs` checks the mirror's rounding itself).
 #[test]
 fn gpu_hash_field_with_an_f16_table_matches_the_cpu_field() {
-    let Some(ctx) = GpuContext::for_tests() else { return };
-    let mut cfg = HashNerfConfig::default();
-    cfg.grid.n_levels = 6;
-    cfg.grid.log2_hashmap_size = 12;
-    cfg.grid.base_resolution = 4;
-    cfg.grid.max_resolution = 64;
-    cfg.grid.storage = nerf_encoding::Precision::F16;
-    let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
-    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 8 };
-    let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
-    check_gpu_twin(&mut cpu, &ctx, aabb, 700, 3, 1e-4, 2e-3);
+    check_small_field(nerf_encoding::Precision::F16, 8);
 }
 
 #[test]
