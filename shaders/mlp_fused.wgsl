@@ -24,9 +24,12 @@
 //                  measured 3× faster on the H100 than staging each layer's W in workgroup memory per
 //                  tile, which cost occupancy and a latency-bound copy). Barrier, activation written
 //                  back in place. Mode bit 0 also stores every A_l to the tape (coalesced copies).
+//                  The last layer computes only its first P.out_rows outputs (the density pass of
+//                  a field reads σ alone: one register block instead of two).
 //   mlp_backward : D_last = d_output ⊙ act'(A_last); for l = last..1: dH = D_l·W_l (same register
 //                  blocking), D_{l−1} = dH ⊙ act'(A_{l−1}) in place; every D_l goes to the tape. Mode
-//                  bit 1 also writes d_input = D_0·W_0.
+//                  bit 1 also writes d_input = D_0·W_0, its first P.dx_cols columns only (the
+//                  hash field's colour net needs no gradient for its SH inputs).
 //   mlp_wgrad    : weight gradients as a split-K reduction (tiny-cuda-nn also leaves dW to a separate
 //                  split-K GEMM): dispatch [G, n_layers], workgroups of 256; workgroup (g, l) sums
 //                  dW_l = Σ_s D_l[s]ᵀ·H[s] (H = input for l = 0, else A_{l−1}) and db_l = Σ_s D_l[s] over
@@ -41,8 +44,9 @@
 //                  H100, 2^18 samples: 0.68 ms (density) / 1.07 ms (colour), was 1.21 / 2.01 ms with
 //                  one 8 × 8 block per 64-invocation workgroup staged without prefetch.
 // Per sample and step (fwd + bwd) the field's two nets cost ≈ 19 kFLOP forward, ≈ 38 kFLOP backward,
-// ≈ 2 KB of tape traffic. Rows/columns beyond a narrow layer's width are computed on clamped indices
-// and dropped (uniform control flow, no divergence).
+// ≈ 2 KB of tape traffic. Register blocks wholly past a narrow layer's width are skipped (the
+// block count is uniform over the workgroup); inside the last block, rows/columns beyond the width
+// are computed on clamped indices and dropped (uniform control flow, no divergence).
 //
 // f32 atomics: this file declares grads as atomic<u32> with a compare-and-swap loop (valid on every
 // adapter); FusedMlp swaps the block between the GRAD_ATOMIC markers for atomic<f32> + atomicAdd when
@@ -61,9 +65,9 @@ struct MlpParams {
     output_dim: u32,
     fps: u32,     // tape floats per sample
     mode: u32,    // bit 0: forward stores the tape; bit 1: backward writes d_input
+    out_rows: u32,  // forward: outputs computed and written (≤ output_dim; the rest left as they were)
+    dx_cols: u32,   // backward: d_input columns computed and written (≤ input_dim; likewise)
     _pad0: u32,
-    _pad1: u32,
-    _pad2: u32,
 }
 
 struct MlpLayer {
@@ -205,7 +209,9 @@ fn mlp_forward(
     let nl = P.n_layers;
     for (var l = 0u; l < nl; l++) {
         let L = layers[l];
-        if (tid < L.out) {
+        // The last layer computes only the outputs asked for (the density pass needs σ alone).
+        let out = select(L.out, min(L.out, P.out_rows), l + 1u == nl);
+        if (tid < out) {
             var b = 0.0;
             if (L.has_bias != 0u) {
                 b = params[L.b_off + tid];
@@ -232,31 +238,59 @@ fn mlp_forward(
         let r5 = L.w_off + min(fg + 40u, lr) * L.fan_in;
         let r6 = L.w_off + min(fg + 48u, lr) * L.fan_in;
         let r7 = L.w_off + min(fg + 56u, lr) * L.fan_in;
-        for (var k = 0u; k < L.fan_in; k++) {
-            let r = k * AS + sg;
-            let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-            c0 += params[r0 + k] * a;
-            c1 += params[r1 + k] * a;
-            c2 += params[r2 + k] * a;
-            c3 += params[r3 + k] * a;
-            c4 += params[r4 + k] * a;
-            c5 += params[r5 + k] * a;
-            c6 += params[r6 + k] * a;
-            c7 += params[r7 + k] * a;
+        // Only the blocks that hold a row < out are computed: 8i < out is uniform over the workgroup
+        // (fg < 8), so a narrow layer (the density net's 16 outputs, the colour net's 3) runs a
+        // loop over 1, 2 or 4 blocks instead of 8.
+        let nb = (out + 7u) / 8u;
+        if (nb > 4u) {
+            for (var k = 0u; k < L.fan_in; k++) {
+                let r = k * AS + sg;
+                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                c0 += params[r0 + k] * a;
+                c1 += params[r1 + k] * a;
+                c2 += params[r2 + k] * a;
+                c3 += params[r3 + k] * a;
+                c4 += params[r4 + k] * a;
+                c5 += params[r5 + k] * a;
+                c6 += params[r6 + k] * a;
+                c7 += params[r7 + k] * a;
+            }
+        } else if (nb > 2u) {
+            for (var k = 0u; k < L.fan_in; k++) {
+                let r = k * AS + sg;
+                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                c0 += params[r0 + k] * a;
+                c1 += params[r1 + k] * a;
+                c2 += params[r2 + k] * a;
+                c3 += params[r3 + k] * a;
+            }
+        } else if (nb > 1u) {
+            for (var k = 0u; k < L.fan_in; k++) {
+                let r = k * AS + sg;
+                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                c0 += params[r0 + k] * a;
+                c1 += params[r1 + k] * a;
+            }
+        } else {
+            for (var k = 0u; k < L.fan_in; k++) {
+                let r = k * AS + sg;
+                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                c0 += params[r0 + k] * a;
+            }
         }
         workgroupBarrier();
-        fwd_store(fg, sg, L.out, L.act, c0);
-        fwd_store(fg + 8u, sg, L.out, L.act, c1);
-        fwd_store(fg + 16u, sg, L.out, L.act, c2);
-        fwd_store(fg + 24u, sg, L.out, L.act, c3);
-        fwd_store(fg + 32u, sg, L.out, L.act, c4);
-        fwd_store(fg + 40u, sg, L.out, L.act, c5);
-        fwd_store(fg + 48u, sg, L.out, L.act, c6);
-        fwd_store(fg + 56u, sg, L.out, L.act, c7);
+        fwd_store(fg, sg, out, L.act, c0);
+        fwd_store(fg + 8u, sg, out, L.act, c1);
+        fwd_store(fg + 16u, sg, out, L.act, c2);
+        fwd_store(fg + 24u, sg, out, L.act, c3);
+        fwd_store(fg + 32u, sg, out, L.act, c4);
+        fwd_store(fg + 40u, sg, out, L.act, c5);
+        fwd_store(fg + 48u, sg, out, L.act, c6);
+        fwd_store(fg + 56u, sg, out, L.act, c7);
         workgroupBarrier();
         if ((P.mode & 1u) != 0u) {
             let dst = base + m * L.a_pre;
-            for (var o = fg; o < L.out; o += 8u) {
+            for (var o = fg; o < out; o += 8u) {
                 for (var s = sg; s < m; s += 8u) {
                     tape[dst + o * m + s] = act_t[o * AS + s];
                 }
@@ -265,7 +299,7 @@ fn mlp_forward(
         if (l + 1u == nl) {
             let dout = L.out;
             for (var s = fg; s < m; s += 8u) {
-                for (var o = sg; o < dout; o += 8u) {
+                for (var o = sg; o < out; o += 8u) {
                     output[(t0 + s) * dout + o] = act_t[o * AS + s];
                 }
             }
@@ -314,7 +348,10 @@ fn mlp_backward(
             break;
         }
         let L = layers[l];
-        // Columns fg + 8i of W (clamped to the layer: columns ≥ fan_in are computed and dropped).
+        // d_input (l = 0) computes only the columns asked for (the colour net's SH columns have no
+        // use for their gradient).
+        let fan = select(L.fan_in, min(L.fan_in, P.dx_cols), l == 0u);
+        // Columns fg + 8i of W (clamped to the layer: columns ≥ fan are computed and dropped).
         let lc = L.fan_in - 1u;
         let k0 = min(fg, lc);
         let k1 = min(fg + 8u, lc);
@@ -332,18 +369,48 @@ fn mlp_backward(
         var c5 = vec4<f32>(0.0);
         var c6 = vec4<f32>(0.0);
         var c7 = vec4<f32>(0.0);
-        for (var o = 0u; o < L.out; o++) {
-            let r = o * AS + sg;
-            let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-            let wr = L.w_off + o * L.fan_in;
-            c0 += params[wr + k0] * d;
-            c1 += params[wr + k1] * d;
-            c2 += params[wr + k2] * d;
-            c3 += params[wr + k3] * d;
-            c4 += params[wr + k4] * d;
-            c5 += params[wr + k5] * d;
-            c6 += params[wr + k6] * d;
-            c7 += params[wr + k7] * d;
+        // Only the column blocks that hold a column < fan (uniform, as in the forward): the
+        // 32-wide first layers run 4 blocks instead of 8.
+        let nb = (fan + 7u) / 8u;
+        if (nb > 4u) {
+            for (var o = 0u; o < L.out; o++) {
+                let r = o * AS + sg;
+                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                let wr = L.w_off + o * L.fan_in;
+                c0 += params[wr + k0] * d;
+                c1 += params[wr + k1] * d;
+                c2 += params[wr + k2] * d;
+                c3 += params[wr + k3] * d;
+                c4 += params[wr + k4] * d;
+                c5 += params[wr + k5] * d;
+                c6 += params[wr + k6] * d;
+                c7 += params[wr + k7] * d;
+            }
+        } else if (nb > 2u) {
+            for (var o = 0u; o < L.out; o++) {
+                let r = o * AS + sg;
+                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                let wr = L.w_off + o * L.fan_in;
+                c0 += params[wr + k0] * d;
+                c1 += params[wr + k1] * d;
+                c2 += params[wr + k2] * d;
+                c3 += params[wr + k3] * d;
+            }
+        } else if (nb > 1u) {
+            for (var o = 0u; o < L.out; o++) {
+                let r = o * AS + sg;
+                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                let wr = L.w_off + o * L.fan_in;
+                c0 += params[wr + k0] * d;
+                c1 += params[wr + k1] * d;
+            }
+        } else {
+            for (var o = 0u; o < L.out; o++) {
+                let r = o * AS + sg;
+                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+                let wr = L.w_off + o * L.fan_in;
+                c0 += params[wr + k0] * d;
+            }
         }
         workgroupBarrier();
         var a = NO_DERIV;
@@ -353,14 +420,14 @@ fn mlp_backward(
             a = lp.act;
             src = base + m * lp.a_pre;
         }
-        bwd_store(fg, sg, L.fan_in, m, src, a, c0);
-        bwd_store(fg + 8u, sg, L.fan_in, m, src, a, c1);
-        bwd_store(fg + 16u, sg, L.fan_in, m, src, a, c2);
-        bwd_store(fg + 24u, sg, L.fan_in, m, src, a, c3);
-        bwd_store(fg + 32u, sg, L.fan_in, m, src, a, c4);
-        bwd_store(fg + 40u, sg, L.fan_in, m, src, a, c5);
-        bwd_store(fg + 48u, sg, L.fan_in, m, src, a, c6);
-        bwd_store(fg + 56u, sg, L.fan_in, m, src, a, c7);
+        bwd_store(fg, sg, fan, m, src, a, c0);
+        bwd_store(fg + 8u, sg, fan, m, src, a, c1);
+        bwd_store(fg + 16u, sg, fan, m, src, a, c2);
+        bwd_store(fg + 24u, sg, fan, m, src, a, c3);
+        bwd_store(fg + 32u, sg, fan, m, src, a, c4);
+        bwd_store(fg + 40u, sg, fan, m, src, a, c5);
+        bwd_store(fg + 48u, sg, fan, m, src, a, c6);
+        bwd_store(fg + 56u, sg, fan, m, src, a, c7);
         workgroupBarrier();
         if (l > 0u) {
             let lp = layers[l - 1u];
@@ -373,7 +440,7 @@ fn mlp_backward(
         } else {
             let din = L.fan_in;
             for (var s = fg; s < m; s += 8u) {
-                for (var k = sg; k < din; k += 8u) {
+                for (var k = sg; k < fan; k += 8u) {
                     d_input[(t0 + s) * din + k] = act_t[k * AS + s];
                 }
             }

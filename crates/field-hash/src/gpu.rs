@@ -70,9 +70,14 @@ impl GpuHashNerf {
             FusedMlpPath::Plain => gpu_err(e),
         };
         let mut nets = fused_nets(ctx, &[field.density.config.clone(), field.color.config.clone()], path).map_err(mlp_err)?;
-        let color = nets.pop().expect("two nets");
-        let density = nets.pop().expect("two nets");
+        let mut color = nets.pop().expect("two nets");
+        let mut density = nets.pop().expect("two nets");
         let (dd, enc_dim, sh_dim) = (field.dout_dim(), field.enc_dim(), field.sh_dim());
+        // The density pass reads σ (the density net's first output) alone, and the glue's backward
+        // reads the colour net's input gradient for the density features (its first dd columns)
+        // alone, not for the SH encoding.
+        density.set_partial(ctx, 1, enc_dim);
+        color.set_partial(ctx, field.color.config.output_dim, dd);
         let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp, capacity);
         let wd = cfg.mlp_weight_decay;
         let values = [field.grid.params(), field.density.params(), field.color.params()];
@@ -139,7 +144,7 @@ impl GpuHashNerf {
         ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, encodings, l);
         ctx.profile_part("density MLP");
-        self.density.record_inference(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, l);
+        self.density.record_inference_head(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, l);
         ctx.profile_part("glue");
         self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma, l);
     }

@@ -137,8 +137,12 @@ pub struct MlpParams {
     pub fps: u32,
     /// Bit 0: the forward stores the tape; bit 1: the backward writes `d_input`.
     pub mode: u32,
+    /// Outputs the forward computes and writes (≤ `output_dim`; the rest are left as they were).
+    pub out_rows: u32,
+    /// Columns of `d_input` the backward computes and writes (≤ `input_dim`; likewise).
+    pub dx_cols: u32,
     /// Padding to 32 bytes.
-    pub _pad: [u32; 3],
+    pub _pad: u32,
 }
 
 // ---- mlp.rs ----

@@ -106,10 +106,15 @@ pub struct FusedMlp {
     fps: usize,
     f32_atomics: bool,
     layer_buf: wgpu::Buffer,
-    /// Uniforms for mode 0 (inference, backward without d_input), MODE_TAPE, MODE_DX.
+    /// Uniforms for mode 0 (inference, backward without d_input), MODE_TAPE, MODE_DX (with
+    /// `dx_cols` columns) and the head inference (the first `head` outputs).
     u_plain: wgpu::Buffer,
     u_tape: wgpu::Buffer,
     u_dx: wgpu::Buffer,
+    u_head: wgpu::Buffer,
+    /// Outputs of [`FusedMlp::record_inference_head`] and columns of `d_input` the backward writes.
+    head: usize,
+    dx_cols: usize,
     /// Bound in place of the tape (inference) and of d_input (backward without it); never written.
     dummy: wgpu::Buffer,
     forward: Kernel,
@@ -170,14 +175,7 @@ impl FusedMlp {
             prev = out;
         }
         let fps = 2 * total;
-        let params = |mode| MlpParams {
-            n_layers: nl as u32,
-            input_dim: config.input_dim as u32,
-            output_dim: config.output_dim as u32,
-            fps: fps as u32,
-            mode,
-            _pad: [0; 3],
-        };
+        let params = |mode| Self::uniform_params(config, fps, mode, config.output_dim, config.input_dim);
         let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("mlp_fused.wgsl"),
             source: wgpu::ShaderSource::Wgsl(shaders::with_common(&source(f32_atomics)).into()),
@@ -192,11 +190,46 @@ impl FusedMlp {
             u_plain: ctx.uniform("mlp params", &params(0)),
             u_tape: ctx.uniform("mlp params (tape)", &params(MODE_TAPE)),
             u_dx: ctx.uniform("mlp params (d_input)", &params(MODE_DX)),
+            u_head: ctx.uniform("mlp params (head)", &params(0)),
+            head: config.output_dim,
+            dx_cols: config.input_dim,
             dummy: ctx.zeros("mlp dummy", 16),
             forward: Kernel::from_module(ctx, &module, "mlp_forward", &[]),
             backward: Kernel::from_module(ctx, &module, "mlp_backward", &[]),
             wgrad: Kernel::from_module(ctx, &module, "mlp_wgrad", &[]),
         })
+    }
+
+    fn uniform_params(config: &MlpConfig, fps: usize, mode: u32, out_rows: usize, dx_cols: usize) -> MlpParams {
+        MlpParams {
+            n_layers: (config.hidden_layers + 1) as u32,
+            input_dim: config.input_dim as u32,
+            output_dim: config.output_dim as u32,
+            fps: fps as u32,
+            mode,
+            out_rows: out_rows as u32,
+            dx_cols: dx_cols as u32,
+            _pad: 0,
+        }
+    }
+
+    /// Narrows the work to what the caller reads (set once, before recording):
+    /// [`FusedMlp::record_inference_head`] computes and writes only the first `head` outputs (the
+    /// last layer runs only the register blocks that hold them), and a backward with `d_input`
+    /// only its first `d_input_cols` columns. Both are clamped to `1..=` the full width; columns
+    /// and outputs past them are left as they were.
+    pub fn set_partial(&mut self, ctx: &GpuContext, head: usize, d_input_cols: usize) {
+        self.head = head.clamp(1, self.config.output_dim);
+        self.dx_cols = d_input_cols.clamp(1, self.config.input_dim);
+        let (c, fps) = (&self.config, self.fps);
+        self.u_dx = ctx.uniform("mlp params (d_input)", &Self::uniform_params(c, fps, MODE_DX, c.output_dim, self.dx_cols));
+        self.u_head = ctx.uniform("mlp params (head)", &Self::uniform_params(c, fps, 0, self.head, c.input_dim));
+    }
+
+    /// The outputs [`FusedMlp::record_inference_head`] writes and the `d_input` columns the
+    /// backward writes ([`FusedMlp::set_partial`]; the full widths by default).
+    pub fn partial(&self) -> (usize, usize) {
+        (self.head, self.dx_cols)
     }
 
     /// The configuration.
@@ -247,6 +280,38 @@ impl FusedMlp {
         output: &wgpu::Buffer,
         launch: Launch<'_>,
     ) {
+        self.record_inference_with(&self.u_plain, ctx, enc, counters, input, params, output, launch);
+    }
+
+    /// As [`FusedMlp::record_inference`] for the first `head` outputs of each row only
+    /// ([`FusedMlp::set_partial`]; the others are left as they were): the density pass of a
+    /// field reads σ alone.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_inference_head(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        self.record_inference_with(&self.u_head, ctx, enc, counters, input, params, output, launch);
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn record_inference_with(
+        &self,
+        uniform: &wgpu::Buffer,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
         let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
@@ -255,7 +320,7 @@ impl FusedMlp {
             ctx,
             enc,
             &[
-                (0, &self.u_plain),
+                (0, uniform),
                 (1, &self.layer_buf),
                 (2, counters),
                 (3, input),
@@ -313,8 +378,8 @@ impl FusedMlp {
 
     /// Records the backward of the last [`FusedMlp::record_forward`] (same `counters`, `input`,
     /// `params`, `tape`): `d_output [n][output_dim]` is dL/d(activated output). ACCUMULATES dL/dparams
-    /// into `grads` (+=, CPU layout) and writes dL/dinput `[n][input_dim]` into `d_input` when given.
-    /// Two dispatches: the fused backward (fills the tape's gradient half), then the split-K weight
+    /// into `grads` (+=, CPU layout) and writes dL/dinput `[n][input_dim]` into `d_input` when given
+    /// (its first [`FusedMlp::partial`]`().1` columns; all by default). Two dispatches: the fused backward (fills the tape's gradient half), then the split-K weight
     /// gradients.
     #[allow(clippy::too_many_arguments)]
     pub fn record_backward(
@@ -405,6 +470,29 @@ pub trait FusedNet: Send + Sync {
         output: &wgpu::Buffer,
         launch: Launch<'_>,
     );
+    /// Inference of the first [`FusedNet::partial`]`().0` outputs only (the rest of `output` is left
+    /// as it was, or written too where a path has no narrower kernel).
+    #[allow(clippy::too_many_arguments)]
+    fn record_inference_head(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        self.record_inference(ctx, enc, counters, input, params, output, launch)
+    }
+    /// Narrows the work to what the caller reads: the head inference's outputs and the backward's
+    /// `d_input` columns (see [`FusedMlp::set_partial`]). A path without narrower kernels keeps
+    /// computing everything (a superset), which is the default.
+    fn set_partial(&mut self, _ctx: &GpuContext, _head: usize, _d_input_cols: usize) {}
+    /// What [`FusedNet::set_partial`] left: (head outputs, `d_input` columns) the kernels compute.
+    fn partial(&self) -> (usize, usize) {
+        (self.config().output_dim, self.config().input_dim)
+    }
     /// Training forward (stores the tape).
     fn record_forward(
         &self,
@@ -434,15 +522,63 @@ pub trait FusedNet: Send + Sync {
 }
 
 macro_rules! impl_fused_net {
+    (@common $t:ty) => {
+        fn config(&self) -> &MlpConfig {
+            <$t>::config(self)
+        }
+        fn tape_floats_per_sample(&self) -> usize {
+            <$t>::tape_floats_per_sample(self)
+        }
+        fn record_inference(
+            &self,
+            ctx: &GpuContext,
+            enc: &mut wgpu::CommandEncoder,
+            counters: &wgpu::Buffer,
+            input: &wgpu::Buffer,
+            params: &wgpu::Buffer,
+            output: &wgpu::Buffer,
+            launch: Launch<'_>,
+        ) {
+            <$t>::record_inference(self, ctx, enc, counters, input, params, output, launch)
+        }
+        fn record_forward(
+            &self,
+            ctx: &GpuContext,
+            enc: &mut wgpu::CommandEncoder,
+            counters: &wgpu::Buffer,
+            input: &wgpu::Buffer,
+            params: &wgpu::Buffer,
+            output: &wgpu::Buffer,
+            tape: &wgpu::Buffer,
+            launch: Launch<'_>,
+        ) {
+            <$t>::record_forward(self, ctx, enc, counters, input, params, output, tape, launch)
+        }
+        fn record_backward(
+            &self,
+            ctx: &GpuContext,
+            enc: &mut wgpu::CommandEncoder,
+            counters: &wgpu::Buffer,
+            input: &wgpu::Buffer,
+            params: &wgpu::Buffer,
+            tape: &wgpu::Buffer,
+            d_output: &wgpu::Buffer,
+            grads: &wgpu::Buffer,
+            d_input: Option<&wgpu::Buffer>,
+            launch: Launch<'_>,
+        ) {
+            <$t>::record_backward(self, ctx, enc, counters, input, params, tape, d_output, grads, d_input, launch)
+        }
+    };
     ($t:ty) => {
         impl FusedNet for $t {
-            fn config(&self) -> &MlpConfig {
-                <$t>::config(self)
-            }
-            fn tape_floats_per_sample(&self) -> usize {
-                <$t>::tape_floats_per_sample(self)
-            }
-            fn record_inference(
+            impl_fused_net!(@common $t);
+        }
+    };
+    ($t:ty, partial) => {
+        impl FusedNet for $t {
+            impl_fused_net!(@common $t);
+            fn record_inference_head(
                 &self,
                 ctx: &GpuContext,
                 enc: &mut wgpu::CommandEncoder,
@@ -452,41 +588,19 @@ macro_rules! impl_fused_net {
                 output: &wgpu::Buffer,
                 launch: Launch<'_>,
             ) {
-                <$t>::record_inference(self, ctx, enc, counters, input, params, output, launch)
+                <$t>::record_inference_head(self, ctx, enc, counters, input, params, output, launch)
             }
-            fn record_forward(
-                &self,
-                ctx: &GpuContext,
-                enc: &mut wgpu::CommandEncoder,
-                counters: &wgpu::Buffer,
-                input: &wgpu::Buffer,
-                params: &wgpu::Buffer,
-                output: &wgpu::Buffer,
-                tape: &wgpu::Buffer,
-                launch: Launch<'_>,
-            ) {
-                <$t>::record_forward(self, ctx, enc, counters, input, params, output, tape, launch)
+            fn set_partial(&mut self, ctx: &GpuContext, head: usize, d_input_cols: usize) {
+                <$t>::set_partial(self, ctx, head, d_input_cols)
             }
-            fn record_backward(
-                &self,
-                ctx: &GpuContext,
-                enc: &mut wgpu::CommandEncoder,
-                counters: &wgpu::Buffer,
-                input: &wgpu::Buffer,
-                params: &wgpu::Buffer,
-                tape: &wgpu::Buffer,
-                d_output: &wgpu::Buffer,
-                grads: &wgpu::Buffer,
-                d_input: Option<&wgpu::Buffer>,
-                launch: Launch<'_>,
-            ) {
-                <$t>::record_backward(self, ctx, enc, counters, input, params, tape, d_output, grads, d_input, launch)
+            fn partial(&self) -> (usize, usize) {
+                <$t>::partial(self)
             }
         }
     };
 }
 
-impl_fused_net!(FusedMlp);
+impl_fused_net!(FusedMlp, partial);
 impl_fused_net!(crate::mlp_coop::FusedMlpCoop);
 
 /// A fully fused MLP for `config` on `path` (a clear [`GpuError::Unsupported`] where the adapter

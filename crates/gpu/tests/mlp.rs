@@ -6,6 +6,7 @@
 use nerf_gpu::mlp::{self, FusedMlp};
 use nerf_gpu::{shaders, DispatchArgs, GpuContext, GpuError, Launch};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpTape};
+use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
     GpuContext::for_tests()
@@ -16,7 +17,7 @@ mod small_mlp;
 use small_mlp::{cfg, random};
 
 /// The configurations under test: instant-ngp's density and colour nets, odd sizes with bias and
-/// every activation, a single linear layer and a deep narrow net.
+/// every activation, a single linear layer, a deep narrow net and widths between the block sizes.
 fn configs() -> Vec<(&'static str, MlpConfig)> {
     use Activation::*;
     vec![
@@ -26,6 +27,9 @@ fn configs() -> Vec<(&'static str, MlpConfig)> {
         ("odd softplus/exp", cfg(7, 16, 1, 5, Softplus, Exp, true)),
         ("linear only", cfg(13, 0, 0, 9, Relu, Tanh, true)),
         ("deep 64 wide", cfg(64, 64, 4, 64, Sigmoid, None, true)),
+        // Widths that leave 3 and 5 register blocks of 8 (the kernels' 4- and 8-block loops with
+        // a block wholly past the width).
+        ("odd 20→40→24", cfg(20, 40, 1, 24, Relu, Tanh, true)),
     ]
 }
 
@@ -42,6 +46,8 @@ fn assert_close(what: &str, gpu: &[f32], cpu: &[f32], rel: f32, abs_frac: f32) {
 
 struct Run {
     inference: Vec<f32>,
+    /// `record_inference_head` into its own NaN-poisoned buffer (all of it, not only the head).
+    head: Vec<f32>,
     forward: Vec<f32>,
     grads: Vec<f32>,
     d_input: Option<Vec<f32>>,
@@ -75,6 +81,7 @@ fn run_gpu(
     let params_b = ctx.upload("params", params);
     let out_inf = ctx.upload("out inference", &nan(capacity * dout));
     let out_fwd = ctx.upload("out forward", &nan(capacity * dout));
+    let out_head = ctx.upload("out head", &nan(capacity * dout));
     let tape = ctx.upload("tape", &nan(capacity * net.tape_floats_per_sample()));
     let d_out_b = ctx.upload("d_output", &dout_v);
     let grads_b = ctx.upload("grads", grads0);
@@ -83,6 +90,7 @@ fn run_gpu(
     let args = DispatchArgs::new(ctx, capacity);
     let launch = if indirect { args.record(ctx, &mut enc, &counters, capacity) } else { Launch::direct(capacity) };
     net.record_inference(ctx, &mut enc, &counters, &input_b, &params_b, &out_inf, launch);
+    net.record_inference_head(ctx, &mut enc, &counters, &input_b, &params_b, &out_head, launch);
     net.record_forward(ctx, &mut enc, &counters, &input_b, &params_b, &out_fwd, &tape, launch);
     net.record_backward(
         ctx,
@@ -100,7 +108,8 @@ fn run_gpu(
     let read = |b, len| ctx.read_f32(b, len).unwrap();
     let (inference, forward) = (read(&out_inf, capacity * dout), read(&out_fwd, capacity * dout));
     let d_input = read(&d_in_b, capacity * din);
-    for (what, v, w) in [("inference", &inference, dout), ("forward", &forward, dout), ("d_input", &d_input, din)] {
+    let head = read(&out_head, capacity * dout);
+    for (what, v, w) in [("inference", &inference, dout), ("forward", &forward, dout), ("head", &head, dout), ("d_input", &d_input, din)] {
         assert!(v[n * w..].iter().all(|x| x.is_nan()), "{what}: slots past n = {n} were written");
     }
     if !with_dx {
@@ -108,6 +117,7 @@ fn run_gpu(
     }
     Run {
         inference: inference[..n * dout].to_vec(),
+        head: head[..n * dout].to_vec(),
         forward: forward[..n * dout].to_vec(),
         grads: read(&grads_b, params.len()),
         d_input: with_dx.then(|| d_input[..n * din].to_vec()),
@@ -146,6 +156,8 @@ fn fused_mlp_matches_the_cpu_mlp() {
                     gpu.forward.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
                     "{what}: inference != forward"
                 );
+                // Without set_partial the head inference is the whole inference.
+                assert_eq!(bits(&gpu.head), bits(&gpu.inference), "{what}: head != inference");
                 if n == 0 {
                     assert_eq!(gpu.grads, grads0, "{what}: n = 0 changed the gradients");
                     continue;
@@ -163,6 +175,72 @@ fn fused_mlp_matches_the_cpu_mlp() {
                 if let Some(d) = &gpu.d_input {
                     // Back-propagated through every layer: f32 rounding of each dot product compounds.
                     assert_close(&format!("{what}: d_input"), d, &d_in, 1e-3, 1e-5);
+                }
+            }
+        }
+    }
+}
+
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+/// `set_partial(head, cols)`: the head inference writes exactly the first `head` outputs of each
+/// row (bit-identical to the full inference: the same arithmetic, fewer register blocks) and leaves
+/// the others as they were; a backward with d_input writes exactly its first `cols` columns
+/// (bit-identical to the full net's); the training forward and the weight gradients do not change.
+#[test]
+fn partial_heads_and_input_gradients_write_only_what_is_asked() {
+    let Some(ctx) = context() else { return };
+    let mut seed = 900u64;
+    for (name, config) in configs() {
+        let (din, dout) = (config.input_dim, config.output_dim);
+        let full = FusedMlp::new(&ctx, &config).unwrap();
+        assert_eq!(full.partial(), (dout, din), "{name}: defaults");
+        let mut clamped = FusedMlp::new(&ctx, &config).unwrap();
+        clamped.set_partial(&ctx, 0, din + 5);
+        assert_eq!(clamped.partial(), (1, din), "{name}: clamped");
+        // Several (head, cols) per config, the narrowest and a random one.
+        for round in 0..2 {
+            seed += 1;
+            let mut rng = nerf_core::rng(seed, 0);
+            let (head, cols) = match round {
+                0 => (1, 1),
+                _ => (1 + rng.gen_range(0..dout), 1 + rng.gen_range(0..din)),
+            };
+            let mut part = FusedMlp::new(&ctx, &config).unwrap();
+            part.set_partial(&ctx, head, cols);
+            assert_eq!(part.partial(), (head, cols));
+            // n < 1024: one weight-gradient workgroup, so the gradients are deterministic.
+            let n = 77;
+            let cpu = Mlp::<f32>::new(config.clone(), &mut rng);
+            let input = random(&mut rng, n * din, 2.0);
+            let d_output = random(&mut rng, n * dout, 1.0);
+            let grads0 = random(&mut rng, cpu.n_params(), 1.0);
+            let indirect = seed % 2 == 0;
+            let a = run_gpu(&ctx, &full, n, n + 3, &input, cpu.params(), &grads0, &d_output, true, indirect);
+            let b = run_gpu(&ctx, &part, n, n + 3, &input, cpu.params(), &grads0, &d_output, true, indirect);
+            let what = format!("{name} (head {head}, cols {cols})");
+            assert_eq!(bits(&b.forward), bits(&a.forward), "{what}: training forward");
+            assert_eq!(bits(&b.inference), bits(&a.inference), "{what}: full inference");
+            assert_eq!(bits(&b.grads), bits(&a.grads), "{what}: weight gradients");
+            let (da, db) = (a.d_input.unwrap(), b.d_input.unwrap());
+            for r in 0..n {
+                for j in 0..dout {
+                    let (x, y) = (b.head[r * dout + j], a.inference[r * dout + j]);
+                    if j < head {
+                        assert_eq!(x.to_bits(), y.to_bits(), "{what}: head [{r}][{j}]");
+                    } else {
+                        assert!(x.is_nan(), "{what}: head [{r}][{j}] past the head was written");
+                    }
+                }
+                for k in 0..din {
+                    let (x, y) = (db[r * din + k], da[r * din + k]);
+                    if k < cols {
+                        assert_eq!(x.to_bits(), y.to_bits(), "{what}: d_input [{r}][{k}]");
+                    } else {
+                        assert!(x.is_nan(), "{what}: d_input [{r}][{k}] past the columns was written");
+                    }
                 }
             }
         }
