@@ -320,7 +320,9 @@ impl<T: Real> HashNerf<T> {
         assert_eq!(d_sigma.len(), n);
         let (dd, enc_dim, sh_dim) = (self.dout_dim(), self.enc_dim(), self.sh_dim());
         t.d_color_in.resize(n * (dd + sh_dim), T::zero());
-        self.color.backward(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in));
+        // Only the density features' columns of the colour net's input gradient are read (the
+        // SH encoding has no parameters).
+        self.color.backward_cols(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in), dd);
         t.d_density_out.resize(n * dd, T::zero());
         for (k, &ds) in d_sigma.iter().enumerate() {
             let dr = &mut t.d_density_out[k * dd..(k + 1) * dd];

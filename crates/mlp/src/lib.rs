@@ -587,7 +587,29 @@ impl<T: Real> Mlp<T> {
         d_output: &[T],
         d_input: Option<&mut [T]>,
     ) {
+        self.backward_cols(n, input, tape, d_output, d_input, self.config.input_dim)
+    }
+
+    /// As [`Mlp::backward`], writing only the first `cols` columns of `d_input` (`1 ≤ cols ≤
+    /// input_dim`; the others are left as they were): a field whose input mixes features with an
+    /// encoding that has no parameters (the hash field's SH inputs) asks for the features' columns.
+    /// The parameter gradients are those of [`Mlp::backward`] bit for bit, the columns written up to
+    /// rounding.
+    pub fn backward_cols(
+        &mut self,
+        n: usize,
+        input: &[T],
+        tape: &mut MlpTape<T>,
+        d_output: &[T],
+        d_input: Option<&mut [T]>,
+        cols: usize,
+    ) {
         self.check_input(n, input);
+        assert!(
+            (1..=self.config.input_dim).contains(&cols),
+            "Mlp::backward_cols: cols {cols} outside 1..={}",
+            self.config.input_dim
+        );
         let nl = self.layers.len();
         assert!(
             tape.n == n && tape.acts.len() == nl,
@@ -610,7 +632,11 @@ impl<T: Real> Mlp<T> {
                 "Mlp::backward: d_input length {} != {n}·{d_in}",
                 d.len()
             );
-            d.fill(T::zero());
+            if cols == d_in {
+                d.fill(T::zero());
+            } else {
+                d.chunks_exact_mut(d_in).for_each(|row| row[..cols].fill(T::zero()));
+            }
         }
         let par = Parallelism::Rayon(0);
         let w = self.max_width();
@@ -642,9 +668,9 @@ impl<T: Real> Mlp<T> {
                 let dw = MatMut::new(&mut self.grads[l.w_off..], l.out, d_in, l.fan_in, 1);
                 matmul(dw, true, dzt, MatRef::row_major(input, n, d_in), par);
                 if let Some(d) = d_input.as_deref_mut() {
-                    let wx = MatRef::new(&self.params[l.w_off..], l.out, d_in, l.fan_in, 1);
+                    let wx = MatRef::new(&self.params[l.w_off..], l.out, cols, l.fan_in, 1);
                     matmul(
-                        MatMut::row_major(d, n, d_in),
+                        MatMut::new(d, n, cols, d_in, 1),
                         true,
                         MatRef::row_major(g, n, l.out),
                         wx,

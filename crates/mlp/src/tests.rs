@@ -432,3 +432,49 @@ fn activations_and_derivatives() {
     assert_eq!(Activation::Softplus.apply(800.0f64), 800.0);
     assert_eq!(Activation::Sigmoid.apply(-800.0f32), 0.0);
 }
+
+/// `backward_cols` gives the gradients of `backward` bit for bit, the first `cols` columns of its
+/// `d_input`, and leaves the other columns as they were — in f32 (the precision the fields train
+/// in), with a skip layer (two blocks that add into d_input) and with the hash field's colour net.
+/// (A narrower product may go through another blocking of `gemm`, so the columns agree to rounding,
+/// not bit for bit.)
+#[test]
+fn partial_input_gradients_match_the_full_ones() {
+    let mut skip = cfg(9, 5, 24, 3, Activation::Relu, Activation::Sigmoid);
+    skip.skips = vec![2];
+    let color = cfg(32, 3, 64, 2, Activation::Relu, Activation::Sigmoid);
+    for (seed, config) in [(11u64, skip), (13, color)] {
+        let (din, dout) = (config.input_dim, config.output_dim);
+        let n = 300;
+        let mut rng = nerf_core::rng(seed, 0);
+        let mlp = Mlp::<f32>::new(config.clone(), &mut rng);
+        let x: Vec<f32> = random(n * din, seed + 1, 1.0).iter().map(|&v| v as f32).collect();
+        let g: Vec<f32> = random(n * dout, seed + 2, 1.0).iter().map(|&v| v as f32).collect();
+        let close = |a: f32, b: f32| (a - b).abs() <= 1e-6 * (1.0 + b.abs());
+        let mut a = mlp.clone();
+        let mut tape = MlpTape::default();
+        a.forward(n, &x, &mut tape);
+        let mut dx_full = vec![f32::NAN; n * din];
+        a.backward(n, &x, &mut tape, &g, Some(&mut dx_full));
+        for cols in [1, din / 2, din] {
+            let mut b = mlp.clone();
+            let mut tape = MlpTape::default();
+            b.forward(n, &x, &mut tape);
+            let mut dx = vec![f32::NAN; n * din];
+            b.backward_cols(n, &x, &mut tape, &g, Some(&mut dx), cols);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(b.grads()), bits(a.grads()), "seed {seed} cols {cols}: grads");
+            for r in 0..n {
+                for k in 0..din {
+                    let v = dx[r * din + k];
+                    if k < cols {
+                        let w = dx_full[r * din + k];
+                        assert!(close(v, w), "seed {seed} cols {cols} [{r}][{k}]: {v} vs {w}");
+                    } else {
+                        assert!(v.is_nan(), "seed {seed} cols {cols}: d_input [{r}][{k}] past the columns was written");
+                    }
+                }
+            }
+        }
+    }
+}
