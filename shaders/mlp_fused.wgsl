@@ -19,7 +19,10 @@
 //   mlp_forward  : input tile → workgroup memory act_t [feature][sample] (row stride AS = 40, so
 //                  the 8×4 invocation grid reads/writes without bank conflicts). Per layer every
 //                  invocation computes an 8-feature × 4-sample register block (8 named vec4
-//                  accumulators, 4 workgroup + 8 weight loads per 32 FMAs); the weights are read
+//                  accumulators, 4 workgroup + 8 weight loads per 32 FMAs; where a layer's rows of
+//                  W start on 16-byte boundaries, as in the hash field's nets, 16 workgroup + 8
+//                  vec4 weight loads per 128 FMAs through `params4`, the same buffer viewed as
+//                  vec4, summed in the same order); the weights are read
 //                  straight from `params` (a warp reads 4 distinct, L1-resident addresses per load:
 //                  measured 3× faster on the H100 than staging each layer's W in workgroup memory per
 //                  tile, which cost occupancy and a latency-bound copy). Barrier, activation written
@@ -29,7 +32,10 @@
 //   mlp_backward : D_last = d_output ⊙ act'(A_last); for l = last..1: dH = D_l·W_l (same register
 //                  blocking), D_{l−1} = dH ⊙ act'(A_{l−1}) in place; every D_l goes to the tape. Mode
 //                  bit 1 also writes d_input = D_0·W_0, its first P.dx_cols columns only (the
-//                  hash field's colour net needs no gradient for its SH inputs).
+//                  hash field's colour net needs no gradient for its SH inputs). Where a layer's
+//                  out and w_off are multiples of 4, the weights come from Wᵀ (`wt`, written by
+//                  mlp_transpose just before) as vec4s over four consecutive o, in the same order.
+//   mlp_transpose: wt = Wᵀ per layer from `params` (a few thousand floats, one launch).
 //   mlp_wgrad    : weight gradients as a split-K reduction (tiny-cuda-nn also leaves dW to a separate
 //                  split-K GEMM): dispatch [G, n_layers], workgroups of 256; workgroup (g, l) sums
 //                  dW_l = Σ_s D_l[s]ᵀ·H[s] (H = input for l = 0, else A_{l−1}) and db_l = Σ_s D_l[s] over
@@ -90,6 +96,12 @@ struct MlpLayer {
 @group(0) @binding(6) var<storage, read_write> tape: array<f32>;
 @group(0) @binding(7) var<storage, read> d_output: array<f32>;
 @group(0) @binding(8) var<storage, read_write> d_input: array<f32>;
+// `params` again, as vec4 (the same buffer; the forward reads 16-byte aligned weight rows with it).
+@group(0) @binding(10) var<storage, read> params4: array<vec4<f32>>;
+// Wᵀ: per layer [fan_in][out] at the layer's w_off, written by mlp_transpose from `params` before
+// each backward, read by mlp_backward as vec4 (wt4, the same buffer).
+@group(0) @binding(11) var<storage, read_write> wt: array<f32>;
+@group(0) @binding(12) var<storage, read> wt4: array<vec4<f32>>;
 
 // GRAD_ATOMIC_BEGIN
 @group(0) @binding(9) var<storage, read_write> grads: array<atomic<u32>>;
@@ -153,6 +165,20 @@ fn act_deriv(a: u32, y: f32) -> f32 {
         case 5u: { return y; }
         default: { return 1.0; }
     }
+}
+
+// Column group of the invocation's 4 samples in act_t (row r: samples sg, sg + 8, sg + 16, sg + 24).
+fn act4(r: u32) -> vec4<f32> {
+    return vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
+}
+
+// c += w[j]·a_j for j = 0..3 in that order (four consecutive weights of one row against the 4
+// samples of four inputs; the same sums, in the same order, as four steps of the scalar loop).
+fn acc4(c: ptr<function, vec4<f32>>, w: vec4<f32>, a0: vec4<f32>, a1: vec4<f32>, a2: vec4<f32>, a3: vec4<f32>) {
+    *c += w.x * a0;
+    *c += w.y * a1;
+    *c += w.z * a2;
+    *c += w.w * a3;
 }
 
 // Row o of the forward's register block: act_t[o][sg + 8j] = act(v[j] + b[o]).
@@ -242,40 +268,90 @@ fn mlp_forward(
         // (fg < 8), so a narrow layer (the density net's 16 outputs, the colour net's 3) runs a
         // loop over 1, 2 or 4 blocks instead of 8.
         let nb = (out + 7u) / 8u;
-        if (nb > 4u) {
-            for (var k = 0u; k < L.fan_in; k++) {
-                let r = k * AS + sg;
-                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                c0 += params[r0 + k] * a;
-                c1 += params[r1 + k] * a;
-                c2 += params[r2 + k] * a;
-                c3 += params[r3 + k] * a;
-                c4 += params[r4 + k] * a;
-                c5 += params[r5 + k] * a;
-                c6 += params[r6 + k] * a;
-                c7 += params[r7 + k] * a;
-            }
-        } else if (nb > 2u) {
-            for (var k = 0u; k < L.fan_in; k++) {
-                let r = k * AS + sg;
-                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                c0 += params[r0 + k] * a;
-                c1 += params[r1 + k] * a;
-                c2 += params[r2 + k] * a;
-                c3 += params[r3 + k] * a;
-            }
-        } else if (nb > 1u) {
-            for (var k = 0u; k < L.fan_in; k++) {
-                let r = k * AS + sg;
-                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                c0 += params[r0 + k] * a;
-                c1 += params[r1 + k] * a;
+        // Rows of W that start on a 16-byte boundary (fan_in and w_off multiples of 4: the hash
+        // field's nets) are read 4 weights at a time through the vec4 view of `params`: a quarter
+        // of the weight loads for the same FMAs.
+        if ((L.fan_in % 4u) == 0u && (L.w_off % 4u) == 0u) {
+            if (nb > 4u) {
+                for (var k = 0u; k < L.fan_in; k += 4u) {
+                    let r = k * AS + sg;
+                    let a0 = act4(r);
+                    let a1 = act4(r + AS);
+                    let a2 = act4(r + 2u * AS);
+                    let a3 = act4(r + 3u * AS);
+                    acc4(&c0, params4[(r0 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c1, params4[(r1 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c2, params4[(r2 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c3, params4[(r3 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c4, params4[(r4 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c5, params4[(r5 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c6, params4[(r6 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c7, params4[(r7 + k) / 4u], a0, a1, a2, a3);
+                }
+            } else if (nb > 2u) {
+                for (var k = 0u; k < L.fan_in; k += 4u) {
+                    let r = k * AS + sg;
+                    let a0 = act4(r);
+                    let a1 = act4(r + AS);
+                    let a2 = act4(r + 2u * AS);
+                    let a3 = act4(r + 3u * AS);
+                    acc4(&c0, params4[(r0 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c1, params4[(r1 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c2, params4[(r2 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c3, params4[(r3 + k) / 4u], a0, a1, a2, a3);
+                }
+            } else if (nb > 1u) {
+                for (var k = 0u; k < L.fan_in; k += 4u) {
+                    let r = k * AS + sg;
+                    let a0 = act4(r);
+                    let a1 = act4(r + AS);
+                    let a2 = act4(r + 2u * AS);
+                    let a3 = act4(r + 3u * AS);
+                    acc4(&c0, params4[(r0 + k) / 4u], a0, a1, a2, a3);
+                    acc4(&c1, params4[(r1 + k) / 4u], a0, a1, a2, a3);
+                }
+            } else {
+                for (var k = 0u; k < L.fan_in; k += 4u) {
+                    let r = k * AS + sg;
+                    let a0 = act4(r);
+                    let a1 = act4(r + AS);
+                    let a2 = act4(r + 2u * AS);
+                    let a3 = act4(r + 3u * AS);
+                    acc4(&c0, params4[(r0 + k) / 4u], a0, a1, a2, a3);
+                }
             }
         } else {
-            for (var k = 0u; k < L.fan_in; k++) {
-                let r = k * AS + sg;
-                let a = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                c0 += params[r0 + k] * a;
+            if (nb > 4u) {
+                for (var k = 0u; k < L.fan_in; k++) {
+                    let a = act4(k * AS + sg);
+                    c0 += params[r0 + k] * a;
+                    c1 += params[r1 + k] * a;
+                    c2 += params[r2 + k] * a;
+                    c3 += params[r3 + k] * a;
+                    c4 += params[r4 + k] * a;
+                    c5 += params[r5 + k] * a;
+                    c6 += params[r6 + k] * a;
+                    c7 += params[r7 + k] * a;
+                }
+            } else if (nb > 2u) {
+                for (var k = 0u; k < L.fan_in; k++) {
+                    let a = act4(k * AS + sg);
+                    c0 += params[r0 + k] * a;
+                    c1 += params[r1 + k] * a;
+                    c2 += params[r2 + k] * a;
+                    c3 += params[r3 + k] * a;
+                }
+            } else if (nb > 1u) {
+                for (var k = 0u; k < L.fan_in; k++) {
+                    let a = act4(k * AS + sg);
+                    c0 += params[r0 + k] * a;
+                    c1 += params[r1 + k] * a;
+                }
+            } else {
+                for (var k = 0u; k < L.fan_in; k++) {
+                    let a = act4(k * AS + sg);
+                    c0 += params[r0 + k] * a;
+                }
             }
         }
         workgroupBarrier();
@@ -305,6 +381,20 @@ fn mlp_forward(
             }
         }
     }
+}
+
+// wt = Wᵀ per layer: dispatch [ceil(MAXW² / 64), n_layers]; invocation i of layer l copies W[o][k]
+// (i = o·fan_in + k) to wt[w_off + k·out + o].
+@compute @workgroup_size(64)
+fn mlp_transpose(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let L = layers[gid.y];
+    let i = gid.x;
+    if (i >= L.out * L.fan_in) {
+        return;
+    }
+    let o = i / L.fan_in;
+    let k = i % L.fan_in;
+    wt[L.w_off + k * L.out + o] = params[L.w_off + i];
 }
 
 @compute @workgroup_size(64)
@@ -372,44 +462,102 @@ fn mlp_backward(
         // Only the column blocks that hold a column < fan (uniform, as in the forward): the
         // 32-wide first layers run 4 blocks instead of 8.
         let nb = (fan + 7u) / 8u;
-        if (nb > 4u) {
-            for (var o = 0u; o < L.out; o++) {
-                let r = o * AS + sg;
-                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                let wr = L.w_off + o * L.fan_in;
-                c0 += params[wr + k0] * d;
-                c1 += params[wr + k1] * d;
-                c2 += params[wr + k2] * d;
-                c3 += params[wr + k3] * d;
-                c4 += params[wr + k4] * d;
-                c5 += params[wr + k5] * d;
-                c6 += params[wr + k6] * d;
-                c7 += params[wr + k7] * d;
-            }
-        } else if (nb > 2u) {
-            for (var o = 0u; o < L.out; o++) {
-                let r = o * AS + sg;
-                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                let wr = L.w_off + o * L.fan_in;
-                c0 += params[wr + k0] * d;
-                c1 += params[wr + k1] * d;
-                c2 += params[wr + k2] * d;
-                c3 += params[wr + k3] * d;
-            }
-        } else if (nb > 1u) {
-            for (var o = 0u; o < L.out; o++) {
-                let r = o * AS + sg;
-                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                let wr = L.w_off + o * L.fan_in;
-                c0 += params[wr + k0] * d;
-                c1 += params[wr + k1] * d;
+        // Where the rows of Wᵀ (mlp_transpose) start on 16-byte boundaries (out and w_off
+        // multiples of 4), column k's weights for four consecutive o are one vec4 load, summed in
+        // the same order as the scalar loop.
+        if ((L.out % 4u) == 0u && (L.w_off % 4u) == 0u) {
+            let q0 = L.w_off + k0 * L.out;
+            let q1 = L.w_off + k1 * L.out;
+            let q2 = L.w_off + k2 * L.out;
+            let q3 = L.w_off + k3 * L.out;
+            let q4 = L.w_off + k4 * L.out;
+            let q5 = L.w_off + k5 * L.out;
+            let q6 = L.w_off + k6 * L.out;
+            let q7 = L.w_off + k7 * L.out;
+            if (nb > 4u) {
+                for (var o = 0u; o < L.out; o += 4u) {
+                    let r = o * AS + sg;
+                    let d0 = act4(r);
+                    let d1 = act4(r + AS);
+                    let d2 = act4(r + 2u * AS);
+                    let d3 = act4(r + 3u * AS);
+                    acc4(&c0, wt4[(q0 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c1, wt4[(q1 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c2, wt4[(q2 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c3, wt4[(q3 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c4, wt4[(q4 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c5, wt4[(q5 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c6, wt4[(q6 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c7, wt4[(q7 + o) / 4u], d0, d1, d2, d3);
+                }
+            } else if (nb > 2u) {
+                for (var o = 0u; o < L.out; o += 4u) {
+                    let r = o * AS + sg;
+                    let d0 = act4(r);
+                    let d1 = act4(r + AS);
+                    let d2 = act4(r + 2u * AS);
+                    let d3 = act4(r + 3u * AS);
+                    acc4(&c0, wt4[(q0 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c1, wt4[(q1 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c2, wt4[(q2 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c3, wt4[(q3 + o) / 4u], d0, d1, d2, d3);
+                }
+            } else if (nb > 1u) {
+                for (var o = 0u; o < L.out; o += 4u) {
+                    let r = o * AS + sg;
+                    let d0 = act4(r);
+                    let d1 = act4(r + AS);
+                    let d2 = act4(r + 2u * AS);
+                    let d3 = act4(r + 3u * AS);
+                    acc4(&c0, wt4[(q0 + o) / 4u], d0, d1, d2, d3);
+                    acc4(&c1, wt4[(q1 + o) / 4u], d0, d1, d2, d3);
+                }
+            } else {
+                for (var o = 0u; o < L.out; o += 4u) {
+                    let r = o * AS + sg;
+                    let d0 = act4(r);
+                    let d1 = act4(r + AS);
+                    let d2 = act4(r + 2u * AS);
+                    let d3 = act4(r + 3u * AS);
+                    acc4(&c0, wt4[(q0 + o) / 4u], d0, d1, d2, d3);
+                }
             }
         } else {
-            for (var o = 0u; o < L.out; o++) {
-                let r = o * AS + sg;
-                let d = vec4<f32>(act_t[r], act_t[r + 8u], act_t[r + 16u], act_t[r + 24u]);
-                let wr = L.w_off + o * L.fan_in;
-                c0 += params[wr + k0] * d;
+            if (nb > 4u) {
+                for (var o = 0u; o < L.out; o++) {
+                    let d = act4(o * AS + sg);
+                    let wr = L.w_off + o * L.fan_in;
+                    c0 += params[wr + k0] * d;
+                    c1 += params[wr + k1] * d;
+                    c2 += params[wr + k2] * d;
+                    c3 += params[wr + k3] * d;
+                    c4 += params[wr + k4] * d;
+                    c5 += params[wr + k5] * d;
+                    c6 += params[wr + k6] * d;
+                    c7 += params[wr + k7] * d;
+                }
+            } else if (nb > 2u) {
+                for (var o = 0u; o < L.out; o++) {
+                    let d = act4(o * AS + sg);
+                    let wr = L.w_off + o * L.fan_in;
+                    c0 += params[wr + k0] * d;
+                    c1 += params[wr + k1] * d;
+                    c2 += params[wr + k2] * d;
+                    c3 += params[wr + k3] * d;
+                }
+            } else if (nb > 1u) {
+                for (var o = 0u; o < L.out; o++) {
+                    let d = act4(o * AS + sg);
+                    let wr = L.w_off + o * L.fan_in;
+                    c0 += params[wr + k0] * d;
+                    c1 += params[wr + k1] * d;
+                }
+            } else {
+                for (var o = 0u; o < L.out; o++) {
+                    let d = act4(o * AS + sg);
+                    let wr = L.w_off + o * L.fan_in;
+                    c0 += params[wr + k0] * d;
+                }
             }
         }
         workgroupBarrier();

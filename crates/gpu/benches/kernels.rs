@@ -1,11 +1,13 @@
 //! Criterion benches of the GPU kernels that dominate a training step, on the first adapter
-//! (skipped without one): hash encoding forward/backward (L16 F2 T2^19), the hash field's fused
-//! MLPs forward and forward + backward (plain WGSL, and on cooperative matrices where the adapter
-//! has them), the paper's 8×256 trunk forward + backward (plain WGSL, and cooperative matrices
-//! where the adapter has them: subgroup-tiled and, with subgroups of 32, workgroup-tiled), and Adam over the hash field's 12 M
-//! parameters. Each iteration records one launch sequence, submits it and waits, so the time is
-//! the device's. Sizes: 2^18 samples (2^12 with `NERF_BENCH_SMALL=1`, for lavapipe).
-//! `cargo bench -p nerf-gpu --bench kernels`.
+//! (skipped without one): hash encoding forward/backward (L16 F2 T2^19); the hash field's fused
+//! MLPs forward, forward + backward and the density pass's σ-only inference (plain WGSL, and on
+//! cooperative matrices where the adapter has them); the paper's 8×256 trunk forward + backward
+//! (plain WGSL, and cooperative matrices where the adapter has them: subgroup-tiled and, with
+//! subgroups of 32, workgroup-tiled); Adam over the hash field's 12 M parameters. Each iteration
+//! records one launch sequence, submits it and waits, so the time is the device's. Sizes: 2^18
+//! samples (2^12 with `NERF_BENCH_SMALL=1`), halved where a buffer would pass the adapter's
+//! storage-binding limit (lavapipe's 128 MiB: 2^16 samples, the trunk's 2^13), so the bench runs
+//! everywhere; each bench's name carries its size. `cargo bench -p nerf-gpu --bench kernels`.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use nerf_encoding::HashGridConfig;
@@ -18,12 +20,31 @@ use nerf_gpu::{wgpu, GpuContext};
 use nerf_mlp::{Activation, MlpConfig};
 use rand::Rng as _;
 
-fn n_samples() -> usize {
-    if std::env::var_os("NERF_BENCH_SMALL").is_some() {
-        1 << 12
-    } else {
-        1 << 18
+/// The largest power of two ≤ `n` whose `n · bytes_per_sample` fits one storage binding of `ctx`.
+fn fit(ctx: &GpuContext, mut n: usize, bytes_per_sample: usize) -> usize {
+    let limit = ctx.device.limits().max_storage_buffer_binding_size as usize;
+    while n > 1 && n * bytes_per_sample > limit {
+        n /= 2;
     }
+    n
+}
+
+/// Samples per bench: 2^18 (2^12 with `NERF_BENCH_SMALL`), fitted to the largest per-sample buffer
+/// of the fused MLPs (the colour net's tape).
+fn n_samples(ctx: &GpuContext) -> usize {
+    let n = if std::env::var_os("NERF_BENCH_SMALL").is_some() { 1 << 12 } else { 1 << 18 };
+    let color = MlpConfig {
+        input_dim: 32,
+        output_dim: 3,
+        hidden_dim: 64,
+        hidden_layers: 2,
+        hidden_activation: Activation::Relu,
+        output_activation: Activation::Sigmoid,
+        skips: vec![],
+        bias: false,
+    };
+    let fps = FusedMlp::new(ctx, &color).expect("the colour net").tape_floats_per_sample();
+    fit(ctx, n, 4 * fps)
 }
 
 fn random(n: usize, lo: f32, hi: f32, seed: u64) -> Vec<f32> {
@@ -41,7 +62,7 @@ fn run(ctx: &GpuContext, f: impl Fn(&mut wgpu::CommandEncoder)) {
 
 fn kernels(c: &mut Criterion) {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    let n = n_samples();
+    let n = n_samples(&ctx);
     let counters = ctx.upload("counters", &[0u32, n as u32]);
     let mut g = c.benchmark_group(format!("gpu_kernels ({})", ctx.info.name));
     g.sample_size(20);
@@ -92,6 +113,14 @@ fn kernels(c: &mut Criterion) {
         g.bench_function(BenchmarkId::new(format!("fused_mlp_{name}_forward"), n), |b| {
             b.iter(|| run(&ctx, |e| net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, n.into())))
         });
+        if cfg.output_dim == 16 {
+            // The density pass: σ (the first output) alone.
+            let mut head = FusedMlp::new(&ctx, &cfg).unwrap();
+            head.set_partial(&ctx, 1, cfg.input_dim);
+            g.bench_function(BenchmarkId::new(format!("fused_mlp_{name}_inference_sigma"), n), |b| {
+                b.iter(|| run(&ctx, |e| head.record_inference_head(&ctx, e, &counters, &x, &p, &y, n.into())))
+            });
+        }
         g.bench_function(BenchmarkId::new(format!("fused_mlp_{name}_forward_backward"), n), |b| {
             b.iter(|| {
                 run(&ctx, |e| {
@@ -128,8 +157,9 @@ fn kernels(c: &mut Criterion) {
     }
 
     // The paper's trunk (63 → 8×256 with the skip → 257), plain and cooperative matrices.
-    let m = n / 4;
     let trunk = MlpConfig::nerf_trunk(63, 257);
+    let trunk_fps = GpuMlp::new_with(&ctx, &trunk, 64, LinearPath::Plain).expect("the trunk").tape_floats_per_sample();
+    let m = fit(&ctx, n / 4, 4 * trunk_fps);
     let x = ctx.upload("x", &random(m * 63, -1.0, 1.0, 7));
     let dy = ctx.upload("dy", &random(m * 257, -1e-3, 1e-3, 8));
     let y = ctx.zeros("y", 4 * m * 257);

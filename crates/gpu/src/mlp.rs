@@ -117,6 +117,11 @@ pub struct FusedMlp {
     dx_cols: usize,
     /// Bound in place of the tape (inference) and of d_input (backward without it); never written.
     dummy: wgpu::Buffer,
+    /// Bound as the vec4 view of a parameter buffer under 16 bytes (read-only, so not `dummy`).
+    dummy4: wgpu::Buffer,
+    /// Wᵀ per layer (`mlp_transpose` writes it from the parameters at the start of each backward).
+    wt: wgpu::Buffer,
+    transpose: Kernel,
     forward: Kernel,
     backward: Kernel,
     wgrad: Kernel,
@@ -194,6 +199,9 @@ impl FusedMlp {
             head: config.output_dim,
             dx_cols: config.input_dim,
             dummy: ctx.zeros("mlp dummy", 16),
+            dummy4: ctx.zeros("mlp vec4 dummy", 16),
+            wt: ctx.zeros("mlp transposed weights", (4 * off).max(16)),
+            transpose: Kernel::from_module(ctx, &module, "mlp_transpose", &[]),
             forward: Kernel::from_module(ctx, &module, "mlp_forward", &[]),
             backward: Kernel::from_module(ctx, &module, "mlp_backward", &[]),
             wgrad: Kernel::from_module(ctx, &module, "mlp_wgrad", &[]),
@@ -258,6 +266,16 @@ impl FusedMlp {
         self.fps
     }
 
+    /// The buffer bound as the forward's vec4 view of the weights: `params` itself, or a dummy
+    /// for a buffer under one vec4 (such a net has no 16-byte aligned row to read that way).
+    fn params4<'a>(&'a self, params: &'a wgpu::Buffer) -> &'a wgpu::Buffer {
+        if params.size() >= 16 {
+            params
+        } else {
+            &self.dummy4
+        }
+    }
+
     fn check(&self, what: &str, buf: &wgpu::Buffer, floats: usize) {
         check_buffer("FusedMlp", what, buf, floats);
     }
@@ -315,6 +333,7 @@ impl FusedMlp {
         let capacity = launch.capacity();
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
+        let params4 = self.params4(params);
         launch.record(
             &self.forward,
             ctx,
@@ -327,6 +346,7 @@ impl FusedMlp {
                 (4, params),
                 (5, output),
                 (6, &self.dummy),
+                (10, params4),
             ],
             1,
             TILE as u32,
@@ -352,6 +372,7 @@ impl FusedMlp {
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
         self.check("tape", tape, capacity * self.fps);
+        let params4 = self.params4(params);
         launch.record(
             &self.forward,
             ctx,
@@ -364,6 +385,7 @@ impl FusedMlp {
                 (4, params),
                 (5, output),
                 (6, tape),
+                (10, params4),
             ],
             1,
             TILE as u32,
@@ -379,8 +401,9 @@ impl FusedMlp {
     /// Records the backward of the last [`FusedMlp::record_forward`] (same `counters`, `input`,
     /// `params`, `tape`): `d_output [n][output_dim]` is dL/d(activated output). ACCUMULATES dL/dparams
     /// into `grads` (+=, CPU layout) and writes dL/dinput `[n][input_dim]` into `d_input` when given
-    /// (its first [`FusedMlp::partial`]`().1` columns; all by default). Two dispatches: the fused backward (fills the tape's gradient half), then the split-K weight
-    /// gradients.
+    /// (its first [`FusedMlp::partial`]`().1` columns; all by default). Three dispatches: Wᵀ from
+    /// `params` (a few thousand floats), the fused backward (fills the tape's gradient half), then
+    /// the split-K weight gradients.
     #[allow(clippy::too_many_arguments)]
     pub fn record_backward(
         &self,
@@ -407,6 +430,14 @@ impl FusedMlp {
             Some(d) => (&self.u_dx, d),
             None => (&self.u_plain, &self.dummy),
         };
+        // Wᵀ from the current parameters (a few thousand floats), read by the backward as vec4.
+        let max_w = self.layers.iter().map(|l| l.out * l.fan_in).max().unwrap_or(0);
+        self.transpose.record(
+            ctx,
+            enc,
+            &[(1, &self.layer_buf), (4, params), (11, &self.wt)],
+            [max_w.div_ceil(64).max(1), self.layers.len() as u32, 1],
+        );
         launch.record(
             &self.backward,
             ctx,
@@ -419,6 +450,7 @@ impl FusedMlp {
                 (6, tape),
                 (7, d_output),
                 (8, dx),
+                (12, &self.wt),
             ],
             1,
             TILE as u32,

@@ -17,7 +17,8 @@ mod small_mlp;
 use small_mlp::{cfg, random};
 
 /// The configurations under test: instant-ngp's density and colour nets, odd sizes with bias and
-/// every activation, a single linear layer, a deep narrow net and widths between the block sizes.
+/// every activation, a single linear layer, a deep narrow net, widths between the block sizes and a
+/// net of one weight.
 fn configs() -> Vec<(&'static str, MlpConfig)> {
     use Activation::*;
     vec![
@@ -30,6 +31,8 @@ fn configs() -> Vec<(&'static str, MlpConfig)> {
         // Widths that leave 3 and 5 register blocks of 8 (the kernels' 4- and 8-block loops with
         // a block wholly past the width).
         ("odd 20→40→24", cfg(20, 40, 1, 24, Relu, Tanh, true)),
+        // One weight: a parameter buffer smaller than the forward's vec4 view of it.
+        ("a single weight", cfg(1, 0, 0, 1, Relu, Tanh, false)),
     ]
 }
 
