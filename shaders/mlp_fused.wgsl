@@ -246,6 +246,8 @@ fn mlp_forward(
         }
         workgroupBarrier();
         // 8 named vec4 accumulators (not an array: dynamically indexed arrays may live in local memory).
+        // For the same reason the loops below are spelled out per block count (1, 2, 4, 8) and per
+        // load width (vec4, scalar) instead of indexing the accumulators; so are the backward's.
         var c0 = vec4<f32>(0.0);
         var c1 = vec4<f32>(0.0);
         var c2 = vec4<f32>(0.0);
