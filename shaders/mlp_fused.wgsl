@@ -42,10 +42,13 @@
 //                  its contiguous range of tiles. Each tile's D and H blocks are contiguous in the tape
 //                  (input: contiguous [s][k] rows) and are prefetched into registers one tile ahead,
 //                  then stored transposed to workgroup memory [sample][feature] (row stride 68
-//                  floats) so the product reads vec4s. Four sample splits of 64 invocations each hold an
-//                  8 o × 8 k register block (16 vec4 accumulators, 4 vec4 loads per 64 FMAs); blocks
-//                  wholly past `out` skip the work (the 3-wide colour output layer costs ~1/8).
-//                  The splits are summed in workgroup memory, then ONE atomic add per weight per
+//                  floats) so the product reads vec4s. Each invocation holds an 8 o × 8 k register
+//                  block (16 vec4 accumulators, 4 vec4 loads per 64 FMAs) for a run of the tile's
+//                  samples; the layer's blocks (nb = ⌈out/8⌉·⌈fan_in/8⌉, rounded up to a power of
+//                  two bw ≥ 8) are spread over the 256 invocations as 256/bw sample splits, so a
+//                  narrow layer keeps every invocation on blocks inside its width (a 32-wide input
+//                  layer: 8 splits of 4 samples; the 3-wide colour output: 32 splits of 1). The
+//                  splits are summed in workgroup memory, then ONE atomic add per weight per
 //                  workgroup. With G ≈ capacity/1024 that is ≈ n_params/1024 atomics per sample.
 //                  H100, 2^18 samples: 0.68 ms (density) / 1.07 ms (colour), was 1.21 / 2.01 ms with
 //                  one 8 × 8 block per 64-invocation workgroup staged without prefetch.
@@ -629,18 +632,31 @@ fn wgrad_flush(L: MlpLayer, o: u32, tk: u32, lo: vec4<f32>, hi: vec4<f32>) {
     }
 }
 
-// Split reduction: splits 1..3 park one row (two vec4) of their block in d_t.
-fn wgrad_park(sp: u32, lt: u32, lo: vec4<f32>, hi: vec4<f32>) {
+// Split reduction: splits 1..ns − 1 park one row (two vec4) of their block b in d_t (at most
+// (256 − bw)·2 ≤ 496 of its 544 vec4).
+fn wgrad_park(sp: u32, b: u32, bw: u32, lo: vec4<f32>, hi: vec4<f32>) {
     if (sp > 0u) {
-        let r = ((sp - 1u) * 64u + lt) * 2u;
+        let r = ((sp - 1u) * bw + b) * 2u;
         d_t[r] = lo;
         d_t[r + 1u] = hi;
     }
 }
 
-// Sum of the parked vec4 c (0: lo, 1: hi) of the three other splits for invocation lt of split 0.
-fn wgrad_gather(lt: u32, c: u32) -> vec4<f32> {
-    return d_t[lt * 2u + c] + d_t[(64u + lt) * 2u + c] + d_t[(128u + lt) * 2u + c];
+// Sum of the parked vec4 c (0: lo, 1: hi) of splits 1..ns − 1 for block b (split 0 holds the rest).
+fn wgrad_gather(b: u32, bw: u32, ns: u32, c: u32) -> vec4<f32> {
+    var acc = d_t[b * 2u + c];
+    for (var j = 1u; j + 1u < ns; j++) {
+        acc += d_t[(j * bw + b) * 2u + c];
+    }
+    return acc;
+}
+
+// (e / d, e % d); a shift and a mask where d = 2^sh (`pow2`, uniform), else an integer division.
+fn div_mod(e: u32, d: u32, sh: u32, pow2: bool) -> vec2<u32> {
+    if (pow2) {
+        return vec2<u32>(e >> sh, e & (d - 1u));
+    }
+    return vec2<u32>(e / d, e % d);
 }
 
 // Scalar element (row, col) of a [row][DT·4] vec4 workgroup tile.
@@ -668,16 +684,31 @@ fn mlp_wgrad(
     if (first >= last) {
         return;
     }
-    // Split sp of the tile's samples (s = 8sp .. 8sp + 7); block rows o = 8·to + i, columns
-    // k = 8·tk + j of dW.
-    let sp = tid / 64u;
-    let lt = tid % 64u;
-    let to = lt / 8u;
-    let tk = lt % 8u;
     let out = L.out;
     let fan_in = L.fan_in;
+    // The layer's 8 o × 8 k blocks of dW (nb ≤ 64), rounded up to a power of two bw ≥ 8: invocation
+    // tid holds block b = tid % bw (rows o = 8·to + i, columns k = 8·tk + j) for sample split
+    // sp = tid / bw, one of ns = 256 / bw (4..32) contiguous runs of T / ns samples. A narrow layer
+    // thus keeps every invocation on blocks inside its width: no block lies wholly past `out` or
+    // `fan_in`, whereas a fixed 8 × 8 grid of blocks left half of a 32-wide input layer and 7/8 of
+    // the colour net's 3-wide output layer idle or computing columns that are dropped.
+    let nbk = (fan_in + 7u) / 8u;
+    let nb = ((out + 7u) / 8u) * nbk;
+    var bw = 8u;
+    while (bw < nb) {
+        bw *= 2u;
+    }
+    let ns = 256u / bw;
+    let run = T / ns;
+    let sp = tid / bw;
+    let b = tid % bw;
+    let to = b / nbk;
+    let tk = b % nbk;
+    let busy = b < nb;
     let from_input = l == 0u;
     let din = P.input_dim;
+    let din_sh = countTrailingZeros(din);
+    let din_pow2 = (din & (din - 1u)) == 0u;
     var h_pre = 0u;
     if (!from_input) {
         h_pre = layers[l - 1u].a_pre;
@@ -718,22 +749,27 @@ fn mlp_wgrad(
     var a70 = vec4<f32>(0.0);
     var a71 = vec4<f32>(0.0);
     var bacc = 0.0;
-    let busy = to * 8u < out;
     for (var t = first; t < last; t++) {
         let t0 = t * T;
         let m = min(T, n - t0);
-        // Prefetched registers → workgroup memory, transposed to [sample][feature].
+        // Prefetched registers → workgroup memory, transposed to [sample][feature]. Element e of
+        // a [feature][m] block is (e % m, e / m): shifts for a full tile (m = T), a division only
+        // in the last, partial one (likewise for the input's [m][din] rows when din is 2^k).
+        let m_sh = countTrailingZeros(m);
+        let m_pow2 = (m & (m - 1u)) == 0u;
         for (var r = 0u; r < 8u; r++) {
             let e = tid + 256u * r;
+            let q = div_mod(e, m, m_sh, m_pow2);
             if (e < out * m) {
-                wg_put_d(e % m, e / m, pd[r]);
+                wg_put_d(q.y, q.x, pd[r]);
             }
             if (from_input) {
                 if (e < m * din) {
-                    wg_put_h(e / din, e % din, ph[r]);
+                    let qi = div_mod(e, din, din_sh, din_pow2);
+                    wg_put_h(qi.x, qi.y, ph[r]);
                 }
             } else if (e < fan_in * m) {
-                wg_put_h(e % m, e / m, ph[r]);
+                wg_put_h(q.y, q.x, ph[r]);
             }
         }
         workgroupBarrier();
@@ -752,11 +788,11 @@ fn mlp_wgrad(
                 }
             }
         }
-        // Blocks wholly past `out` skip the work; columns ≥ fan_in are computed on stale
-        // workgroup memory and dropped at the flush.
+        // Inside the last block of a row or column, entries past `out` / `fan_in` are computed on
+        // stale workgroup memory and dropped at the flush.
         if (busy) {
-            let s_end = min(sp * 8u + 8u, m);
-            for (var s = sp * 8u; s < s_end; s++) {
+            let s_end = min(sp * run + run, m);
+            for (var s = sp * run; s < s_end; s++) {
                 let d0 = d_t[s * DT + to * 2u];
                 let d1 = d_t[s * DT + to * 2u + 1u];
                 let h0 = h_t[s * DT + tk * 2u];
@@ -779,47 +815,48 @@ fn mlp_wgrad(
                 a71 += d1.w * h1;
             }
         }
-        if (tid < out) {
+        if (L.has_bias != 0u && tid < out) {
             for (var s = 0u; s < m; s++) {
                 bacc += d_t[s * DT + tid / 4u][tid % 4u];
             }
         }
         workgroupBarrier();
     }
-    // Sum the four sample splits in workgroup memory, one block row at a time.
-    wgrad_park(sp, lt, a00, a01);
+    // Sum the sample splits in workgroup memory, one block row at a time (split 0 adds splits
+    // 1..ns − 1 in order).
+    wgrad_park(sp, b, bw, a00, a01);
     workgroupBarrier();
-    if (sp == 0u) { a00 += wgrad_gather(lt, 0u); a01 += wgrad_gather(lt, 1u); }
+    if (sp == 0u) { a00 += wgrad_gather(b, bw, ns, 0u); a01 += wgrad_gather(b, bw, ns, 1u); }
     workgroupBarrier();
-    wgrad_park(sp, lt, a10, a11);
+    wgrad_park(sp, b, bw, a10, a11);
     workgroupBarrier();
-    if (sp == 0u) { a10 += wgrad_gather(lt, 0u); a11 += wgrad_gather(lt, 1u); }
+    if (sp == 0u) { a10 += wgrad_gather(b, bw, ns, 0u); a11 += wgrad_gather(b, bw, ns, 1u); }
     workgroupBarrier();
-    wgrad_park(sp, lt, a20, a21);
+    wgrad_park(sp, b, bw, a20, a21);
     workgroupBarrier();
-    if (sp == 0u) { a20 += wgrad_gather(lt, 0u); a21 += wgrad_gather(lt, 1u); }
+    if (sp == 0u) { a20 += wgrad_gather(b, bw, ns, 0u); a21 += wgrad_gather(b, bw, ns, 1u); }
     workgroupBarrier();
-    wgrad_park(sp, lt, a30, a31);
+    wgrad_park(sp, b, bw, a30, a31);
     workgroupBarrier();
-    if (sp == 0u) { a30 += wgrad_gather(lt, 0u); a31 += wgrad_gather(lt, 1u); }
+    if (sp == 0u) { a30 += wgrad_gather(b, bw, ns, 0u); a31 += wgrad_gather(b, bw, ns, 1u); }
     workgroupBarrier();
-    wgrad_park(sp, lt, a40, a41);
+    wgrad_park(sp, b, bw, a40, a41);
     workgroupBarrier();
-    if (sp == 0u) { a40 += wgrad_gather(lt, 0u); a41 += wgrad_gather(lt, 1u); }
+    if (sp == 0u) { a40 += wgrad_gather(b, bw, ns, 0u); a41 += wgrad_gather(b, bw, ns, 1u); }
     workgroupBarrier();
-    wgrad_park(sp, lt, a50, a51);
+    wgrad_park(sp, b, bw, a50, a51);
     workgroupBarrier();
-    if (sp == 0u) { a50 += wgrad_gather(lt, 0u); a51 += wgrad_gather(lt, 1u); }
+    if (sp == 0u) { a50 += wgrad_gather(b, bw, ns, 0u); a51 += wgrad_gather(b, bw, ns, 1u); }
     workgroupBarrier();
-    wgrad_park(sp, lt, a60, a61);
+    wgrad_park(sp, b, bw, a60, a61);
     workgroupBarrier();
-    if (sp == 0u) { a60 += wgrad_gather(lt, 0u); a61 += wgrad_gather(lt, 1u); }
+    if (sp == 0u) { a60 += wgrad_gather(b, bw, ns, 0u); a61 += wgrad_gather(b, bw, ns, 1u); }
     workgroupBarrier();
-    wgrad_park(sp, lt, a70, a71);
+    wgrad_park(sp, b, bw, a70, a71);
     workgroupBarrier();
-    if (sp == 0u) {
-        a70 += wgrad_gather(lt, 0u);
-        a71 += wgrad_gather(lt, 1u);
+    if (sp == 0u && busy) {
+        a70 += wgrad_gather(b, bw, ns, 0u);
+        a71 += wgrad_gather(b, bw, ns, 1u);
         let o = to * 8u;
         wgrad_flush(L, o, tk, a00, a01);
         wgrad_flush(L, o + 1u, tk, a10, a11);
