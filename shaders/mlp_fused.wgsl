@@ -48,18 +48,23 @@
 //                  two bw ≥ 8) are spread over the 256 invocations as 256/bw sample splits, so a
 //                  narrow layer keeps every invocation on blocks inside its width (a 32-wide input
 //                  layer: 8 splits of 4 samples; the 3-wide colour output: 32 splits of 1). The
-//                  splits are summed in workgroup memory, then ONE atomic add per weight per
-//                  workgroup. With G ≈ capacity/1024 that is ≈ n_params/1024 atomics per sample.
-//                  H100, 2^18 samples: 0.68 ms (density) / 1.07 ms (colour), was 1.21 / 2.01 ms with
-//                  one 8 × 8 block per 64-invocation workgroup staged without prefetch.
+//                  splits are summed in workgroup memory, then each weight's sum is STORED in the
+//                  workgroup's row of `partials` ([G][n_params], G ≈ capacity/1024: n_params/256
+//                  bytes per sample written and read back). H100, 2^18 samples, when these were one
+//                  atomic add per weight and workgroup and the blocks a fixed 8 × 8 grid: 0.68 ms
+//                  (density) / 1.07 ms (colour), was 1.21 / 2.01 ms with one 8 × 8 block per
+//                  64-invocation workgroup staged without prefetch.
+//   mlp_wgrad_sum: grads += the rows of `partials` of the workgroups that had tiles, summed in
+//                  order, one invocation per parameter.
 // Per sample and step (fwd + bwd) the field's two nets cost ≈ 19 kFLOP forward, ≈ 38 kFLOP backward,
 // ≈ 2 KB of tape traffic. Register blocks wholly past a narrow layer's width are skipped (the
 // block count is uniform over the workgroup); inside the last block, rows/columns beyond the width
 // are computed on clamped indices and dropped (uniform control flow, no divergence).
 //
-// f32 atomics: this file declares grads as atomic<u32> with a compare-and-swap loop (valid on every
-// adapter); FusedMlp swaps the block between the GRAD_ATOMIC markers for atomic<f32> + atomicAdd when
-// the adapter has SHADER_FLOAT32_ATOMIC.
+// No atomics: the weight gradients are summed in a fixed order (tiles and sample splits inside a
+// workgroup, then the workgroups' rows in order), so they are the same bits on every run and run
+// as fast on adapters without SHADER_FLOAT32_ATOMIC, where a compare-and-swap loop on the same
+// few thousand addresses from every workgroup would be the alternative.
 
 const T: u32 = 32u;      // samples per tile
 const WG: u32 = 64u;     // invocations per workgroup
@@ -76,7 +81,7 @@ struct MlpParams {
     mode: u32,    // bit 0: forward stores the tape; bit 1: backward writes d_input
     out_rows: u32,  // forward: outputs computed and written (≤ output_dim; the rest left as they were)
     dx_cols: u32,   // backward: d_input columns computed and written (≤ input_dim; likewise)
-    _pad0: u32,
+    n_params: u32,  // parameters of the net (row length of `partials`)
 }
 
 struct MlpLayer {
@@ -106,19 +111,12 @@ struct MlpLayer {
 @group(0) @binding(11) var<storage, read_write> wt: array<f32>;
 @group(0) @binding(12) var<storage, read> wt4: array<vec4<f32>>;
 
-// GRAD_ATOMIC_BEGIN
-@group(0) @binding(9) var<storage, read_write> grads: array<atomic<u32>>;
-fn grad_add(i: u32, v: f32) {
-    var old = atomicLoad(&grads[i]);
-    loop {
-        let r = atomicCompareExchangeWeak(&grads[i], old, bitcast<u32>(bitcast<f32>(old) + v));
-        if (r.exchanged) {
-            break;
-        }
-        old = r.old_value;
-    }
-}
-// GRAD_ATOMIC_END
+// dL/dparams in the CPU layout, ACCUMULATED (+=); only mlp_wgrad_sum writes it.
+@group(0) @binding(9) var<storage, read_write> grads: array<f32>;
+// mlp_wgrad's sums per workgroup, [G][n_params] (G = arrayLength / n_params, the x extent of the
+// mlp_wgrad launch): row g holds workgroup g's sums over its tiles (the workgroups of layer l fill
+// that layer's slice); mlp_wgrad_sum adds the rows of the workgroups that had tiles, in order.
+@group(0) @binding(13) var<storage, read_write> partials: array<f32>;
 
 var<workgroup> act_t: array<f32, 2560>;   // MAXW × AS
 var<workgroup> b_t: array<f32, 64>;       // MAXW
@@ -616,17 +614,18 @@ fn wg_input(off: u32, len: u32, e: u32) -> f32 {
     return 0.0;
 }
 
-// Row o of this invocation's 8 × 8 block: dW[o][tk·8 + j] for j < 8 (lo: j < 4, hi: j ≥ 4).
-fn wgrad_flush(L: MlpLayer, o: u32, tk: u32, lo: vec4<f32>, hi: vec4<f32>) {
+// Row o of this invocation's 8 × 8 block: dW[o][tk·8 + j] for j < 8 (lo: j < 4, hi: j ≥ 4), into
+// workgroup g's row of `partials`.
+fn wgrad_flush(L: MlpLayer, g: u32, o: u32, tk: u32, lo: vec4<f32>, hi: vec4<f32>) {
     if (o < L.out) {
-        let row = L.w_off + o * L.fan_in;
+        let row = g * P.n_params + L.w_off + o * L.fan_in;
         for (var j = 0u; j < 4u; j++) {
             let k = tk * 8u + j;
             if (k < L.fan_in) {
-                grad_add(row + k, lo[j]);
+                partials[row + k] = lo[j];
             }
             if (k + 4u < L.fan_in) {
-                grad_add(row + k + 4u, hi[j]);
+                partials[row + k + 4u] = hi[j];
             }
         }
     }
@@ -858,16 +857,40 @@ fn mlp_wgrad(
         a70 += wgrad_gather(b, bw, ns, 0u);
         a71 += wgrad_gather(b, bw, ns, 1u);
         let o = to * 8u;
-        wgrad_flush(L, o, tk, a00, a01);
-        wgrad_flush(L, o + 1u, tk, a10, a11);
-        wgrad_flush(L, o + 2u, tk, a20, a21);
-        wgrad_flush(L, o + 3u, tk, a30, a31);
-        wgrad_flush(L, o + 4u, tk, a40, a41);
-        wgrad_flush(L, o + 5u, tk, a50, a51);
-        wgrad_flush(L, o + 6u, tk, a60, a61);
-        wgrad_flush(L, o + 7u, tk, a70, a71);
+        wgrad_flush(L, wid.x, o, tk, a00, a01);
+        wgrad_flush(L, wid.x, o + 1u, tk, a10, a11);
+        wgrad_flush(L, wid.x, o + 2u, tk, a20, a21);
+        wgrad_flush(L, wid.x, o + 3u, tk, a30, a31);
+        wgrad_flush(L, wid.x, o + 4u, tk, a40, a41);
+        wgrad_flush(L, wid.x, o + 5u, tk, a50, a51);
+        wgrad_flush(L, wid.x, o + 6u, tk, a60, a61);
+        wgrad_flush(L, wid.x, o + 7u, tk, a70, a71);
     }
     if (L.has_bias != 0u && tid < out) {
-        grad_add(L.b_off + tid, bacc);
+        partials[wid.x * P.n_params + L.b_off + tid] = bacc;
     }
+}
+
+// grads[p] += Σ_g partials[g][p] over the mlp_wgrad workgroups that had tiles (the same split of
+// the tiles as there), in order of g: one invocation per parameter, no atomics, so the weight
+// gradients of a given batch are the same bits on every run.
+@compute @workgroup_size(64)
+fn mlp_wgrad_sum(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let p = gid.x;
+    let np = P.n_params;
+    if (p >= np) {
+        return;
+    }
+    let n_tiles = (counters[1] + T - 1u) / T;
+    if (n_tiles == 0u) {
+        return;
+    }
+    let groups = arrayLength(&partials) / np;
+    let per = (n_tiles + groups - 1u) / groups;
+    let used = (n_tiles + per - 1u) / per;
+    var acc = 0.0;
+    for (var g = 0u; g < used; g++) {
+        acc += partials[g * np + p];
+    }
+    grads[p] += acc;
 }

@@ -141,8 +141,8 @@ pub struct MlpParams {
     pub out_rows: u32,
     /// Columns of `d_input` the backward computes and writes (≤ `input_dim`; likewise).
     pub dx_cols: u32,
-    /// Padding to 32 bytes.
-    pub _pad: u32,
+    /// Parameters of the net (the row length of `mlp_wgrad`'s sums).
+    pub n_params: u32,
 }
 
 // ---- mlp.rs ----

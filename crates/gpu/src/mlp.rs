@@ -1,18 +1,21 @@
 //! Fully fused small MLPs on the GPU (tiny-cuda-nn's "fully fused MLP"), the device twin of
 //! [`nerf_mlp::Mlp`]: one workgroup pushes a tile of [`TILE`] samples through every layer with the
 //! activations kept in workgroup memory (`shaders/mlp_fused.wgsl` documents the kernels, the tape
-//! layout and the atomics per sample).
+//! layout and the fixed order in which the weight gradients are summed: no atomics).
 //!
 //! Parameters and gradients are caller-owned f32 storage buffers in exactly the CPU layout (layer by
 //! layer: `W` `out × fan_in` row-major, then `b`), so [`nerf_mlp::Mlp::params`] uploads as is. The
 //! number of samples of a call is read on the device from `counters[COUNTER_N_SAMPLES]` (slot 1);
 //! launches cover either a host-known `capacity ≥ n` or, from a [`crate::DispatchArgs`] table,
 //! exactly the tiles of n ([`Launch`]). Every `record_*` only records into the caller's
-//! encoder (no submission, no read-back, no buffer creation besides its bind groups).
+//! encoder (no submission, no read-back, no buffer creation besides its bind groups and the
+//! weight-gradient workgroups' sums, made by the first backward and again only when a backward's
+//! capacity asks for another number of workgroups).
 
 use crate::dispatch::Launch;
 use crate::kernel::Kernel;
 use crate::{shaders, GpuContext, GpuError};
+use std::sync::Mutex;
 use nerf_mlp::{Activation, MlpConfig};
 pub use crate::layout::{MlpParams, MlpLayerDesc};
 
@@ -20,11 +23,14 @@ pub use crate::layout::{MlpParams, MlpLayerDesc};
 pub const TILE: usize = 32;
 /// Widest supported layer (input, hidden and output widths).
 pub const MAX_WIDTH: usize = 64;
-/// Samples per weight-gradient workgroup at full capacity (atomics per sample ≈ n_params / this;
-/// H100, 2^18 samples: 1024 is the fastest of 256..4096).
+/// Samples per weight-gradient workgroup at full capacity (each workgroup stores one row of
+/// `n_params` sums; H100, 2^18 samples, when these were atomic adds: 1024 was the fastest of
+/// 256..4096).
 const WGRAD_SAMPLES_PER_GROUP: usize = 1024;
 /// Upper bound on weight-gradient workgroups per layer.
 const MAX_WGRAD_GROUPS: usize = 4096;
+/// Upper bound on the weight-gradient workgroups' sums (`[G][n_params]` f32; G is lowered to fit).
+const MAX_PARTIAL_BYTES: u64 = 64 << 20;
 /// Workgroup memory the largest kernel needs (`d_t`, `h_t` of mlp_wgrad: 2 × 32 × 68 floats).
 const WORKGROUP_BYTES: u32 = 4 * (2 * 32 * 68);
 
@@ -42,27 +48,6 @@ fn act_code(a: Activation) -> u32 {
         Activation::Softplus => 4,
         Activation::Exp => 5,
     }
-}
-
-/// The `atomic<f32>` variant of the gradient block of `mlp_fused.wgsl` (replaces the CAS loop).
-const F32_ATOMIC_BLOCK: &str = "@group(0) @binding(9) var<storage, read_write> grads: array<atomic<f32>>;
-fn grad_add(i: u32, v: f32) {
-    atomicAdd(&grads[i], v);
-}
-";
-
-/// The WGSL source of the fused-MLP kernels (without `common.wgsl`) for one gradient-atomics path:
-/// `f32_atomics = false` is the file as is (compare-and-swap on `atomic<u32>`), `true` swaps in
-/// `atomic<f32>` + `atomicAdd` (needs `SHADER_FLOAT32_ATOMIC`).
-pub fn source(f32_atomics: bool) -> String {
-    let src = shaders::MLP_FUSED;
-    if !f32_atomics {
-        return src.to_string();
-    }
-    let (begin, end) = ("// GRAD_ATOMIC_BEGIN\n", "// GRAD_ATOMIC_END");
-    let b = src.find(begin).expect("mlp_fused.wgsl: GRAD_ATOMIC_BEGIN marker") + begin.len();
-    let e = src.find(end).expect("mlp_fused.wgsl: GRAD_ATOMIC_END marker");
-    format!("{}{}{}", &src[..b], F32_ATOMIC_BLOCK, &src[e..])
 }
 
 /// The shapes the fully fused kernels take (both paths): a valid config, no skips, every width ≤
@@ -104,7 +89,6 @@ pub struct FusedMlp {
     layers: Vec<MlpLayerDesc>,
     n_params: usize,
     fps: usize,
-    f32_atomics: bool,
     layer_buf: wgpu::Buffer,
     /// Uniforms for mode 0 (inference, backward without d_input), MODE_TAPE, MODE_DX (with
     /// `dx_cols` columns) and the head inference (the first `head` outputs).
@@ -125,24 +109,16 @@ pub struct FusedMlp {
     forward: Kernel,
     backward: Kernel,
     wgrad: Kernel,
+    wgrad_sum: Kernel,
+    /// The weight-gradient workgroups' sums, `[G][n_params]` for the G of the last backward's
+    /// capacity (made by the first backward, remade when a backward's capacity asks for another G).
+    partials: Mutex<Option<wgpu::Buffer>>,
 }
 
 impl FusedMlp {
-    /// Builds the kernels for `config`, using `atomic<f32>` gradient atomics when the adapter has them
-    /// and the compare-and-swap fallback otherwise.
+    /// Builds the kernels for `config` (no atomics: they run the same on every adapter).
     pub fn new(ctx: &GpuContext, config: &MlpConfig) -> Result<Self, GpuError> {
-        Self::with_atomics(ctx, config, ctx.features.float32_atomics)
-    }
-
-    /// As [`FusedMlp::new`] with the gradient-atomics path chosen explicitly (`true`: `atomic<f32>`,
-    /// an error on adapters without `SHADER_FLOAT32_ATOMIC`; `false`: compare-and-swap loop).
-    pub fn with_atomics(ctx: &GpuContext, config: &MlpConfig, f32_atomics: bool) -> Result<Self, GpuError> {
         check_fused_shape("fused MLP", config)?;
-        if f32_atomics && !ctx.features.float32_atomics {
-            return Err(GpuError::Unsupported(
-                "fused MLP: atomic<f32> gradients requested but the adapter lacks SHADER_FLOAT32_ATOMIC".into(),
-            ));
-        }
         let limit = ctx.device.limits().max_compute_workgroup_storage_size;
         if limit < WORKGROUP_BYTES {
             return Err(GpuError::Unsupported(format!(
@@ -180,16 +156,16 @@ impl FusedMlp {
             prev = out;
         }
         let fps = 2 * total;
-        let params = |mode| Self::uniform_params(config, fps, mode, config.output_dim, config.input_dim);
+        let n_params = off;
+        let params = |mode| Self::uniform_params(config, fps, n_params, mode, config.output_dim, config.input_dim);
         let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("mlp_fused.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(&source(f32_atomics)).into()),
+            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::MLP_FUSED).into()),
         });
         Ok(Self {
             config: config.clone(),
-            n_params: off,
+            n_params,
             fps,
-            f32_atomics,
             layer_buf: ctx.upload("mlp layers", &layers),
             layers,
             u_plain: ctx.uniform("mlp params", &params(0)),
@@ -205,10 +181,12 @@ impl FusedMlp {
             forward: Kernel::from_module(ctx, &module, "mlp_forward", &[]),
             backward: Kernel::from_module(ctx, &module, "mlp_backward", &[]),
             wgrad: Kernel::from_module(ctx, &module, "mlp_wgrad", &[]),
+            wgrad_sum: Kernel::from_module(ctx, &module, "mlp_wgrad_sum", &[]),
+            partials: Mutex::new(None),
         })
     }
 
-    fn uniform_params(config: &MlpConfig, fps: usize, mode: u32, out_rows: usize, dx_cols: usize) -> MlpParams {
+    fn uniform_params(config: &MlpConfig, fps: usize, n_params: usize, mode: u32, out_rows: usize, dx_cols: usize) -> MlpParams {
         MlpParams {
             n_layers: (config.hidden_layers + 1) as u32,
             input_dim: config.input_dim as u32,
@@ -217,7 +195,7 @@ impl FusedMlp {
             mode,
             out_rows: out_rows as u32,
             dx_cols: dx_cols as u32,
-            _pad: 0,
+            n_params: n_params as u32,
         }
     }
 
@@ -229,9 +207,9 @@ impl FusedMlp {
     pub fn set_partial(&mut self, ctx: &GpuContext, head: usize, d_input_cols: usize) {
         self.head = head.clamp(1, self.config.output_dim);
         self.dx_cols = d_input_cols.clamp(1, self.config.input_dim);
-        let (c, fps) = (&self.config, self.fps);
-        self.u_dx = ctx.uniform("mlp params (d_input)", &Self::uniform_params(c, fps, MODE_DX, c.output_dim, self.dx_cols));
-        self.u_head = ctx.uniform("mlp params (head)", &Self::uniform_params(c, fps, 0, self.head, c.input_dim));
+        let (c, fps, np) = (&self.config, self.fps, self.n_params);
+        self.u_dx = ctx.uniform("mlp params (d_input)", &Self::uniform_params(c, fps, np, MODE_DX, c.output_dim, self.dx_cols));
+        self.u_head = ctx.uniform("mlp params (head)", &Self::uniform_params(c, fps, np, 0, self.head, c.input_dim));
     }
 
     /// The outputs [`FusedMlp::record_inference_head`] writes and the `d_input` columns the
@@ -253,11 +231,6 @@ impl FusedMlp {
     /// The layer table the kernels use (shapes, offsets, activation codes, tape offsets).
     pub fn layers(&self) -> &[MlpLayerDesc] {
         &self.layers
-    }
-
-    /// Whether the weight gradients use `atomic<f32>` (else the compare-and-swap loop).
-    pub fn uses_f32_atomics(&self) -> bool {
-        self.f32_atomics
     }
 
     /// Floats of tape per sample: the caller allocates `capacity · tape_floats_per_sample()` floats.
@@ -393,17 +366,21 @@ impl FusedMlp {
         );
     }
 
-    /// Number of weight-gradient workgroups per layer for `capacity` samples.
-    fn wgrad_groups(capacity: usize) -> u32 {
-        capacity.div_ceil(WGRAD_SAMPLES_PER_GROUP).clamp(1, MAX_WGRAD_GROUPS) as u32
+    /// Number of weight-gradient workgroups per layer for `capacity` samples: one per
+    /// [`WGRAD_SAMPLES_PER_GROUP`], as many as their sums' buffer (`[G][n_params]`) allows.
+    fn wgrad_groups(&self, ctx: &GpuContext, capacity: usize) -> usize {
+        let row = 4 * self.n_params.max(1) as u64;
+        let fit = (ctx.max_storage_bytes().min(MAX_PARTIAL_BYTES) / row).max(1) as usize;
+        capacity.div_ceil(WGRAD_SAMPLES_PER_GROUP).clamp(1, MAX_WGRAD_GROUPS).min(fit)
     }
 
     /// Records the backward of the last [`FusedMlp::record_forward`] (same `counters`, `input`,
     /// `params`, `tape`): `d_output [n][output_dim]` is dL/d(activated output). ACCUMULATES dL/dparams
     /// into `grads` (+=, CPU layout) and writes dL/dinput `[n][input_dim]` into `d_input` when given
-    /// (its first [`FusedMlp::partial`]`().1` columns; all by default). Three dispatches: Wᵀ from
-    /// `params` (a few thousand floats), the fused backward (fills the tape's gradient half), then
-    /// the split-K weight gradients.
+    /// (its first [`FusedMlp::partial`]`().1` columns; all by default). Four dispatches: Wᵀ from
+    /// `params` (a few thousand floats), the fused backward (fills the tape's gradient half), the
+    /// split-K weight gradients (one row of sums per workgroup) and their sum into `grads`, in a
+    /// fixed order: the same inputs give the same gradient bits on every run.
     #[allow(clippy::too_many_arguments)]
     pub fn record_backward(
         &self,
@@ -456,18 +433,24 @@ impl FusedMlp {
             TILE as u32,
             1,
         );
+        let groups = self.wgrad_groups(ctx, capacity);
+        let mut slot = self.partials.lock().unwrap_or_else(|e| e.into_inner());
+        let floats = groups * self.n_params.max(1);
+        if slot.as_ref().is_none_or(|b| b.size() != 4 * floats as u64) {
+            *slot = Some(ctx.zeros("mlp weight-gradient sums", 4 * floats));
+        }
+        let partials = slot.as_ref().expect("made above");
         self.wgrad.record(
             ctx,
             enc,
-            &[
-                (0, &self.u_plain),
-                (1, &self.layer_buf),
-                (2, counters),
-                (3, input),
-                (6, tape),
-                (9, grads),
-            ],
-            [Self::wgrad_groups(capacity), self.layers.len() as u32, 1],
+            &[(0, &self.u_plain), (1, &self.layer_buf), (2, counters), (3, input), (6, tape), (13, partials)],
+            [groups as u32, self.layers.len() as u32, 1],
+        );
+        self.wgrad_sum.record(
+            ctx,
+            enc,
+            &[(0, &self.u_plain), (2, counters), (9, grads), (13, partials)],
+            [self.n_params.div_ceil(64).max(1) as u32, 1, 1],
         );
     }
 }
