@@ -650,6 +650,12 @@ fn wgrad_gather(b: u32, bw: u32, ns: u32, c: u32) -> vec4<f32> {
     return acc;
 }
 
+// Tiles per mlp_wgrad workgroup when `groups` share `n_tiles` (workgroup g takes tiles
+// g·per .. g·per + per − 1); mlp_wgrad_sum derives from it which rows of `partials` were written.
+fn wgrad_tiles_per_group(n_tiles: u32, groups: u32) -> u32 {
+    return (n_tiles + groups - 1u) / groups;
+}
+
 // (e / d, e % d); a shift and a mask where d = 2^sh (`pow2`, uniform), else an integer division.
 fn div_mod(e: u32, d: u32, sh: u32, pow2: bool) -> vec2<u32> {
     if (pow2) {
@@ -677,7 +683,7 @@ fn mlp_wgrad(
     let l = wid.y;
     let L = layers[l];
     let n_tiles = (n + T - 1u) / T;
-    let per = (n_tiles + nwg.x - 1u) / nwg.x;
+    let per = wgrad_tiles_per_group(n_tiles, nwg.x);
     let first = wid.x * per;
     let last = min(first + per, n_tiles);
     if (first >= last) {
@@ -886,7 +892,7 @@ fn mlp_wgrad_sum(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let groups = arrayLength(&partials) / np;
-    let per = (n_tiles + groups - 1u) / groups;
+    let per = wgrad_tiles_per_group(n_tiles, groups);
     let used = (n_tiles + per - 1u) / per;
     var acc = 0.0;
     for (var g = 0u; g < used; g++) {
