@@ -29,6 +29,8 @@
 //                  back in place. Mode bit 0 also stores every A_l to the tape (coalesced copies).
 //                  The last layer computes only its first P.out_rows outputs (the density pass of
 //                  a field reads σ alone: one register block instead of two).
+//                  Mode bit 2 stores the A_l as one row per sample instead ([n][fps/2]: the density
+//                  pass of a compacted step keeps them for mlp_tape_gather).
 //   mlp_backward : D_last = d_output ⊙ act'(A_last); for l = last..1: dH = D_l·W_l (same register
 //                  blocking), D_{l−1} = dH ⊙ act'(A_{l−1}) in place; every D_l goes to the tape. Mode
 //                  bit 1 also writes d_input = D_0·W_0, its first P.dx_cols columns only (the
@@ -56,6 +58,8 @@
 //                  64-invocation workgroup staged without prefetch.
 //   mlp_wgrad_sum: grads += the rows of `partials` of the workgroups that had tiles, summed in
 //                  order, one invocation per parameter.
+//   mlp_tape_gather: the tape's activation half and the output of a compacted batch from the rows
+//                  of mode bit 2 (a copy: no forward runs again for the kept samples).
 // Per sample and step (fwd + bwd) the field's two nets cost ≈ 19 kFLOP forward, ≈ 38 kFLOP backward,
 // ≈ 2 KB of tape traffic. Register blocks wholly past a narrow layer's width are skipped (the
 // block count is uniform over the workgroup); inside the last block, rows/columns beyond the width
@@ -78,7 +82,7 @@ struct MlpParams {
     input_dim: u32,
     output_dim: u32,
     fps: u32,     // tape floats per sample
-    mode: u32,    // bit 0: forward stores the tape; bit 1: backward writes d_input
+    mode: u32,    // bit 0: forward stores the tape; bit 1: backward writes d_input; bit 2: forward stores rows
     out_rows: u32,  // forward: outputs computed and written (≤ output_dim; the rest left as they were)
     dx_cols: u32,   // backward: d_input columns computed and written (≤ input_dim; likewise)
     n_params: u32,  // parameters of the net (row length of `partials`)
@@ -117,6 +121,8 @@ struct MlpLayer {
 // mlp_wgrad launch): row g holds workgroup g's sums over its tiles (the workgroups of layer l fill
 // that layer's slice); mlp_wgrad_sum adds the rows of the workgroups that had tiles, in order.
 @group(0) @binding(13) var<storage, read_write> partials: array<f32>;
+// mlp_tape_gather: the row of the density pass's samples each kept sample came from.
+@group(0) @binding(14) var<storage, read> rows: array<u32>;
 
 var<workgroup> act_t: array<f32, 2560>;   // MAXW × AS
 var<workgroup> b_t: array<f32, 64>;       // MAXW
@@ -375,6 +381,17 @@ fn mlp_forward(
                 }
             }
         }
+        if ((P.mode & 4u) != 0u) {
+            // Rows instead: each sample's activations A_0 … A_last as one row of fps/2 floats
+            // (the density pass of a compacted step; mlp_tape_gather tiles the kept samples' rows).
+            let fa = P.fps / 2u;
+            for (var s = fg; s < m; s += 8u) {
+                let dst = (t0 + s) * fa + L.a_pre;
+                for (var o = sg; o < out; o += 8u) {
+                    tape[dst + o] = act_t[o * AS + s];
+                }
+            }
+        }
         if (l + 1u == nl) {
             let dout = L.out;
             for (var s = fg; s < m; s += 8u) {
@@ -382,6 +399,36 @@ fn mlp_forward(
                     output[(t0 + s) * dout + o] = act_t[o * AS + s];
                 }
             }
+        }
+    }
+}
+
+// The training forward's tape (its activation half) and output of the kept samples of a compacted
+// step, gathered from the rows a forward with mode bit 2 stored for the density pass's samples
+// (`input`: [marched][fa], fa = fps/2 = Σ widths) instead of computed again: one invocation per
+// kept sample s (n = counters[1]), source row rows[s]. Inside a tile the activations come first,
+// A_l's feature j of the tile's sample i at m·(a_pre_l + j) + i, so feature f of the row goes to
+// t0·fps + m·f + i (consecutive samples write consecutive floats); the last layer's features are
+// also the output row. Copies only: the result is the same bits as mlp_forward on the gathered
+// inputs with the same parameters.
+@compute @workgroup_size(64)
+fn mlp_tape_gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let s = linear_id(gid, nwg, 64u);
+    let n = counters[1];
+    if (s >= n) {
+        return;
+    }
+    let fa = P.fps / 2u;
+    let t0 = s - s % T;
+    let m = min(T, n - t0);
+    let src = rows[s] * fa;
+    let dst = t0 * P.fps + (s - t0);
+    let last = layers[P.n_layers - 1u].a_pre;
+    for (var f = 0u; f < fa; f++) {
+        let v = input[src + f];
+        tape[dst + f * m] = v;
+        if (f >= last) {
+            output[s * P.output_dim + (f - last)] = v;
         }
     }
 }

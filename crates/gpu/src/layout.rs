@@ -135,7 +135,8 @@ pub struct MlpParams {
     pub output_dim: u32,
     /// Tape floats per sample.
     pub fps: u32,
-    /// Bit 0: the forward stores the tape; bit 1: the backward writes `d_input`.
+    /// Bit 0: the forward stores the tape; bit 1: the backward writes `d_input`; bit 2: the forward
+    /// stores the activations as rows (`[n][fps / 2]`, for `mlp_tape_gather`).
     pub mode: u32,
     /// Outputs the forward computes and writes (≤ `output_dim`; the rest are left as they were).
     pub out_rows: u32,

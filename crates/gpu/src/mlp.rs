@@ -38,6 +38,8 @@ const WORKGROUP_BYTES: u32 = 4 * (2 * 32 * 68);
 const MODE_TAPE: u32 = 1;
 /// Mode bit of [`MlpParams::mode`]: the backward writes `d_input`.
 const MODE_DX: u32 = 2;
+/// Mode bit of [`MlpParams::mode`]: the forward stores the activations as rows, not the tape.
+const MODE_ROWS: u32 = 4;
 
 fn act_code(a: Activation) -> u32 {
     match a {
@@ -96,6 +98,8 @@ pub struct FusedMlp {
     u_tape: wgpu::Buffer,
     u_dx: wgpu::Buffer,
     u_head: wgpu::Buffer,
+    /// Uniform of the forward that stores activation rows ([`FusedMlp::record_forward_rows`]).
+    u_rows: wgpu::Buffer,
     /// Outputs of [`FusedMlp::record_inference_head`] and columns of `d_input` the backward writes.
     head: usize,
     dx_cols: usize,
@@ -107,6 +111,7 @@ pub struct FusedMlp {
     wt: wgpu::Buffer,
     transpose: Kernel,
     forward: Kernel,
+    tape_gather: Kernel,
     backward: Kernel,
     wgrad: Kernel,
     wgrad_sum: Kernel,
@@ -172,6 +177,7 @@ impl FusedMlp {
             u_tape: ctx.uniform("mlp params (tape)", &params(MODE_TAPE)),
             u_dx: ctx.uniform("mlp params (d_input)", &params(MODE_DX)),
             u_head: ctx.uniform("mlp params (head)", &params(0)),
+            u_rows: ctx.uniform("mlp params (rows)", &params(MODE_ROWS)),
             head: config.output_dim,
             dx_cols: config.input_dim,
             dummy: ctx.zeros("mlp dummy", 16),
@@ -179,6 +185,7 @@ impl FusedMlp {
             wt: ctx.zeros("mlp transposed weights", (4 * off).max(16)),
             transpose: Kernel::from_module(ctx, &module, "mlp_transpose", &[]),
             forward: Kernel::from_module(ctx, &module, "mlp_forward", &[]),
+            tape_gather: Kernel::from_module(ctx, &module, "mlp_tape_gather", &[]),
             backward: Kernel::from_module(ctx, &module, "mlp_backward", &[]),
             wgrad: Kernel::from_module(ctx, &module, "mlp_wgrad", &[]),
             wgrad_sum: Kernel::from_module(ctx, &module, "mlp_wgrad_sum", &[]),
@@ -271,7 +278,7 @@ impl FusedMlp {
         output: &wgpu::Buffer,
         launch: Launch<'_>,
     ) {
-        self.record_inference_with(&self.u_plain, ctx, enc, counters, input, params, output, launch);
+        self.record_forward_with(&self.u_plain, ctx, enc, counters, input, params, output, None, launch);
     }
 
     /// As [`FusedMlp::record_inference`] for the first `head` outputs of each row only
@@ -288,11 +295,13 @@ impl FusedMlp {
         output: &wgpu::Buffer,
         launch: Launch<'_>,
     ) {
-        self.record_inference_with(&self.u_head, ctx, enc, counters, input, params, output, launch);
+        self.record_forward_with(&self.u_head, ctx, enc, counters, input, params, output, None, launch);
     }
 
+    /// `mlp_forward` with `uniform`'s mode; `tape` (written by the tape and rows modes) has been
+    /// checked by the caller (`dummy` without one).
     #[allow(clippy::too_many_arguments)]
-    fn record_inference_with(
+    fn record_forward_with(
         &self,
         uniform: &wgpu::Buffer,
         ctx: &GpuContext,
@@ -301,6 +310,7 @@ impl FusedMlp {
         input: &wgpu::Buffer,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
+        tape: Option<&wgpu::Buffer>,
         launch: Launch<'_>,
     ) {
         let capacity = launch.capacity();
@@ -318,7 +328,7 @@ impl FusedMlp {
                 (3, input),
                 (4, params),
                 (5, output),
-                (6, &self.dummy),
+                (6, tape.unwrap_or(&self.dummy)),
                 (10, params4),
             ],
             1,
@@ -341,27 +351,66 @@ impl FusedMlp {
         tape: &wgpu::Buffer,
         launch: Launch<'_>,
     ) {
+        self.check("tape", tape, launch.capacity() * self.fps);
+        self.record_forward_with(&self.u_tape, ctx, enc, counters, input, params, output, Some(tape), launch);
+    }
+
+    /// Floats per sample of the rows [`FusedMlp::record_forward_rows`] stores: every layer's
+    /// activated output, the tape's first half.
+    pub fn activation_floats_per_sample(&self) -> usize {
+        self.fps / 2
+    }
+
+    /// A training forward that stores each sample's activations as a row of `activations`
+    /// (`[n][activation_floats_per_sample()]`, at least `capacity ·` that many floats) instead of
+    /// the tiled tape, and writes every output. The density pass of a compacted step runs it over
+    /// the marched samples, so the training forward of the kept ones is a gather
+    /// ([`FusedMlp::record_gather_tape`]) instead of the net again.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_forward_rows(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        activations: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        self.check("activations", activations, launch.capacity() * self.activation_floats_per_sample());
+        self.record_forward_with(&self.u_rows, ctx, enc, counters, input, params, output, Some(activations), launch);
+    }
+
+    /// What [`FusedMlp::record_forward`] would write to `output` and `tape` for `counters[1]`
+    /// samples whose inputs are rows `rows[i]` of a batch that [`FusedMlp::record_forward_rows`]
+    /// ran with the same parameters, copied from its `activations` (the same bits; the backward
+    /// then runs as after a training forward, with the gathered inputs as `input`). `rows` holds
+    /// at least `launch.capacity()` indices, each a row that `activations` holds.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_gather_tape(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        rows: &wgpu::Buffer,
+        activations: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        tape: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
         let capacity = launch.capacity();
-        self.check_common(input, params, capacity);
+        assert!(rows.size() >= 4 * capacity as u64, "FusedMlp: rows hold fewer than {capacity} entries");
+        self.check("activations", activations, self.activation_floats_per_sample());
         self.check("output", output, capacity * self.config.output_dim);
         self.check("tape", tape, capacity * self.fps);
-        let params4 = self.params4(params);
         launch.record(
-            &self.forward,
+            &self.tape_gather,
             ctx,
             enc,
-            &[
-                (0, &self.u_tape),
-                (1, &self.layer_buf),
-                (2, counters),
-                (3, input),
-                (4, params),
-                (5, output),
-                (6, tape),
-                (10, params4),
-            ],
+            &[(0, &self.u_tape), (1, &self.layer_buf), (2, counters), (3, activations), (5, output), (6, tape), (14, rows)],
             1,
-            TILE as u32,
+            64,
             1,
         );
     }
@@ -508,6 +557,13 @@ pub trait FusedNet: Send + Sync {
     fn partial(&self) -> (usize, usize) {
         (self.config().output_dim, self.config().input_dim)
     }
+    /// The plain-WGSL net, for what only it offers: keeping the activations of a density pass
+    /// as rows and gathering the tape of the kept samples from them
+    /// ([`FusedMlp::record_forward_rows`], [`FusedMlp::record_gather_tape`]). `None` on the
+    /// cooperative-matrix path.
+    fn as_plain(&self) -> Option<&FusedMlp> {
+        None
+    }
     /// Training forward (stores the tape).
     fn record_forward(
         &self,
@@ -590,7 +646,8 @@ macro_rules! impl_fused_net {
             impl_fused_net!(@common $t);
         }
     };
-    ($t:ty, partial) => {
+    // The plain net: partial heads and input gradients, activation rows.
+    ($t:ty, plain) => {
         impl FusedNet for $t {
             impl_fused_net!(@common $t);
             fn record_inference_head(
@@ -611,11 +668,14 @@ macro_rules! impl_fused_net {
             fn partial(&self) -> (usize, usize) {
                 <$t>::partial(self)
             }
+            fn as_plain(&self) -> Option<&FusedMlp> {
+                Some(self)
+            }
         }
     };
 }
 
-impl_fused_net!(FusedMlp, partial);
+impl_fused_net!(FusedMlp, plain);
 impl_fused_net!(crate::mlp_coop::FusedMlpCoop);
 
 /// A fully fused MLP for `config` on `path` (a clear [`GpuError::Unsupported`] where the adapter

@@ -251,6 +251,79 @@ fn partial_heads_and_input_gradients_write_only_what_is_asked() {
     }
 }
 
+/// The density pass of a compacted step keeps its activations as rows (`record_forward_rows`)
+/// and the kept samples' tape is gathered from them (`record_gather_tape`): for random rows (in
+/// random order, with repeats), the gathered output and tape are the same bits as the training
+/// forward on the gathered inputs, including the tape's unwritten gradient half and every float
+/// past n (poison stays), and each tape float sits where the tile layout puts it (host twin). The
+/// rows' last layer is the forward's output, which matches the CPU net; nothing past the batch is
+/// written.
+#[test]
+fn activation_rows_gather_into_the_training_forwards_tape() {
+    let Some(ctx) = context() else { return };
+    let mut seed = 1300u64;
+    for (name, config) in configs() {
+        let net = FusedMlp::new(&ctx, &config).unwrap();
+        let (din, dout, fps, fa) = (config.input_dim, config.output_dim, net.tape_floats_per_sample(), net.activation_floats_per_sample());
+        assert_eq!(2 * fa, fps, "{name}: the activations are half the tape");
+        // (source rows, kept samples): a partial last tile, whole tiles, one sample, none.
+        for (n_src, n) in [(150usize, 101usize), (70, 64), (9, 1), (40, 0)] {
+            seed += 1;
+            let mut rng = nerf_core::rng(seed, 0);
+            let cpu = Mlp::<f32>::new(config.clone(), &mut rng);
+            let (cap_src, cap) = (n_src + 5, n + 3);
+            let input_src = random(&mut rng, cap_src * din, 2.0);
+            let rows: Vec<u32> = (0..cap).map(|_| rng.gen_range(0..n_src as u32)).collect();
+            let mut input = Vec::with_capacity(cap * din);
+            for &r in &rows {
+                input.extend_from_slice(&input_src[r as usize * din..(r as usize + 1) * din]);
+            }
+            let nan = |len: usize| vec![f32::NAN; len];
+            let params = ctx.upload("params", cpu.params());
+            let c_src = ctx.upload("counters src", &[0u32, n_src as u32]);
+            let c = ctx.upload("counters", &[0u32, n as u32]);
+            let (in_src_b, in_b, rows_b) = (ctx.upload("input src", &input_src), ctx.upload("input", &input), ctx.upload("rows", &rows));
+            let acts = ctx.upload("activation rows", &nan(cap_src * fa));
+            let out_src = ctx.upload("out src", &nan(cap_src * dout));
+            let (out_ref, tape_ref) = (ctx.upload("out ref", &nan(cap * dout)), ctx.upload("tape ref", &nan(cap * fps)));
+            let (out_g, tape_g) = (ctx.upload("out gathered", &nan(cap * dout)), ctx.upload("tape gathered", &nan(cap * fps)));
+            let mut enc = ctx.encoder("rows test");
+            let (args_src, args) = (DispatchArgs::new(&ctx, cap_src), DispatchArgs::new(&ctx, cap));
+            let indirect = seed % 2 == 0;
+            let l_src = if indirect { args_src.record(&ctx, &mut enc, &c_src, cap_src) } else { Launch::direct(cap_src) };
+            net.record_forward_rows(&ctx, &mut enc, &c_src, &in_src_b, &params, &out_src, &acts, l_src);
+            let l = if indirect { args.record(&ctx, &mut enc, &c, cap) } else { Launch::direct(cap) };
+            net.record_forward(&ctx, &mut enc, &c, &in_b, &params, &out_ref, &tape_ref, l);
+            net.record_gather_tape(&ctx, &mut enc, &c, &rows_b, &acts, &out_g, &tape_g, l);
+            ctx.queue.submit([enc.finish()]);
+            let read = |b, len| ctx.read_f32(b, len).unwrap();
+            let what = format!("{name} (n = {n} of {n_src})");
+            let (acts_v, out_src_v) = (read(&acts, cap_src * fa), read(&out_src, cap_src * dout));
+            assert!(acts_v[n_src * fa..].iter().all(|x| x.is_nan()), "{what}: activation rows past the batch written");
+            assert!(acts_v[..n_src * fa].iter().all(|x| x.is_finite()), "{what}: an activation row left unwritten");
+            assert!(out_src_v[n_src * dout..].iter().all(|x| x.is_nan()), "{what}: outputs past the batch written");
+            // The rows end with the last layer's activations: the output, which is the CPU net's.
+            for r in 0..n_src {
+                assert_eq!(bits(&acts_v[r * fa + fa - dout..(r + 1) * fa]), bits(&out_src_v[r * dout..(r + 1) * dout]), "{what}: row {r}");
+            }
+            let cpu_out = cpu.forward(n_src, &input_src[..n_src * din], &mut MlpTape::default()).to_vec();
+            assert_close(&format!("{what}: output"), &out_src_v[..n_src * dout], &cpu_out, 1e-4, 1e-5);
+            let (tr, tg) = (read(&tape_ref, cap * fps), read(&tape_g, cap * fps));
+            assert_eq!(bits(&read(&out_g, cap * dout)), bits(&read(&out_ref, cap * dout)), "{what}: output");
+            assert_eq!(bits(&tg), bits(&tr), "{what}: tape");
+            // Host twin of the layout: tile t0, m samples; feature f of sample t0 + i at t0·fps + m·f + i.
+            for s in 0..n {
+                let (t0, i) = (s - s % 32, s % 32);
+                let m = (n - t0).min(32);
+                for f in 0..fa {
+                    let want = acts_v[rows[s] as usize * fa + f];
+                    assert_eq!(tg[t0 * fps + m * f + i].to_bits(), want.to_bits(), "{what}: sample {s} feature {f}");
+                }
+            }
+        }
+    }
+}
+
 /// Large activations: tanh/sigmoid/exp saturate like the CPU (no NaN from exp overflow in tanh).
 #[test]
 fn saturating_activations_stay_finite() {
