@@ -33,17 +33,22 @@ pub struct GpuHashNerf {
     d_color_in: wgpu::Buffer,
     d_dout: wgpu::Buffer,
     d_enc: wgpu::Buffer,
-    /// The position encodings of the density pass of a step on compacted samples
+    /// What the density pass of a step on compacted samples keeps
     /// ([`GpuRadianceField::keep_density_pass`]), gathered for the kept samples by
     /// `record_forward_rows` instead of being computed again.
-    kept: Option<KeptEncodings>,
+    kept: Option<KeptPass>,
+    /// [`crate::HashNerfConfig::gpu_keep_density_activations`].
+    keep_activations: bool,
 }
 
-/// The density pass's encodings: `rows` rows of the encoding's width.
-struct KeptEncodings {
+/// The density pass's encodings (`rows` rows of the encoding's width) and, with the plain density
+/// net and [`crate::HashNerfConfig::gpu_keep_density_activations`], its activations
+/// (`rows` rows of [`nerf_gpu::mlp::FusedMlp::activation_floats_per_sample`]).
+struct KeptPass {
     enc: wgpu::Buffer,
     rows: usize,
     gather: GpuRowGather,
+    activations: Option<wgpu::Buffer>,
 }
 
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
@@ -121,6 +126,7 @@ impl GpuHashNerf {
             d_dout,
             d_enc,
             kept: None,
+            keep_activations: cfg.gpu_keep_density_activations,
             args: DispatchArgs::new(ctx, capacity),
             glue,
             grid,
@@ -162,6 +168,20 @@ impl GpuHashNerf {
     ) {
         ctx.profile_part("density MLP");
         self.density.record_forward(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, l);
+        self.record_forward_after_density(ctx, enc, s, sigma, rgb, l);
+    }
+
+    /// The training forward from the density net's output and tape already in the field's buffers.
+    #[allow(clippy::too_many_arguments)]
+    fn record_forward_after_density(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        s: GpuSamples<'_>,
+        sigma: &wgpu::Buffer,
+        rgb: &wgpu::Buffer,
+        l: Launch<'_>,
+    ) {
         ctx.profile_part("SH + glue");
         self.sh.record_forward(ctx, enc, s.counters, s.dirs, &self.sh_out, l);
         self.glue.record_assemble(ctx, enc, s.counters, &self.dout, &self.sh_out, sigma, &self.color_in, l);
@@ -191,7 +211,13 @@ impl GpuRadianceField for GpuHashNerf {
         let width = self.grid.output_dim();
         let rows = marched.max(1);
         let enc = ctx.zeros_checked("kept hash enc", 4 * rows * width).map_err(gpu_err)?;
-        self.kept = Some(KeptEncodings { enc, rows, gather: GpuRowGather::new(ctx, width).map_err(gpu_err)? });
+        // The activations only where they fit one binding (otherwise the density net runs again
+        // for the kept samples: the same bits, more work).
+        let activations = match (self.keep_activations, self.density.as_plain()) {
+            (true, Some(net)) => ctx.zeros_checked("kept density activations", 4 * rows * net.activation_floats_per_sample()).ok(),
+            _ => None,
+        };
+        self.kept = Some(KeptPass { enc, rows, gather: GpuRowGather::new(ctx, width).map_err(gpu_err)?, activations });
         Ok(())
     }
 
@@ -199,6 +225,24 @@ impl GpuRadianceField for GpuHashNerf {
         let Some(k) = &self.kept else { return self.record_density(ctx, enc, s, sigma) };
         let cap = s.launch(self.capacity);
         assert!(first_row + cap <= k.rows, "a density pass over rows {first_row}..{} keeps {} rows", first_row + cap, k.rows);
+        if let (Some(acts), Some(net)) = (&k.activations, self.density.as_plain()) {
+            // The density net's training forward, its activations kept as rows (written in place for
+            // the first chunk, copied to their rows for the others, as the encodings).
+            let l = self.launch(ctx, enc, &s);
+            let (encodings, rows_out) = if first_row == 0 { (&k.enc, acts) } else { (&self.enc, &self.density_tape) };
+            ctx.profile_part("hash encoding");
+            self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, encodings, l);
+            ctx.profile_part("density MLP");
+            net.record_forward_rows(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, rows_out, l);
+            ctx.profile_part("glue");
+            self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma, l);
+            if first_row != 0 {
+                let (enc_row, act_row) = (4 * self.grid.output_dim() as u64, 4 * net.activation_floats_per_sample() as u64);
+                enc.copy_buffer_to_buffer(&self.enc, 0, &k.enc, enc_row * first_row as u64, enc_row * cap as u64);
+                enc.copy_buffer_to_buffer(&self.density_tape, 0, acts, act_row * first_row as u64, act_row * cap as u64);
+            }
+            return;
+        }
         if first_row == 0 {
             self.record_density_via(ctx, enc, s, sigma, &k.enc);
         } else {
@@ -213,7 +257,14 @@ impl GpuRadianceField for GpuHashNerf {
         let l = self.launch(ctx, enc, &s);
         ctx.profile_part("hash encoding (gather)");
         k.gather.record(ctx, enc, s.counters, rows, &k.enc, &self.enc, l);
-        self.record_forward_from_encodings(ctx, enc, s, sigma, rgb, l);
+        match (&k.activations, self.density.as_plain()) {
+            (Some(acts), Some(net)) => {
+                ctx.profile_part("density MLP (gather)");
+                net.record_gather_tape(ctx, enc, s.counters, rows, acts, &self.dout, &self.density_tape, l);
+                self.record_forward_after_density(ctx, enc, s, sigma, rgb, l);
+            }
+            _ => self.record_forward_from_encodings(ctx, enc, s, sigma, rgb, l),
+        }
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {

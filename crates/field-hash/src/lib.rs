@@ -44,6 +44,13 @@ pub struct HashNerfConfig {
     /// Which fully fused MLP kernels the GPU twin runs (ignored on the CPU): `plain` WGSL (every
     /// adapter) or `coop`erative matrices (tensor cores; adapters that offer them).
     pub gpu_mlp: GpuMlp,
+    /// GPU twin, training on compacted samples (`compact_samples`) with the plain MLP kernels
+    /// (ignored elsewhere): the density pass keeps the density net's activations of every marched
+    /// sample, and the training forward gathers the kept samples' from them instead of running
+    /// the density net again. The same bits either way; this trades the density net's forward
+    /// over the kept samples (and the density pass's head-only shortcut) for 4·Σ widths bytes
+    /// per marched sample written and gathered. Off where that buffer would not fit a binding.
+    pub gpu_keep_density_activations: bool,
 }
 
 /// The fully fused MLP kernels of the hash field's GPU twin ([`HashNerfConfig::gpu_mlp`]).
@@ -70,6 +77,7 @@ impl Default for HashNerfConfig {
             mlp_bias: false,
             mlp_weight_decay: 1e-6,
             gpu_mlp: GpuMlp::Plain,
+            gpu_keep_density_activations: true,
         }
     }
 }

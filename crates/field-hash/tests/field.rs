@@ -31,6 +31,7 @@ fn small() -> HashNerfConfig {
         mlp_bias: true,
         mlp_weight_decay: 1e-6,
         gpu_mlp: GpuMlp::Plain,
+        gpu_keep_density_activations: true,
     }
 }
 

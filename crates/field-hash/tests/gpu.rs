@@ -120,12 +120,20 @@ fn chunked_density_matches_the_cpu_field_beyond_the_fields_capacity() {
     }
 }
 
+/// With the density net's activations kept by the density pass (the default) and without (the
+/// density net runs again on the gathered encodings).
 #[test]
 fn forward_on_rows_of_the_density_pass_equals_a_fresh_forward() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    for keep_activations in [true, false] {
+        check_forward_on_rows(&ctx, keep_activations);
+    }
+}
+
+fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     use nerf_field::{ChunkedDensity, GpuRadianceField, GpuSamples, RadianceField};
     use rand::Rng as _;
-    let Some(ctx) = GpuContext::for_tests() else { return };
-    let mut cfg = HashNerfConfig::default();
+    let mut cfg = HashNerfConfig { gpu_keep_density_activations: keep_activations, ..Default::default() };
     cfg.grid.n_levels = 5;
     cfg.grid.log2_hashmap_size = 12;
     cfg.grid.base_resolution = 4;
@@ -229,4 +237,28 @@ fn forward_on_rows_of_the_density_pass_equals_a_fresh_forward() {
     kept.record_forward(&ctx, &mut enc, s, &sigma, &rgb);
     ctx.queue.submit([enc.finish()]);
     assert_ne!(ctx.read_f32(&sigma, m).unwrap(), ks, "the change of the table must show in a fresh forward");
+
+    // Likewise the density net's weights: with its activations kept, the forward on rows gives
+    // the σ of the weights the pass saw; without, the net runs again with the new weights.
+    let pass_then_rows = |new_params: Option<&[(String, Vec<f32>)]>| {
+        let mut enc = ctx.encoder("pass");
+        chunked.record_for_training(&ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
+        ctx.queue.submit([enc.finish()]);
+        if let Some(p) = new_params {
+            kept.import_params(&ctx, p).unwrap();
+        }
+        let mut enc = ctx.encoder("rows");
+        kept.record_forward_rows(&ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
+        ctx.queue.submit([enc.finish()]);
+        ctx.read_f32(&sigma, m).unwrap()
+    };
+    let want = pass_then_rows(None);
+    let mut changed = kept.export_params(&ctx).unwrap();
+    changed[1].1.iter_mut().for_each(|x| *x *= 1.5);
+    let got = pass_then_rows(Some(&changed));
+    if keep_activations {
+        assert_eq!(got, want, "forward_rows ran the density net again");
+    } else {
+        assert_ne!(got, want, "without kept activations the density net runs on the rows");
+    }
 }
