@@ -173,7 +173,7 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     let d_sigma: Vec<f32> = (0..m).map(|_| rng.gen_range(-0.1f32..0.1)).collect();
     let d_rgb: Vec<f32> = (0..3 * m).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
     let (dsb, drb) = (ctx.upload("d sigma", &pad(&d_sigma, chunk)), ctx.upload("d rgb", &pad(&d_rgb, 3 * chunk)));
-    let chunked = ChunkedDensity::new(&ctx, chunk, total);
+    let chunked = ChunkedDensity::new(ctx, chunk, total);
     let outputs = || (ctx.upload("sigma", &vec![f32::NAN; chunk]), ctx.upload("rgb", &vec![f32::NAN; 3 * chunk]));
     let read = |g: &dyn GpuRadianceField, sigma: &nerf_field::gpu::wgpu::Buffer, rgb: &nerf_field::gpu::wgpu::Buffer| {
         let grads: Vec<Vec<f32>> = g.groups().iter().map(|p| ctx.read_f32(&p.grads, p.len).unwrap()).collect();
@@ -182,13 +182,13 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
 
     // The step on compacted samples: density pass (keeping the encodings), forward on the rows,
     // backward.
-    let mut kept = cpu.to_gpu(&ctx, chunk).unwrap().unwrap();
-    kept.keep_density_pass(&ctx, total).unwrap();
+    let mut kept = cpu.to_gpu(ctx, chunk).unwrap().unwrap();
+    kept.keep_density_pass(ctx, total).unwrap();
     let (sigma, rgb) = outputs();
     let mut enc = ctx.encoder("compacted");
-    chunked.record_for_training(&ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
-    kept.record_forward_rows(&ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
-    kept.record_backward(&ctx, &mut enc, s, &dsb, &drb);
+    chunked.record_for_training(ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
+    kept.record_forward_rows(ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
+    kept.record_backward(ctx, &mut enc, s, &dsb, &drb);
     ctx.queue.submit([enc.finish()]);
     let (ks, kc, kg) = read(kept.as_ref(), &sigma, &rgb);
     // σ of the density pass is the field's density.
@@ -201,11 +201,11 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     }
 
     // The same samples through a fresh twin's plain forward.
-    let fresh = cpu.to_gpu(&ctx, chunk).unwrap().unwrap();
+    let fresh = cpu.to_gpu(ctx, chunk).unwrap().unwrap();
     let (sigma, rgb) = outputs();
     let mut enc = ctx.encoder("fresh");
-    fresh.record_forward(&ctx, &mut enc, s, &sigma, &rgb);
-    fresh.record_backward(&ctx, &mut enc, s, &dsb, &drb);
+    fresh.record_forward(ctx, &mut enc, s, &sigma, &rgb);
+    fresh.record_backward(ctx, &mut enc, s, &dsb, &drb);
     ctx.queue.submit([enc.finish()]);
     let (fs, fc, fg) = read(fresh.as_ref(), &sigma, &rgb);
     // Same encodings, same kernels after them: outputs bit for bit; gradients up to the order of
@@ -222,19 +222,19 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
 
     // The forward on rows reads the pass's encodings, not fresh ones: with the table changed
     // after the pass, it still gives the σ of the old table (a fresh forward does not).
-    let mut params = kept.export_params(&ctx).unwrap();
+    let mut params = kept.export_params(ctx).unwrap();
     params[0].1.iter_mut().for_each(|x| *x += 0.5);
     let (sigma, rgb) = outputs();
     let mut enc = ctx.encoder("pass");
-    chunked.record_for_training(&ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
+    chunked.record_for_training(ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
     ctx.queue.submit([enc.finish()]);
-    kept.import_params(&ctx, &params).unwrap();
+    kept.import_params(ctx, &params).unwrap();
     let mut enc = ctx.encoder("rows after a change");
-    kept.record_forward_rows(&ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
+    kept.record_forward_rows(ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
     ctx.queue.submit([enc.finish()]);
     assert_eq!(ctx.read_f32(&sigma, m).unwrap(), ks, "forward_rows computed the encodings again");
     let mut enc = ctx.encoder("fresh after a change");
-    kept.record_forward(&ctx, &mut enc, s, &sigma, &rgb);
+    kept.record_forward(ctx, &mut enc, s, &sigma, &rgb);
     ctx.queue.submit([enc.finish()]);
     assert_ne!(ctx.read_f32(&sigma, m).unwrap(), ks, "the change of the table must show in a fresh forward");
 
@@ -242,18 +242,18 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     // the σ of the weights the pass saw; without, the net runs again with the new weights.
     let pass_then_rows = |new_params: Option<&[(String, Vec<f32>)]>| {
         let mut enc = ctx.encoder("pass");
-        chunked.record_for_training(&ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
+        chunked.record_for_training(ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
         ctx.queue.submit([enc.finish()]);
         if let Some(p) = new_params {
-            kept.import_params(&ctx, p).unwrap();
+            kept.import_params(ctx, p).unwrap();
         }
         let mut enc = ctx.encoder("rows");
-        kept.record_forward_rows(&ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
+        kept.record_forward_rows(ctx, &mut enc, s, &rows_buf, &sigma, &rgb);
         ctx.queue.submit([enc.finish()]);
         ctx.read_f32(&sigma, m).unwrap()
     };
     let want = pass_then_rows(None);
-    let mut changed = kept.export_params(&ctx).unwrap();
+    let mut changed = kept.export_params(ctx).unwrap();
     changed[1].1.iter_mut().for_each(|x| *x *= 1.5);
     let got = pass_then_rows(Some(&changed));
     if keep_activations {
