@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # On the lent H100: where a training step spends its GPU time, per field and MLP path
 # (examples/ablations/h100_profile.toml: in-repo scene, 1200 steps each, steps 1000..1019 timed
-# pass by pass; ~5 min). Expects .gl and .bin/nerf.xz (bash benches/device/prepare.sh makes them).
+# pass by pass; ~7 min). Expects .gl and .bin/nerf.xz (bash benches/device/prepare.sh makes them).
 # Writes the ablation log (with the profile tables) and each run's record (gpu_profile inside).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
