@@ -21,7 +21,9 @@
 // vec4 (F = 4 and 8, two per slot for F = 8). The host rewrites the alias line below for F ≠ 2
 // (GpuHashGrid::new). The backward entry points add with atomic<f32> (hash_backward_atomic, needs
 // SHADER_FLOAT32_ATOMIC; the host strips the marked section when the adapter lacks it) or with a
-// compare-and-swap loop on atomic<u32> (hash_backward_cas).
+// compare-and-swap loop on atomic<u32> (hash_backward_cas); hash_backward_subgroup (needs SUBGROUP
+// as well; its section is stripped without it) sums each dense level's additions over the
+// subgroup before the atomics.
 
 alias Feat = vec2<f32>;
 
@@ -193,11 +195,15 @@ fn hash_backward_atomic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(
     if (i >= n_samples(arrayLength(&d_features), P.n_levels * FEATS) || l >= P.n_levels) {
         return;
     }
+    add_sample_atomic(i, l, P.levels[l]);
+}
+
+// Sample i's gradient at level l, one atomic add per corner and feature (none for zeros).
+fn add_sample_atomic(i: u32, l: u32, lv: vec4<u32>) {
     let g = load_grad(i, l);
     if (!g.any) {
         return;
     }
-    let lv = P.levels[l];
     let c = cell(unit_position(i), lv);
     for (var k = 0u; k < 8u; k++) {
         let o = lv.y + c.slot[k] * FEATS;
@@ -209,6 +215,81 @@ fn hash_backward_atomic(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(
         }
     }
 }
+
+//#begin subgroups
+// hash_backward_atomic with the additions of a dense level summed over the subgroup first. Dense
+// levels are the coarse ones, where the consecutive samples of a subgroup (a stretch of one or two
+// rays) share cells, so every lane adding to the same few slots is what makes their atomics
+// contend. Per corner, up to SG_ROUNDS rounds: the subgroup's smallest pending slot, the sum of the
+// lanes on it (subgroupAdd), one atomic add by the first of those lanes; the lanes still pending
+// after the rounds add their own. Hashed levels (scattered slots) run hash_backward_atomic's code.
+// The same terms are added, in another order (as between any two runs of the atomics).
+const SG_ROUNDS: u32 = 4u;
+
+@compute @workgroup_size(WG)
+fn hash_backward_subgroup(
+    @builtin(global_invocation_id) gid: vec3<u32>,
+    @builtin(num_workgroups) nwg: vec3<u32>,
+    @builtin(subgroup_invocation_id) sid: u32,
+) {
+    let i = linear_id(gid, nwg, WG);
+    let l = gid.z;
+    if (l >= P.n_levels) {
+        return;
+    }
+    let lv = P.levels[l];
+    let live = i < n_samples(arrayLength(&d_features), P.n_levels * FEATS);
+    if (lv.z == 0u) {
+        if (live) {
+            add_sample_atomic(i, l, lv);
+        }
+        return;
+    }
+    // Every lane takes part in the subgroup operations (uniform control flow): a lane past the
+    // count, or without gradient, with nothing pending.
+    var g: Grad;
+    var c: Cell;
+    if (live) {
+        g = load_grad(i, l);
+        if (g.any) {
+            c = cell(unit_position(i), lv);
+        }
+    }
+    let has_grad = live && g.any;
+    for (var k = 0u; k < 8u; k++) {
+        let slot = c.slot[k];
+        var pending = has_grad;
+        for (var r = 0u; r < SG_ROUNDS; r++) {
+            let lead = subgroupMin(select(0xffffffffu, slot, pending));
+            if (lead == 0xffffffffu) {
+                break;
+            }
+            let mine = pending && slot == lead;
+            let writer = subgroupMin(select(0xffffffffu, sid, mine));
+            // A slot that no other lane shares: the lanes add their own from here on (scattered
+            // samples would otherwise pay every round for nothing).
+            if (subgroupAdd(select(0u, 1u, mine)) == 1u) {
+                break;
+            }
+            for (var j = 0u; j < FEATS; j++) {
+                let s = subgroupAdd(select(0.0, c.w[k] * g.g[j], mine));
+                if (sid == writer && s != 0.0) {
+                    atomicAdd(&grads_f32[lv.y + lead * FEATS + j], s);
+                }
+            }
+            pending = pending && !mine;
+        }
+        if (pending) {
+            for (var j = 0u; j < FEATS; j++) {
+                let d = c.w[k] * g.g[j];
+                if (d != 0.0) {
+                    atomicAdd(&grads_f32[lv.y + slot * FEATS + j], d);
+                }
+            }
+        }
+    }
+}
+//#end subgroups
 //#end f32-atomics
 
 //#begin f16-mirror

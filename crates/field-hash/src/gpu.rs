@@ -8,7 +8,7 @@ use crate::{HashNerf, GROUP_NAMES};
 use nerf_field::gpu::wgpu;
 use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
 use nerf_gpu::compact::GpuRowGather;
-use nerf_gpu::encoding::{GpuHashGrid, GpuSphericalHarmonics};
+use nerf_gpu::encoding::{AtomicMode, GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
 use nerf_gpu::mlp::{fused_nets, FusedMlpPath, FusedNet};
 use nerf_gpu::{DispatchArgs, GpuContext, Launch};
@@ -61,7 +61,8 @@ impl GpuHashNerf {
         let cfg = &field.config;
         let capacity = capacity.max(1);
         let aabb_min = field.aabb_min;
-        let grid = GpuHashGrid::new(ctx, &cfg.grid, aabb_min, field.aabb_max).map_err(gpu_err)?;
+        let atomics = if cfg.gpu_hash_subgroup_sums { AtomicMode::SubgroupSums } else { AtomicMode::Auto };
+        let grid = GpuHashGrid::with_atomics(ctx, &cfg.grid, aabb_min, field.aabb_max, atomics).map_err(gpu_err)?;
         let sh = GpuSphericalHarmonics::new(ctx, field.sh.config()).map_err(gpu_err)?;
         let path = match cfg.gpu_mlp {
             crate::GpuMlp::Plain => FusedMlpPath::Plain,

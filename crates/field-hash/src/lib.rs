@@ -51,6 +51,11 @@ pub struct HashNerfConfig {
     /// over the kept samples (and the density pass's head-only shortcut) for 4·Σ widths bytes
     /// per marched sample written and gathered. Off where that buffer would not fit a binding.
     pub gpu_keep_density_activations: bool,
+    /// GPU twin (ignored on the CPU): the hash table's backward sums the additions of its dense
+    /// (coarse) levels over each subgroup before the atomics, on adapters with subgroups and
+    /// float atomics ([`nerf_gpu::encoding::AtomicMode::SubgroupSums`]). Off by default: slower
+    /// on lavapipe, not yet timed where atomics contend (a GPU).
+    pub gpu_hash_subgroup_sums: bool,
 }
 
 /// The fully fused MLP kernels of the hash field's GPU twin ([`HashNerfConfig::gpu_mlp`]).
@@ -78,6 +83,7 @@ impl Default for HashNerfConfig {
             mlp_weight_decay: 1e-6,
             gpu_mlp: GpuMlp::Plain,
             gpu_keep_density_activations: true,
+            gpu_hash_subgroup_sums: false,
         }
     }
 }

@@ -32,6 +32,7 @@ fn small() -> HashNerfConfig {
         mlp_weight_decay: 1e-6,
         gpu_mlp: GpuMlp::Plain,
         gpu_keep_density_activations: true,
+        gpu_hash_subgroup_sums: false,
     }
 }
 

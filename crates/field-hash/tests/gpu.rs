@@ -9,8 +9,12 @@ use nerf_field_hash::{HashNerf, HashNerfConfig};
 /// A small grid (dense and hashed levels) with the default MLP shapes, its table stored as
 /// `storage`, checked against its GPU twin.
 fn check_small_field(storage: nerf_encoding::Precision, seed: u64) {
+    check_small_field_with(storage, seed, false);
+}
+
+fn check_small_field_with(storage: nerf_encoding::Precision, seed: u64, subgroup_sums: bool) {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    let mut cfg = HashNerfConfig::default();
+    let mut cfg = HashNerfConfig { gpu_hash_subgroup_sums: subgroup_sums, ..Default::default() };
     cfg.grid.n_levels = 6;
     cfg.grid.log2_hashmap_size = 12;
     cfg.grid.base_resolution = 4;
@@ -34,6 +38,13 @@ fn gpu_hash_field_matches_the_cpu_field() {
 #[test]
 fn gpu_hash_field_with_an_f16_table_matches_the_cpu_field() {
     check_small_field(nerf_encoding::Precision::F16, 8);
+}
+
+/// The same with the table's backward summing its dense levels over subgroups first
+/// (`gpu_hash_subgroup_sums`; where the adapter has no subgroups, the plain atomics again).
+#[test]
+fn gpu_hash_field_with_subgroup_sums_matches_the_cpu_field() {
+    check_small_field_with(nerf_encoding::Precision::F32, 9, true);
 }
 
 #[test]

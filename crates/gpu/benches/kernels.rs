@@ -1,5 +1,6 @@
 //! Criterion benches of the GPU kernels that dominate a training step, on the first adapter
-//! (skipped without one): hash encoding forward/backward (L16 F2 T2^19); the hash field's fused
+//! (skipped without one): hash encoding forward/backward (L16 F2 T2^19; the backward also on samples along rays and with
+//! the dense levels summed over subgroups first); the hash field's fused
 //! MLPs forward, forward + backward and the density pass's σ-only inference (plain WGSL, and on
 //! cooperative matrices where the adapter has them); the paper's 8×256 trunk forward + backward
 //! (plain WGSL, and cooperative matrices where the adapter has them: subgroup-tiled and, with
@@ -11,7 +12,7 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use nerf_encoding::HashGridConfig;
-use nerf_gpu::encoding::GpuHashGrid;
+use nerf_gpu::encoding::{AtomicMode, GpuHashGrid};
 use nerf_gpu::linear::{GpuMlp, LinearPath};
 use nerf_gpu::mlp::FusedMlp;
 use nerf_gpu::mlp_coop::FusedMlpCoop;
@@ -52,6 +53,23 @@ fn random(n: usize, lo: f32, hi: f32, seed: u64) -> Vec<f32> {
     (0..n).map(|_| rng.gen_range(lo..hi)).collect()
 }
 
+/// `n` positions in the box [-1.5, 1.5]³ as a training batch packs them: runs of 32 consecutive
+/// samples along random rays, 0.005 apart (the hash preset's marching step).
+fn ray_positions(n: usize, seed: u64) -> Vec<f32> {
+    let mut rng = nerf_core::rng(seed, 0);
+    let mut p = Vec::with_capacity(3 * n);
+    while p.len() < 3 * n {
+        let o: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-1.3f32..1.3));
+        let d: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-1.0f32..1.0));
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
+        for s in 0..32 {
+            p.extend((0..3).map(|a| (o[a] + 0.005 * s as f32 * d[a] / len).clamp(-1.5, 1.5)));
+        }
+    }
+    p.truncate(3 * n);
+    p
+}
+
 /// Records with `f`, submits, waits.
 fn run(ctx: &GpuContext, f: impl Fn(&mut wgpu::CommandEncoder)) {
     let mut enc = ctx.encoder("bench");
@@ -82,6 +100,19 @@ fn kernels(c: &mut Criterion) {
     g.bench_function(BenchmarkId::new("hash_grid_backward", n), |b| {
         b.iter(|| run(&ctx, |e| grid.record_backward(&ctx, e, &counters, &pos, &d_feat, &grads, n.into())))
     });
+    // The backward on samples along rays (neighbours share the coarse levels' cells, so their
+    // atomics contend), with and without the subgroup sums of the dense levels.
+    let rays = ctx.upload("ray positions", &ray_positions(n, 4));
+    let grid_sg = GpuHashGrid::with_atomics(&ctx, &cfg, [-1.5; 3], [1.5; 3], AtomicMode::SubgroupSums).unwrap();
+    for (name, gr, p) in [
+        ("hash_grid_backward_subgroup_sums", &grid_sg, &pos),
+        ("hash_grid_backward_rays", &grid, &rays),
+        ("hash_grid_backward_rays_subgroup_sums", &grid_sg, &rays),
+    ] {
+        g.bench_function(BenchmarkId::new(name, n), |b| {
+            b.iter(|| run(&ctx, |e| gr.record_backward(&ctx, e, &counters, p, &d_feat, &grads, n.into())))
+        });
+    }
     // The forward through the f16 mirror (`storage = "f16"`), the mirror's rewrite from the f32
     // table included (as every forward does it).
     let cfg16 = HashGridConfig { storage: nerf_encoding::Precision::F16, ..cfg.clone() };

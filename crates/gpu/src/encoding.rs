@@ -25,6 +25,11 @@ pub enum AtomicMode {
     /// compare-and-swap loop.
     #[default]
     Auto,
+    /// As `Auto`, and on an adapter with `SUBGROUP` as well the additions of the dense (coarse)
+    /// levels are summed over each subgroup before the atomics (`hash_backward_subgroup`): fewer
+    /// atomics on the slots that the neighbouring samples of a batch share. Opt-in until timed on
+    /// hardware where atomics contend (on lavapipe it is slower).
+    SubgroupSums,
     /// Always the compare-and-swap loop on `atomic<u32>` (bit casts); for adapters without float
     /// atomics, and for testing that path on adapters with them.
     CompareExchange,
@@ -60,6 +65,7 @@ pub struct GpuHashGrid {
     forward: Kernel,
     backward: Kernel,
     float_atomics: bool,
+    subgroup_sums: bool,
     mirror: Option<F16Mirror>,
 }
 
@@ -111,9 +117,9 @@ fn strip_section(src: &str, name: &str) -> String {
 }
 
 /// The hash-grid WGSL for `f` features per level, with the `atomic<f32>` section kept or
-/// stripped (and the f16-mirror section, which needs F = 2, stripped for other F), and the number
-/// of `Feat` vectors per slot.
-fn hash_grid_source(f: usize, float_atomics: bool) -> (String, u32) {
+/// stripped, the subgroup section (inside it) kept only with `subgroups` (and the f16-mirror
+/// section, which needs F = 2, stripped for other F), and the number of `Feat` vectors per slot.
+fn hash_grid_source(f: usize, float_atomics: bool, subgroups: bool) -> (String, u32) {
     const ALIAS: &str = "alias Feat = vec2<f32>;";
     let (ty, per_slot) = match f {
         1 => ("f32", 1),
@@ -126,6 +132,8 @@ fn hash_grid_source(f: usize, float_atomics: bool) -> (String, u32) {
     let mut src = shaders::HASH_GRID.replacen(ALIAS, &format!("alias Feat = {ty};"), 1);
     if !float_atomics {
         src = strip_section(&src, "f32-atomics");
+    } else if !subgroups {
+        src = strip_section(&src, "subgroups");
     }
     if f != 2 {
         src = strip_section(&src, "f16-mirror");
@@ -175,16 +183,21 @@ impl GpuHashGrid {
             _pad: 0,
             levels,
         };
-        let float_atomics = mode == AtomicMode::Auto && ctx.features.float32_atomics;
+        let float_atomics = mode != AtomicMode::CompareExchange && ctx.features.float32_atomics;
+        let subgroup_sums = float_atomics && mode == AtomicMode::SubgroupSums && ctx.features.subgroups;
         let f = cfg.n_features_per_level;
-        let (src, per_slot) = hash_grid_source(f, float_atomics);
+        let (src, per_slot) = hash_grid_source(f, float_atomics, subgroup_sums);
         let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("hash_grid.wgsl"),
             source: wgpu::ShaderSource::Wgsl(src.into()),
         });
         let constants = [("FEATS", f as f64), ("VEC_PER_SLOT", per_slot as f64), ("WG", HASH_WG as f64)];
         let forward = Kernel::from_module(ctx, &module, "hash_forward", &constants);
-        let backward_entry = if float_atomics { "hash_backward_atomic" } else { "hash_backward_cas" };
+        let backward_entry = match (float_atomics, subgroup_sums) {
+            (true, true) => "hash_backward_subgroup",
+            (true, false) => "hash_backward_atomic",
+            (false, _) => "hash_backward_cas",
+        };
         let backward = Kernel::from_module(ctx, &module, backward_entry, &constants);
         let mirror = match cfg.storage {
             Precision::F32 => None,
@@ -210,6 +223,7 @@ impl GpuHashGrid {
             forward,
             backward,
             float_atomics,
+            subgroup_sums,
             mirror,
         })
     }
@@ -260,6 +274,12 @@ impl GpuHashGrid {
     /// Whether the backward adds with `atomic<f32>` (else the compare-and-swap loop).
     pub fn uses_float_atomics(&self) -> bool {
         self.float_atomics
+    }
+
+    /// Whether the backward sums the dense levels' additions over each subgroup before the
+    /// atomics ([`AtomicMode::SubgroupSums`] on an adapter with float atomics and subgroups).
+    pub fn uses_subgroup_sums(&self) -> bool {
+        self.subgroup_sums
     }
 
     /// Whether the forward reads an `f16` mirror of the table (`storage = "f16"`).

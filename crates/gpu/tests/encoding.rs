@@ -239,18 +239,45 @@ fn hash_grid_f16_mirror_matches_its_cpu_twin() {
     }
 }
 
+/// `n` world positions as a training batch packs them: runs of consecutive samples along rays
+/// (random origins and directions in the box, 1 to 40 samples per ray, steps of 0.4 % of the box),
+/// so that neighbouring samples share cells at the coarse levels.
+fn ray_positions(seed: u64, n: usize) -> Vec<f32> {
+    let mut r = nerf_core::rng(seed, 0);
+    let mut p = Vec::with_capacity(3 * n);
+    while p.len() < 3 * n {
+        let o: [f32; 3] = std::array::from_fn(|_| r.gen::<f32>());
+        let d: [f32; 3] = std::array::from_fn(|_| r.gen_range(-1.0f32..1.0));
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
+        for s in 0..r.gen_range(1..=40) {
+            for a in 0..3 {
+                let u = o[a] + 0.004 * s as f32 * d[a] / len;
+                p.push(AABB_MIN[a] + u * (AABB_MAX[a] - AABB_MIN[a]));
+            }
+        }
+    }
+    p.truncate(3 * n);
+    p
+}
+
+/// Every accumulation path (compare-and-swap, `atomic<f32>`, and `atomic<f32>` with the dense
+/// levels' additions summed over subgroups first) against the CPU, on scattered positions and on
+/// rays of consecutive samples (which share coarse cells, the case the subgroup sums are for).
 #[test]
-fn hash_grid_backward_matches_its_cpu_twin_with_both_atomic_paths() {
+fn hash_grid_backward_matches_its_cpu_twin_with_every_atomic_path() {
     let Some(ctx) = context() else { return };
     if !ctx.features.float32_atomics {
         eprintln!("NOTICE: adapter without SHADER_FLOAT32_ATOMIC: only the compare-and-swap path runs");
+    } else if !ctx.features.subgroups {
+        eprintln!("NOTICE: adapter without SUBGROUP: the subgroup sums are not tested");
     }
-    for (ci, cfg) in grid_configs().into_iter().enumerate() {
+    for (ci, cfg) in grid_configs().into_iter().flat_map(|c| [(c.clone(), false), (c, true)]).enumerate() {
+        let (cfg, along_rays) = cfg;
         let grid = HashGrid::<f32>::new(&cfg, &mut nerf_core::rng(300 + ci as u64, 0));
         let np = grid.n_params();
         let od = Encoding::<f32>::output_dim(&grid);
         let (n, cap) = (1200usize, 1300usize);
-        let pos = positions(400 + ci as u64, cap, grid.resolutions());
+        let pos = if along_rays { ray_positions(450 + ci as u64, cap) } else { positions(400 + ci as u64, cap, grid.resolutions()) };
         let mut r = nerf_core::rng(500 + ci as u64, 1);
         // Random upstream gradients (every 7th sample all zero), also in the rows past n that the
         // kernel must not read.
@@ -269,11 +296,12 @@ fn hash_grid_backward_matches_its_cpu_twin_with_both_atomic_paths() {
         assert!(touched > np / 20 && touched > 100, "config {ci}: only {touched} of {np} slots get gradient");
         let mut modes = vec![AtomicMode::CompareExchange];
         if ctx.features.float32_atomics {
-            modes.push(AtomicMode::Auto);
+            modes.extend([AtomicMode::Auto, AtomicMode::SubgroupSums]);
         }
         for mode in modes {
             let gpu = GpuHashGrid::with_atomics(&ctx, &cfg, AABB_MIN, AABB_MAX, mode).unwrap();
-            assert_eq!(gpu.uses_float_atomics(), mode == AtomicMode::Auto);
+            assert_eq!(gpu.uses_float_atomics(), mode != AtomicMode::CompareExchange);
+            assert_eq!(gpu.uses_subgroup_sums(), mode == AtomicMode::SubgroupSums && ctx.features.subgroups);
             let (cnt, pos_b, d_b) = (counters(&ctx, n), ctx.upload("positions", &pos), ctx.upload("d_features", &d));
             let grads = ctx.upload("grads", &prefill);
             // The compare-and-swap path launched from the device's count, atomic<f32> for the capacity.
