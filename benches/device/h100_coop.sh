@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # On a lent GPU with cooperative matrices (the H100): the checks of the cooperative-matrix fused
 # MLP (shaders/mlp_fused_coop.wgsl), of the emulated cooperative-matrix kernels' hardware twin and of
-# rendering in rounds that lavapipe cannot make, then the plain-vs-coop ablation
+# rendering in rounds that lavapipe cannot make, the hash backward's subgroup sums with 32-wide
+# subgroups (encoding) and the fused MLP's activation rows (mlp), then the plain-vs-coop ablation
 # (examples/ablations/h100_coop.toml). Build and pack here first: `bash benches/device/prepare.sh`
 # (the binaries of a commit; .bin/COMMIT says which); carry .gl, .bin, .bint, .data (~61 MB).
 set -u

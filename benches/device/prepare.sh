@@ -45,7 +45,7 @@ for line in sys.stdin:
         print(m["target"]["name"] + "\t" + m["package_id"].split("#")[0].rstrip("/").split("/")[-1] + "\t" + m["executable"])'
   }
   {
-    executables test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --test compact --no-run
+    executables test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --test compact --test encoding --test mlp --no-run
     executables test --release -p nerf-field-hash --test gpu --no-run
     executables test --release -p nerf-field-freq --test gpu --no-run
     executables bench -p nerf-gpu --bench kernels --no-run
