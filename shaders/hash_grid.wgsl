@@ -206,12 +206,16 @@ fn add_sample_atomic(i: u32, l: u32, lv: vec4<u32>) {
     }
     let c = cell(unit_position(i), lv);
     for (var k = 0u; k < 8u; k++) {
-        let o = lv.y + c.slot[k] * FEATS;
-        for (var j = 0u; j < FEATS; j++) {
-            let d = c.w[k] * g.g[j];
-            if (d != 0.0) {
-                atomicAdd(&grads_f32[o + j], d);
-            }
+        add_corner_atomic(lv.y + c.slot[k] * FEATS, c.w[k], g);
+    }
+}
+
+// w·g added to the F features at `o` (none for zeros).
+fn add_corner_atomic(o: u32, w: f32, g: Grad) {
+    for (var j = 0u; j < FEATS; j++) {
+        let d = w * g.g[j];
+        if (d != 0.0) {
+            atomicAdd(&grads_f32[o + j], d);
         }
     }
 }
@@ -280,12 +284,7 @@ fn hash_backward_subgroup(
             pending = pending && !mine;
         }
         if (pending) {
-            for (var j = 0u; j < FEATS; j++) {
-                let d = c.w[k] * g.g[j];
-                if (d != 0.0) {
-                    atomicAdd(&grads_f32[lv.y + slot * FEATS + j], d);
-                }
-            }
+            add_corner_atomic(lv.y + slot * FEATS, c.w[k], g);
         }
     }
 }
