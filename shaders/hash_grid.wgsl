@@ -225,8 +225,9 @@ fn add_corner_atomic(o: u32, w: f32, g: Grad) {
 // levels are the coarse ones, where the consecutive samples of a subgroup (a stretch of one or two
 // rays) share cells, so every lane adding to the same few slots is what makes their atomics
 // contend. Per corner, up to SG_ROUNDS rounds: the subgroup's smallest pending slot, the sum of the
-// lanes on it (subgroupAdd), one atomic add by the first of those lanes; the lanes still pending
-// after the rounds add their own. Hashed levels (scattered slots) run hash_backward_atomic's code.
+// lanes on it (subgroupAdd), one atomic add by the first of those lanes; a slot held by one lane
+// alone ends the rounds, and the lanes still pending then add their own. Hashed levels (scattered
+// slots) run hash_backward_atomic's code.
 // The same terms are added, in another order (as between any two runs of the atomics).
 const SG_ROUNDS: u32 = 4u;
 
