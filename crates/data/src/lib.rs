@@ -16,10 +16,12 @@
 use std::path::{Path, PathBuf};
 
 use nerf_rays::glam::Vec3;
-use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention, Ray};
+use nerf_rays::{Aabb, Camera, Ndc, PixelConvention, Ray};
 
 pub mod llff;
 pub use llff::{is_llff, load_llff};
+pub mod ngp;
+pub use ngp::{Distortion, Focal, Lens, NgpBox};
 use rand::Rng as _;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -352,6 +354,11 @@ pub struct Dataset {
     /// LLFF: the nearest and farthest depth bounds of `poses_bounds.npy`, in the scene's
     /// (scaled) world units (novel-view paths are focused from them); `None` for Blender scenes.
     pub depth_bounds: Option<[f32; 2]>,
+    /// instant-ngp's placement of the scene in its unit cube ([`ngp`]): set for scenes stored as
+    /// one `transforms.json` or whose transforms file has `aabb_scale`, `scale` or `offset`; then
+    /// `aabb` is its training cube and `near`/`far` come from it. `None` for NeRF's Blender
+    /// scenes and LLFF.
+    pub ngp: Option<NgpBox>,
 }
 
 impl std::fmt::Debug for Dataset {
@@ -366,6 +373,7 @@ impl std::fmt::Debug for Dataset {
             .field("far", &self.far)
             .field("aabb", &self.aabb)
             .field("ndc", &self.ndc)
+            .field("ngp", &self.ngp)
             .finish_non_exhaustive()
     }
 }
@@ -435,6 +443,12 @@ impl Dataset {
     /// Number of views.
     pub fn n_views(&self) -> usize {
         self.cameras.len()
+    }
+
+    /// Whether samplers should keep each ray's `[near, far]` inside [`Dataset::aabb`]: NDC scenes
+    /// (the box gives every ray its NDC segment) and instant-ngp scenes (trained inside their cube).
+    pub fn clips_to_aabb(&self) -> bool {
+        self.ndc.is_some() || self.ngp.is_some()
     }
 
     /// A camera ray in this dataset's ray space: unchanged, or its NDC ray ([`Dataset::ndc`]; a
@@ -595,6 +609,7 @@ struct Frame {
     index: usize,
     image: PathBuf,
     c2w: Vec<[f32; 4]>,
+    lens: ngp::Lens,
 }
 
 fn parse_matrix(path: &Path, frame: usize, v: &Value) -> Result<Vec<[f32; 4]>, DataError> {
@@ -751,9 +766,19 @@ fn downscale_rgba(px: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
 /// size of the first, and `k` must divide it. Returns that size (before downscaling) and the
 /// images; an error names the first failing image in order.
 fn decode_views(paths: &[&Path], k: u32) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
+    decode_views_with(paths, k, &|_, _, _, _, px| Ok(px))
+}
+
+/// A step between decoding an image and downscaling it: `(index, path, width, height, pixels)` →
+/// pixels of the same size (e.g. [`ngp::undistort_rgba`]).
+type ImageFix<'a> = dyn Fn(usize, &Path, u32, u32, Vec<f32>) -> Result<Vec<f32>, DataError> + Sync + 'a;
+
+/// [`decode_views`] with `fix` applied to each decoded image before it is downscaled.
+fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
     let decoded: Vec<Result<Decoded, DataError>> = paths
         .par_iter()
-        .map(|&path| {
+        .enumerate()
+        .map(|(i, &path)| {
             let (w, h, px) = decode_rgba(path)?;
             if w % k != 0 || h % k != 0 {
                 return Err(DataError::BadDownscale {
@@ -765,6 +790,7 @@ fn decode_views(paths: &[&Path], k: u32) -> Result<(u32, u32, Vec<Vec<f32>>), Da
             if w == 0 || h == 0 {
                 return Err(DataError::BadDownscale { path: path.to_path_buf(), k, reason: "the image is empty".into() });
             }
+            let px = fix(i, path, w, h, px)?;
             Ok((w, h, downscale_rgba(&px, w as usize, h as usize, k as usize)))
         })
         .collect();
@@ -802,17 +828,28 @@ pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datas
     }
 }
 
-/// Loads one split of a Blender-format scene: reads `root/transforms_<split>.json`, selects
-/// views, decodes their images in parallel (RGBA 8/16-bit or RGB PNG; alpha 1 when absent),
-/// optionally downscales them by a k×k box average, and builds cameras with
-/// `Intrinsics::from_fov_x(W0, H0, camera_angle_x).downscaled(k)`. Every frame's
-/// `transform_matrix` is validated, even for unselected views. Sets `near = 2`, `far = 6` and
-/// `aabb = Aabb::cube(1.5)` (the NeRF-synthetic conventions).
+/// Loads one split of a Blender-format scene, or of an instant-ngp / nerfstudio scene (the same
+/// format with the extensions of [`ngp`]): reads `root/transforms_<split>.json`, or else
+/// `root/transforms.json` and takes the split's frames from it (every 8th frame for test and val,
+/// the rest for train); selects views; decodes their images in parallel (RGBA 8/16-bit or RGB PNG,
+/// JPEG; alpha 1 when absent), resamples photos with lens distortion to pinhole images,
+/// optionally downscales them by a k×k box average, and builds each view's camera from its
+/// intrinsics ([`ngp::Lens::intrinsics`]; Blender: `Intrinsics::from_fov_x(W0, H0,
+/// camera_angle_x)`) `.downscaled(k)`. Every frame's `transform_matrix` and camera keys are
+/// validated, even for unselected views. NeRF's Blender scenes get `near = 2`, `far = 6` and
+/// `aabb = Aabb::cube(1.5)`; instant-ngp scenes ([`Dataset::ngp`]) the cube of their
+/// [`NgpBox`], `near = `[`NgpBox::near`] and a `far` past the cube's farthest corner from every
+/// camera.
 pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
-    let tpath = root.join(split.transforms_file());
-    if !tpath.is_file() {
-        return Err(DataError::MissingTransforms { path: tpath });
-    }
+    let split_path = root.join(split.transforms_file());
+    let single_path = root.join(ngp::NGP_TRANSFORMS);
+    let (tpath, one_file) = if split_path.is_file() {
+        (split_path, false)
+    } else if single_path.is_file() {
+        (single_path, true)
+    } else {
+        return Err(DataError::MissingTransforms { path: split_path });
+    };
     let text = std::fs::read_to_string(&tpath).map_err(|source| DataError::Io {
         path: tpath.clone(),
         source,
@@ -836,21 +873,11 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
             format!("expected an object, got {}", json_kind(&json)),
         ));
     }
-    let angle_v = json
-        .get("camera_angle_x")
-        .ok_or_else(|| missing("camera_angle_x".into()))?;
-    let angle = angle_v.as_f64().ok_or_else(|| {
-        invalid(
-            "camera_angle_x".into(),
-            format!("expected a number, got {}", json_kind(angle_v)),
-        )
-    })?;
-    if !(angle > 0.0 && angle < std::f64::consts::PI) {
-        return Err(invalid(
-            "camera_angle_x".into(),
-            format!("{angle} is not in (0, pi)"),
-        ));
-    }
+    ngp::Lens::parse(&tpath, &json, None)?;
+    let ngp_box = match ngp::NgpBox::parse(&tpath, &json)? {
+        None if one_file => Some(NgpBox::default()),
+        b => b,
+    };
     let frames_v = json.get("frames").ok_or_else(|| missing("frames".into()))?;
     let frames_json = frames_v.as_array().ok_or_else(|| {
         invalid(
@@ -866,6 +893,10 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
     }
     let mut frames = Vec::with_capacity(frames_json.len());
     for (i, f) in frames_json.iter().enumerate() {
+        let lens = ngp::Lens::parse(&tpath, &json, Some((i, f)))?;
+        if lens.focal_x.is_none() {
+            return Err(missing("camera_angle_x` or `fl_x".into()));
+        }
         let fp_v = f
             .get("file_path")
             .ok_or_else(|| missing(format!("frames[{i}].file_path")))?;
@@ -883,11 +914,24 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
             index: i,
             image: image_path(root, fp),
             c2w,
+            lens,
+        });
+    }
+    // The split's frames: all of a split file; every 8th (test, val) or the others (train) of one file.
+    let in_split: Vec<usize> = if one_file {
+        llff::split_indices(frames.len(), split)
+    } else {
+        (0..frames.len()).collect()
+    };
+    if in_split.is_empty() {
+        return Err(DataError::EmptySplit {
+            path: tpath.clone(),
+            reason: format!("{} frames leave none for the {split} split (every 8th frame is a test view)", frames.len()),
         });
     }
     let selected = opts
         .views
-        .indices(frames.len())
+        .indices(in_split.len())
         .map_err(|reason| DataError::BadSelection {
             path: tpath.clone(),
             reason,
@@ -906,7 +950,7 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
             reason: "the factor must be at least 1".into(),
         });
     }
-    let frames: Vec<&Frame> = selected.iter().map(|&i| &frames[i]).collect();
+    let frames: Vec<&Frame> = selected.iter().map(|&i| &frames[in_split[i]]).collect();
     for f in &frames {
         if !f.image.is_file() {
             return Err(DataError::MissingImage {
@@ -917,30 +961,56 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
     }
 
     let paths: Vec<&Path> = frames.iter().map(|f| f.image.as_path()).collect();
-    let (w0, h0, images) = decode_views(&paths, k)?;
-    let intr = Intrinsics::from_fov_x(w0, h0, angle).downscaled(k);
+    let undistort = |i: usize, path: &Path, w: u32, h: u32, px: Vec<f32>| {
+        let lens = &frames[i].lens;
+        let intr = lens.intrinsics(&tpath, path, w, h)?;
+        Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
+    };
+    let (w0, h0, images) = decode_views_with(&paths, k, &undistort)?;
     let cameras = frames
         .iter()
         .map(|f| {
+            let intr = f.lens.intrinsics(&tpath, &f.image, w0, h0)?.downscaled(k);
             Camera::from_c2w(intr, &f.c2w).map_err(|_| DataError::NonFinitePose {
                 path: tpath.clone(),
                 frame: f.index,
             })
         })
         .collect::<Result<Vec<_>, _>>()?;
+    let (near, far, aabb) = match &ngp_box {
+        None => (2.0, 6.0, Aabb::cube(1.5)),
+        Some(b) => {
+            let (min, max) = b.world_aabb();
+            let aabb = Aabb { min, max };
+            // Past the cube's farthest corner from every camera (rays are clipped to the cube).
+            let far = cameras
+                .iter()
+                .flat_map(|c| {
+                    let o = c.position;
+                    (0..8).map(move |m| {
+                        let corner = Vec3::from_array(std::array::from_fn(|a| if m >> a & 1 == 1 { max[a] } else { min[a] }));
+                        (corner - o).length()
+                    })
+                })
+                .fold(0.0f32, f32::max);
+            let near = b.near();
+            (near, far.max(near) * 1.001 + 1e-3, aabb)
+        }
+    };
     Ok(Dataset {
         root: root.to_path_buf(),
         split,
-        width: intr.width,
-        height: intr.height,
+        width: cameras[0].intrinsics.width,
+        height: cameras[0].intrinsics.height,
         cameras,
         images,
         file_paths: frames.iter().map(|f| f.image.clone()).collect(),
-        near: 2.0,
-        far: 6.0,
-        aabb: Aabb::cube(1.5),
+        near,
+        far,
+        aabb,
         ndc: None,
         depth_bounds: None,
+        ngp: ngp_box,
     })
 }
 

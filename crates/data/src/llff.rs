@@ -321,6 +321,7 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         aabb,
         ndc,
         depth_bounds: Some([near_bound as f32, far_bound as f32]),
+        ngp: None,
     })
 }
 

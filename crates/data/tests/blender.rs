@@ -63,6 +63,7 @@ fn synthetic(n: usize, w: u32, h: u32, seed: u64) -> Dataset {
         aabb: Aabb::cube(1.5),
         ndc: None,
         depth_bounds: None,
+        ngp: None,
     }
 }
 
@@ -477,7 +478,7 @@ fn error_missing_keys() {
     let dir = tempfile::tempdir().unwrap();
     good_scene(dir.path(), 2, 4, 4);
     let cases = [
-        (json!({"frames": frames_json(2)}), "camera_angle_x"),
+        (json!({"frames": frames_json(2)}), "camera_angle_x` or `fl_x"),
         (json!({"camera_angle_x": ANGLE}), "frames"),
         (
             json!({"camera_angle_x": ANGLE, "frames": [

@@ -135,6 +135,7 @@ fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset 
         aabb: Aabb::cube(1.5),
         ndc: None,
         depth_bounds: None,
+        ngp: None,
     }
 }
 

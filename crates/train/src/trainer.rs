@@ -29,7 +29,7 @@ pub struct SceneBounds {
 impl SceneBounds {
     /// The bounds of a loaded dataset (clipped to the box in NDC scenes).
     pub fn of(ds: &Dataset) -> Self {
-        Self { aabb_min: ds.aabb.min, aabb_max: ds.aabb.max, near: ds.near, far: ds.far, clip_to_box: ds.ndc.is_some() }
+        Self { aabb_min: ds.aabb.min, aabb_max: ds.aabb.max, near: ds.near, far: ds.far, clip_to_box: ds.clips_to_aabb() }
     }
 
     /// Per-ray segments into `near`/`far` (resized to the rays): `[near, far]`, clipped to the

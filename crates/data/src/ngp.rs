@@ -1,0 +1,347 @@
+//! instant-ngp's and nerfstudio's extensions of the Blender transforms file, the format that
+//! `colmap2nerf.py` (instant-ngp) and `ns-process-data` (nerfstudio) write for captured scenes.
+//!
+//! - **One file for all views.** A scene folder with `transforms.json` and no
+//!   `transforms_<split>.json` holds every view in one list; as for LLFF scenes, every 8th frame
+//!   (0, 8, 16, …, in file order) is a test (and val) view and the others are training views
+//!   ([`crate::llff::split_indices`]).
+//! - **Intrinsics** ([`Lens`]): `fl_x`, `fl_y`, `cx`, `cy` (pixels of the stored image, pixel
+//!   centres at `+0.5`), `w`, `h` (the stored images' size, checked), or the field of view
+//!   `x_fov` / `y_fov` (degrees) or `camera_angle_x` / `camera_angle_y` (radians), in instant-ngp's
+//!   order of precedence (`x_fov`, then `fl_x`, then `camera_angle_x`); each key may also sit in
+//!   a frame, where it overrides the top level. Missing: `fl_y = fl_x` (or from `y_fov` /
+//!   `camera_angle_y`), `cx = w/2`, `cy = h/2`.
+//! - **Lens distortion**: OpenCV's radial–tangential model (COLMAP's `OPENCV`, `RADIAL`,
+//!   `SIMPLE_RADIAL`: `k1`, `k2`, `k3`, `p1`, `p2`). Each image is resampled to the pinhole camera
+//!   of the same intrinsics when it is loaded ([`undistort_rgba`], bilinear; output pixels whose
+//!   source lies outside the photo take the nearest edge pixel), so rays stay pinhole rays on
+//!   both devices. Fisheye models (`OPENCV_FISHEYE`, `is_fisheye`, a non-zero `k4`) are refused
+//!   with an error.
+//! - **Scene box** ([`NgpBox`]): instant-ngp maps a world point `p` (the file's axes) to
+//!   `p·scale + offset` and trains inside the cube `[0.5 − aabb_scale/2, 0.5 + aabb_scale/2]³` of
+//!   that space (defaults `scale = 0.33`, `offset = [0.5, 0.5, 0.5]`, `aabb_scale = 1`: the
+//!   NeRF-synthetic cube of half-extent 1.5). A scene with any of these keys, or stored as one
+//!   `transforms.json`, gets that cube as its [`Dataset::aabb`](crate::Dataset::aabb), rays that
+//!   start [`NGP_NEAR`] (instant-ngp units) from the camera and end where they leave the cube;
+//!   split Blender scenes without the keys keep NeRF's `near = 2`, `far = 6`.
+
+use std::path::Path;
+
+use nerf_rays::Intrinsics;
+use rayon::prelude::*;
+use serde_json::Value;
+
+use crate::{json_kind, DataError};
+
+/// The single transforms file of an instant-ngp / nerfstudio scene.
+pub const NGP_TRANSFORMS: &str = "transforms.json";
+
+/// Where rays start, in instant-ngp's units (`0.1 / scale` world units from the camera):
+/// instant-ngp's training `near_distance`, closer than which it penalises density.
+pub const NGP_NEAR: f32 = 0.1;
+
+/// OpenCV's radial–tangential lens distortion of normalised image coordinates `(x, y)`:
+/// `r² = x² + y²`, `x_d = x·(1 + k1·r² + k2·r⁴ + k3·r⁶) + 2·p1·x·y + p2·(r² + 2x²)` and
+/// `y_d = y·(1 + k1·r² + k2·r⁴ + k3·r⁶) + p1·(r² + 2y²) + 2·p2·x·y`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Distortion {
+    /// Radial coefficient of `r²`.
+    pub k1: f64,
+    /// Radial coefficient of `r⁴`.
+    pub k2: f64,
+    /// Radial coefficient of `r⁶`.
+    pub k3: f64,
+    /// First tangential coefficient.
+    pub p1: f64,
+    /// Second tangential coefficient.
+    pub p2: f64,
+}
+
+impl Distortion {
+    /// `true` when every coefficient is zero (a pinhole camera).
+    pub fn is_identity(&self) -> bool {
+        [self.k1, self.k2, self.k3, self.p1, self.p2].iter().all(|&c| c == 0.0)
+    }
+
+    /// The distorted position of the undistorted normalised coordinates `(x, y)`.
+    #[inline]
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+        let xy = x * y;
+        (
+            x * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * x * x),
+            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * xy,
+        )
+    }
+}
+
+/// A focal length as a transforms file gives it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Focal {
+    /// In pixels (`fl_x`, `fl_y`).
+    Pixels(f64),
+    /// As the full field of view along the axis, in radians (`camera_angle_x`, or `x_fov` in
+    /// degrees).
+    Angle(f64),
+}
+
+impl Focal {
+    /// The focal length in pixels for an image `size` pixels along the axis:
+    /// `0.5·size / tan(0.5·angle)` (in `f64`, as [`Intrinsics::from_fov_x`]).
+    fn pixels(self, size: u32) -> f32 {
+        match self {
+            Focal::Pixels(f) => f as f32,
+            Focal::Angle(a) => (0.5 * size as f64 / (0.5 * a).tan()) as f32,
+        }
+    }
+}
+
+/// The camera keys of one frame, after merging the frame's keys over the file's top level.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Lens {
+    /// `w`, `h`: the size of the stored images the intrinsics refer to.
+    pub size: Option<(u32, u32)>,
+    /// The horizontal focal length: `x_fov`, else `fl_x`, else `camera_angle_x`.
+    pub focal_x: Option<Focal>,
+    /// The vertical focal length: `y_fov`, else `fl_y`, else `camera_angle_y` (`None`: `fx`).
+    pub focal_y: Option<Focal>,
+    /// `cx`.
+    pub cx: Option<f64>,
+    /// `cy`.
+    pub cy: Option<f64>,
+    /// `k1`, `k2`, `k3`, `p1`, `p2`.
+    pub distortion: Distortion,
+}
+
+/// Reads `key` from the frame (when given) or else the top level; returns the value and the key's
+/// name as an error should print it (`frames[3].fl_x` or `fl_x`).
+fn lookup<'a>(top: &'a Value, frame: Option<(usize, &'a Value)>, key: &str) -> Option<(&'a Value, String)> {
+    if let Some((i, f)) = frame {
+        if let Some(v) = f.get(key) {
+            return Some((v, format!("frames[{i}].{key}")));
+        }
+    }
+    top.get(key).map(|v| (v, key.to_string()))
+}
+
+impl Lens {
+    /// Parses and checks the camera keys of frame `frame` (`None`: the top level only) of the
+    /// transforms file `path`.
+    pub fn parse(path: &Path, top: &Value, frame: Option<(usize, &Value)>) -> Result<Self, DataError> {
+        let invalid = |key: String, reason: String| DataError::InvalidValue { path: path.to_path_buf(), key, reason };
+        let number = |key: &str| -> Result<Option<(f64, String)>, DataError> {
+            match lookup(top, frame, key) {
+                None | Some((Value::Null, _)) => Ok(None),
+                Some((v, name)) => match v.as_f64() {
+                    Some(x) if x.is_finite() => Ok(Some((x, name))),
+                    Some(x) => Err(invalid(name, format!("{x} is not finite"))),
+                    None => Err(invalid(name, format!("expected a number, got {}", json_kind(v)))),
+                },
+            }
+        };
+        let positive = |key: &str| -> Result<Option<f64>, DataError> {
+            match number(key)? {
+                Some((x, name)) if x <= 0.0 => Err(invalid(name, format!("{x} is not positive"))),
+                v => Ok(v.map(|(x, _)| x)),
+            }
+        };
+        let angle = |key: &str| -> Result<Option<f64>, DataError> {
+            match number(key)? {
+                Some((a, name)) if !(a > 0.0 && a < std::f64::consts::PI) => {
+                    Err(invalid(name, format!("{a} is not in (0, pi)")))
+                }
+                v => Ok(v.map(|(a, _)| a)),
+            }
+        };
+        let degrees = |key: &str| -> Result<Option<f64>, DataError> {
+            match number(key)? {
+                Some((a, name)) if !(a > 0.0 && a < 180.0) => Err(invalid(name, format!("{a} is not in (0, 180) degrees"))),
+                v => Ok(v.map(|(a, _)| a.to_radians())),
+            }
+        };
+        let focal = |fov: &str, fl: &str, angle_key: &str| -> Result<Option<Focal>, DataError> {
+            let (fov, fl, a) = (degrees(fov)?, positive(fl)?, angle(angle_key)?);
+            Ok(fov.map(Focal::Angle).or(fl.map(Focal::Pixels)).or(a.map(Focal::Angle)))
+        };
+        let coefficient = |key: &str| -> Result<f64, DataError> { Ok(number(key)?.map_or(0.0, |(x, _)| x)) };
+        let pixels = |key: &str| -> Result<Option<u32>, DataError> {
+            match number(key)? {
+                None => Ok(None),
+                Some((x, _)) if x >= 1.0 && x.fract() == 0.0 && x <= u32::MAX as f64 => Ok(Some(x as u32)),
+                Some((x, name)) => Err(invalid(name, format!("{x} is not a positive whole number of pixels"))),
+            }
+        };
+        if let Some((v, name)) = lookup(top, frame, "camera_model") {
+            let model = v.as_str().ok_or_else(|| invalid(name.clone(), format!("expected a string, got {}", json_kind(v))))?;
+            if !matches!(model, "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "RADIAL" | "SIMPLE_RADIAL") {
+                return Err(invalid(
+                    name,
+                    format!(
+                        "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL and SIMPLE_RADIAL \
+                         are; fisheye and equirectangular images are not)"
+                    ),
+                ));
+            }
+        }
+        if let Some((v, name)) = lookup(top, frame, "is_fisheye") {
+            match v.as_bool() {
+                Some(false) => {}
+                Some(true) => return Err(invalid(name, "fisheye cameras are not supported".into())),
+                None => return Err(invalid(name, format!("expected a boolean, got {}", json_kind(v)))),
+            }
+        }
+        if let Some((k4, name)) = number("k4")? {
+            if k4 != 0.0 {
+                return Err(invalid(name, format!("{k4}: k4 belongs to fisheye models, which are not supported")));
+            }
+        }
+        let size = match (pixels("w")?, pixels("h")?) {
+            (Some(w), Some(h)) => Some((w, h)),
+            (None, None) => None,
+            (Some(_), None) => return Err(DataError::MissingKey { path: path.to_path_buf(), key: "h".into() }),
+            (None, Some(_)) => return Err(DataError::MissingKey { path: path.to_path_buf(), key: "w".into() }),
+        };
+        Ok(Self {
+            size,
+            focal_x: focal("x_fov", "fl_x", "camera_angle_x")?,
+            focal_y: focal("y_fov", "fl_y", "camera_angle_y")?,
+            cx: number("cx")?.map(|(x, _)| x),
+            cy: number("cy")?.map(|(x, _)| x),
+            distortion: Distortion {
+                k1: coefficient("k1")?,
+                k2: coefficient("k2")?,
+                k3: coefficient("k3")?,
+                p1: coefficient("p1")?,
+                p2: coefficient("p2")?,
+            },
+        })
+    }
+
+    /// The pinhole intrinsics of an image of `width × height` pixels (before any downscaling):
+    /// `0.5·W / tan(0.5·x_fov)` or `fl_x` or `0.5·W / tan(0.5·camera_angle_x)` (in `f64`, as
+    /// [`Intrinsics::from_fov_x`]), likewise for `fy` or else `fx`, `cx` or `W/2`, `cy` or `H/2`. Errors:
+    /// neither `fl_x` nor `camera_angle_x`, or `w`/`h` that differ from the image (`image` names it).
+    pub fn intrinsics(&self, path: &Path, image: &Path, width: u32, height: u32) -> Result<Intrinsics, DataError> {
+        if let Some((w, h)) = self.size {
+            if (w, h) != (width, height) {
+                return Err(DataError::InvalidValue {
+                    path: path.to_path_buf(),
+                    key: "w".into(),
+                    reason: format!("the intrinsics are for {w}x{h} images, but {} is {width}x{height}", image.display()),
+                });
+            }
+        }
+        let Some(focal_x) = self.focal_x else {
+            return Err(DataError::MissingKey { path: path.to_path_buf(), key: "camera_angle_x` or `fl_x".into() });
+        };
+        let fx = focal_x.pixels(width);
+        let fy = self.focal_y.map_or(fx, |f| f.pixels(height));
+        Ok(Intrinsics {
+            width,
+            height,
+            fx,
+            fy,
+            cx: self.cx.map_or(width as f32 * 0.5, |c| c as f32),
+            cy: self.cy.map_or(height as f32 * 0.5, |c| c as f32),
+        })
+    }
+}
+
+/// Resamples a photo taken through a lens with `distortion` to the pinhole camera `intr` (the
+/// same intrinsics, no distortion): output pixel `(i, j)` (centre `(i + 0.5, j + 0.5)`, normalised
+/// `x = (i + 0.5 − cx)/fx`, `y = (j + 0.5 − cy)/fy`) takes the bilinear sample of `px` at the
+/// distorted position `(fx·x_d + cx, fy·y_d + cy)`, clamped to the image. `px`: straight RGBA,
+/// `4·W·H`, row-major, `W × H` = `intr`'s size.
+pub fn undistort_rgba(px: &[f32], intr: &Intrinsics, distortion: &Distortion) -> Vec<f32> {
+    let (w, h) = (intr.width as usize, intr.height as usize);
+    assert_eq!(px.len(), 4 * w * h, "undistort_rgba: the image is not 4·W·H long");
+    let (fx, fy, cx, cy) = (intr.fx as f64, intr.fy as f64, intr.cx as f64, intr.cy as f64);
+    let mut out = vec![0.0f32; 4 * w * h];
+    out.par_chunks_exact_mut(4 * w).enumerate().for_each(|(j, row)| {
+        let y = (j as f64 + 0.5 - cy) / fy;
+        for (i, o) in row.chunks_exact_mut(4).enumerate() {
+            let x = (i as f64 + 0.5 - cx) / fx;
+            let (xd, yd) = distortion.distort(x, y);
+            // Continuous position in pixel-index space (pixel k's centre at k).
+            let sx = (fx * xd + cx - 0.5).clamp(0.0, (w - 1) as f64);
+            let sy = (fy * yd + cy - 0.5).clamp(0.0, (h - 1) as f64);
+            let (x0, y0) = (sx.floor() as usize, sy.floor() as usize);
+            let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+            let (tx, ty) = ((sx - x0 as f64) as f32, (sy - y0 as f64) as f32);
+            let at = |xx: usize, yy: usize| &px[4 * (yy * w + xx)..4 * (yy * w + xx) + 4];
+            let (a, b, c, d) = (at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1));
+            for k in 0..4 {
+                let top = a[k] + (b[k] - a[k]) * tx;
+                let bottom = c[k] + (d[k] - c[k]) * tx;
+                o[k] = top + (bottom - top) * ty;
+            }
+        }
+    });
+    out
+}
+
+/// instant-ngp's placement of a scene in its unit cube: world point `p` ↦ `p·scale + offset`,
+/// trained inside `[0.5 − aabb_scale/2, 0.5 + aabb_scale/2]³`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NgpBox {
+    /// `scale` (0.33).
+    pub scale: f32,
+    /// `offset` (`[0.5, 0.5, 0.5]`), in the file's axis order.
+    pub offset: [f32; 3],
+    /// `aabb_scale` (1): the side of the training cube in instant-ngp units.
+    pub aabb_scale: f32,
+}
+
+impl Default for NgpBox {
+    fn default() -> Self {
+        Self { scale: 0.33, offset: [0.5; 3], aabb_scale: 1.0 }
+    }
+}
+
+impl NgpBox {
+    /// Reads `scale`, `offset` and `aabb_scale` from the top level of a transforms file. `None`
+    /// when none of them is there.
+    pub fn parse(path: &Path, top: &Value) -> Result<Option<Self>, DataError> {
+        if ["scale", "offset", "aabb_scale"].iter().all(|k| top.get(k).is_none()) {
+            return Ok(None);
+        }
+        let invalid = |key: &str, reason: String| DataError::InvalidValue { path: path.to_path_buf(), key: key.into(), reason };
+        let positive = |key: &str, default: f32| -> Result<f32, DataError> {
+            match top.get(key) {
+                None => Ok(default),
+                Some(v) => match v.as_f64() {
+                    Some(x) if x.is_finite() && x > 0.0 && (x as f32).is_normal() => Ok(x as f32),
+                    Some(x) => Err(invalid(key, format!("{x} is not a positive finite number"))),
+                    None => Err(invalid(key, format!("expected a number, got {}", json_kind(v)))),
+                },
+            }
+        };
+        let d = Self::default();
+        let offset = match top.get("offset") {
+            None => d.offset,
+            Some(v) => {
+                let bad = || invalid("offset", format!("expected an array of 3 finite numbers, got {}", v));
+                let a = v.as_array().filter(|a| a.len() == 3).ok_or_else(bad)?;
+                let o: Vec<f32> = a.iter().filter_map(Value::as_f64).map(|x| x as f32).filter(|x| x.is_finite()).collect();
+                <[f32; 3]>::try_from(o).map_err(|_| bad())?
+            }
+        };
+        Ok(Some(Self { scale: positive("scale", d.scale)?, offset, aabb_scale: positive("aabb_scale", d.aabb_scale)? }))
+    }
+
+    /// The training cube in world coordinates: `(min, max)` with
+    /// `min = (0.5 − aabb_scale/2 − offset)/scale`, `max = (0.5 + aabb_scale/2 − offset)/scale`.
+    pub fn world_aabb(&self) -> ([f32; 3], [f32; 3]) {
+        let half = 0.5 * self.aabb_scale;
+        (
+            std::array::from_fn(|a| (0.5 - half - self.offset[a]) / self.scale),
+            std::array::from_fn(|a| (0.5 + half - self.offset[a]) / self.scale),
+        )
+    }
+
+    /// The distance along unit rays where rays start: [`NGP_NEAR`]` / scale`.
+    pub fn near(&self) -> f32 {
+        NGP_NEAR / self.scale
+    }
+}

@@ -1,0 +1,328 @@
+//! instant-ngp / nerfstudio transforms files: one `transforms.json` for all views, intrinsics in
+//! pixels, lens distortion, the scene box keys, JPEG images, and their errors. Fixtures are
+//! written into temporary folders, from the in-repo scene `scenes/lego_100` or synthesised.
+
+use std::path::{Path, PathBuf};
+
+use nerf_data::ngp::{undistort_rgba, NGP_NEAR};
+use nerf_data::{load_blender, load_scene, DataError, Dataset, Distortion, LoadOptions, NgpBox, Split, ViewSelection};
+use nerf_rays::Intrinsics;
+use serde_json::{json, Value};
+
+fn lego_100() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/lego_100")
+}
+
+fn load(root: &Path, split: Split) -> Dataset {
+    load_blender(root, split, &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+}
+
+fn write_json(path: &Path, v: &Value) {
+    std::fs::write(path, serde_json::to_string_pretty(v).unwrap()).unwrap();
+}
+
+/// The frames of a Blender split file with absolute image paths (`root.join` keeps them).
+fn frames_of(root: &Path, split: &str) -> Vec<Value> {
+    let v: Value = serde_json::from_str(&std::fs::read_to_string(root.join(format!("transforms_{split}.json"))).unwrap()).unwrap();
+    v["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|f| {
+            let rel = f["file_path"].as_str().unwrap().trim_start_matches("./");
+            json!({"file_path": root.join(format!("{rel}.png")).to_str().unwrap(), "transform_matrix": f["transform_matrix"]})
+        })
+        .collect()
+}
+
+/// 4 test and 28 training frames of lego_100 interleaved so that every 8th frame is a test frame.
+fn interleaved_lego() -> Vec<Value> {
+    let (train, test) = (frames_of(&lego_100(), "train"), frames_of(&lego_100(), "test"));
+    let (mut tr, mut te) = (train.into_iter(), test.into_iter());
+    (0..32).map(|i| if i % 8 == 0 { te.next().unwrap() } else { tr.next().unwrap() }).collect()
+}
+
+fn assert_same_views(a: &Dataset, b: &Dataset) {
+    assert_eq!(a.n_views(), b.n_views());
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    for (ca, cb) in a.cameras.iter().zip(&b.cameras) {
+        assert_eq!(ca.intrinsics, cb.intrinsics);
+        assert_eq!(ca.position, cb.position);
+        assert_eq!(ca.rotation, cb.rotation);
+    }
+    assert!(a.images == b.images, "images differ");
+}
+
+#[test]
+fn one_transforms_json_holds_both_splits_every_8th_frame_a_test_view() {
+    let lego = lego_100();
+    let (bl_train, bl_test) = (load(&lego, Split::Train), load(&lego, Split::Test));
+    let k = bl_train.cameras[0].intrinsics;
+    let dir = tempfile::tempdir().unwrap();
+    // Intrinsics in pixels (instant-ngp / nerfstudio) and as Blender's field of view.
+    for top in [
+        json!({"fl_x": k.fx as f64, "fl_y": k.fy as f64, "cx": 50.0, "cy": 50.0, "w": 100, "h": 100}),
+        json!({"camera_angle_x": serde_json::from_str::<Value>(&std::fs::read_to_string(lego.join("transforms_train.json")).unwrap()).unwrap()["camera_angle_x"]}),
+    ] {
+        let mut t = top.as_object().unwrap().clone();
+        t.insert("frames".into(), Value::Array(interleaved_lego()));
+        write_json(&dir.path().join("transforms.json"), &Value::Object(t));
+        let train = load_scene(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+        let test = load_scene(dir.path(), Split::Test, &LoadOptions::default()).unwrap();
+        let val = load_scene(dir.path(), Split::Val, &LoadOptions::default()).unwrap();
+        let first = |d: &Dataset, n: usize| Dataset {
+            cameras: d.cameras[..n].to_vec(),
+            images: d.images[..n].to_vec(),
+            ..d.clone()
+        };
+        assert_same_views(&train, &first(&bl_train, 28));
+        assert_same_views(&test, &first(&bl_test, 4));
+        assert_same_views(&val, &test);
+        // The scene sits in instant-ngp's default cube (scale 0.33, offset 0.5, aabb_scale 1).
+        for d in [&train, &test] {
+            assert_eq!(d.ngp, Some(NgpBox::default()));
+            assert!(d.clips_to_aabb());
+            assert!((d.aabb.max[0] - 0.5 / 0.33).abs() < 1e-6 && (d.aabb.min[2] + 0.5 / 0.33).abs() < 1e-6, "{:?}", d.aabb);
+            assert!((d.near - NGP_NEAR / 0.33).abs() < 1e-6);
+        }
+        // A view selection applies within the split.
+        let o = LoadOptions { views: ViewSelection::Every(3), ..Default::default() };
+        let sel = load_scene(dir.path(), Split::Train, &o).unwrap();
+        assert_eq!(sel.n_views(), 10);
+        assert_eq!(sel.cameras[1].position, train.cameras[3].position);
+        // Downscaling halves the intrinsics as for Blender scenes.
+        let o = LoadOptions { downscale: 2, ..Default::default() };
+        let half = load_scene(dir.path(), Split::Test, &o).unwrap();
+        assert_eq!(half.cameras[0].intrinsics, k.downscaled(2));
+        assert_eq!(half.images[0].len(), 4 * 50 * 50);
+    }
+    // The split files win over transforms.json.
+    std::fs::copy(lego.join("transforms_test.json"), dir.path().join("transforms_test.json")).unwrap();
+    std::fs::create_dir_all(dir.path().join("test")).unwrap();
+    for i in 0..25 {
+        std::fs::copy(lego.join(format!("test/r_{i}.png")), dir.path().join(format!("test/r_{i}.png"))).unwrap();
+    }
+    let test = load(dir.path(), Split::Test);
+    assert_eq!(test.n_views(), 25);
+    assert_eq!((test.near, test.far, test.ngp), (2.0, 6.0, None));
+    assert!(!test.clips_to_aabb());
+}
+
+/// A split scene of 2 grey 4×4 views with `top`'s keys and per-frame extras.
+fn tiny_scene(root: &Path, top: Value, frame_extra: [Value; 2]) {
+    let img = image::RgbaImage::from_pixel(4, 4, image::Rgba([100, 150, 200, 255]));
+    std::fs::create_dir_all(root.join("train")).unwrap();
+    let mut frames = vec![];
+    for (i, extra) in frame_extra.into_iter().enumerate() {
+        img.save(root.join(format!("train/r_{i}.png"))).unwrap();
+        let mut f = json!({
+            "file_path": format!("./train/r_{i}"),
+            "transform_matrix": [[1, 0, 0, 0.1 * i as f64], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]],
+        });
+        f.as_object_mut().unwrap().extend(extra.as_object().unwrap().clone());
+        frames.push(f);
+    }
+    let mut t = top;
+    t.as_object_mut().unwrap().insert("frames".into(), Value::Array(frames));
+    write_json(&root.join("transforms_train.json"), &t);
+}
+
+#[test]
+fn intrinsics_keys_in_pixels_degrees_or_radians_and_per_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(
+        dir.path(),
+        json!({"fl_x": 3.0, "fl_y": 5.0, "cx": 1.5, "cy": 2.25, "w": 4, "h": 4}),
+        [json!({}), json!({"fl_x": 7.0, "cx": 2.5})],
+    );
+    let d = load(dir.path(), Split::Train);
+    let k = |fx, fy, cx, cy| Intrinsics { width: 4, height: 4, fx, fy, cx, cy };
+    assert_eq!(d.cameras[0].intrinsics, k(3.0, 5.0, 1.5, 2.25));
+    assert_eq!(d.cameras[1].intrinsics, k(7.0, 5.0, 2.5, 2.25));
+    assert_eq!(d.ngp, None, "no box keys in a split file: NeRF's Blender bounds");
+    assert_eq!((d.near, d.far), (2.0, 6.0));
+    // x_fov (degrees) wins over fl_x, which wins over camera_angle_x; no fl_y: fy = fx; no cx: W/2.
+    tiny_scene(
+        dir.path(),
+        json!({"x_fov": 90.0, "fl_x": 3.0, "camera_angle_x": 1.0}),
+        [json!({}), json!({"x_fov": null, "camera_angle_y": std::f64::consts::FRAC_PI_2})],
+    );
+    let d = load(dir.path(), Split::Train);
+    let f90 = (0.5 * 4.0 / (0.25 * std::f64::consts::PI).tan()) as f32;
+    assert_eq!(d.cameras[0].intrinsics, k(f90, f90, 2.0, 2.0));
+    assert_eq!(d.cameras[1].intrinsics, k(3.0, f90, 2.0, 2.0), "a null x_fov in the frame falls back to fl_x");
+}
+
+#[test]
+fn box_keys_place_instant_ngps_cube_and_rays_end_past_it() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(dir.path(), json!({"camera_angle_x": 0.8, "aabb_scale": 2, "scale": 0.5, "offset": [0.5, 0.25, 0.5]}), [json!({}), json!({})]);
+    let d = load(dir.path(), Split::Train);
+    let b = NgpBox { scale: 0.5, offset: [0.5, 0.25, 0.5], aabb_scale: 2.0 };
+    assert_eq!(d.ngp, Some(b));
+    // (0.5 ∓ aabb_scale/2 − offset) / scale
+    assert_eq!(d.aabb.min, [-2.0, -1.5, -2.0]);
+    assert_eq!(d.aabb.max, [2.0, 2.5, 2.0]);
+    assert_eq!(d.near, NGP_NEAR / 0.5);
+    // Every ray from every camera leaves the cube before `far`.
+    for c in &d.cameras {
+        for m in 0..8 {
+            let corner = glam::Vec3::from_array(std::array::from_fn(|a| if m >> a & 1 == 1 { d.aabb.max[a] } else { d.aabb.min[a] }));
+            assert!((corner - c.position).length() < d.far);
+        }
+    }
+    assert!(d.far < 2.0 * 7.0, "far is the farthest corner, not arbitrarily large: {}", d.far);
+}
+
+#[test]
+fn camera_and_box_errors_name_the_file_and_the_key() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: [(Value, [Value; 2], &str, &str); 9] = [
+        (json!({"fl_x": 3.0, "w": 8, "h": 4}), [json!({}), json!({})], "`w`", "r_0.png is 4x4"),
+        (json!({"fl_x": 3.0, "w": 4}), [json!({}), json!({})], "`h`", "missing key"),
+        (json!({"fl_x": -3.0}), [json!({}), json!({})], "`fl_x`", "not positive"),
+        (json!({"fl_x": 3.0}), [json!({}), json!({"fl_y": "tall"})], "`frames[1].fl_y`", "expected a number"),
+        (json!({"fl_x": 3.0, "camera_model": "OPENCV_FISHEYE"}), [json!({}), json!({})], "`camera_model`", "not supported"),
+        (json!({"fl_x": 3.0}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "not supported"),
+        (json!({"fl_x": 3.0, "k4": 0.1}), [json!({}), json!({})], "`k4`", "fisheye"),
+        (json!({"fl_x": 3.0, "aabb_scale": 0}), [json!({}), json!({})], "`aabb_scale`", "positive"),
+        (json!({"fl_x": 3.0, "offset": [0.5, 0.5]}), [json!({}), json!({})], "`offset`", "3 finite numbers"),
+    ];
+    for (top, frames, key, what) in cases {
+        tiny_scene(dir.path(), top.clone(), frames);
+        let e = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains("transforms_train.json") && msg.contains(key) && msg.contains(what), "{top}: {msg}");
+    }
+    // Neither focal key.
+    tiny_scene(dir.path(), json!({"cx": 2.0}), [json!({}), json!({})]);
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap_err();
+    assert!(matches!(e, DataError::MissingKey { .. }) && e.to_string().contains("fl_x"), "{e}");
+    // One transforms.json whose frames leave the training split empty.
+    let one = tempfile::tempdir().unwrap();
+    write_json(&one.path().join("transforms.json"), &json!({"fl_x": 3.0, "frames": [interleaved_lego()[0]]}));
+    let e = load_blender(one.path(), Split::Train, &LoadOptions::default()).unwrap_err();
+    assert!(matches!(e, DataError::EmptySplit { .. }) && e.to_string().contains("transforms.json"), "{e}");
+    assert_eq!(load_blender(one.path(), Split::Test, &LoadOptions::default()).unwrap().n_views(), 1);
+    // Neither file: the error names the split file.
+    let none = tempfile::tempdir().unwrap();
+    let e = load_blender(none.path(), Split::Train, &LoadOptions::default()).unwrap_err();
+    assert!(matches!(e, DataError::MissingTransforms { .. }) && e.to_string().contains("transforms_train.json"), "{e}");
+}
+
+/// A smooth test pattern over normalised image coordinates.
+fn pattern(x: f64, y: f64) -> [f64; 3] {
+    [0.5 + 0.4 * (8.0 * x).sin(), 0.5 + 0.4 * (6.0 * y + 2.0 * x).cos(), 0.5 + 0.3 * (x * y * 10.0).sin()]
+}
+
+/// The undistorted normalised coordinates of distorted ones (Newton's method, numerical Jacobian).
+fn undistort_point(d: &Distortion, xd: f64, yd: f64) -> (f64, f64) {
+    let (mut x, mut y) = (xd, yd);
+    for _ in 0..50 {
+        let (fx, fy) = d.distort(x, y);
+        let (rx, ry) = (fx - xd, fy - yd);
+        let h = 1e-7;
+        let (ax, ay) = d.distort(x + h, y);
+        let (bx, by) = d.distort(x, y + h);
+        let (j00, j10, j01, j11) = ((ax - fx) / h, (ay - fy) / h, (bx - fx) / h, (by - fy) / h);
+        let det = j00 * j11 - j01 * j10;
+        x -= (j11 * rx - j01 * ry) / det;
+        y -= (-j10 * rx + j00 * ry) / det;
+    }
+    (x, y)
+}
+
+/// A photo of [`pattern`] taken through `d`: pixel `(i, j)` sees the undistorted point of its
+/// distorted normalised coordinates. RGBA, 16-bit-exact values.
+fn distorted_photo(k: &Intrinsics, d: &Distortion) -> Vec<u16> {
+    let mut out = vec![];
+    for j in 0..k.height {
+        for i in 0..k.width {
+            let xd = (i as f64 + 0.5 - k.cx as f64) / k.fx as f64;
+            let yd = (j as f64 + 0.5 - k.cy as f64) / k.fy as f64;
+            let (x, y) = undistort_point(d, xd, yd);
+            let c = pattern(x, y);
+            out.extend(c.iter().map(|&v| (v * 65535.0).round() as u16));
+            out.push(65535);
+        }
+    }
+    out
+}
+
+/// Max error of `img` against [`pattern`] at the pixel centres of the pinhole camera `k`, over
+/// the pixels at least `margin` from the border.
+fn max_error(img: &[f32], k: &Intrinsics, margin: u32) -> f64 {
+    let mut worst = 0.0f64;
+    for j in margin..k.height - margin {
+        for i in margin..k.width - margin {
+            let x = (i as f64 + 0.5 - k.cx as f64) / k.fx as f64;
+            let y = (j as f64 + 0.5 - k.cy as f64) / k.fy as f64;
+            let p = pattern(x, y);
+            let o = 4 * (j * k.width + i) as usize;
+            for c in 0..3 {
+                worst = worst.max((img[o + c] as f64 - p[c]).abs());
+            }
+        }
+    }
+    worst
+}
+
+#[test]
+fn distorted_photos_are_resampled_to_the_pinhole_camera() {
+    let k = Intrinsics { width: 96, height: 64, fx: 80.0, fy: 82.0, cx: 47.0, cy: 33.5 };
+    for d in [
+        Distortion { k1: -0.12, k2: 0.03, k3: 0.0, p1: 0.002, p2: -0.003 },
+        Distortion { k1: 0.08, k2: -0.01, k3: 0.004, p1: -0.001, p2: 0.002 },
+    ] {
+        let photo = distorted_photo(&k, &d);
+        let photo_f: Vec<f32> = photo.iter().map(|&v| v as f32 / 65535.0).collect();
+        // The photo itself is off by far more than interpolation error; resampled, it matches.
+        let before = max_error(&photo_f, &k, 4);
+        let after = max_error(&undistort_rgba(&photo_f, &k, &d), &k, 4);
+        eprintln!("max error against the pinhole image: photo {before:.4}, resampled {after:.5}");
+        assert!(before > 0.02, "the distortion should be visible: {before}");
+        assert!(after < 3e-3, "resampled photo off by {after} (before: {before})");
+        // Identity distortion leaves the image as it is.
+        assert_eq!(undistort_rgba(&photo_f, &k, &Distortion::default()), photo_f);
+
+        // Through the loader: OpenCV keys, a 16-bit PNG, per-view undistortion before downscaling.
+        let dir = tempfile::tempdir().unwrap();
+        image::ImageBuffer::<image::Rgba<u16>, _>::from_raw(k.width, k.height, photo.clone())
+            .unwrap()
+            .save(dir.path().join("photo.png"))
+            .unwrap();
+        let frame = json!({"file_path": "photo.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]});
+        write_json(
+            &dir.path().join("transforms.json"),
+            &json!({
+                "camera_model": "OPENCV", "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height,
+                "k1": d.k1, "k2": d.k2, "k3": d.k3, "p1": d.p1, "p2": d.p2, "frames": [frame],
+            }),
+        );
+        let test = load(dir.path(), Split::Test);
+        assert_eq!(test.cameras[0].intrinsics, k);
+        assert!(max_error(&test.images[0], &k, 4) < 3e-3);
+        let half = load_blender(dir.path(), Split::Test, &LoadOptions { downscale: 2, ..Default::default() }).unwrap();
+        let k2 = k.downscaled(2);
+        assert!(max_error(&half.images[0], &k2, 2) < 1e-2, "{}", max_error(&half.images[0], &k2, 2));
+    }
+}
+
+#[test]
+fn jpeg_images_load() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = image::RgbImage::from_fn(16, 8, |x, y| image::Rgb([(16 * x) as u8, (30 * y) as u8, 128]));
+    img.save(dir.path().join("a.jpg")).unwrap();
+    let frame = json!({"file_path": "a.jpg", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]});
+    write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 10.0, "frames": [frame]}));
+    let d = load(dir.path(), Split::Test);
+    assert_eq!((d.width, d.height), (16, 8));
+    let px = &d.images[0];
+    for (p, (x, y, c)) in px.chunks_exact(4).zip(img.enumerate_pixels()) {
+        let _ = (x, y);
+        for ch in 0..3 {
+            assert!((p[ch] - c[ch] as f32 / 255.0).abs() < 0.06, "JPEG decoded far from its source");
+        }
+        assert_eq!(p[3], 1.0);
+    }
+}
