@@ -59,7 +59,7 @@ fn default_test_views() -> ViewSelection {
 pub struct AblationSpec {
     /// Name of the ablation (default: the file stem).
     pub name: Option<String>,
-    /// Scene folders (Blender format), relative to the file's folder or absolute.
+    /// Scene folders (any format `nerf train` reads), relative to the file's folder or absolute.
     pub scenes: Vec<PathBuf>,
     /// Image downscale factor.
     #[serde(default = "default_downscale")]

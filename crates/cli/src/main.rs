@@ -51,7 +51,8 @@ struct AblateArgs {
 
 #[derive(Args)]
 struct TrainArgs {
-    /// Scene folder: Blender format (transforms_train.json, transforms_test.json) or LLFF
+    /// Scene folder: Blender format (transforms_train.json, transforms_test.json), instant-ngp /
+    /// nerfstudio (one transforms.json; every 8th frame is a test view) or LLFF
     /// (poses_bounds.npy, images_K/; every 8th image is a test view).
     scene: PathBuf,
     /// Field to train (see `nerf fields`).
@@ -113,7 +114,7 @@ struct TrainArgs {
 struct EvalArgs {
     /// A run folder written by `nerf train` (holds checkpoint.bin).
     run: PathBuf,
-    /// Scene folder (Blender or LLFF format).
+    /// Scene folder (Blender, instant-ngp / nerfstudio or LLFF format).
     scene: PathBuf,
     /// Test views: all, every:K, first:N (default: the run's).
     #[arg(long = "test-views")]
@@ -153,7 +154,7 @@ struct RenderArgs {
 
 #[derive(Args)]
 struct ExportArgs {
-    /// Source scene (Blender format).
+    /// Source scene (Blender or instant-ngp / nerfstudio format).
     src: PathBuf,
     /// Destination folder.
     dst: PathBuf,

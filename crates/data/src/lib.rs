@@ -1,5 +1,6 @@
-//! Datasets: the Blender (NeRF synthetic) and LLFF (real forward-facing, [`llff`]) formats, image
-//! loading and downscaling, backgrounds, random ray batches. [`load_scene`] tells the two apart.
+//! Datasets: the Blender (NeRF synthetic), instant-ngp / nerfstudio (captured scenes, [`ngp`]) and
+//! LLFF (real forward-facing, [`llff`]) formats, image loading and downscaling, backgrounds,
+//! random ray batches. [`load_scene`] tells them apart.
 //!
 //! The Blender format is a scene folder with `transforms_{train,val,test}.json`, each holding
 //! `camera_angle_x` (horizontal field of view, radians) and `frames[]` of
@@ -7,6 +8,9 @@
 //! `file_path` is relative to the scene folder and gets `.png` appended when it has no extension.
 //! Images are RGBA PNGs; [`load_blender`] keeps them as straight (not premultiplied) RGBA `f32`
 //! in `[0, 1]` and composites onto a background only when rays are drawn ([`Background`]).
+//! The same loader reads what instant-ngp's `colmap2nerf.py` and nerfstudio's `ns-process-data`
+//! write for captured photos: one `transforms.json`, intrinsics in pixels, lens distortion, the
+//! scene box, JPEG images ([`ngp`]).
 //!
 //! Ray batches ([`RayBatch`]) are flat `f32` arrays (`3·n` per quantity) refilled in place, so the
 //! training loop does not allocate: [`Dataset::sample_rays`] for training (uniform over all pixels
@@ -818,8 +822,8 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix) -> Result<(u32, u3
     Ok((w, h, images))
 }
 
-/// Loads one split of a scene in either format: LLFF ([`load_llff`]) where the folder holds
-/// `poses_bounds.npy`, else Blender ([`load_blender`]).
+/// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
+/// `poses_bounds.npy`, else Blender or instant-ngp / nerfstudio ([`load_blender`]).
 pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
     if is_llff(root) {
         load_llff(root, split, opts)
@@ -1075,8 +1079,11 @@ pub fn save_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(),
 /// `frames[k] = { "file_path": "./<split>/r_<k>", "transform_matrix": 4×4 }`, and RGBA 8-bit PNGs
 /// `out_root/<split>/r_<k>.png` (written in parallel). `attribution`, when given, becomes a
 /// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones.
-/// The format stores only the horizontal field of view: a principal point off the image centre or
-/// `fy != fx` is not preserved.
+/// Intrinsics that the field of view does not capture (`fy != fx`, a principal point off the
+/// image centre, views that differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
+/// `h` (top level: the first view's; a frame whose camera differs carries its own), and an
+/// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`. Images are
+/// written as loaded, that is already resampled to pinhole cameras: no distortion keys.
 pub fn write_blender(
     ds: &Dataset,
     out_root: &Path,
@@ -1095,6 +1102,11 @@ pub fn write_blender(
         path: img_dir.clone(),
         source,
     })?;
+    // `camera_angle_x` alone gives `fy = fx`, the principal point at the centre, one camera model.
+    let pixel_intrinsics = ds.cameras.iter().any(|c| {
+        let k = &c.intrinsics;
+        k != &first.intrinsics || k.fy != k.fx || k.cx != k.width as f32 * 0.5 || k.cy != k.height as f32 * 0.5
+    });
     let frames: Vec<Value> = ds
         .cameras
         .iter()
@@ -1105,10 +1117,17 @@ pub fn write_blender(
                 .iter()
                 .map(|r| Value::Array(r.iter().map(|&v| Value::from(v as f64)).collect()))
                 .collect();
-            serde_json::json!({
+            let mut f = serde_json::json!({
                 "file_path": format!("./{split}/r_{k}"),
                 "transform_matrix": rows,
-            })
+            });
+            if pixel_intrinsics && cam.intrinsics != first.intrinsics {
+                let o = f.as_object_mut().expect("a JSON object");
+                for (key, v) in focal_keys(&cam.intrinsics) {
+                    o.insert(key.into(), Value::from(v));
+                }
+            }
+            f
         })
         .collect();
     let mut top = serde_json::Map::new();
@@ -1119,6 +1138,19 @@ pub fn write_blender(
         "camera_angle_x".into(),
         Value::from(first.intrinsics.fov_x()),
     );
+    if pixel_intrinsics {
+        let k = &first.intrinsics;
+        for (key, v) in focal_keys(k) {
+            top.insert(key.into(), Value::from(v));
+        }
+        top.insert("w".into(), Value::from(k.width));
+        top.insert("h".into(), Value::from(k.height));
+    }
+    if let Some(b) = &ds.ngp {
+        top.insert("aabb_scale".into(), Value::from(b.aabb_scale as f64));
+        top.insert("scale".into(), Value::from(b.scale as f64));
+        top.insert("offset".into(), Value::from(b.offset.map(|o| o as f64).to_vec()));
+    }
     top.insert("frames".into(), Value::Array(frames));
     let text = serde_json::to_string_pretty(&Value::Object(top))
         .expect("serialising a JSON value cannot fail");
@@ -1143,6 +1175,11 @@ pub fn write_blender(
         .collect::<Vec<_>>()
         .into_iter()
         .collect()
+}
+
+/// instant-ngp's `fl_x`, `fl_y`, `cx`, `cy` of `k` (exact: `f32` → `f64`).
+fn focal_keys(k: &nerf_rays::Intrinsics) -> [(&'static str, f64); 4] {
+    [("fl_x", k.fx as f64), ("fl_y", k.fy as f64), ("cx", k.cx as f64), ("cy", k.cy as f64)]
 }
 
 #[cfg(test)]

@@ -326,3 +326,69 @@ fn jpeg_images_load() {
         assert_eq!(p[3], 1.0);
     }
 }
+
+#[test]
+fn writing_keeps_pixel_intrinsics_and_the_box() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(
+        dir.path(),
+        json!({"fl_x": 3.0, "fl_y": 5.0, "cx": 1.5, "cy": 2.25, "w": 4, "h": 4, "aabb_scale": 4, "scale": 0.25, "offset": [0.5, 0.3, 0.6]}),
+        [json!({}), json!({"fl_x": 7.0, "cx": 2.5})],
+    );
+    let d = load(dir.path(), Split::Train);
+    let out = tempfile::tempdir().unwrap();
+    nerf_data::write_blender(&d, out.path(), None).unwrap();
+    let back = load(out.path(), Split::Train);
+    assert_same_views(&d, &back);
+    assert_eq!((back.ngp, back.aabb, back.near, back.far), (d.ngp, d.aabb, d.near, d.far));
+    let t: Value = serde_json::from_str(&std::fs::read_to_string(out.path().join("transforms_train.json")).unwrap()).unwrap();
+    assert_eq!(t["fl_y"], json!(5.0));
+    assert_eq!(t["frames"][1]["fl_x"], json!(7.0));
+    assert!(t["frames"][0].get("fl_x").is_none(), "the first view's intrinsics are the top level's");
+    // A plain Blender scene is written as before: the field of view only.
+    let lego = load(&lego_100(), Split::Test);
+    let small = Dataset { cameras: lego.cameras[..2].to_vec(), images: lego.images[..2].to_vec(), ..lego };
+    let out = tempfile::tempdir().unwrap();
+    nerf_data::write_blender(&small, out.path(), None).unwrap();
+    let t: Value = serde_json::from_str(&std::fs::read_to_string(out.path().join("transforms_test.json")).unwrap()).unwrap();
+    let keys: Vec<&String> = t.as_object().unwrap().keys().collect();
+    assert_eq!(keys, ["camera_angle_x", "frames"]);
+}
+
+#[test]
+fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
+    let Some(fern) = nerf_core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else { return };
+    // Euclidean rays at 504×378 (images_8), both splits, as the LLFF loader reads them.
+    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false };
+    let (train, test) = (load_scene(&fern, Split::Train, &o).unwrap(), load_scene(&fern, Split::Test, &o).unwrap());
+    let n = train.n_views() + test.n_views();
+    let (mut tr, mut te) = (train.cameras.iter().zip(&train.file_paths), test.cameras.iter().zip(&test.file_paths));
+    // LLFF holds out every 8th image, as one transforms.json does: the same interleaving.
+    let frames: Vec<Value> = (0..n)
+        .map(|i| {
+            let (cam, path) = if i % 8 == 0 { te.next() } else { tr.next() }.unwrap();
+            let k = cam.intrinsics;
+            json!({
+                "file_path": path.to_str().unwrap(),
+                "transform_matrix": cam.c2w().map(|r| r.map(|v| v as f64)),
+                "fl_x": k.fx as f64, "fl_y": k.fy as f64, "cx": k.cx as f64, "cy": k.cy as f64,
+            })
+        })
+        .collect();
+    // A box around LLFF's scene bounds: scale = 1/longest side, offset = 0.5 − centre·scale.
+    let (lo, hi) = (train.aabb.min, train.aabb.max);
+    let scale = 1.0 / (0..3).map(|a| hi[a] - lo[a]).fold(0.0f32, f32::max);
+    let offset: Vec<f64> = (0..3).map(|a| (0.5 - 0.5 * (lo[a] + hi[a]) * scale) as f64).collect();
+    let dir = tempfile::tempdir().unwrap();
+    write_json(
+        &dir.path().join("transforms.json"),
+        &json!({"w": train.width, "h": train.height, "scale": scale as f64, "offset": offset, "frames": frames}),
+    );
+    for (llff, split) in [(&train, Split::Train), (&test, Split::Test)] {
+        let d = load(dir.path(), split);
+        assert_same_views(&d, llff);
+        for a in 0..3 {
+            assert!(d.aabb.min[a] <= lo[a] + 1e-4 && d.aabb.max[a] >= hi[a] - 1e-4, "{:?} vs {:?}", d.aabb, llff.aabb);
+        }
+    }
+}

@@ -102,8 +102,9 @@ pub struct HashGridConfig {
     pub log2_hashmap_size: u32,
     /// Coarsest resolution N_min (16).
     pub base_resolution: u32,
-    /// Finest resolution N_max (2048; Instant-NGP uses 2048 × aabb_scale, and the field passes the
-    /// scaled value). Because `b^(L−1)` is evaluated in `f32`, the finest level can come out as N_max − 1.
+    /// Finest resolution N_max over the scene box (2048; Instant-NGP uses 2048 × `aabb_scale` over
+    /// its training cube, so an instant-ngp scene with `aabb_scale > 1` wants the product here).
+    /// Because `b^(L−1)` is evaluated in `f32`, the finest level can come out as N_max − 1.
     pub max_resolution: u32,
     /// `true`: a level whose `(res+1)³` vertices fit in T is stored densely (no hash, Instant-NGP);
     /// `false`: every level is hashed into T slots (HashNeRF).
