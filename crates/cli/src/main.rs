@@ -5,7 +5,7 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use nerf::data::{load_blender, load_scene, write_blender, LoadOptions, Split, ViewSelection};
+use nerf::data::{load_scene, write_blender, LoadOptions, Split, ViewSelection};
 use nerf::field::merge_json;
 use nerf::train::{make_trainer, run, Checkpoint, RunOptions, SceneBounds, TrainConfig, TrainError};
 use std::path::{Path, PathBuf};
@@ -27,7 +27,7 @@ enum Command {
     /// Render novel views of a trained run: an orbit around the scene at the training cameras'
     /// distance and elevation, written as PNG frames.
     Render(RenderArgs),
-    /// Write a reduced copy of a Blender scene (fewer views, lower resolution).
+    /// Write a reduced copy of a scene as transforms files (fewer views, lower resolution).
     ExportScene(ExportArgs),
     /// List the registered fields and their default configs.
     Fields,
@@ -154,7 +154,8 @@ struct RenderArgs {
 
 #[derive(Args)]
 struct ExportArgs {
-    /// Source scene (Blender or instant-ngp / nerfstudio format).
+    /// Source scene (Blender, instant-ngp / nerfstudio, or LLFF: written with Euclidean rays and
+    /// the instant-ngp box around its scene bounds).
     src: PathBuf,
     /// Destination folder.
     dst: PathBuf,
@@ -368,7 +369,8 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         bail!("{}: destination must differ from the source", a.dst.display());
     }
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let ds = load_blender(&a.src, split, &LoadOptions { downscale: a.downscale, views: views.clone(), ..Default::default() })?;
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false };
+        let ds = load_scene(&a.src, split, &opts)?;
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;
         println!("{:?}: {} views at {}x{} -> {}", split, ds.n_views(), ds.width, ds.height, a.dst.display());
     }

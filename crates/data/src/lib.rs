@@ -1082,8 +1082,11 @@ pub fn save_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(),
 /// Intrinsics that the field of view does not capture (`fy != fx`, a principal point off the
 /// image centre, views that differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
 /// `h` (top level: the first view's; a frame whose camera differs carries its own), and an
-/// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`. Images are
-/// written as loaded, that is already resampled to pinhole cameras: no distortion keys.
+/// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`; a scene with
+/// other bounds than NeRF's Blender ones (LLFF with Euclidean rays) gets the instant-ngp box that
+/// encloses its [`Dataset::aabb`] ([`NgpBox::enclosing`]; its rays then start at that box's
+/// near distance). Images are written as loaded, that is already resampled to pinhole cameras:
+/// no distortion keys. A dataset in NDC is refused.
 pub fn write_blender(
     ds: &Dataset,
     out_root: &Path,
@@ -1091,6 +1094,17 @@ pub fn write_blender(
 ) -> Result<(), DataError> {
     let split = ds.split.as_str();
     let tpath = out_root.join(ds.split.transforms_file());
+    if ds.ndc.is_some() {
+        return Err(DataError::InvalidValue {
+            path: tpath,
+            key: "ndc".into(),
+            reason: "a scene loaded in NDC cannot be written as transforms; load it with Euclidean rays (ndc = false)"
+                .into(),
+        });
+    }
+    // Bounds other than NeRF's Blender ones (near 2, far 6, cube 1.5) travel as instant-ngp's box.
+    let blender_bounds = ds.near == 2.0 && ds.far == 6.0 && ds.aabb == Aabb::cube(1.5);
+    let ngp_box = ds.ngp.or_else(|| (!blender_bounds).then(|| NgpBox::enclosing(&ds.aabb)));
     let Some(first) = ds.cameras.first() else {
         return Err(DataError::EmptySplit {
             path: tpath,
@@ -1146,7 +1160,7 @@ pub fn write_blender(
         top.insert("w".into(), Value::from(k.width));
         top.insert("h".into(), Value::from(k.height));
     }
-    if let Some(b) = &ds.ngp {
+    if let Some(b) = &ngp_box {
         top.insert("aabb_scale".into(), Value::from(b.aabb_scale as f64));
         top.insert("scale".into(), Value::from(b.scale as f64));
         top.insert("offset".into(), Value::from(b.offset.map(|o| o as f64).to_vec()));

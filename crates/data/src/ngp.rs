@@ -330,6 +330,15 @@ impl NgpBox {
         Ok(Some(Self { scale: positive("scale", d.scale)?, offset, aabb_scale: positive("aabb_scale", d.aabb_scale)? }))
     }
 
+    /// The smallest box of this kind (`aabb_scale = 1`) that holds `aabb`: `scale` = 1 / its
+    /// longest side, `offset` = `0.5 − centre·scale` (how a scene with other bounds, e.g. LLFF's
+    /// Euclidean box, is written in this format).
+    pub fn enclosing(aabb: &nerf_rays::Aabb) -> Self {
+        let side = (0..3).map(|a| aabb.max[a] - aabb.min[a]).fold(0.0f32, f32::max);
+        let scale = 1.0 / side;
+        Self { scale, offset: std::array::from_fn(|a| 0.5 - 0.5 * (aabb.min[a] + aabb.max[a]) * scale), aabb_scale: 1.0 }
+    }
+
     /// The training cube in world coordinates: `(min, max)` with
     /// `min = (0.5 − aabb_scale/2 − offset)/scale`, `max = (0.5 + aabb_scale/2 − offset)/scale`.
     pub fn world_aabb(&self) -> ([f32; 3], [f32; 3]) {

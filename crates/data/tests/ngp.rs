@@ -390,5 +390,18 @@ fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
         for a in 0..3 {
             assert!(d.aabb.min[a] <= lo[a] + 1e-4 && d.aabb.max[a] >= hi[a] - 1e-4, "{:?} vs {:?}", d.aabb, llff.aabb);
         }
+        // What `nerf export-scene` writes for it: the same views in the box around its bounds.
+        let out = tempfile::tempdir().unwrap();
+        nerf_data::write_blender(llff, out.path(), None).unwrap();
+        let back = load(out.path(), split);
+        assert_same_views(&back, llff);
+        assert_eq!(back.ngp, Some(NgpBox::enclosing(&llff.aabb)));
+        for a in 0..3 {
+            assert!(back.aabb.min[a] <= lo[a] + 1e-4 && back.aabb.max[a] >= hi[a] - 1e-4, "{:?}", back.aabb);
+        }
     }
+    // A scene in NDC has no world box to write.
+    let ndc = load_scene(&fern, Split::Test, &LoadOptions { downscale: 8, ..Default::default() }).unwrap();
+    let e = nerf_data::write_blender(&ndc, dir.path(), None).unwrap_err();
+    assert!(e.to_string().contains("NDC"), "{e}");
 }
