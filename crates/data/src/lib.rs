@@ -923,14 +923,24 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
     }
     // The split's frames: all of a split file; every 8th (test, val) or the others (train) of one file.
     let in_split: Vec<usize> = if one_file {
-        llff::split_indices(frames.len(), split)
+        match ngp::split_filenames(&tpath, &json, split)? {
+            // nerfstudio's explicit lists: the frames whose image is named there.
+            Some(names) => {
+                let wanted: Vec<PathBuf> = names.iter().map(|n| image_path(root, n)).collect();
+                if let Some(n) = names.iter().zip(&wanted).find(|(_, w)| !frames.iter().any(|f| &f.image == *w)) {
+                    return Err(invalid(format!("{split}_filenames"), format!("`{}` is not the image of any frame", n.0)));
+                }
+                (0..frames.len()).filter(|&i| wanted.contains(&frames[i].image)).collect()
+            }
+            None => llff::split_indices(frames.len(), split),
+        }
     } else {
         (0..frames.len()).collect()
     };
     if in_split.is_empty() {
         return Err(DataError::EmptySplit {
             path: tpath.clone(),
-            reason: format!("{} frames leave none for the {split} split (every 8th frame is a test view)", frames.len()),
+            reason: format!("{} frames leave none for the {split} split", frames.len()),
         });
     }
     let selected = opts

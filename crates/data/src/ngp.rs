@@ -4,7 +4,9 @@
 //! - **One file for all views.** A scene folder with `transforms.json` and no
 //!   `transforms_<split>.json` holds every view in one list; as for LLFF scenes, every 8th frame
 //!   (0, 8, 16, …, in file order) is a test (and val) view and the others are training views
-//!   ([`crate::llff::split_indices`]).
+//!   ([`crate::llff::split_indices`]), unless the file lists them as nerfstudio does
+//!   (`train_filenames`, `val_filenames`, `test_filenames`: image paths as in `file_path`;
+//!   [`split_filenames`]).
 //! - **Intrinsics** ([`Lens`]): `fl_x`, `fl_y`, `cx`, `cy` (pixels of the stored image, pixel
 //!   centres at `+0.5`), `w`, `h` (the stored images' size, checked), or the field of view
 //!   `x_fov` / `y_fov` (degrees) or `camera_angle_x` / `camera_angle_y` (radians), in instant-ngp's
@@ -39,6 +41,20 @@ pub const NGP_TRANSFORMS: &str = "transforms.json";
 /// Where rays start, in instant-ngp's units (`0.1 / scale` world units from the camera):
 /// instant-ngp's training `near_distance`, closer than which it penalises density.
 pub const NGP_NEAR: f32 = 0.1;
+
+/// nerfstudio's explicit split: the `<split>_filenames` list of a transforms file, `None` when the
+/// file has none of `train_filenames`, `val_filenames`, `test_filenames`. An error when it has
+/// some but not this split's, or when the list is not an array of strings.
+pub fn split_filenames(path: &Path, top: &Value, split: crate::Split) -> Result<Option<Vec<String>>, DataError> {
+    if ["train", "val", "test"].iter().all(|s| top.get(format!("{s}_filenames")).is_none()) {
+        return Ok(None);
+    }
+    let key = format!("{split}_filenames");
+    let v = top.get(&key).ok_or_else(|| DataError::MissingKey { path: path.to_path_buf(), key: key.clone() })?;
+    let bad = || DataError::InvalidValue { path: path.to_path_buf(), key: key.clone(), reason: format!("expected an array of strings, got {}", json_kind(v)) };
+    let names = v.as_array().ok_or_else(bad)?;
+    names.iter().map(|n| n.as_str().map(str::to_string).ok_or_else(bad)).collect::<Result<Vec<_>, _>>().map(Some)
+}
 
 /// OpenCV's radial–tangential lens distortion of normalised image coordinates `(x, y)`:
 /// `r² = x² + y²`, `x_d = x·(1 + k1·r² + k2·r⁴ + k3·r⁶) + 2·p1·x·y + p2·(r² + 2x²)` and

@@ -405,3 +405,31 @@ fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
     let e = nerf_data::write_blender(&ndc, dir.path(), None).unwrap_err();
     assert!(e.to_string().contains("NDC"), "{e}");
 }
+
+#[test]
+fn nerfstudio_split_lists_pick_the_frames() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = interleaved_lego();
+    let name = |i: usize| frames[i]["file_path"].as_str().unwrap().to_string();
+    let lists = |train: Vec<String>, test: Vec<String>| {
+        json!({"fl_x": 100.0, "frames": frames.clone(), "train_filenames": train, "test_filenames": test})
+    };
+    write_json(&dir.path().join("transforms.json"), &lists(vec![name(5), name(0), name(9)], vec![name(3)]));
+    let train = load(dir.path(), Split::Train);
+    let all = load_scene(dir.path(), Split::Test, &LoadOptions::default()).unwrap();
+    assert_eq!(all.n_views(), 1);
+    assert_eq!(train.n_views(), 3);
+    // File order, not list order: frames 0, 5, 9.
+    let expect: Vec<PathBuf> = [0, 5, 9].iter().map(|&i| PathBuf::from(name(i))).collect();
+    assert_eq!(train.file_paths, expect);
+    assert_eq!(all.file_paths, vec![PathBuf::from(name(3))]);
+    // Lists for some splits but not this one; a name that is no frame's image.
+    let e = load_blender(dir.path(), Split::Val, &LoadOptions::default()).unwrap_err();
+    assert!(matches!(e, DataError::MissingKey { .. }) && e.to_string().contains("val_filenames"), "{e}");
+    write_json(&dir.path().join("transforms.json"), &lists(vec!["images/nope.png".into()], vec![name(3)]));
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("train_filenames") && e.to_string().contains("nope.png"), "{e}");
+    write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 100.0, "frames": frames.clone(), "train_filenames": "all"}));
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap_err();
+    assert!(e.to_string().contains("array of strings"), "{e}");
+}
