@@ -8,7 +8,9 @@
 //                  samples written at their offsets).
 //
 // Sampling rule (the CPU's): [near, far] clipped to the box (slab test) gives [t0, t1); sample k
-// sits at t_k = t0 + (k + u)·step, t_k < t1, and is emitted when the cell holding o + t_k·d is
+// sits at t_k = t0 + (k + u)·step (with a cone, cone > 0: t_k = S⁻¹(S(t0) + (k + u)·step), the
+// warp of nerf_sampling::Stepping, and dt = clamp(t·cone, step, 1024·step)), t_k < t1, and is
+// emitted when the cell holding o + t_k·d is
 // occupied (cell index x + res·(y + res·z), grid coordinates clamped to [0, res−1]), at most
 // max_samples per ray; u = rand_f32(seed, 0x4d415243, r) with jitter, else 0.5.
 // The walk is a dense walk that skips steps proven empty: from a step in an empty cell (or in an
@@ -18,6 +20,8 @@
 //
 // Layouts: bits = u32 words, bit i of word i/32 = cell i; origins/dirs [R][3]; outputs:
 // offsets [cap_rays + 1], positions [S][3], dirs [S][3], t [S], dt [S] (= step, as the CPU).
+
+const MAX_STEP_RATIO: f32 = 1024.0;
 
 const WG: u32 = 64u;
 const CBLOCK: u32 = 4u;
@@ -39,7 +43,7 @@ struct MarchParams {
     cap_samples: u32,
     seed: u32,
     jitter: u32,
-    _pad: u32,
+    cone: f32,
 }
 
 @group(0) @binding(0) var<uniform> P: MarchParams;
@@ -73,6 +77,44 @@ struct RaySetup {
     t1: f32,
     u: f32,
     ok: bool,
+    s0: f32,   // warp(t0) (cone steps)
+}
+
+// The cone steps' knots (nerf_sampling::Stepping::knots): t_a, t_b, S(t_b), ln(1 + cone)/step.
+fn knots() -> vec4<f32> {
+    let ta = P.step / P.cone;
+    let rate = log(1.0 + P.cone) / P.step;
+    return vec4<f32>(ta, MAX_STEP_RATIO * ta, ta + log(MAX_STEP_RATIO) / rate, rate);
+}
+
+// The warped distance S(t) of cone steps (CPU twin: Stepping::warp).
+fn warp(t: f32) -> f32 {
+    let kn = knots();
+    if (t <= kn.x) {
+        return t;
+    } else if (t <= kn.y) {
+        return kn.x + log(t / kn.x) / kn.w;
+    }
+    return kn.z + (t - kn.y) / MAX_STEP_RATIO;
+}
+
+// S⁻¹(s) (CPU twin: Stepping::unwarp).
+fn unwarp(s: f32) -> f32 {
+    let kn = knots();
+    if (s <= kn.x) {
+        return s;
+    } else if (s <= kn.z) {
+        return kn.x * exp((s - kn.x) * kn.w);
+    }
+    return kn.y + (s - kn.z) * MAX_STEP_RATIO;
+}
+
+// The interval a sample at t stands for (CPU twin: Stepping::dt).
+fn step_dt(t: f32) -> f32 {
+    if (P.cone > 0.0) {
+        return clamp(t * P.cone, P.step, MAX_STEP_RATIO * P.step);
+    }
+    return P.step;
 }
 
 fn setup(r: u32) -> RaySetup {
@@ -88,10 +130,17 @@ fn setup(r: u32) -> RaySetup {
         s.u = rand_f32(P.seed, 0x4d415243u, r);
     }
     s.ok = hit && P.far > P.near && s.t1 > s.t0 && abs(s.t0) < 1.0e38 && abs(s.t1) < 1.0e38;
+    s.s0 = s.t0;
+    if (P.cone > 0.0) {
+        s.s0 = warp(s.t0);
+    }
     return s;
 }
 
 fn t_at(s: RaySetup, k: u32) -> f32 {
+    if (P.cone > 0.0) {
+        return unwarp(s.s0 + (f32(k) + s.u) * P.step);
+    }
     return s.t0 + (f32(k) + s.u) * P.step;
 }
 
@@ -136,7 +185,7 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
             if (write) {
                 let j = base + count;
                 out_t[j] = t;
-                out_dt[j] = P.step;
+                out_dt[j] = step_dt(t);
                 for (var a = 0u; a < 3u; a = a + 1u) {
                     out_positions[3u * j + a] = p[a];
                     out_dirs[3u * j + a] = s.d[a];
@@ -165,7 +214,10 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
         // First step k' > k with t_k' ≥ ts: all steps in between lie in the empty region.
         var kn = k + 1u;
         if (t_at(s, kn) < ts) {
-            let est = (ts - s.t0) / P.step - s.u;
+            var est = (ts - s.t0) / P.step - s.u;
+            if (P.cone > 0.0) {
+                est = (warp(ts) - s.s0) / P.step - s.u;
+            }
             kn = max(kn, u32(max(est, 0.0)));
             loop {
                 if (kn <= k + 1u || t_at(s, kn - 1u) < ts) {

@@ -90,7 +90,12 @@ fn the_gpu_trains_the_one_file_scene_as_the_cpu_does() {
     let test = load_scene(dir.path(), Split::Test, &LoadOptions::default()).unwrap();
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
-    let cfg = common::small_hash_config(20, 16, 64);
+    let mut cfg = common::small_hash_config(20, 16, 64);
+    // instant-ngp's cone steps (its setting for aabb_scale > 1): growing from t = 0.01·256 = 2.56,
+    // inside the range the rays cross the box, so both devices march them.
+    if let nerf::train::SamplerConfig::Occupancy { cone_angle, .. } = &mut cfg.sampler {
+        *cone_angle = 1.0 / 256.0;
+    }
     let mut c = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
     let mut g = Trainer::new_on(cfg.clone(), &registry, bounds, Some(ctx)).unwrap();
     let untrained = sparse_psnr(&c, &test, 17);
@@ -101,7 +106,7 @@ fn the_gpu_trains_the_one_file_scene_as_the_cpu_does() {
     g.finish().unwrap();
     let (gpu, cpu) = (sparse_psnr(&g, &test, 17), sparse_psnr(&c, &test, 17));
     println!("after {} steps: gpu {gpu:.2} dB, cpu {cpu:.2} dB, untrained {untrained:.2} dB (every 17th pixel)", cfg.iters);
-    // Measured: 10.83 dB on the GPU (lavapipe), 10.97 dB on the CPU, 7.73 dB untrained. A GPU
+    // Measured: 10.86 dB on the GPU (lavapipe), 10.97 dB on the CPU, 7.73 dB untrained. A GPU
     // path that ignored the box or the clipping would not track the CPU.
     assert!((gpu - cpu).abs() < 1.0 && gpu > untrained + 1.0, "gpu {gpu:.2} dB vs cpu {cpu:.2} dB (untrained {untrained:.2} dB)");
 }

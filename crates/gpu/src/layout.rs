@@ -325,7 +325,7 @@ pub(crate) struct MarchParams {
     pub(crate) cap_samples: u32,
     pub(crate) seed: u32,
     pub(crate) jitter: u32,
-    pub(crate) _pad: u32,
+    pub(crate) cone_angle: f32,
 }
 
 /// `RoundParams` of `shaders/march.wgsl` (rendering in rounds, 32 bytes).

@@ -425,6 +425,8 @@ pub struct MarchConfig {
     pub far: f32,
     /// Most samples per ray.
     pub max_samples_per_ray: u32,
+    /// instant-ngp's cone steps (`nerf_sampling::Stepping`; 0: constant steps of `step_size`).
+    pub cone_angle: f32,
 }
 
 /// Byte offset of `step` in [`MarchParams`].
@@ -519,6 +521,9 @@ impl GpuMarcher {
         if cfg.resolution == 0 || cfg.resolution > nerf_sampling::MAX_RESOLUTION {
             return bad(format!("resolution must be in 1..={}, got {}", nerf_sampling::MAX_RESOLUTION, cfg.resolution));
         }
+        if !(cfg.cone_angle.is_finite() && cfg.cone_angle >= 0.0) {
+            return bad(format!("cone angle must be finite and not negative, got {}", cfg.cone_angle));
+        }
         if !(cfg.step_size.is_finite() && cfg.step_size > 0.0) {
             return bad(format!("step size must be positive, got {}", cfg.step_size));
         }
@@ -558,7 +563,7 @@ impl GpuMarcher {
             cap_samples: capacity_samples as u32,
             seed: 0,
             jitter: 0,
-            _pad: 0,
+            cone_angle: cfg.cone_angle,
         };
         let n_blocks = (cres as usize).pow(3);
         Ok(Self {

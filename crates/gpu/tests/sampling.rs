@@ -11,7 +11,7 @@ use nerf_gpu::sampling::{
 };
 use nerf_gpu::{shaders, GpuContext};
 use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention};
-use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples};
+use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples, Stepping};
 use rand::Rng as _;
 
 fn context() -> Option<GpuContext> {
@@ -335,7 +335,9 @@ fn rays(seed: u64, n: usize) -> (Vec<f32>, Vec<f32>) {
 
 /// Reference dense walk (every step looked up, the CPU's rule) with a given `u` per ray.
 #[allow(clippy::too_many_arguments)]
-fn dense_walk(g: &OccupancyGrid, o: &[f32], d: &[f32], near: f32, far: f32, step: f32, max: usize, u: &dyn Fn(usize) -> f32) -> (Vec<u32>, Vec<f32>) {
+fn dense_walk(g: &OccupancyGrid, o: &[f32], d: &[f32], near: f32, far: f32, step: impl Into<Stepping>, max: usize, u: &dyn Fn(usize) -> f32) -> (Vec<u32>, Vec<f32>) {
+    let stepping: Stepping = step.into();
+    let step = stepping.step;
     let (lo, hi) = g.aabb();
     let res = g.resolution();
     let inv: [f32; 3] = std::array::from_fn(|a| res as f32 / (hi[a] - lo[a]));
@@ -357,10 +359,11 @@ fn dense_walk(g: &OccupancyGrid, o: &[f32], d: &[f32], near: f32, far: f32, step
         let (t0, t1) = (near.max(a0), far.min(a1));
         if hit && far > near && t1 > t0 {
             let ur = u(r);
+            let s0 = stepping.warp(t0);
             let mut k = 0;
             let mut n = 0;
             loop {
-                let t = t0 + (k as f32 + ur) * step;
+                let t = if stepping.is_cone() { stepping.unwarp(s0 + (k as f32 + ur) * step) } else { t0 + (k as f32 + ur) * step };
                 if t >= t1 || n >= max {
                     break;
                 }
@@ -426,7 +429,8 @@ fn run_gpu(ctx: &GpuContext, m: &GpuMarcher, bits: &[u32], o: &[f32], d: &[f32],
 /// the device may fuse the multiply-add, decides the cell there); at most 1 % of the rays.
 /// Also checks positions, dirs and dt of every sample, and that nothing past the count is written.
 #[allow(clippy::too_many_arguments)]
-fn compare(g: &OccupancyGrid, gpu: &GpuOut, ref_off: &[u32], ref_t: &[f32], o: &[f32], d: &[f32], step: f32, n: usize, what: &str) {
+fn compare(g: &OccupancyGrid, gpu: &GpuOut, ref_off: &[u32], ref_t: &[f32], o: &[f32], d: &[f32], step: impl Into<Stepping>, n: usize, what: &str) {
+    let stepping: Stepping = step.into();
     let (lo, hi) = g.aabb();
     let res = g.resolution() as f32;
     let near_face = |t: f32, r: usize| {
@@ -455,7 +459,8 @@ fn compare(g: &OccupancyGrid, gpu: &GpuOut, ref_off: &[u32], ref_t: &[f32], o: &
             }
         }
         for k in gr {
-            assert_eq!(gpu.dt[k], step, "{what}: dt");
+            let dt = stepping.dt(gpu.t[k]);
+            assert!((gpu.dt[k] - dt).abs() <= 1e-5 * dt, "{what}: dt {} vs {dt} at t = {}", gpu.dt[k], gpu.t[k]);
             for a in 0..3 {
                 assert_eq!(gpu.dirs[3 * k + a], d[3 * r + a], "{what}: dirs");
                 let p = o[3 * r + a] + gpu.t[k] * d[3 * r + a];
@@ -491,7 +496,7 @@ fn marching_without_jitter_matches_the_cpu_march() {
         assert_eq!(ref_off, cpu.ray_offsets, "seed {seed}: dense walk vs march");
         assert_eq!(ref_t, cpu.t, "seed {seed}: dense walk vs march");
 
-        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: max_samples as u32 };
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: max_samples as u32, cone_angle: 0.0 };
         // Capacity above what is needed; fewer rays than the capacity (the rest must get offsets = total).
         let cap_rays = n_rays + 37;
         let m = GpuMarcher::new(&ctx, cfg, cap_rays, cpu.len() + 100).unwrap();
@@ -517,7 +522,7 @@ fn marching_with_jitter_matches_a_dense_walk_with_the_same_offsets() {
         let useed = seed * 1_000_003;
         let (ref_off, ref_t) = dense_walk(&g, &o, &d, near, far, step, 1024, &|r| rand_f32(useed, MARCH_STREAM_U, r as u32));
         assert!(ref_t.len() > n_rays);
-        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: 1024 };
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: 1024, cone_angle: 0.0 };
         let m = GpuMarcher::new(&ctx, cfg, n_rays, ref_t.len()).unwrap();
         let gpu = run_gpu(&ctx, &m, &bitfield(&g), &o, &d, n_rays, useed, true);
         compare(&g, &gpu, &ref_off, &ref_t, &o, &d, step, n_rays, &format!("jitter seed {seed}"));
@@ -525,6 +530,37 @@ fn marching_with_jitter_matches_a_dense_walk_with_the_same_offsets() {
         let (_, t_half) = dense_walk(&g, &o, &d, near, far, step, 1024, &|_| 0.5);
         let shared = gpu.t[..gpu.n_samples as usize].iter().zip(&t_half).filter(|(a, b)| a == b).count();
         assert!(shared < t_half.len() / 10, "jittered samples coincide with unjittered ones ({shared})");
+    }
+}
+
+#[test]
+fn cone_steps_match_the_cpu_march() {
+    let Some(ctx) = context() else { return };
+    // Cones whose steps start growing inside the box's range of t (t_a = step/cone) and, for the
+    // last, stop growing there too (t_b = 1024·t_a), with and without jitter.
+    for (seed, res, step, cone, jitter) in [(51u32, 32u32, 0.004f32, 0.05f32, false), (52, 24, 0.0005, 0.1, false), (53, 32, 0.004, 0.05, true)] {
+        let (lo, hi) = ([-1.5f32, -1.2, -1.0], [1.5f32, 1.3, 1.1]);
+        let g = grid(seed, res, lo, hi);
+        let stepping = Stepping::new(step, cone);
+        let (near, far) = (0.05f32, 6.0f32);
+        let n_rays = 1500;
+        let (o, d) = rays(seed as u64, n_rays);
+        let useed = seed * 7919;
+        let u = |r: usize| if jitter { rand_f32(useed, MARCH_STREAM_U, r as u32) } else { 0.5 };
+        let (ref_off, ref_t) = dense_walk(&g, &o, &d, near, far, stepping, 1024, &u);
+        if !jitter {
+            // The reference is the CPU march.
+            let mut cpu = RaySamples::default();
+            march(&g, &o, &d, &vec![near; n_rays], &vec![far; n_rays], stepping, 1024, None, &mut cpu);
+            assert_eq!((&ref_off, &ref_t), (&cpu.ray_offsets, &cpu.t), "seed {seed}: dense walk vs march");
+        }
+        // Steps grow: far fewer samples than constant steps of `step` give.
+        let (_, flat) = dense_walk(&g, &o, &d, near, far, step, 1024, &u);
+        assert!(ref_t.len() > n_rays && 2 * ref_t.len() < flat.len(), "seed {seed}: {} cone samples, {} flat", ref_t.len(), flat.len());
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: 1024, cone_angle: cone };
+        let m = GpuMarcher::new(&ctx, cfg, n_rays, ref_t.len() + 100).unwrap();
+        let gpu = run_gpu(&ctx, &m, &bitfield(&g), &o, &d, n_rays, useed, jitter);
+        compare(&g, &gpu, &ref_off, &ref_t, &o, &d, stepping, n_rays, &format!("cone seed {seed}"));
     }
 }
 
@@ -538,7 +574,7 @@ fn marching_clips_to_the_sample_capacity() {
     let (o, d) = rays(31, n_rays);
     let (ref_off, ref_t) = dense_walk(&g, &o, &d, 0.0, 6.0, step, 1024, &|_| 0.5);
     let total = ref_t.len();
-    let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: 32, step_size: step, near: 0.0, far: 6.0, max_samples_per_ray: 1024 };
+    let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: 32, step_size: step, near: 0.0, far: 6.0, max_samples_per_ray: 1024, cone_angle: 0.0 };
     let bits = bitfield(&g);
     for cap in [total / 3, total - 1, 1] {
         let m = GpuMarcher::new(&ctx, cfg, n_rays, cap).unwrap();
@@ -564,11 +600,13 @@ fn marching_clips_to_the_sample_capacity() {
 #[test]
 fn marcher_rejects_bad_configurations() {
     let Some(ctx) = context() else { return };
-    let good = MarchConfig { aabb_min: [-1.0; 3], aabb_max: [1.0; 3], resolution: 16, step_size: 0.01, near: 0.0, far: 5.0, max_samples_per_ray: 64 };
+    let good = MarchConfig { aabb_min: [-1.0; 3], aabb_max: [1.0; 3], resolution: 16, step_size: 0.01, near: 0.0, far: 5.0, max_samples_per_ray: 64, cone_angle: 0.0 };
     assert!(GpuMarcher::new(&ctx, good, 10, 10).is_ok());
     for (bad, word) in [
         (MarchConfig { resolution: 0, ..good }, "resolution"),
         (MarchConfig { step_size: 0.0, ..good }, "step"),
+        (MarchConfig { cone_angle: -0.1, ..good }, "cone"),
+        (MarchConfig { cone_angle: f32::NAN, ..good }, "cone"),
         (MarchConfig { aabb_max: [1.0, -1.0, 1.0], ..good }, "box"),
     ] {
         let e = GpuMarcher::new(&ctx, bad, 10, 10).err().expect("accepted").to_string();
@@ -617,14 +655,16 @@ fn rendering_in_rounds_matches_marching_everything_then_compositing() {
     let field = nerf_gpu::Kernel::new(&ctx, &shaders::with_common(TEST_FIELD), "field", &[]);
     let (lo, hi) = ([-1.5f32, -1.2, -1.0], [1.5f32, 1.3, 1.1]);
     let (near, far) = (0.3f32, 6.0f32);
-    for (seed, res, n_rays, max_samples, step) in [(41u32, 32u32, 1500usize, 1024usize, 0.012f32), (42, 24, 700, 9, 0.02)] {
+    for (seed, res, n_rays, max_samples, step, cone) in
+        [(41u32, 32u32, 1500usize, 1024usize, 0.012f32, 0.0f32), (42, 24, 700, 9, 0.02, 0.0), (43, 32, 1000, 1024, 0.004, 0.05)]
+    {
         let g = grid(seed, res, lo, hi);
         let (o, d) = rays(seed as u64, n_rays);
         let mut rng = nerf_core::rng(seed as u64, 9);
         let bg: Vec<f32> = (0..3 * n_rays).map(|_| rng.gen()).collect();
-        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: max_samples as u32 };
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: max_samples as u32, cone_angle: cone };
         let mut cpu = RaySamples::default();
-        march(&g, &o, &d, &vec![near; n_rays], &vec![far; n_rays], step, max_samples, None, &mut cpu);
+        march(&g, &o, &d, &vec![near; n_rays], &vec![far; n_rays], Stepping::new(step, cone), max_samples, None, &mut cpu);
         let total = cpu.len();
         let (bits, ob, db, bgb) = (ctx.upload("bits", &bitfield(&g)), ctx.upload("o", &o), ctx.upload("d", &d), ctx.upload("bg", &bg));
         for threshold in [0.0f32, 1e-2] {
@@ -728,9 +768,10 @@ fn rendering_in_rounds_matches_marching_everything_then_compositing() {
                 // evaluated; with one, the rays stopped inside the ball skip the rest.
                 if threshold == 0.0 {
                     assert_eq!(evaluated, total, "{what}: evaluated samples");
-                } else if max_samples > 100 {
+                } else if max_samples > 100 && cone == 0.0 {
                     eprintln!("{what}: {evaluated} of {total} samples evaluated");
-                    // (With 9 samples per ray at most, few rays get opaque: nothing to save.)
+                    // (With 9 samples per ray at most, or the few of cone steps, few rays get
+                    // opaque: nothing to save.)
                     assert!(evaluated < total * 9 / 10, "{what}: {evaluated} of {total} samples evaluated");
                     let stopped = (0..n_rays).filter(|&r| img.opacity[r] > 1.0 - threshold).count();
                     assert!(stopped > n_rays / 10, "{what}: only {stopped} rays stopped early");

@@ -24,7 +24,7 @@ mod pdf;
 mod segment;
 mod stratified;
 
-pub use occupancy::{march, OccupancyGrid, RayMarch, OccupancyGridConfig, DENSITY_CHUNK, MAX_RESOLUTION};
+pub use occupancy::{march, OccupancyGrid, OccupancyGridConfig, RayMarch, Stepping, DENSITY_CHUNK, MAX_RESOLUTION, MAX_STEP_RATIO};
 pub use packed::{compacted_rows, RaySamples};
 pub use pdf::{hierarchical, sample_pdf};
 pub use segment::{clip_segments, segment};

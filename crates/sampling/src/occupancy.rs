@@ -4,8 +4,9 @@
 //! It keeps one EMA density per cell of a `resolution³` grid over an axis-aligned box, and a bitfield
 //! of the cells that are *occupied*: a cell is occupied when the opacity of one marching step in it,
 //! `σ·step_size`, exceeds `min(threshold, mean over cells of σ·step_size)` (nerfacc's rule).
-//! [`march`] then steps along each ray with a constant step, emits samples only in occupied cells and
-//! jumps over empty cells (DDA) without ever changing where the emitted samples fall.
+//! [`march`] then steps along each ray with a constant step (or instant-ngp's cone steps that grow
+//! with the distance, [`Stepping`]), emits samples only in occupied cells and jumps over empty
+//! cells (DDA) without ever changing where the emitted samples fall.
 
 use crate::packed::{for_each_ray, ray_geometry, RaySamples};
 use crate::stratified::GRAIN;
@@ -23,6 +24,100 @@ const GEN_BLOCK: usize = 4096;
 
 /// Cells per axis of the blocks that [`march`] skips in one jump when all their cells are empty.
 const BLOCK: usize = 4;
+
+/// The largest cone step as a multiple of the smallest (instant-ngp: `MAX_CONE_STEPSIZE` =
+/// 1024 × `MIN_CONE_STEPSIZE`).
+pub const MAX_STEP_RATIO: f32 = 1024.0;
+
+/// How [`march`] spaces its steps along a ray. Without a cone (`cone_angle = 0`) every step is
+/// `step`. With one, instant-ngp's cone steps (its `calc_dt` / `advance_n_steps` for
+/// `aabb_scale > 1`, where `cone_angle = 1/256`): the step at distance `t` is
+/// `clamp(t·cone_angle, step, 1024·step)`, so distant space takes geometrically growing steps.
+/// Both are uniform steps of `step` in a warped distance `s = S(t)` ([`Stepping::warp`]):
+/// `S(t) = t` up to `t_a = step/cone_angle`, then `t_a + step·ln(t/t_a)/ln(1 + cone_angle)` (each
+/// step multiplies `t` by `1 + cone_angle`) up to `t_b = 1024·t_a`, then linear with slope 1/1024.
+/// Sample `k` of a ray that enters at `t_0` sits at `t_k = S⁻¹(S(t_0) + (k + u)·step)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Stepping {
+    /// The (smallest) step along unit rays.
+    pub step: f32,
+    /// Growth of the step with the distance (0: constant steps).
+    pub cone_angle: f32,
+}
+
+impl From<f32> for Stepping {
+    /// Constant steps of `step`.
+    fn from(step: f32) -> Self {
+        Self { step, cone_angle: 0.0 }
+    }
+}
+
+impl Stepping {
+    /// Steps of `step` growing with the distance by `cone_angle` (0: constant).
+    pub fn new(step: f32, cone_angle: f32) -> Self {
+        Self { step, cone_angle }
+    }
+
+    /// Whether the steps grow with the distance.
+    #[inline]
+    pub fn is_cone(&self) -> bool {
+        self.cone_angle > 0.0
+    }
+
+    /// `(t_a, t_b, S(t_b), ln(1 + cone_angle)/step)`: where the steps start and stop growing, the
+    /// warped distance of `t_b`, and the warp's rate between them (for [`Stepping::is_cone`]).
+    #[inline]
+    pub fn knots(&self) -> (f32, f32, f32, f32) {
+        let ta = self.step / self.cone_angle;
+        let tb = MAX_STEP_RATIO * ta;
+        // `ln(1 + c)` as WGSL computes it (no log1p there): the GPU twin lands on the same steps.
+        let rate = (1.0 + self.cone_angle).ln() / self.step;
+        (ta, tb, ta + MAX_STEP_RATIO.ln() / rate, rate)
+    }
+
+    /// The warped distance `S(t)` (the identity without a cone).
+    #[inline]
+    pub fn warp(&self, t: f32) -> f32 {
+        if !self.is_cone() {
+            return t;
+        }
+        let (ta, tb, sb, rate) = self.knots();
+        if t <= ta {
+            t
+        } else if t <= tb {
+            ta + (t / ta).ln() / rate
+        } else {
+            sb + (t - tb) / MAX_STEP_RATIO
+        }
+    }
+
+    /// The distance of the warped distance `s`, `S⁻¹(s)`.
+    #[inline]
+    pub fn unwarp(&self, s: f32) -> f32 {
+        if !self.is_cone() {
+            return s;
+        }
+        let (ta, tb, sb, rate) = self.knots();
+        if s <= ta {
+            s
+        } else if s <= sb {
+            ta * ((s - ta) * rate).exp()
+        } else {
+            tb + (s - sb) * MAX_STEP_RATIO
+        }
+    }
+
+    /// The interval `δ` a sample at `t` stands for: `step`, or `clamp(t·cone_angle, step,
+    /// 1024·step)` (instant-ngp's `calc_dt`).
+    #[inline]
+    pub fn dt(&self, t: f32) -> f32 {
+        if self.is_cone() {
+            (t * self.cone_angle).clamp(self.step, MAX_STEP_RATIO * self.step)
+        } else {
+            self.step
+        }
+    }
+}
 
 /// Largest accepted `resolution` (so that `resolution³` cell indices fit in `u32`).
 pub const MAX_RESOLUTION: u32 = 1024;
@@ -553,11 +648,11 @@ fn march_ray(
     t_start: f32,
     t_end: f32,
     u: f32,
-    step: f32,
+    stepping: Stepping,
     max_samples: usize,
     emit: impl FnMut(usize, f32),
 ) -> usize {
-    march_ray_from(grid, o, d, t_start, t_end, u, step, 0, max_samples, emit).0
+    march_ray_from(grid, o, d, t_start, t_end, u, stepping, 0, max_samples, emit).0
 }
 
 /// [`march_ray`] from step `k0` (0, or a step an earlier call returned): `(samples emitted (≤
@@ -572,7 +667,7 @@ fn march_ray_from(
     t_start: f32,
     t_end: f32,
     u: f32,
-    step: f32,
+    stepping: Stepping,
     k0: i64,
     max_samples: usize,
     mut emit: impl FnMut(usize, f32),
@@ -581,7 +676,10 @@ fn march_ray_from(
         return (0, k0);
     }
     let res = grid.res;
+    let step = stepping.step;
     let inv_step = 1.0 / step;
+    let cone = stepping.is_cone();
+    let s_start = stepping.warp(t_start);
     let inv_d: [f32; 3] = std::array::from_fn(|a| 1.0 / d[a]);
     let margin = 1e-3 * grid.cell[0].min(grid.cell[1]).min(grid.cell[2]);
     // Per axis: the margin in t (0 on an axis the ray does not move along).
@@ -610,7 +708,7 @@ fn march_ray_from(
         }
     });
     // `k` is an i64 (a single cvtsi2ss); ≤ 2^24 steps per ray are exact.
-    let t_at = |k: i64| t_start + (k as f32 + u) * step;
+    let t_at = |k: i64| step_t(stepping, t_start, s_start, k, u);
     let lookup = |t: f32| -> bool {
         let mut idx = 0;
         for a in (0..3).rev() {
@@ -693,7 +791,7 @@ fn march_ray_from(
     macro_rules! skip_to {
         ($x:expr) => {{
             let x = $x;
-            let est = (x - t_start) * inv_step - u;
+            let est = if cone { (stepping.warp(x) - s_start) * inv_step - u } else { (x - t_start) * inv_step - u };
             let mut kn = est as i64;
             kn += ((kn as f32) < est) as i64;
             kn = kn.max(k);
@@ -796,6 +894,18 @@ fn march_ray_from(
     (count, k)
 }
 
+/// Step `k` of a ray entering at `t_start` (`s_start = stepping.warp(t_start)`) with offset `u`:
+/// `t_start + (k + u)·step` without a cone (bit for bit the constant-step march), else
+/// `S⁻¹(s_start + (k + u)·step)`. `k` is an i64 (a single cvtsi2ss); ≤ 2^24 steps per ray are exact.
+#[inline(always)]
+fn step_t(stepping: Stepping, t_start: f32, s_start: f32, k: i64, u: f32) -> f32 {
+    if stepping.is_cone() {
+        stepping.unwarp(s_start + (k as f32 + u) * stepping.step)
+    } else {
+        t_start + (k as f32 + u) * stepping.step
+    }
+}
+
 /// `[t0, t1)` of a ray in the grid's box clipped to `[near, far]`; `(0, 0)` (no samples) when
 /// empty. `far > near` also rejects NaN bounds (`max`/`min` would otherwise drop a NaN); an
 /// unbounded interval (zero direction with infinite bounds) gets no samples.
@@ -842,17 +952,25 @@ impl RayMarch {
         self.emitted
     }
 
-    /// Emits the ray's next samples (`t`, in order; their `dt` is `step`): at most `budget`, and
-    /// never more than `max_samples` over the whole march. Returns how many.
-    pub fn advance(&mut self, grid: &OccupancyGrid, step: f32, max_samples: usize, budget: usize, mut emit: impl FnMut(f32)) -> usize {
+    /// Emits the ray's next samples (`t`, in order; their `dt` is `stepping.dt(t)`): at most
+    /// `budget`, and never more than `max_samples` over the whole march. Returns how many.
+    pub fn advance(
+        &mut self,
+        grid: &OccupancyGrid,
+        stepping: impl Into<Stepping>,
+        max_samples: usize,
+        budget: usize,
+        mut emit: impl FnMut(f32),
+    ) -> usize {
         if self.done {
             return 0;
         }
+        let stepping = stepping.into();
         let n = budget.min(max_samples.saturating_sub(self.emitted));
-        let (got, k) = march_ray_from(grid, self.o, self.d, self.t0, self.t1, 0.5, step, self.k, n, |_, t| emit(t));
+        let (got, k) = march_ray_from(grid, self.o, self.d, self.t0, self.t1, 0.5, stepping, self.k, n, |_, t| emit(t));
         self.k = k;
         self.emitted += got;
-        let t_next = self.t0 + (k as f32 + 0.5) * step;
+        let t_next = step_t(stepping, self.t0, stepping.warp(self.t0), k, 0.5);
         self.done = self.emitted >= max_samples || t_next >= self.t1;
         got
     }
@@ -863,14 +981,16 @@ impl RayMarch {
 /// For each ray (`origins`/`dirs`: `3·n_rays`, unit directions; `near`/`far`: one value per ray),
 /// `[near, far]` is clipped to the grid's box (slab test) to `[t_start, t_end)`; samples sit at
 /// `t_k = t_start + (k + u)·step_size` (`u ~ U[0,1)` per ray when `rng` is `Some`, else
-/// `u = 0.5`), `t_k < t_end`, and `t_k` is emitted when its cell is occupied, at most
+/// `u = 0.5`; with a cone, `S⁻¹(S(t_start) + (k + u)·step)`, [`Stepping`]; a plain `f32` is a
+/// constant step), `t_k < t_end`, and `t_k` is emitted when its cell is occupied, at most
 /// `max_samples` per ray. Empty cells are skipped with a 3-D DDA (a whole empty 4³ block of cells
 /// in one jump) and the walk re-aligns to the step grid, so skipping never changes where samples
 /// fall: the samples are exactly those of a dense walk that looks up every step's cell (see
 /// `march_ray` in the source for the rounding argument).
 ///
 /// Output in the packed [`RaySamples`] layout (sorted `t`, positions `o + t·d`, dirs, offsets),
-/// with **`dt = step_size` for every sample** (nerfacc / Instant-NGP), *not* the
+/// with **`dt = step_size` for every sample** (nerfacc / Instant-NGP; with a cone, the step at the
+/// sample, [`Stepping::dt`]), *not* the
 /// `t_{i+1} − t_i` convention of the other samplers: samples are only emitted inside occupied
 /// cells, so the gap to the next sample can span empty space, which must not be integrated.
 /// Rays that miss the box, have `!(far > near)` or NaN bounds get no samples.
@@ -885,15 +1005,21 @@ pub fn march(
     dirs: &[f32],
     near: &[f32],
     far: &[f32],
-    step_size: f32,
+    stepping: impl Into<Stepping>,
     max_samples: usize,
     rng: Option<&mut nerf_core::Rng>,
     out: &mut RaySamples,
 ) {
     let n_rays = crate::packed::check_rays(origins, dirs, near, far);
+    let stepping = stepping.into();
+    let step_size = stepping.step;
     assert!(
         step_size > 0.0 && step_size.is_finite(),
         "step_size must be positive and finite"
+    );
+    assert!(
+        stepping.cone_angle >= 0.0 && stepping.cone_angle.is_finite(),
+        "cone_angle must be finite and not negative"
     );
     let seed = rng.map(|r| r.gen::<u64>());
 
@@ -921,7 +1047,7 @@ pub fn march(
                 let r = c * RAY_CHUNK + i;
                 let (o, d, t0, t1, u) = setup(r);
                 *x = if t1 > t0 {
-                    march_ray(grid, o, d, t0, t1, u, step_size, max_samples, |_, _| {}) as u32
+                    march_ray(grid, o, d, t0, t1, u, stepping, max_samples, |_, _| {}) as u32
                 } else {
                     0
                 };
@@ -945,11 +1071,17 @@ pub fn march(
         }
         let (o, d, t0, t1, u) = setup(r);
         let t = &mut s.t[range.clone()];
-        let n = march_ray(grid, o, d, t0, t1, u, step_size, max_samples, |i, ti| {
+        let n = march_ray(grid, o, d, t0, t1, u, stepping, max_samples, |i, ti| {
             t[i] = ti
         });
         debug_assert_eq!(n, t.len());
-        s.dt[range.clone()].fill(step_size);
+        if stepping.is_cone() {
+            for (dt, &ti) in s.dt[range.clone()].iter_mut().zip(t.iter()) {
+                *dt = stepping.dt(ti);
+            }
+        } else {
+            s.dt[range.clone()].fill(step_size);
+        }
         ray_geometry(
             r,
             &o,

@@ -2,7 +2,7 @@
 //! Occupancy grid (fill, EMA updates, checkpoints) and ray marching with empty-space skipping.
 
 use nerf_render::{composite_forward, CompositeOutputs};
-use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples, DENSITY_CHUNK};
+use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples, Stepping, DENSITY_CHUNK, MAX_STEP_RATIO};
 use rand::Rng;
 
 const R: f32 = 0.5;
@@ -709,7 +709,7 @@ fn skipping_is_exact_on_a_scattered_grid() {
                 far.push(10.0);
             }
         }
-        let step = 0.0071;
+        for step in [Stepping::from(0.0071), Stepping::new(0.002, 0.03)] {
         let (mut dense, mut marched) = (RaySamples::default(), RaySamples::default());
         let mut r1 = nerf_core::rng(2, 2);
         march(
@@ -749,18 +749,62 @@ fn skipping_is_exact_on_a_scattered_grid() {
             assert_eq!(
                 &marched.t[marched.ray_range(r)],
                 &kept[..],
-                "res {res}: ray {r}"
+                "res {res}: ray {r} ({step:?})"
             );
         }
         assert_eq!(kept_total, marched.len());
+        for k in 0..marched.len() {
+            assert_eq!(marched.dt[k], step.dt(marched.t[k]));
+        }
         let expect = frac * dense.len() as f32;
         assert!(
             (marched.len() as f32) > 0.5 * expect && (marched.len() as f32) < 1.5 * expect,
-            "res {res}: {} marched of {} dense samples",
+            "res {res}: {} marched of {} dense samples ({step:?})",
             marched.len(),
             dense.len()
         );
+        }
     }
+}
+
+#[test]
+fn cone_steps_grow_with_the_distance_as_instant_ngps() {
+    // Knots inside the range: steps of `a` up to t_a = a/c, then t·c, then 1024·a from t_b.
+    let (a, c) = (0.001f32, 0.05f32);
+    let st = Stepping::new(a, c);
+    let (ta, tb) = (a / c, MAX_STEP_RATIO * a / c);
+    // The warp and its inverse.
+    for i in 0..2000 {
+        let t = 1e-3 * 1.01f32.powi(i);
+        if t > 3.0 * tb {
+            break;
+        }
+        let back = st.unwarp(st.warp(t));
+        assert!((back - t).abs() <= 2e-6 * t.max(1.0), "t {t}: unwarp(warp(t)) = {back}");
+    }
+    // Continuous at the knots.
+    for knot in [ta, tb] {
+        let (lo, hi) = (st.warp(knot * (1.0 - 1e-6)), st.warp(knot * (1.0 + 1e-6)));
+        assert!((hi - lo).abs() < 1e-4 * knot, "warp jumps at {knot}: {lo} .. {hi}");
+    }
+    // Uniform steps of `a` in the warped distance: the spacing in t is clamp(t·c, a, 1024·a).
+    let mut s = 0.0f32;
+    let mut seen = [false; 3];
+    while st.unwarp(s) < 1.5 * tb {
+        let (t0, t1) = (st.unwarp(s), st.unwarp(s + a));
+        let want = (t0 * c).clamp(a, MAX_STEP_RATIO * a);
+        // Between the knots the spacing is t·c at the step's start (t1 = t0·(1 + c)).
+        let tol = if t0 > ta && t1 < tb { 1e-3 } else { 0.06 };
+        assert!(((t1 - t0) - want).abs() <= tol * want, "t {t0}: step {} vs {want}", t1 - t0);
+        assert_eq!(st.dt(t0), want);
+        seen[if t0 < ta { 0 } else if t0 < tb { 1 } else { 2 }] = true;
+        s += a;
+    }
+    assert_eq!(seen, [true; 3], "every regime visited");
+    // No cone: the identity and constant steps.
+    let flat = Stepping::from(a);
+    assert!(!flat.is_cone());
+    assert_eq!((flat.warp(3.7), flat.unwarp(3.7), flat.dt(123.0)), (3.7, 3.7, a));
 }
 
 #[test]
@@ -796,7 +840,7 @@ fn a_march_taken_a_few_samples_at_a_time_emits_exactly_the_samples_of_march() {
     g.fill_from(0.01, &mut ball(0.9, 50.0));
     let (o, d, near, far) = random_rays(2000, 7);
     let mut rng = nerf_core::rng(7, 1);
-    for (step, max) in [(0.013f32, 1024usize), (0.03, 5)] {
+    for (step, max) in [(Stepping::from(0.013), 1024usize), (Stepping::from(0.03), 5), (Stepping::new(0.003, 0.05), 1024)] {
         let mut all = RaySamples::default();
         march(&g, &o, &d, &near, &far, step, max, None, &mut all);
         assert!(all.len() > 1000, "too few samples to be a test ({})", all.len());
@@ -812,7 +856,7 @@ fn a_march_taken_a_few_samples_at_a_time_emits_exactly_the_samples_of_march() {
                 calls += 1;
                 assert!(calls <= max + 2, "ray {r}: the march does not end");
             }
-            assert_eq!(got, all.t[all.ray_range(r)], "ray {r} (step {step}, max {max})");
+            assert_eq!(got, all.t[all.ray_range(r)], "ray {r} ({step:?}, max {max})");
             assert_eq!(m.emitted(), got.len());
             assert_eq!(m.advance(&g, step, max, 4, |_| panic!("a finished march emitted")), 0);
         }

@@ -31,11 +31,20 @@ pub enum SamplerConfig {
         /// The occupancy grid.
         #[serde(default)]
         grid: OccupancyGridConfig,
-        /// Marching step along unit rays (world units).
+        /// Marching step along unit rays (world units); with a cone, the smallest step.
         step_size: f32,
         /// Upper bound on samples per ray.
         max_samples_per_ray: usize,
+        /// instant-ngp's cone steps: the step at distance `t` is `clamp(t·cone_angle, step_size,
+        /// 1024·step_size)` ([`nerf_sampling::Stepping`]; instant-ngp uses 1/256 when its
+        /// `aabb_scale` > 1). 0 (the default): constant steps.
+        #[serde(default, skip_serializing_if = "is_zero")]
+        cone_angle: f32,
     },
+}
+
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
 }
 
 impl SamplerConfig {
@@ -205,7 +214,10 @@ impl TrainConfig {
             SamplerConfig::Hierarchical { n_coarse, .. } if n_coarse < 2 => {
                 return Err("sampler.n_coarse must be at least 2".into())
             }
-            SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. } => {
+            SamplerConfig::Occupancy { step_size, max_samples_per_ray, cone_angle, .. } => {
+                if !(cone_angle.is_finite() && cone_angle >= 0.0) {
+                    return Err(format!("sampler.cone_angle must be finite and not negative, got {cone_angle}"));
+                }
                 if !(step_size.is_finite() && step_size > 0.0) {
                     return Err(format!("sampler.step_size must be positive, got {step_size}"));
                 }

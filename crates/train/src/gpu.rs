@@ -294,7 +294,7 @@ impl GpuEngine {
         let stages: Vec<Stage> = (0..n_stages).map(|i| Stage::new(&ctx, capacity_rays, stage_samples(i))).collect();
         let mut compaction = None;
         let sampler = match &config.sampler {
-            SamplerConfig::Occupancy { grid, step_size, max_samples_per_ray } => {
+            SamplerConfig::Occupancy { grid, step_size, max_samples_per_ray, cone_angle } => {
                 let g = GpuOccupancyGrid::new(&ctx, grid, (bounds.aabb_min, bounds.aabb_max)).map_err(gerr)?;
                 let n_cells = g.n_cells();
                 let mc = MarchConfig {
@@ -305,6 +305,7 @@ impl GpuEngine {
                     near: bounds.near,
                     far: bounds.far,
                     max_samples_per_ray: *max_samples_per_ray as u32,
+                    cone_angle: *cone_angle,
                 };
                 let marcher = GpuMarcher::new(&ctx, mc, capacity_rays, capacity_samples).map_err(gerr)?;
                 if config.compact_samples {

@@ -9,7 +9,7 @@
 //! opaque surfaces are never evaluated.
 
 use nerf_render::RayComposite;
-use nerf_sampling::{OccupancyGrid, RayMarch};
+use nerf_sampling::{OccupancyGrid, RayMarch, Stepping};
 
 /// Steps per alive ray and round: about `ROUND_SAMPLES_PER_RAY × rays` samples per round (at
 /// least [`MIN_STEPS`], at most [`MAX_STEPS`] per ray: more per ray once most rays have stopped,
@@ -21,7 +21,7 @@ const MAX_STEPS: usize = 16;
 /// The sampler's marching parameters.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct MarchParams {
-    pub step: f32,
+    pub step: Stepping,
     pub max_samples: usize,
     pub near: f32,
     pub far: f32,
@@ -117,7 +117,7 @@ pub(crate) fn render_in_rounds(
                 if st.comp.stopped(p.t_threshold) {
                     break;
                 }
-                st.comp.add(s.sigma[j], ray3(&s.rgb, j), p.step, s.t[j]);
+                st.comp.add(s.sigma[j], ray3(&s.rgb, j), p.step.dt(s.t[j]), s.t[j]);
             }
             start = end;
             if !(st.comp.stopped(p.t_threshold) || st.march.is_done()) {
@@ -183,7 +183,7 @@ mod tests {
             bg.extend([rng.gen::<f32>(), rng.gen(), rng.gen()]);
         }
         for (t_threshold, max_samples, step) in [(1e-4f32, 1024usize, 0.01f32), (0.0, 1024, 0.01), (1e-2, 7, 0.02)] {
-            let p = MarchParams { step, max_samples, near: 0.5, far: 8.0, t_threshold };
+            let p = MarchParams { step: step.into(), max_samples, near: 0.5, far: 8.0, t_threshold };
             // Reference: march everything, evaluate everything, composite.
             let mut all = RaySamples::default();
             march(&grid, &o, &d, &vec![p.near; n], &vec![p.far; n], step, max_samples, None, &mut all);

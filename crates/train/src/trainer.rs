@@ -488,10 +488,12 @@ impl Trainer {
         let fields = ema_fields.as_ref().map_or(&self.fields, |g| &g.fields);
         let n = origins.len() / 3;
         let chunk = self.config.render_chunk_rays;
-        if let (Some(grid), SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. }) = (self.grid.as_ref(), &self.config.sampler) {
+        if let (Some(grid), SamplerConfig::Occupancy { step_size, max_samples_per_ray, cone_angle, .. }) =
+            (self.grid.as_ref(), &self.config.sampler)
+        {
             // Occupancy grid: rounds that stop marching a ray once it is opaque (same image).
             let p = crate::rounds::MarchParams {
-                step: *step_size,
+                step: nerf_sampling::Stepping::new(*step_size, *cone_angle),
                 max_samples: *max_samples_per_ray,
                 near: self.bounds.near,
                 far: self.bounds.far,
@@ -761,9 +763,10 @@ fn first_stage_samples(
         SamplerConfig::Stratified { n_samples: n } | SamplerConfig::Hierarchical { n_coarse: n, .. } => {
             stratified(origins, dirs, near, far, *n, rng, out)
         }
-        SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. } => {
+        SamplerConfig::Occupancy { step_size, max_samples_per_ray, cone_angle, .. } => {
             let grid = grid.expect("occupancy sampler has a grid");
-            march(grid, origins, dirs, near, far, *step_size, *max_samples_per_ray, rng, out)
+            let stepping = nerf_sampling::Stepping::new(*step_size, *cone_angle);
+            march(grid, origins, dirs, near, far, stepping, *max_samples_per_ray, rng, out)
         }
     }
 }
