@@ -41,7 +41,7 @@ fn the_hash_field_learns_fern() {
     let cfg = config(300);
     let mut t = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
     // Untrained, every marched sample is evaluated: a sparse score keeps this cheap.
-    let untrained = sparse_psnr(&t, &test, 16);
+    let untrained = common::sparse_psnr(&t, &test, 16);
     for _ in 0..cfg.iters {
         t.step(&train).unwrap();
     }
@@ -65,28 +65,9 @@ fn the_hash_field_learns_fern() {
         g.step(&train).unwrap();
     }
     g.finish().unwrap();
-    let (gpu, cpu40) = (sparse_psnr(&g, &test, 64), sparse_psnr(&c, &test, 64));
+    let (gpu, cpu40) = (common::sparse_psnr(&g, &test, 64), common::sparse_psnr(&c, &test, 64));
     println!("gpu: {gpu:.2} dB after {} steps (every 64th pixel; cpu {cpu40:.2} dB)", cfg.iters);
     // Measured: 13.9 dB on the GPU, 13.7 dB on the CPU (12.1 dB untrained); with Euclidean rays
     // 16.8 and 17.0 dB (NDC starts slower at this batch size and overtakes by 300 steps).
     assert!((gpu - cpu40).abs() < 1.0 && gpu > untrained + 1.0, "{gpu:.2} dB vs cpu {cpu40:.2} dB (untrained {untrained:.2} dB)");
-}
-
-/// PSNR over every `stride`th pixel of the views of `ds` (white background), rendered by `t`.
-fn sparse_psnr(t: &Trainer, ds: &nerf::data::Dataset, stride: usize) -> f64 {
-    let mut rays = nerf::data::RayBatch::default();
-    let (mut o, mut d, mut target) = (Vec::new(), Vec::new(), Vec::new());
-    for i in 0..ds.n_views() {
-        ds.view_rays(i, nerf::data::Background::White, t.config().pixel_convention, &mut rays);
-        for r in (0..rays.len()).step_by(stride) {
-            o.extend_from_slice(&rays.origins[3 * r..3 * r + 3]);
-            d.extend_from_slice(&rays.dirs[3 * r..3 * r + 3]);
-            target.extend_from_slice(&rays.target[3 * r..3 * r + 3]);
-        }
-    }
-    let n = o.len() / 3;
-    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
-    t.render_rays(&o, &d, &vec![1.0; 3 * n], &mut rgb, &mut opacity, &mut depth).unwrap();
-    let mse = rgb.iter().zip(&target).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / rgb.len() as f64;
-    -10.0 * mse.log10()
 }

@@ -5,7 +5,7 @@
 
 mod common;
 
-use nerf::data::{load_scene, Background, Dataset, LoadOptions, Split, ViewSelection};
+use nerf::data::{load_scene, Dataset, LoadOptions, Split, ViewSelection};
 use nerf::gpu::GpuContext;
 use nerf::train::{evaluate, SceneBounds, Trainer};
 use std::sync::Arc;
@@ -98,34 +98,15 @@ fn the_gpu_trains_the_one_file_scene_as_the_cpu_does() {
     }
     let mut c = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
     let mut g = Trainer::new_on(cfg.clone(), &registry, bounds, Some(ctx)).unwrap();
-    let untrained = sparse_psnr(&c, &test, 17);
+    let untrained = common::sparse_psnr(&c, &test, 17);
     for _ in 0..cfg.iters {
         c.step(&train).unwrap();
         g.step(&train).unwrap();
     }
     g.finish().unwrap();
-    let (gpu, cpu) = (sparse_psnr(&g, &test, 17), sparse_psnr(&c, &test, 17));
+    let (gpu, cpu) = (common::sparse_psnr(&g, &test, 17), common::sparse_psnr(&c, &test, 17));
     println!("after {} steps: gpu {gpu:.2} dB, cpu {cpu:.2} dB, untrained {untrained:.2} dB (every 17th pixel)", cfg.iters);
     // Measured: 10.86 dB on the GPU (lavapipe), 10.97 dB on the CPU, 7.73 dB untrained. A GPU
     // path that ignored the box or the clipping would not track the CPU.
     assert!((gpu - cpu).abs() < 1.0 && gpu > untrained + 1.0, "gpu {gpu:.2} dB vs cpu {cpu:.2} dB (untrained {untrained:.2} dB)");
-}
-
-/// PSNR over every `stride`th pixel of the views of `ds` (white background), rendered by `t`.
-fn sparse_psnr(t: &Trainer, ds: &Dataset, stride: usize) -> f64 {
-    let mut rays = nerf::data::RayBatch::default();
-    let (mut o, mut d, mut target) = (Vec::new(), Vec::new(), Vec::new());
-    for i in 0..ds.n_views() {
-        ds.view_rays(i, Background::White, t.config().pixel_convention, &mut rays);
-        for r in (0..rays.len()).step_by(stride) {
-            o.extend_from_slice(&rays.origins[3 * r..3 * r + 3]);
-            d.extend_from_slice(&rays.dirs[3 * r..3 * r + 3]);
-            target.extend_from_slice(&rays.target[3 * r..3 * r + 3]);
-        }
-    }
-    let n = o.len() / 3;
-    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
-    t.render_rays(&o, &d, &vec![1.0; 3 * n], &mut rgb, &mut opacity, &mut depth).unwrap();
-    let mse = rgb.iter().zip(&target).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / rgb.len() as f64;
-    -10.0 * mse.log10()
 }

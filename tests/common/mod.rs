@@ -1,6 +1,6 @@
 //! Helpers shared by the workspace's integration tests (each test file includes this with
-//! `mod common;`): the in-repo scene and the hash field's registry preset scaled down to what
-//! lavapipe and the CI's 2 cores run in seconds.
+//! `mod common;`): the in-repo scene, the hash field's registry preset scaled down to what
+//! lavapipe and the CI's 2 cores run in seconds, and a PSNR over a subset of pixels.
 #![allow(dead_code)] // each test file uses a subset
 
 use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
@@ -32,4 +32,23 @@ pub fn small_hash_config(iters: u64, update_every: u64, warmup_steps: u64) -> Tr
         cone_angle: 0.0,
     };
     c
+}
+
+/// PSNR over every `stride`th pixel of the views of `ds` (white background), rendered by `t`.
+pub fn sparse_psnr(t: &nerf::train::Trainer, ds: &Dataset, stride: usize) -> f64 {
+    let mut rays = nerf::data::RayBatch::default();
+    let (mut o, mut d, mut target) = (Vec::new(), Vec::new(), Vec::new());
+    for i in 0..ds.n_views() {
+        ds.view_rays(i, nerf::data::Background::White, t.config().pixel_convention, &mut rays);
+        for r in (0..rays.len()).step_by(stride) {
+            o.extend_from_slice(&rays.origins[3 * r..3 * r + 3]);
+            d.extend_from_slice(&rays.dirs[3 * r..3 * r + 3]);
+            target.extend_from_slice(&rays.target[3 * r..3 * r + 3]);
+        }
+    }
+    let n = o.len() / 3;
+    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
+    t.render_rays(&o, &d, &vec![1.0; 3 * n], &mut rgb, &mut opacity, &mut depth).unwrap();
+    let mse = rgb.iter().zip(&target).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / rgb.len() as f64;
+    -10.0 * mse.log10()
 }

@@ -253,6 +253,19 @@ fn cmd_train(a: TrainArgs) -> Result<()> {
     };
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
+    if let Some(b) = train.ngp.filter(|b| b.aabb_scale > 1.0) {
+        let cone = matches!(config.sampler, nerf::train::SamplerConfig::Occupancy { cone_angle, .. } if cone_angle > 0.0);
+        if !cone {
+            eprintln!(
+                "note: {}: aabb_scale {} — instant-ngp marches boxes larger than 1 with cone steps \
+                 ([sampler] cone_angle = 0.00390625) and scales the hash grid's finest resolution with the box \
+                 ([field_config.grid] max_resolution = {}); see docs/architecture.md",
+                a.scene.display(),
+                b.aabb_scale,
+                (2048.0 * b.aabb_scale).round()
+            );
+        }
+    }
     eprintln!(
         "training `{}` on {} ({} train views, {} test views, {}x{}) -> {}",
         config.field,

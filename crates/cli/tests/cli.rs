@@ -442,3 +442,40 @@ fn every_shipped_config_trains() {
     }
     assert!(n >= 3, "only {n} configs found");
 }
+
+#[test]
+fn a_large_instant_ngp_box_without_cone_steps_gets_a_note() {
+    let d = tempfile::tempdir().unwrap();
+    let scene = small_scene(d.path());
+    // The exported scene with instant-ngp's box keys, aabb_scale 2.
+    for split in ["train", "test"] {
+        let p = scene.join(format!("transforms_{split}.json"));
+        let mut t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+        t["aabb_scale"] = serde_json::json!(2);
+        std::fs::write(&p, t.to_string()).unwrap();
+    }
+    let o = train_tiny(&scene, &d.path().join("run"), &["--iters", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e = stderr(&o);
+    assert!(e.contains("aabb_scale 2") && e.contains("cone_angle") && e.contains("max_resolution = 4096"), "{e}");
+    // With cone steps configured (the hash field's occupancy sampler) the note is gone.
+    let cfg = d.path().join("cone.toml");
+    std::fs::write(
+        &cfg,
+        "field = \"hash\"\ntarget_samples_per_step = 1024\nlog_every = 1\n[field_config.grid]\nlog2_hashmap_size = 10\n\
+         [sampler]\nkind = \"occupancy\"\nstep_size = 0.05\nmax_samples_per_ray = 64\ncone_angle = 0.00390625\n[sampler.grid]\nresolution = 16\n",
+    )
+    .unwrap();
+    let o = nerf()
+        .arg("train")
+        .arg(&scene)
+        .arg("--config")
+        .arg(&cfg)
+        .arg("--out")
+        .arg(d.path().join("run_cone"))
+        .args(["--quiet", "--no-renders", "--iters", "2", "--device", "cpu"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("cone_angle"), "{}", stderr(&o));
+}

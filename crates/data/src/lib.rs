@@ -835,7 +835,7 @@ pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datas
 /// Loads one split of a Blender-format scene, or of an instant-ngp / nerfstudio scene (the same
 /// format with the extensions of [`ngp`]): reads `root/transforms_<split>.json`, or else
 /// `root/transforms.json` and takes the split's frames from it (every 8th frame for test and val,
-/// the rest for train); selects views; decodes their images in parallel (RGBA 8/16-bit or RGB PNG,
+/// the rest for train, unless nerfstudio's `<split>_filenames` lists them); selects views; decodes their images in parallel (RGBA 8/16-bit or RGB PNG,
 /// JPEG; alpha 1 when absent), resamples photos with lens distortion to pinhole images,
 /// optionally downscales them by a k×k box average, and builds each view's camera from its
 /// intrinsics ([`ngp::Lens::intrinsics`]; Blender: `Intrinsics::from_fov_x(W0, H0,
