@@ -843,7 +843,7 @@ pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datas
 /// validated, even for unselected views. NeRF's Blender scenes get `near = 2`, `far = 6` and
 /// `aabb = Aabb::cube(1.5)`; instant-ngp scenes ([`Dataset::ngp`]) the cube of their
 /// [`NgpBox`], `near = `[`NgpBox::near`] and a `far` past the cube's farthest corner from every
-/// camera.
+/// camera of the file (the same for every split).
 pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
     let split_path = root.join(split.transforms_file());
     let single_path = root.join(ngp::NGP_TRANSFORMS);
@@ -964,6 +964,8 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
             reason: "the factor must be at least 1".into(),
         });
     }
+    // Every frame's camera centre (all splits: `far` must not depend on the split or selection).
+    let centres: Vec<Vec3> = frames.iter().map(|f| Vec3::new(f.c2w[0][3], f.c2w[1][3], f.c2w[2][3])).collect();
     let frames: Vec<&Frame> = selected.iter().map(|&i| &frames[in_split[i]]).collect();
     for f in &frames {
         if !f.image.is_file() {
@@ -996,11 +998,11 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
         Some(b) => {
             let (min, max) = b.world_aabb();
             let aabb = Aabb { min, max };
-            // Past the cube's farthest corner from every camera (rays are clipped to the cube).
-            let far = cameras
+            // Past the cube's farthest corner from every camera of the file (rays are clipped to
+            // the cube), so that every split and view selection gets the same bounds.
+            let far = centres
                 .iter()
-                .flat_map(|c| {
-                    let o = c.position;
+                .flat_map(|&o| {
                     (0..8).map(move |m| {
                         let corner = Vec3::from_array(std::array::from_fn(|a| if m >> a & 1 == 1 { max[a] } else { min[a] }));
                         (corner - o).length()

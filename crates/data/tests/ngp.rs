@@ -78,6 +78,11 @@ fn one_transforms_json_holds_both_splits_every_8th_frame_a_test_view() {
         assert_same_views(&train, &first(&bl_train, 28));
         assert_same_views(&test, &first(&bl_test, 4));
         assert_same_views(&val, &test);
+        // One set of bounds for every split and selection (the trainer's come from the training split).
+        let one = load_scene(dir.path(), Split::Test, &LoadOptions { views: ViewSelection::First(1), ..Default::default() }).unwrap();
+        for d in [&test, &one] {
+            assert_eq!((d.near, d.far, d.aabb), (train.near, train.far, train.aabb));
+        }
         // The scene sits in instant-ngp's default cube (scale 0.33, offset 0.5, aabb_scale 1).
         for d in [&train, &test] {
             assert_eq!(d.ngp, Some(NgpBox::default()));
