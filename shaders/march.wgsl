@@ -77,7 +77,8 @@ struct RaySetup {
     t1: f32,
     u: f32,
     ok: bool,
-    s0: f32,   // warp(t0) (cone steps)
+    s0: f32,            // warp(t0) (cone steps)
+    kn: vec4<f32>,      // knots() (cone steps), computed once per ray
 }
 
 // The cone steps' knots (nerf_sampling::Stepping::knots): t_a, t_b, S(t_b), ln(1 + cone)/step.
@@ -87,9 +88,8 @@ fn knots() -> vec4<f32> {
     return vec4<f32>(ta, MAX_STEP_RATIO * ta, ta + log(MAX_STEP_RATIO) / rate, rate);
 }
 
-// The warped distance S(t) of cone steps (CPU twin: Stepping::warp).
-fn warp(t: f32) -> f32 {
-    let kn = knots();
+// The warped distance S(t) of cone steps with knots kn (CPU twin: Stepping::warp).
+fn warp(kn: vec4<f32>, t: f32) -> f32 {
     if (t <= kn.x) {
         return t;
     } else if (t <= kn.y) {
@@ -99,8 +99,7 @@ fn warp(t: f32) -> f32 {
 }
 
 // S⁻¹(s) (CPU twin: Stepping::unwarp).
-fn unwarp(s: f32) -> f32 {
-    let kn = knots();
+fn unwarp(kn: vec4<f32>, s: f32) -> f32 {
     if (s <= kn.x) {
         return s;
     } else if (s <= kn.z) {
@@ -131,15 +130,17 @@ fn setup(r: u32) -> RaySetup {
     }
     s.ok = hit && P.far > P.near && s.t1 > s.t0 && abs(s.t0) < 1.0e38 && abs(s.t1) < 1.0e38;
     s.s0 = s.t0;
+    s.kn = vec4<f32>(0.0);
     if (P.cone > 0.0) {
-        s.s0 = warp(s.t0);
+        s.kn = knots();
+        s.s0 = warp(s.kn, s.t0);
     }
     return s;
 }
 
 fn t_at(s: RaySetup, k: u32) -> f32 {
     if (P.cone > 0.0) {
-        return unwarp(s.s0 + (f32(k) + s.u) * P.step);
+        return unwarp(s.kn, s.s0 + (f32(k) + s.u) * P.step);
     }
     return s.t0 + (f32(k) + s.u) * P.step;
 }
@@ -216,7 +217,7 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
         if (t_at(s, kn) < ts) {
             var est = (ts - s.t0) / P.step - s.u;
             if (P.cone > 0.0) {
-                est = (warp(ts) - s.s0) / P.step - s.u;
+                est = (warp(s.kn, ts) - s.s0) / P.step - s.u;
             }
             kn = max(kn, u32(max(est, 0.0)));
             loop {

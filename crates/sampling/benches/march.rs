@@ -1,8 +1,9 @@
-//! Occupancy-grid ray marching: 2^14 rays through a 128³ grid with ~5% occupied cells.
+//! Occupancy-grid ray marching: 2^14 rays through a 128³ grid with ~5% occupied cells (constant
+//! steps, and cone steps on the scattered grid).
 //! Throughput is reported in emitted samples per second.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples};
+use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples, Stepping};
 use rand::Rng;
 
 const N_RAYS: usize = 1 << 14;
@@ -49,9 +50,13 @@ fn bench(c: &mut Criterion) {
     let default_step = scattered.step_size();
     scattered.set_densities(&dens, default_step).unwrap();
 
-    for (name, grid) in [("ball", &ball), ("scattered", &scattered)] {
+    // (c) the scattered grid with instant-ngp's cone steps (1/256: growing from t = 256·step = 0.87).
+    let cone = Stepping::new(step, 1.0 / 256.0);
+    for (name, grid, stepping) in
+        [("ball", &ball, Stepping::from(step)), ("scattered", &scattered, Stepping::from(step)), ("scattered_cone", &scattered, cone)]
+    {
         let mut out = RaySamples::default();
-        march(grid, &o, &d, &near, &far, step, 1024, None, &mut out);
+        march(grid, &o, &d, &near, &far, stepping, 1024, None, &mut out);
         eprintln!(
             "{name}: occupied {:.2}%, {} samples for {} rays ({:.1}/ray)",
             100.0 * grid.occupied_fraction(),
@@ -69,7 +74,7 @@ fn bench(c: &mut Criterion) {
                     &d,
                     &near,
                     &far,
-                    step,
+                    stepping,
                     1024,
                     Some(&mut rng),
                     &mut out,

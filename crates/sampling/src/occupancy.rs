@@ -81,7 +81,12 @@ impl Stepping {
         if !self.is_cone() {
             return t;
         }
-        let (ta, tb, sb, rate) = self.knots();
+        Self::warp_at(self.knots(), t)
+    }
+
+    /// [`Stepping::warp`] with the knots computed once ([`Stepping::knots`]; a cone).
+    #[inline(always)]
+    fn warp_at((ta, tb, sb, rate): (f32, f32, f32, f32), t: f32) -> f32 {
         if t <= ta {
             t
         } else if t <= tb {
@@ -97,7 +102,12 @@ impl Stepping {
         if !self.is_cone() {
             return s;
         }
-        let (ta, tb, sb, rate) = self.knots();
+        Self::unwarp_at(self.knots(), s)
+    }
+
+    /// [`Stepping::unwarp`] with the knots computed once.
+    #[inline(always)]
+    fn unwarp_at((ta, tb, sb, rate): (f32, f32, f32, f32), s: f32) -> f32 {
         if s <= ta {
             s
         } else if s <= sb {
@@ -679,7 +689,9 @@ fn march_ray_from(
     let step = stepping.step;
     let inv_step = 1.0 / step;
     let cone = stepping.is_cone();
-    let s_start = stepping.warp(t_start);
+    // The warp's knots once per ray (two logarithms), not per step.
+    let knots = if cone { stepping.knots() } else { (0.0, 0.0, 0.0, 0.0) };
+    let s_start = if cone { Stepping::warp_at(knots, t_start) } else { t_start };
     let inv_d: [f32; 3] = std::array::from_fn(|a| 1.0 / d[a]);
     let margin = 1e-3 * grid.cell[0].min(grid.cell[1]).min(grid.cell[2]);
     // Per axis: the margin in t (0 on an axis the ray does not move along).
@@ -708,7 +720,13 @@ fn march_ray_from(
         }
     });
     // `k` is an i64 (a single cvtsi2ss); ≤ 2^24 steps per ray are exact.
-    let t_at = |k: i64| step_t(stepping, t_start, s_start, k, u);
+    let t_at = |k: i64| {
+        if cone {
+            Stepping::unwarp_at(knots, s_start + (k as f32 + u) * step)
+        } else {
+            t_start + (k as f32 + u) * step
+        }
+    };
     let lookup = |t: f32| -> bool {
         let mut idx = 0;
         for a in (0..3).rev() {
@@ -791,7 +809,7 @@ fn march_ray_from(
     macro_rules! skip_to {
         ($x:expr) => {{
             let x = $x;
-            let est = if cone { (stepping.warp(x) - s_start) * inv_step - u } else { (x - t_start) * inv_step - u };
+            let est = if cone { (Stepping::warp_at(knots, x) - s_start) * inv_step - u } else { (x - t_start) * inv_step - u };
             let mut kn = est as i64;
             kn += ((kn as f32) < est) as i64;
             kn = kn.max(k);
