@@ -637,7 +637,8 @@ fn fmin(a: f32, b: f32) -> f32 {
 
 /// Marches one ray, calling `emit(i, t)` for its `i`-th sample, and returns the sample count.
 ///
-/// Sample `k` sits at `t_k = t_start + (k + u)·step` for `t_k < t_end`; it is emitted when the cell
+/// Sample `k` sits at `t_k = t_start + (k + u)·step` (with a cone: `RaySteps`) for `t_k < t_end`;
+/// it is emitted when the cell
 /// that holds its float position `o + t_k·d` is occupied — exactly what a dense walk that looks up
 /// every step would emit. The cells along the ray are walked with a 3-D DDA whose face crossing
 /// times are computed directly (not accumulated), so they carry only rounding error. Each cell has
@@ -688,10 +689,7 @@ fn march_ray_from(
     let res = grid.res;
     let step = stepping.step;
     let inv_step = 1.0 / step;
-    let cone = stepping.is_cone();
-    // The warp's knots once per ray (two logarithms), not per step.
-    let knots = if cone { stepping.knots() } else { (0.0, 0.0, 0.0, 0.0) };
-    let s_start = if cone { Stepping::warp_at(knots, t_start) } else { t_start };
+    let steps = RaySteps::new(stepping, t_start, u);
     let inv_d: [f32; 3] = std::array::from_fn(|a| 1.0 / d[a]);
     let margin = 1e-3 * grid.cell[0].min(grid.cell[1]).min(grid.cell[2]);
     // Per axis: the margin in t (0 on an axis the ray does not move along).
@@ -719,14 +717,7 @@ fn march_ray_from(
             f32::INFINITY
         }
     });
-    // `k` is an i64 (a single cvtsi2ss); ≤ 2^24 steps per ray are exact.
-    let t_at = |k: i64| {
-        if cone {
-            Stepping::unwarp_at(knots, s_start + (k as f32 + u) * step)
-        } else {
-            t_start + (k as f32 + u) * step
-        }
-    };
+    let t_at = |k: i64| steps.t(k);
     let lookup = |t: f32| -> bool {
         let mut idx = 0;
         for a in (0..3).rev() {
@@ -809,7 +800,7 @@ fn march_ray_from(
     macro_rules! skip_to {
         ($x:expr) => {{
             let x = $x;
-            let est = if cone { (Stepping::warp_at(knots, x) - s_start) * inv_step - u } else { (x - t_start) * inv_step - u };
+            let est = steps.k_estimate(x, inv_step);
             let mut kn = est as i64;
             kn += ((kn as f32) < est) as i64;
             kn = kn.max(k);
@@ -912,15 +903,47 @@ fn march_ray_from(
     (count, k)
 }
 
-/// Step `k` of a ray entering at `t_start` (`s_start = stepping.warp(t_start)`) with offset `u`:
-/// `t_start + (k + u)·step` without a cone (bit for bit the constant-step march), else
-/// `S⁻¹(s_start + (k + u)·step)`. `k` is an i64 (a single cvtsi2ss); ≤ 2^24 steps per ray are exact.
-#[inline(always)]
-fn step_t(stepping: Stepping, t_start: f32, s_start: f32, k: i64, u: f32) -> f32 {
-    if stepping.is_cone() {
-        stepping.unwarp(s_start + (k as f32 + u) * stepping.step)
-    } else {
-        t_start + (k as f32 + u) * stepping.step
+/// The steps of one ray that enters at `t_start`, with offset `u`: step `k` sits at
+/// `t_start + (k + u)·step` without a cone (bit for bit the constant-step march), else at
+/// `S⁻¹(S(t_start) + (k + u)·step)`, with the warp's knots computed once per ray (two
+/// logarithms), not per step.
+#[derive(Clone, Copy)]
+struct RaySteps {
+    step: f32,
+    cone: bool,
+    knots: (f32, f32, f32, f32),
+    t_start: f32,
+    s_start: f32,
+    u: f32,
+}
+
+impl RaySteps {
+    #[inline(always)]
+    fn new(stepping: Stepping, t_start: f32, u: f32) -> Self {
+        let cone = stepping.is_cone();
+        let knots = if cone { stepping.knots() } else { (0.0, 0.0, 0.0, 0.0) };
+        let s_start = if cone { Stepping::warp_at(knots, t_start) } else { t_start };
+        Self { step: stepping.step, cone, knots, t_start, s_start, u }
+    }
+
+    /// `t` of step `k`. `k` is an i64 (a single cvtsi2ss); ≤ 2^24 steps per ray are exact.
+    #[inline(always)]
+    fn t(&self, k: i64) -> f32 {
+        if self.cone {
+            Stepping::unwarp_at(self.knots, self.s_start + (k as f32 + self.u) * self.step)
+        } else {
+            self.t_start + (k as f32 + self.u) * self.step
+        }
+    }
+
+    /// The (real-valued) step index at distance `x`; `inv_step = 1/step`.
+    #[inline(always)]
+    fn k_estimate(&self, x: f32, inv_step: f32) -> f32 {
+        if self.cone {
+            (Stepping::warp_at(self.knots, x) - self.s_start) * inv_step - self.u
+        } else {
+            (x - self.t_start) * inv_step - self.u
+        }
     }
 }
 
@@ -988,7 +1011,7 @@ impl RayMarch {
         let (got, k) = march_ray_from(grid, self.o, self.d, self.t0, self.t1, 0.5, stepping, self.k, n, |_, t| emit(t));
         self.k = k;
         self.emitted += got;
-        let t_next = step_t(stepping, self.t0, stepping.warp(self.t0), k, 0.5);
+        let t_next = RaySteps::new(stepping, self.t0, 0.5).t(k);
         self.done = self.emitted >= max_samples || t_next >= self.t1;
         got
     }
