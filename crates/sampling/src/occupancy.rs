@@ -7,6 +7,11 @@
 //! [`march`] then steps along each ray with a constant step (or instant-ngp's cone steps that grow
 //! with the distance, [`Stepping`]), emits samples only in occupied cells and jumps over empty
 //! cells (DDA) without ever changing where the emitted samples fall.
+//!
+//! For boxes much larger than the object (instant-ngp's `aabb_scale` > 1) the grid can be a
+//! cascade ([`OccupancyGridConfig::cascades`]): level 0 covers the central part of the box, each
+//! further level twice the extent of the one inside it, the last the whole box, all at the same
+//! resolution; a point is looked up in the finest level whose box holds it.
 
 use crate::packed::{for_each_ray, ray_geometry, RaySamples};
 use crate::stratified::GRAIN;
@@ -132,6 +137,9 @@ impl Stepping {
 /// Largest accepted `resolution` (so that `resolution³` cell indices fit in `u32`).
 pub const MAX_RESOLUTION: u32 = 1024;
 
+/// Most levels of a cascade (instant-ngp's `NERF_CASCADES`).
+pub const MAX_CASCADES: u32 = 8;
+
 /// Settings of an [`OccupancyGrid`] (defaults: Instant-NGP / nerfacc).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -148,6 +156,15 @@ pub struct OccupancyGridConfig {
     /// Training steps of warm-up (default 256): during warm-up every cell is re-sampled at each
     /// update; afterwards a random quarter of all cells plus a random quarter of the occupied ones.
     pub warmup_steps: u64,
+    /// Levels of the cascade (instant-ngp's density-grid cascades), `1..=8`: level `m` covers the
+    /// box shrunk about its centre by `2^(cascades − 1 − m)`, so the last level is the whole box
+    /// and level 0 the central `1/2^(cascades−1)` of it, each with `resolution³` cells. Absent
+    /// (the default): chosen from the scene by the trainer (`SceneBounds::cascades`: one level,
+    /// or `1 + ⌈log₂ aabb_scale⌉` for an instant-ngp box); a grid built directly takes 1. More
+    /// than one level needs a resolution divisible by 16 (each level's inner box then falls on
+    /// the skipping blocks' faces).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cascades: Option<u32>,
 }
 
 impl Default for OccupancyGridConfig {
@@ -158,13 +175,15 @@ impl Default for OccupancyGridConfig {
             threshold: 0.01,
             update_every: 16,
             warmup_steps: 256,
+            cascades: None,
         }
     }
 }
 
 impl OccupancyGridConfig {
     /// Checks the settings (as read from a config file): `1 ≤ resolution ≤ 1024`,
-    /// `0 ≤ decay ≤ 1`, `threshold ≥ 0` and finite. `update_every == 0` is accepted and means
+    /// `0 ≤ decay ≤ 1`, `threshold ≥ 0` and finite, `1 ≤ cascades ≤ 8` with a resolution
+    /// divisible by 16 for more than one level. `update_every == 0` is accepted and means
     /// "every step".
     pub fn validate(&self) -> Result<(), String> {
         if self.resolution == 0 || self.resolution > MAX_RESOLUTION {
@@ -172,6 +191,17 @@ impl OccupancyGridConfig {
                 "occupancy grid: resolution must be in 1..={MAX_RESOLUTION}, got {}",
                 self.resolution
             ));
+        }
+        if let Some(c) = self.cascades {
+            if c == 0 || c > MAX_CASCADES {
+                return Err(format!("occupancy grid: cascades must be in 1..={MAX_CASCADES}, got {c}"));
+            }
+            if c > 1 && self.resolution % 16 != 0 {
+                return Err(format!(
+                    "occupancy grid: a cascade of {c} levels needs a resolution divisible by 16, got {}",
+                    self.resolution
+                ));
+            }
         }
         if !(0.0..=1.0).contains(&self.decay) {
             return Err(format!(
@@ -187,12 +217,30 @@ impl OccupancyGridConfig {
         }
         Ok(())
     }
+
+    /// The levels of the cascade: `cascades`, or 1 when absent.
+    pub fn levels(&self) -> u32 {
+        self.cascades.unwrap_or(1)
+    }
 }
 
-/// An occupancy grid over an axis-aligned box (Instant-NGP's density grid, one level).
+/// The box and cells of one level of a cascade.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Level {
+    lo: [f32; 3],
+    hi: [f32; 3],
+    /// World size of one cell per axis.
+    cell: [f32; 3],
+    /// `res / (hi − lo)` per axis (world → grid coordinates).
+    inv_cell: [f32; 3],
+}
+
+/// An occupancy grid over an axis-aligned box (Instant-NGP's density grid, one level or a cascade).
 ///
-/// Cell `(i, j, k)` (`i` along x) has index `i + res·(j + res·k)` in [`densities`](Self::densities)
-/// and covers `[min + i·h, min + (i+1)·h]` along x (likewise y, z), `h = (max − min)/res`.
+/// Cell `(i, j, k)` (`i` along x) of level `m` has index `m·res³ + i + res·(j + res·k)` in
+/// [`densities`](Self::densities) and covers `[lo + i·h, lo + (i+1)·h]` along x (likewise y, z),
+/// `h = (hi − lo)/res`, `[lo, hi]` being the level's box ([`level_box`](Self::level_box); with one
+/// level the grid's box). A point is looked up in the finest level whose box holds it.
 /// Cells start with density `+∞` ("never sampled"), which is always occupied, so early training
 /// samples everywhere; the first update that samples a cell replaces the `+∞`.
 #[derive(Clone, Debug)]
@@ -201,15 +249,18 @@ pub struct OccupancyGrid {
     aabb_min: [f32; 3],
     aabb_max: [f32; 3],
     res: usize,
-    /// World size of one cell per axis.
-    cell: [f32; 3],
-    /// `res / (max − min)` per axis (world → grid coordinates).
-    inv_cell: [f32; 3],
+    /// The levels, finest (innermost) first; the last is the whole box.
+    levels: Vec<Level>,
+    /// Cells per level (`res³`).
+    level_cells: usize,
+    /// Safety margin of the march (world units): 10⁻³ of the outermost level's cell.
+    margin: f32,
     /// EMA density per cell (`+∞` = never sampled).
     density: Vec<f32>,
     /// One bit per cell: occupied.
     bits: Vec<u64>,
-    /// One bit per block of `BLOCK³` cells: any cell of the block occupied (for skipping).
+    /// One bit per block of `BLOCK³` cells: any cell of the block occupied (for skipping);
+    /// block `b` of level `m` is bit `m·cres³ + b`.
     coarse: Vec<u64>,
     /// Blocks per axis (`⌈res / BLOCK⌉`).
     cres: usize,
@@ -251,24 +302,52 @@ impl OccupancyGrid {
             }
         }
         let res = cfg.resolution as usize;
-        let n = res * res * res;
-        let cell = std::array::from_fn(|a| (aabb_max[a] - aabb_min[a]) / res as f32);
-        let inv_cell = std::array::from_fn(|a| res as f32 / (aabb_max[a] - aabb_min[a]));
+        let n_levels = cfg.levels() as usize;
+        let level_cells = res * res * res;
+        let n = n_levels * level_cells;
+        // The outermost level is the box itself (bit for bit the one-level grid); level m is the
+        // box shrunk about its centre by 2^(levels − 1 − m) (exact power-of-two scalings).
+        let levels: Vec<Level> = (0..n_levels)
+            .map(|m| {
+                let (lo, hi) = if m + 1 == n_levels {
+                    (aabb_min, aabb_max)
+                } else {
+                    let s = 0.5f32.powi((n_levels - 1 - m) as i32);
+                    let lo = std::array::from_fn(|a| {
+                        0.5 * (aabb_min[a] + aabb_max[a]) - 0.5 * (aabb_max[a] - aabb_min[a]) * s
+                    });
+                    let hi = std::array::from_fn(|a| {
+                        0.5 * (aabb_min[a] + aabb_max[a]) + 0.5 * (aabb_max[a] - aabb_min[a]) * s
+                    });
+                    (lo, hi)
+                };
+                Level {
+                    lo,
+                    hi,
+                    cell: std::array::from_fn(|a| (hi[a] - lo[a]) / res as f32),
+                    inv_cell: std::array::from_fn(|a| res as f32 / (hi[a] - lo[a])),
+                }
+            })
+            .collect();
+        let outer = levels[n_levels - 1].cell;
+        let margin = 1e-3 * outer[0].min(outer[1]).min(outer[2]);
         let diag = (0..3)
             .map(|a| (aabb_max[a] - aabb_min[a]).powi(2))
             .sum::<f32>()
             .sqrt();
+        let cres = res.div_ceil(BLOCK);
         let mut g = Self {
             cfg,
             aabb_min,
             aabb_max,
             res,
-            cell,
-            inv_cell,
+            levels,
+            level_cells,
+            margin,
             density: vec![f32::INFINITY; n],
             bits: vec![0; n.div_ceil(64)],
-            coarse: vec![0; res.div_ceil(BLOCK).pow(3).div_ceil(64)],
-            cres: res.div_ceil(BLOCK),
+            coarse: vec![0; (n_levels * cres.pow(3)).div_ceil(64)],
+            cres,
             n_occupied: 0,
             // Instant-NGP's default: 1024 steps along the box diagonal.
             step_size: diag / 1024.0,
@@ -287,19 +366,35 @@ impl OccupancyGrid {
         &self.cfg
     }
 
-    /// The box `(min, max)` the grid covers.
+    /// The box `(min, max)` the grid covers (the outermost level's).
     pub fn aabb(&self) -> ([f32; 3], [f32; 3]) {
         (self.aabb_min, self.aabb_max)
     }
 
-    /// Cells per axis.
+    /// Cells per axis (of every level).
     pub fn resolution(&self) -> usize {
         self.res
     }
 
-    /// World size of one cell along each axis.
+    /// Levels of the cascade (1: a single grid over the box).
+    pub fn cascades(&self) -> usize {
+        self.levels.len()
+    }
+
+    /// The box `(lo, hi)` of level `m` (0 = the finest, innermost). Panics if out of range.
+    pub fn level_box(&self, m: usize) -> ([f32; 3], [f32; 3]) {
+        (self.levels[m].lo, self.levels[m].hi)
+    }
+
+    /// World size of one cell of level `m` along each axis. Panics if out of range.
+    pub fn level_cell_size(&self, m: usize) -> [f32; 3] {
+        self.levels[m].cell
+    }
+
+    /// World size of one cell along each axis (of the outermost level, whose box is
+    /// [`aabb`](Self::aabb)).
     pub fn cell_size(&self) -> [f32; 3] {
-        self.cell
+        self.levels[self.levels.len() - 1].cell
     }
 
     /// The step size the occupancy bits were last computed with (initially the box diagonal / 1024).
@@ -323,12 +418,14 @@ impl OccupancyGrid {
     #[inline]
     fn cell_point(&self, idx: usize, jitter: [f32; 3], out: &mut [f32]) {
         let r = self.res;
+        let lv = &self.levels[idx / self.level_cells];
+        let idx = idx % self.level_cells;
         let ijk = [idx % r, (idx / r) % r, idx / (r * r)];
         for a in 0..3 {
             // Clamp so f32 rounding never puts the point outside its cell's box.
-            let lo = self.aabb_min[a] + ijk[a] as f32 * self.cell[a];
-            let hi = self.aabb_min[a] + (ijk[a] + 1) as f32 * self.cell[a];
-            out[a] = (lo + jitter[a] * self.cell[a]).clamp(lo, hi);
+            let lo = lv.lo[a] + ijk[a] as f32 * lv.cell[a];
+            let hi = lv.lo[a] + (ijk[a] + 1) as f32 * lv.cell[a];
+            out[a] = (lo + jitter[a] * lv.cell[a]).clamp(lo, hi);
         }
     }
 
@@ -486,12 +583,13 @@ impl OccupancyGrid {
     fn recompute(&mut self, step_size: f32) {
         self.step_size = step_size;
         let n = self.n_cells();
-        let sum: f64 = self
-            .density
+        // The mean is over the finest level (instant-ngp's), all the cells with one level.
+        let n0 = self.level_cells;
+        let sum: f64 = self.density[..n0]
             .par_chunks(GEN_BLOCK)
             .map(|c| c.iter().map(|&d| d as f64).sum::<f64>())
             .sum();
-        let mean = (sum / n as f64) as f32 * step_size;
+        let mean = (sum / n0 as f64) as f32 * step_size;
         // `min` with an infinite mean (never-sampled cells) gives `threshold`.
         let thr = self.cfg.threshold.min(mean);
         let density = &self.density;
@@ -512,32 +610,55 @@ impl OccupancyGrid {
                 b.count_ones() as usize
             })
             .sum();
-        // The block bits: OR of the cell bits of each block.
-        let (r, cr) = (self.res, self.cres);
+        // The block bits: OR of the cell bits of each block (per level).
+        let (r, cr, nl) = (self.res, self.cres, self.level_cells);
         self.coarse.fill(0);
         for (w, &word) in self.bits.iter().enumerate() {
             let mut b = word;
             while b != 0 {
-                let i = 64 * w + b.trailing_zeros() as usize;
+                let gi = 64 * w + b.trailing_zeros() as usize;
                 b &= b - 1;
+                let (m, i) = (gi / nl, gi % nl);
                 let (x, y, z) = (i % r, (i / r) % r, i / (r * r));
-                let blk = x / BLOCK + cr * (y / BLOCK + cr * (z / BLOCK));
+                let blk = m * cr * cr * cr + x / BLOCK + cr * (y / BLOCK + cr * (z / BLOCK));
                 self.coarse[blk >> 6] |= 1 << (blk & 63);
             }
         }
     }
 
-    /// Cell index of a point inside the box (grid coordinates clamped to the grid).
+    /// The level a point is looked up in: the finest whose box holds it (the outermost for a
+    /// point outside every box, or NaN).
+    #[inline(always)]
+    fn level_of(&self, p: [f32; 3]) -> usize {
+        let last = self.levels.len() - 1;
+        for (m, l) in self.levels[..last].iter().enumerate() {
+            if p[0] >= l.lo[0]
+                && p[0] <= l.hi[0]
+                && p[1] >= l.lo[1]
+                && p[1] <= l.hi[1]
+                && p[2] >= l.lo[2]
+                && p[2] <= l.hi[2]
+            {
+                return m;
+            }
+        }
+        last
+    }
+
+    /// Cell index of a point: its level's cell, grid coordinates clamped to the grid. GPU twin:
+    /// `cell_of` in `shaders/march.wgsl`.
     #[inline(always)]
     fn cell_of(&self, p: [f32; 3]) -> usize {
+        let m = self.level_of(p);
+        let l = &self.levels[m];
         let r = self.res;
-        let mut ijk = [0usize; 3];
-        for a in 0..3 {
-            let g = (p[a] - self.aabb_min[a]) * self.inv_cell[a];
+        let mut idx = 0;
+        for a in (0..3).rev() {
+            let g = (p[a] - l.lo[a]) * l.inv_cell[a];
             // `as usize` saturates (negative/NaN → 0).
-            ijk[a] = (g as usize).min(r - 1);
+            idx = idx * r + (g as usize).min(r - 1);
         }
-        ijk[0] + r * (ijk[1] + r * ijk[2])
+        m * self.level_cells + idx
     }
 
     #[inline(always)]
@@ -562,7 +683,8 @@ impl OccupancyGrid {
         self.n_occupied as f32 / self.n_cells() as f32
     }
 
-    /// The EMA density of every cell (`resolution³`, `+∞` = never sampled) — for checkpoints.
+    /// The EMA density of every cell (`cascades·resolution³`, `+∞` = never sampled) — for
+    /// checkpoints.
     pub fn densities(&self) -> &[f32] {
         &self.density
     }
@@ -570,15 +692,17 @@ impl OccupancyGrid {
     /// Restores the cell densities (from [`densities`](Self::densities)) and recomputes the
     /// occupancy bits for marching steps of `step_size` (the sampler's step, so a restored grid
     /// marks exactly the cells the saved one did). Errors (leaving the grid unchanged) when the
-    /// length is not `resolution³`, a value is negative or NaN, or the step is not positive.
+    /// length is not `cascades·resolution³`, a value is negative or NaN, or the step is not
+    /// positive.
     pub fn set_densities(&mut self, d: &[f32], step_size: f32) -> Result<(), String> {
         if !(step_size > 0.0 && step_size.is_finite()) {
             return Err(format!("occupancy grid: step size must be positive, got {step_size}"));
         }
         if d.len() != self.n_cells() {
             return Err(format!(
-                "occupancy grid: expected {} densities ({}³ cells), got {}",
+                "occupancy grid: expected {} densities ({} × {}³ cells), got {}",
                 self.n_cells(),
+                self.levels.len(),
                 self.res,
                 d.len()
             ));
@@ -638,18 +762,9 @@ fn fmin(a: f32, b: f32) -> f32 {
 /// Marches one ray, calling `emit(i, t)` for its `i`-th sample, and returns the sample count.
 ///
 /// Sample `k` sits at `t_k = t_start + (k + u)·step` (with a cone: `RaySteps`) for `t_k < t_end`;
-/// it is emitted when the cell
-/// that holds its float position `o + t_k·d` is occupied — exactly what a dense walk that looks up
-/// every step would emit. The cells along the ray are walked with a 3-D DDA whose face crossing
-/// times are computed directly (not accumulated), so they carry only rounding error. Each cell has
-/// a *safe* interval `[s0, s1)`: at least `margin` (world units) past its entry faces and before
-/// its exit faces on every axis, where the lookup of any position is certainly this cell. Steps in
-/// the safe interval are decided by the cell's bit alone (emitted in an occupied cell, skipped in
-/// bulk in an empty one, re-aligned to the step grid; when the cell's whole 4³ block is empty the
-/// walk skips the block's safe interval at once and restarts from the next step's cell); the few
-/// steps outside every safe interval
-/// (within `margin` of a face) are looked up one by one. `margin` (10⁻³ cell) is far above the
-/// rounding error of positions as long as coordinates are below ~10⁴ cells in magnitude.
+/// it is emitted when the cell that holds its float position `o + t_k·d` (in the finest level
+/// whose box holds it) is occupied — exactly what a dense walk that looks up every step would
+/// emit; see `walk_level` for how empty space is skipped without changing that.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn march_ray(
@@ -669,6 +784,12 @@ fn march_ray(
 /// [`march_ray`] from step `k0` (0, or a step an earlier call returned): `(samples emitted (≤
 /// max_samples), the step to resume from)`. Resuming continues the same walk, so successive
 /// calls emit exactly the samples of one call without a limit.
+///
+/// With a cascade the ray is cut where it enters and leaves each level's box: every piece lies in
+/// one level's region (inside its box, outside the next finer one), and is walked by
+/// `walk_level` in that level's grid. The cuts are cell faces of both adjacent levels, so the
+/// steps near them are within the walk's margin and looked up one by one with the dense walk's
+/// rule (`OccupancyGrid::cell_of`): the samples stay exactly the dense walk's.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn march_ray_from(
@@ -686,12 +807,103 @@ fn march_ray_from(
     if max_samples == 0 {
         return (0, k0);
     }
-    let res = grid.res;
-    let step = stepping.step;
-    let inv_step = 1.0 / step;
     let steps = RaySteps::new(stepping, t_start, u);
+    let mut w = Walk { count: 0, k: k0, t: steps.t(k0) };
+    if w.t >= t_end {
+        return (0, k0);
+    }
+    let n_levels = grid.levels.len();
+    if n_levels == 1 {
+        walk_level(grid, 0, o, d, &steps, t_end, max_samples, &mut w, &mut emit);
+        return (w.count, w.k);
+    }
+    // The ray's interval in each level's box, from the outermost inwards until one is missed
+    // (the boxes are nested).
+    let mut hit = [(0f32, 0f32); MAX_CASCADES as usize];
+    let mut inner = n_levels - 1;
+    for m in (0..n_levels).rev() {
+        let (a, b) = slab(o, d, grid.levels[m].lo, grid.levels[m].hi);
+        if !(b > a) {
+            break;
+        }
+        hit[m] = (a, b);
+        inner = m;
+    }
+    // Pieces in order: inwards through the entries, the innermost box, outwards through the exits.
+    let mut pieces = [(0usize, 0f32); 2 * MAX_CASCADES as usize];
+    let mut n = 0;
+    for m in (inner + 1..n_levels).rev() {
+        pieces[n] = (m, hit[m - 1].0);
+        n += 1;
+    }
+    pieces[n] = (inner, hit[inner].1);
+    n += 1;
+    for (m, h) in hit.iter().enumerate().take(n_levels).skip(inner + 1) {
+        pieces[n] = (m, h.1);
+        n += 1;
+    }
+    for &(m, end) in &pieces[..n] {
+        let end = fmin(end, t_end);
+        if w.t < end {
+            walk_level(grid, m, o, d, &steps, end, max_samples, &mut w, &mut emit);
+            if w.count >= max_samples {
+                return (w.count, w.k);
+            }
+        }
+    }
+    // Steps the pieces left (their ends rounded below t_end): look them up.
+    while w.t < t_end && w.count < max_samples {
+        if grid.bit(grid.cell_of([o[0] + w.t * d[0], o[1] + w.t * d[1], o[2] + w.t * d[2]])) {
+            emit(w.count, w.t);
+            w.count += 1;
+        }
+        w.k += 1;
+        w.t = steps.t(w.k);
+    }
+    (w.count, w.k)
+}
+
+/// The state of one ray's walk: samples emitted, the current step and its `t`.
+#[derive(Clone, Copy)]
+struct Walk {
+    count: usize,
+    k: i64,
+    t: f32,
+}
+
+/// Walks the steps of `w` up to `t_end` (or until `max_samples` are emitted) through the grid of
+/// one level; every step it decides by a cell's bit lies in that level's region.
+///
+/// The cells along the ray are walked with a 3-D DDA whose face crossing times are computed
+/// directly (not accumulated), so they carry only rounding error. Each cell has a *safe* interval
+/// `[s0, s1)`: at least `margin` (world units) past its entry faces and before its exit faces on
+/// every axis, where the lookup of any position is certainly this cell. Steps in the safe
+/// interval are decided by the cell's bit alone (emitted in an occupied cell, skipped in bulk in
+/// an empty one, re-aligned to the step grid; when the cell's whole 4³ block is empty the walk
+/// skips the block's safe interval at once and restarts from the next step's cell); the few steps
+/// outside every safe interval (within `margin` of a face) are looked up one by one. `margin`
+/// (10⁻³ of the outermost level's cell) is far above the rounding error of positions as long as
+/// coordinates are below ~10⁴ of those cells in magnitude.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn walk_level(
+    grid: &OccupancyGrid,
+    level: usize,
+    o: [f32; 3],
+    d: [f32; 3],
+    steps: &RaySteps,
+    t_end: f32,
+    max_samples: usize,
+    w: &mut Walk,
+    emit: &mut impl FnMut(usize, f32),
+) {
+    let res = grid.res;
+    let lv = &grid.levels[level];
+    let off = level * grid.level_cells;
+    let coff = level * grid.cres * grid.cres * grid.cres;
+    let inv_step = 1.0 / steps.step;
     let inv_d: [f32; 3] = std::array::from_fn(|a| 1.0 / d[a]);
-    let margin = 1e-3 * grid.cell[0].min(grid.cell[1]).min(grid.cell[2]);
+    let margin = grid.margin;
     // Per axis: the margin in t (0 on an axis the ray does not move along).
     let m_t: [f32; 3] = std::array::from_fn(|a| {
         if d[a] != 0.0 {
@@ -705,33 +917,32 @@ fn march_ray_from(
     // `f·fa + fb` (+∞ on an axis the ray does not move along).
     let fa: [f32; 3] = std::array::from_fn(|a| {
         if d[a] != 0.0 {
-            grid.cell[a] * inv_d[a]
+            lv.cell[a] * inv_d[a]
         } else {
             0.0
         }
     });
     let fb: [f32; 3] = std::array::from_fn(|a| {
         if d[a] != 0.0 {
-            (grid.aabb_min[a] - o[a]) * inv_d[a]
+            (lv.lo[a] - o[a]) * inv_d[a]
         } else {
             f32::INFINITY
         }
     });
     let t_at = |k: i64| steps.t(k);
-    let lookup = |t: f32| -> bool {
-        let mut idx = 0;
-        for a in (0..3).rev() {
-            let g = (o[a] + t * d[a] - grid.aabb_min[a]) * grid.inv_cell[a];
-            idx = idx * res + (g as usize).min(res - 1);
-        }
-        grid.bit(idx)
-    };
+    // The dense walk's rule for one step (the finest level holding the point).
+    let lookup = |t: f32| -> bool { grid.bit(grid.cell_of([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]])) };
 
-    let mut count = 0usize;
-    let mut k: i64 = k0;
-    let mut t = t_at(k0);
+    let Walk { mut count, mut k, mut t } = *w;
+    // Leaves the walk: writes its state back.
+    macro_rules! leave {
+        () => {{
+            *w = Walk { count, k, t };
+            return;
+        }};
+    }
     if t >= t_end {
-        return (0, k);
+        leave!();
     }
     // Emits the current step and moves to the next; `false` when the ray is done.
     macro_rules! emit_next {
@@ -778,11 +989,11 @@ fn march_ray_from(
     macro_rules! init_cell {
         () => {{
             let cell = |a: usize| {
-                let g = (o[a] + t * d[a] - grid.aabb_min[a]) * grid.inv_cell[a];
+                let g = (o[a] + t * d[a] - lv.lo[a]) * lv.inv_cell[a];
                 (g as usize).min(res - 1)
             };
             (c0, c1, c2) = (cell(0), cell(1), cell(2));
-            idx = (c0 + res * (c1 + res * c2)) as isize;
+            idx = (off + c0 + res * (c1 + res * c2)) as isize;
             xf0 = (c0 + up[0] as usize) as f32;
             xf1 = (c1 + up[1] as usize) as f32;
             xf2 = (c2 + up[2] as usize) as f32;
@@ -824,13 +1035,13 @@ fn march_ray_from(
         while t < s0 {
             if lookup(t) {
                 if !emit_next!() {
-                    return (count, k);
+                    leave!();
                 }
             } else {
                 k += 1;
                 t = t_at(k);
                 if t >= t_end {
-                    return (count, k);
+                    leave!();
                 }
             }
         }
@@ -839,11 +1050,11 @@ fn march_ray_from(
             if grid.bit(idx as usize) {
                 while t < s1 {
                     if !emit_next!() {
-                        return (count, k);
+                        leave!();
                     }
                 }
             } else {
-                let blk = c0 / BLOCK + grid.cres * (c1 / BLOCK + grid.cres * (c2 / BLOCK));
+                let blk = coff + c0 / BLOCK + grid.cres * (c1 / BLOCK + grid.cres * (c2 / BLOCK));
                 if (grid.coarse[blk >> 6] >> (blk & 63)) & 1 == 0 {
                     // The whole block is empty: skip its safe interval (which contains this
                     // cell's, so t lies in it) and restart the walk where the ray goes on.
@@ -856,14 +1067,14 @@ fn march_ray_from(
                     }
                     if t < sb1 {
                         if !skip_to!(sb1) {
-                            return (count, k);
+                            leave!();
                         }
                         init_cell!();
                         continue;
                     }
                 }
                 if !skip_to!(s1) {
-                    return (count, k);
+                    leave!();
                 }
             }
         }
@@ -893,14 +1104,14 @@ fn march_ray_from(
     while t < t_end {
         if lookup(t) {
             if !emit_next!() {
-                return (count, k);
+                leave!();
             }
         } else {
             k += 1;
             t = t_at(k);
         }
     }
-    (count, k)
+    leave!();
 }
 
 /// The steps of one ray that enters at `t_start`, with offset `u`: step `k` sits at
