@@ -11,12 +11,17 @@
 // sits at t_k = t0 + (k + u)·step (with a cone, cone > 0: t_k = S⁻¹(S(t0) + (k + u)·step), the
 // warp of nerf_sampling::Stepping, and dt = clamp(t·cone, step, 1024·step)), t_k < t1, and is
 // emitted when the cell holding o + t_k·d is
-// occupied (cell index x + res·(y + res·z), grid coordinates clamped to [0, res−1]), at most
-// max_samples per ray; u = rand_f32(seed, 0x4d415243, r) with jitter, else 0.5.
+// occupied, at most max_samples per ray; u = rand_f32(seed, 0x4d415243, r) with jitter, else 0.5.
+// The cell of a point (cell_of, the CPU's OccupancyGrid::cell_of): the finest level of the
+// cascade whose box holds it (the outermost for none), then index level·res³ + x + res·(y + res·z),
+// grid coordinates clamped to [0, res−1]. One level: the box's grid.
 // The walk is a dense walk that skips steps proven empty: from a step in an empty cell (or in an
 // empty 4³ block) it jumps to the first step at or past the time the ray leaves that cell (block)
-// minus a margin (10⁻² cell, far above rounding), so every skipped step lies in the empty region
-// and the emitted samples are exactly the dense walk's.
+// minus a margin (10⁻² of the level's cell and ≥ 10⁻³ of the outermost one: far above rounding),
+// so every skipped step lies in the empty region and the emitted samples are exactly the dense
+// walk's. The inner box of a level lies on its blocks' faces (res divisible by 16), so a cell or
+// block of the level's own region never reaches into a finer level; a point rounded into the
+// inner box's cells (on its face) only takes one step.
 //
 // Layouts: bits = u32 words, bit i of word i/32 = cell i; origins/dirs [R][3]; outputs:
 // offsets [cap_rays + 1], positions [S][3], dirs [S][3], t [S], dt [S] (= step, as the CPU).
@@ -44,6 +49,14 @@ struct MarchParams {
     seed: u32,
     jitter: u32,
     cone: f32,
+    n_levels: u32,
+    level_cells: u32,       // res³
+    _p0: u32,
+    _p1: u32,
+    lv_lo: array<vec4<f32>, 8>,     // per level (finest first): lower corner, w = margin
+    lv_hi: array<vec4<f32>, 8>,     // upper corner
+    lv_cell: array<vec4<f32>, 8>,   // cell size
+    lv_inv: array<vec4<f32>, 8>,    // res / (hi − lo)
 }
 
 @group(0) @binding(0) var<uniform> P: MarchParams;
@@ -65,9 +78,19 @@ fn occupied(idx: u32) -> bool {
     return ((bits[idx >> 5u] >> (idx & 31u)) & 1u) != 0u;
 }
 
-fn block_empty(b: vec3<u32>) -> bool {
-    let i = b.x + P.cres * (b.y + P.cres * b.z);
+fn block_empty(m: u32, b: vec3<u32>) -> bool {
+    let i = m * P.cres * P.cres * P.cres + b.x + P.cres * (b.y + P.cres * b.z);
     return ((coarse[i >> 5u] >> (i & 31u)) & 1u) == 0u;
+}
+
+// The finest level whose box holds p (the outermost when none does).
+fn level_of(p: vec3<f32>) -> u32 {
+    for (var m = 0u; m + 1u < P.n_levels; m = m + 1u) {
+        if (all(p >= P.lv_lo[m].xyz) && all(p <= P.lv_hi[m].xyz)) {
+            return m;
+        }
+    }
+    return P.n_levels - 1u;
 }
 
 struct RaySetup {
@@ -159,18 +182,7 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
     }
     let fres = f32(P.res);
     let hi_cell = vec3<f32>(fres - 1.0);
-    // Per axis: face-crossing time = face·fa + fb, safety margin in t (0 where d = 0).
-    var fa = vec3<f32>(0.0);
-    var fb = vec3<f32>(BIG);
-    var mt = vec3<f32>(0.0);
-    for (var a = 0u; a < 3u; a = a + 1u) {
-        if (s.d[a] != 0.0) {
-            let inv = 1.0 / s.d[a];
-            fa[a] = P.cell[a] * inv;
-            fb[a] = (P.aabb_min[a] - s.o[a]) * inv;
-            mt[a] = P.margin * abs(inv);
-        }
-    }
+    let q = P.res / 4u;
     var k = k0;
     var count = 0u;
     var t = t_at(s, k0);
@@ -179,9 +191,10 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
             break;
         }
         let p = s.o + t * s.d;
-        let g = clamp((p - P.aabb_min) * P.inv_cell, vec3<f32>(0.0), hi_cell);
+        let m = level_of(p);
+        let g = clamp((p - P.lv_lo[m].xyz) * P.lv_inv[m].xyz, vec3<f32>(0.0), hi_cell);
         let c = vec3<u32>(g);
-        let idx = c.x + P.res * (c.y + P.res * c.z);
+        let idx = m * P.level_cells + c.x + P.res * (c.y + P.res * c.z);
         if (occupied(idx)) {
             if (write) {
                 let j = base + count;
@@ -197,19 +210,29 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
             t = t_at(s, k);
             continue;
         }
+        // A point of a coarser level rounded into the cells of its inner box: one step.
+        if (m > 0u && all(c >= vec3<u32>(q)) && all(c < vec3<u32>(3u * q))) {
+            k = k + 1u;
+            t = t_at(s, k);
+            continue;
+        }
         // An empty cell: the region to skip is its 4³ block when that is empty, else the cell.
         let b = c / CBLOCK;
         var lo = vec3<f32>(c);
         var hi = lo + vec3<f32>(1.0);
-        if (block_empty(b)) {
+        if (block_empty(m, b)) {
             lo = vec3<f32>(b * CBLOCK);
             hi = min(lo + vec3<f32>(f32(CBLOCK)), vec3<f32>(fres));
         }
+        // Face-crossing time of the level's grid face f on axis a: f·fa + fb, minus the margin.
         var ts = s.t1;
         for (var a = 0u; a < 3u; a = a + 1u) {
             if (s.d[a] != 0.0) {
+                let inv = 1.0 / s.d[a];
+                let fa = P.lv_cell[m][a] * inv;
+                let fb = (P.lv_lo[m][a] - s.o[a]) * inv;
                 let face = select(lo[a], hi[a], s.d[a] > 0.0);
-                ts = min(ts, face * fa[a] + fb[a] - mt[a]);
+                ts = min(ts, face * fa + fb - P.lv_lo[m].w * abs(inv));
             }
         }
         // First step k' > k with t_k' ≥ ts: all steps in between lie in the empty region.
@@ -239,28 +262,31 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
     return vec2<u32>(count, k);
 }
 
-// One invocation per 4³ block: sets its bit when any of its cells is occupied.
+// One invocation per 4³ block of each level: sets its bit when any of its cells is occupied.
 @compute @workgroup_size(WG)
 fn march_coarse(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let b = linear_id(gid, nwg, WG);
+    let gb = linear_id(gid, nwg, WG);
     let cr = P.cres;
-    if (b >= cr * cr * cr) {
+    if (gb >= P.n_levels * cr * cr * cr) {
         return;
     }
+    let m = gb / (cr * cr * cr);
+    let b = gb % (cr * cr * cr);
+    let base = m * P.level_cells;
     let b0 = vec3<u32>(b % cr, (b / cr) % cr, b / (cr * cr)) * CBLOCK;
     let b1 = min(b0 + vec3<u32>(CBLOCK), vec3<u32>(P.res));
     var any = false;
     for (var z = b0.z; z < b1.z; z = z + 1u) {
         for (var y = b0.y; y < b1.y; y = y + 1u) {
             for (var x = b0.x; x < b1.x; x = x + 1u) {
-                if (occupied(x + P.res * (y + P.res * z))) {
+                if (occupied(base + x + P.res * (y + P.res * z))) {
                     any = true;
                 }
             }
         }
     }
     if (any) {
-        atomicOr(&coarse_build[b >> 5u], 1u << (b & 31u));
+        atomicOr(&coarse_build[gb >> 5u], 1u << (gb & 31u));
     }
 }
 

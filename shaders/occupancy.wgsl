@@ -1,6 +1,7 @@
 // Occupancy-grid update on the device (GpuOccupancyGrid in crates/gpu/src/occupancy.rs; CPU twin:
 // nerf_sampling::OccupancyGrid::update / recompute). Layouts:
-//   density  [n] f32, n = res³, cell idx = x + res·(y + res·z), +∞ = never sampled;
+//   density  [n] f32, n = levels·res³, cell idx = level·res³ + x + res·(y + res·z) (level 0 the
+//            finest of the cascade; one level: the box), +∞ = never sampled;
 //   bits     [⌈n/32⌉] u32, bit (i mod 32) of word i/32 = cell i occupied;
 //   tmp      [n] u32: max of this update's new σ per cell, encoded bitcast<u32>(σ)+1 (σ ≥ 0 finite,
 //            so the u32 order is the float order and atomicMax needs no float atomics), 0 = not chosen;
@@ -12,11 +13,12 @@
 //   choose:      m = n (warm-up: every cell in order) or ⌊n/4⌋ uniform + ⌊n_occ/4⌋ occupied cells
 //                (with replacement, u = rand_u32 % count: modulo bias < count/2³² ≈ 5e-4 at 128³);
 //                one jittered point per chosen cell (jitter rand_f32(seed, 2+axis, j), clamped to
-//                the cell as the CPU) → positions [m][3], cells [m]; counters_out[1] = m.
+//                the cell of its level as the CPU) → positions [m][3], cells [m]; counters_out[1] = m.
 //   (the caller evaluates σ at the positions)
 //   scatter_max: tmp[cell] = max(tmp[cell], enc(sanitise(σ))) (NaN/negative → 0, +∞ → f32 max).
-//   ema:         chosen cells: d = finite(d) ? max(decay·d, t) : t; tmp reset; workgroup sums of d.
-//   reduce:      one workgroup: Kahan sum of the partials → mean = (Σ/n)·step_size,
+//   ema:         chosen cells: d = finite(d) ? max(decay·d, t) : t; tmp reset; workgroup sums of d
+//                over the finest level's cells (the others add 0).
+//   reduce:      one workgroup: Kahan sum of the partials → mean = (Σ/res³)·step_size,
 //                thr = min(threshold, mean) (an infinite mean gives threshold, as on the CPU).
 //   bits:        one invocation per 32-cell word: bit = d·step_size > thr; workgroup popcounts.
 //   scan_blocks: one workgroup: exclusive scan of the block counts → block offsets, n_occupied.
@@ -39,6 +41,12 @@ struct OccParams {
     seed: u32,          // per update (written by record_choose)
     warm: u32,          // per update (written by record_choose): 1 = choose every cell
     step_size: f32,     // per update (written by record_apply)
+    level_cells: u32,   // res³
+    _p0: u32,
+    _p1: u32,
+    _p2: u32,
+    lv_lo: array<vec4<f32>, 8>,    // per level: the box's lower corner
+    lv_cell: array<vec4<f32>, 8>,  // per level: the cell size
 }
 
 override WG: u32 = 256u;
@@ -89,9 +97,11 @@ fn choose(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     }
     cells[j] = idx;
     let r = prm.res;
-    let ijk = vec3<f32>(f32(idx % r), f32((idx / r) % r), f32(idx / (r * r)));
-    let mn = vec3<f32>(prm.aabb_min_x, prm.aabb_min_y, prm.aabb_min_z);
-    let h = vec3<f32>(prm.cell_x, prm.cell_y, prm.cell_z);
+    let lv = idx / prm.level_cells;
+    let li = idx % prm.level_cells;
+    let ijk = vec3<f32>(f32(li % r), f32((li / r) % r), f32(li / (r * r)));
+    let mn = prm.lv_lo[lv].xyz;
+    let h = prm.lv_cell[lv].xyz;
     let jit = vec3<f32>(rand_f32(prm.seed, 2u, j), rand_f32(prm.seed, 3u, j), rand_f32(prm.seed, 4u, j));
     let lo = mn + ijk * h;
     let hi = mn + (ijk + 1.0) * h;
@@ -134,6 +144,9 @@ fn ema(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) n
             atomicStore(&tmp[c], 0u);
         }
     }
+    if (c >= prm.level_cells) {
+        d = 0.0;
+    }
     wg_f[lid] = d;
     workgroupBarrier();
     for (var s = WG / 2u; s > 0u; s = s / 2u) {
@@ -168,7 +181,7 @@ fn reduce(@builtin(local_invocation_index) lid: u32) {
         workgroupBarrier();
     }
     if (lid == 0u) {
-        let mean = (wg_f[0] / f32(prm.n_cells)) * prm.step_size;
+        let mean = (wg_f[0] / f32(prm.level_cells)) * prm.step_size;
         stats[2] = bitcast<u32>(min(prm.threshold, mean));
         stats[3] = bitcast<u32>(mean);
     }

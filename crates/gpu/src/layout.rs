@@ -186,6 +186,13 @@ pub(crate) struct OccParams {
     pub(crate) seed: u32,
     pub(crate) warm: u32,
     pub(crate) step_size: f32,
+    /// Cells per level (`res³`); the mean of the threshold is over the first (finest) level.
+    pub(crate) level_cells: u32,
+    pub(crate) _pad: [u32; 3],
+    /// Per level of the cascade (finest first): the box's lower corner (w unused).
+    pub(crate) lv_lo: [[f32; 4]; 8],
+    /// Per level: the cell size (w unused).
+    pub(crate) lv_cell: [[f32; 4]; 8],
 }
 
 // ---- optim.rs ----
@@ -306,7 +313,7 @@ pub(crate) struct ScanParams {
 }
 
 // ---- sampling.rs ----
-/// `MarchParams` of `shaders/march.wgsl` (96 bytes).
+/// `MarchParams` of `shaders/march.wgsl` (96 + 16 + 4·128 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct MarchParams {
@@ -326,6 +333,19 @@ pub(crate) struct MarchParams {
     pub(crate) seed: u32,
     pub(crate) jitter: u32,
     pub(crate) cone_angle: f32,
+    /// Levels of the cascade (1: one grid over the box).
+    pub(crate) n_levels: u32,
+    /// Cells per level (`res³`).
+    pub(crate) level_cells: u32,
+    pub(crate) _pad: [u32; 2],
+    /// Per level (finest first, the last is the box): lower corner, w = the level's margin.
+    pub(crate) lv_lo: [[f32; 4]; 8],
+    /// Per level: upper corner (w unused).
+    pub(crate) lv_hi: [[f32; 4]; 8],
+    /// Per level: cell size (w unused).
+    pub(crate) lv_cell: [[f32; 4]; 8],
+    /// Per level: `res / (hi − lo)` (w unused).
+    pub(crate) lv_inv: [[f32; 4]; 8],
 }
 
 /// `RoundParams` of `shaders/march.wgsl` (rendering in rounds, 32 bytes).

@@ -1,10 +1,11 @@
 //! Instant-NGP's occupancy grid on the device (`shaders/occupancy.wgsl`), twin of
 //! [`nerf_sampling::OccupancyGrid`].
 //!
-//! Buffers the grid owns (pub accessors): the EMA density per cell (`res³` f32, `+∞` = never
-//! sampled, cell index `x + res·(y + res·z)`), the occupancy bitfield (`⌈res³/32⌉` u32 words, bit
-//! `i mod 32` of word `i/32` = cell `i`, the layout [`crate::sampling`]'s marcher reads) and the
-//! ascending list of occupied cell indices (what the post-warm-up update samples from).
+//! Buffers the grid owns (pub accessors): the EMA density per cell (`n = cascades·res³` f32, `+∞`
+//! = never sampled, cell index `level·res³ + x + res·(y + res·z)`, level 0 the finest), the
+//! occupancy bitfield (`⌈n/32⌉` u32 words, bit `i mod 32` of word `i/32` = cell `i`, the layout
+//! [`crate::sampling`]'s marcher reads) and the ascending list of occupied cell indices (what the
+//! post-warm-up update samples from).
 //!
 //! One update is recorded in two stages so that the trainer can run the field's density kernel in
 //! between, all in one submission:
@@ -16,7 +17,7 @@
 //!
 //! Parity with the CPU: during warm-up (every cell chosen, in order) the update is the CPU's
 //! exactly, except for the random jitter inside each cell (the GPU draws it with
-//! [`crate::rng::rand_f32`]) and the mean (an `f32` tree + Kahan sum instead of the CPU's `f64`
+//! [`crate::rng::rand_f32`]) and the mean (over the finest level; an `f32` tree + Kahan sum instead of the CPU's `f64`
 //! sum: about 1e-7 relative, which can only flip a cell whose `σ·step_size` lies that close to
 //! the mean). After warm-up the cells are chosen from the same distribution as the CPU's (uniform
 //! cells and uniform occupied cells, with replacement) but with a different random stream, so
@@ -27,7 +28,7 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
-use nerf_sampling::{OccupancyGrid, OccupancyGridConfig};
+use nerf_sampling::{OccupancyGrid, OccupancyGridConfig, MAX_CASCADES};
 use crate::layout::{OccParams};
 
 const WG: u32 = 256;
@@ -78,7 +79,8 @@ impl GpuOccupancyGrid {
         // The CPU grid validates the settings and gives the initial step size.
         let cpu = OccupancyGrid::try_new(cfg.clone(), aabb.0, aabb.1).map_err(GpuError::Unsupported)?;
         let res = cfg.resolution as usize;
-        let n_cells = res * res * res;
+        let level_cells = res * res * res;
+        let n_cells = cpu.cascades() * level_cells;
         let limit = ctx.device.limits().max_storage_buffer_binding_size;
         // The largest buffer of an update is the caller's `positions_out` (12 bytes per cell).
         if 12 * n_cells as u64 > limit {
@@ -91,6 +93,14 @@ impl GpuOccupancyGrid {
         let n_words = n_cells.div_ceil(32);
         let n_blocks = n_words.div_ceil(WG as usize);
         let n_partials = n_cells.div_ceil(WG as usize);
+        let mut lv_lo = [[0f32; 4]; MAX_CASCADES as usize];
+        let mut lv_cell = [[0f32; 4]; MAX_CASCADES as usize];
+        for m in 0..cpu.cascades() {
+            let (lo, _) = cpu.level_box(m);
+            let h = cpu.level_cell_size(m);
+            lv_lo[m] = [lo[0], lo[1], lo[2], 0.0];
+            lv_cell[m] = [h[0], h[1], h[2], 0.0];
+        }
         let base = OccParams {
             aabb_min: aabb.0,
             res: res as u32,
@@ -104,6 +114,10 @@ impl GpuOccupancyGrid {
             seed: 0,
             warm: 1,
             step_size: cpu.step_size(),
+            level_cells: level_cells as u32,
+            _pad: [0; 3],
+            lv_lo,
+            lv_cell,
         };
         let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("occupancy.wgsl"),
@@ -151,22 +165,28 @@ impl GpuOccupancyGrid {
         (self.aabb_min, self.aabb_max)
     }
 
-    /// Cells per axis.
+    /// Cells per axis (of every level).
     pub fn resolution(&self) -> usize {
         self.cfg.resolution as usize
     }
 
-    /// Number of cells (`res³`): also the capacity `positions_out`/`cells_out`/`sigma` need.
+    /// Levels of the cascade.
+    pub fn cascades(&self) -> usize {
+        self.cfg.levels() as usize
+    }
+
+    /// Number of cells (`cascades·res³`): also the capacity `positions_out`/`cells_out`/`sigma`
+    /// need.
     pub fn n_cells(&self) -> usize {
         self.n_cells
     }
 
-    /// EMA density per cell (`res³` f32, `+∞` = never sampled).
+    /// EMA density per cell (`cascades·res³` f32, `+∞` = never sampled).
     pub fn density(&self) -> &wgpu::Buffer {
         &self.density
     }
 
-    /// Occupancy bitfield (`⌈res³/32⌉` u32 words; bit `i mod 32` of word `i/32` = cell `i`).
+    /// Occupancy bitfield (`⌈cascades·res³/32⌉` u32 words; bit `i mod 32` of word `i/32` = cell `i`).
     pub fn bitfield(&self) -> &wgpu::Buffer {
         &self.bits
     }
@@ -176,7 +196,7 @@ impl GpuOccupancyGrid {
         self.n_words
     }
 
-    /// Ascending indices of the occupied cells (the first `n_occupied` of `res³` slots).
+    /// Ascending indices of the occupied cells (the first `n_occupied` of `cascades·res³` slots).
     pub fn occupied_list(&self) -> &wgpu::Buffer {
         &self.occupied
     }
@@ -221,7 +241,8 @@ impl GpuOccupancyGrid {
     /// Stage 2 of an update: `sigma [m]` holds σ at the points of the last `record_choose` (same
     /// `cells`); applies `max(decay·old, σ)` per chosen cell (`σ` replaces `+∞`; NaN/negative σ
     /// count as 0, `+∞` as `f32::MAX`), then recomputes the mean, the threshold
-    /// `min(threshold, mean·step_size)`, the bitfield and the occupied list with `step_size`.
+    /// `min(threshold, mean·step_size)` (the mean over the finest level), the bitfield and the
+    /// occupied list with `step_size`.
     pub fn record_apply(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, cells: &wgpu::Buffer, sigma: &wgpu::Buffer, step_size: f32) {
         ctx.write(&self.uniform, STEP_SIZE_OFFSET, &[step_size]);
         self.k.scatter_max.record(
@@ -263,13 +284,15 @@ impl GpuOccupancyGrid {
     }
 
     /// Copies a CPU grid's densities (a checkpoint) and recomputes the bits with its step size.
-    /// Errors when its resolution or box differ from this grid's.
+    /// Errors when its resolution, levels or box differ from this grid's.
     pub fn upload_from(&self, ctx: &GpuContext, grid: &OccupancyGrid) -> Result<(), GpuError> {
-        if grid.resolution() != self.resolution() || grid.aabb() != self.aabb() {
+        if grid.resolution() != self.resolution() || grid.cascades() != self.cascades() || grid.aabb() != self.aabb() {
             return Err(GpuError::Unsupported(format!(
-                "occupancy grid: cannot load a {}³ grid over {:?} into a {}³ grid over {:?}",
+                "occupancy grid: cannot load a {} × {}³ grid over {:?} into a {} × {}³ grid over {:?}",
+                grid.cascades(),
                 grid.resolution(),
                 grid.aabb(),
+                self.cascades(),
                 self.resolution(),
                 self.aabb()
             )));
@@ -280,12 +303,12 @@ impl GpuOccupancyGrid {
         Ok(())
     }
 
-    /// Reads the densities back (`res³`, for checkpoints: `OccupancyGrid::set_densities`).
+    /// Reads the densities back (`cascades·res³`, for checkpoints: `OccupancyGrid::set_densities`).
     pub fn download(&self, ctx: &GpuContext) -> Result<Vec<f32>, GpuError> {
         ctx.read_f32(&self.density, self.n_cells)
     }
 
-    /// Reads the bitfield back (`⌈res³/32⌉` words).
+    /// Reads the bitfield back (`⌈cascades·res³/32⌉` words).
     pub fn download_bits(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
         ctx.read_u32(&self.bits, self.n_words)
     }
@@ -306,6 +329,6 @@ pub struct GridStats {
     pub n_chosen: usize,
     /// `min(threshold, mean)` the bits were computed with.
     pub threshold: f32,
-    /// Mean of `density·step_size` over all cells.
+    /// Mean of `density·step_size` over the cells of the finest level.
     pub mean: f32,
 }

@@ -415,8 +415,11 @@ pub struct MarchConfig {
     pub aabb_min: [f32; 3],
     /// Grid box upper corner.
     pub aabb_max: [f32; 3],
-    /// Cells per axis.
+    /// Cells per axis (of every level).
     pub resolution: u32,
+    /// Levels of the occupancy grid's cascade (`nerf_sampling::OccupancyGridConfig::cascades`;
+    /// 1: one grid over the box).
+    pub cascades: u32,
     /// Marching step along unit rays.
     pub step_size: f32,
     /// Near distance (one value for every ray, as the trainer passes).
@@ -468,8 +471,9 @@ impl GpuSamples {
 }
 
 /// Occupancy-grid marching on the device (`shaders/march.wgsl`), the twin of
-/// [`nerf_sampling::march`]: same sample positions `t_k = t_start + (k + u)·step` kept where the
-/// cell of `o + t_k·d` is occupied, at most `max_samples_per_ray` per ray, `dt = step`.
+/// [`nerf_sampling::march`]: same sample positions `t_k = t_start + (k + u)·step` (or cone steps)
+/// kept where the cell of `o + t_k·d` (in the finest level of the cascade that holds it) is
+/// occupied, at most `max_samples_per_ray` per ray, `dt` the step at the sample.
 ///
 /// Capacity: when the rays' samples exceed `capacity_samples`, the offsets are clamped to it
 /// (`offsets[r] = min(Σ_{j<r} count_j, capacity)`): the ray that straddles the capacity keeps
@@ -521,6 +525,14 @@ impl GpuMarcher {
         if cfg.resolution == 0 || cfg.resolution > nerf_sampling::MAX_RESOLUTION {
             return bad(format!("resolution must be in 1..={}, got {}", nerf_sampling::MAX_RESOLUTION, cfg.resolution));
         }
+        if cfg.cascades == 0 || cfg.cascades > nerf_sampling::MAX_CASCADES || (cfg.cascades > 1 && cfg.resolution % 16 != 0) {
+            return bad(format!(
+                "cascades must be in 1..={} (more than one with a resolution divisible by 16), got {} at {}",
+                nerf_sampling::MAX_CASCADES,
+                cfg.cascades,
+                cfg.resolution
+            ));
+        }
         if !(cfg.cone_angle.is_finite() && cfg.cone_angle >= 0.0) {
             return bad(format!("cone angle must be finite and not negative, got {}", cfg.cone_angle));
         }
@@ -547,6 +559,22 @@ impl GpuMarcher {
         });
         let cell: [f32; 3] = std::array::from_fn(|a| (cfg.aabb_max[a] - cfg.aabb_min[a]) / res as f32);
         let inv_cell: [f32; 3] = std::array::from_fn(|a| res as f32 / (cfg.aabb_max[a] - cfg.aabb_min[a]));
+        // The levels exactly as the CPU grid's (nerf_sampling::cascade_box); the margin of a level
+        // is 10⁻² of its cell, and at least 10⁻³ of the outermost cell (rounding grows with the
+        // coordinates, which the outermost level bounds).
+        let n_levels = cfg.cascades as usize;
+        let min3 = |v: [f32; 3]| v[0].min(v[1]).min(v[2]);
+        let mut lv = [[[0f32; 4]; 8]; 4];
+        for m in 0..n_levels {
+            let (lo, hi) = nerf_sampling::cascade_box(cfg.aabb_min, cfg.aabb_max, n_levels, m);
+            let c: [f32; 3] = std::array::from_fn(|a| (hi[a] - lo[a]) / res as f32);
+            let inv: [f32; 3] = std::array::from_fn(|a| res as f32 / (hi[a] - lo[a]));
+            let margin = (1e-2 * min3(c)).max(1e-3 * min3(cell));
+            lv[0][m] = [lo[0], lo[1], lo[2], margin];
+            lv[1][m] = [hi[0], hi[1], hi[2], 0.0];
+            lv[2][m] = [c[0], c[1], c[2], 0.0];
+            lv[3][m] = [inv[0], inv[1], inv[2], 0.0];
+        }
         let params = MarchParams {
             aabb_min: cfg.aabb_min,
             step: cfg.step_size,
@@ -564,8 +592,15 @@ impl GpuMarcher {
             seed: 0,
             jitter: 0,
             cone_angle: cfg.cone_angle,
+            n_levels: n_levels as u32,
+            level_cells: res * res * res,
+            _pad: [0; 2],
+            lv_lo: lv[0],
+            lv_hi: lv[1],
+            lv_cell: lv[2],
+            lv_inv: lv[3],
         };
-        let n_blocks = (cres as usize).pow(3);
+        let n_blocks = n_levels * (cres as usize).pow(3);
         Ok(Self {
             cfg,
             capacity_rays,
@@ -625,7 +660,7 @@ impl GpuMarcher {
 
     /// Records the whole marching (coarse bits, count, scan, fill) of `min(counters[0],
     /// capacity_rays)` rays (`origins`, `dirs`: `[R][3]`, unit directions) through `bitfield`
-    /// (`⌈res³/32⌉` u32, bit `i % 32` of word `i / 32` = cell `i`) into `out` (sized at least
+    /// (`⌈cascades·res³/32⌉` u32, bit `i % 32` of word `i / 32` = cell `i`) into `out` (sized at least
     /// for the marcher's capacities); writes `counters[COUNTER_N_SAMPLES]`.
     #[allow(clippy::too_many_arguments)]
     pub fn record(

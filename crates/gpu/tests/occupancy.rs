@@ -31,15 +31,18 @@ fn sigma_of(cell: usize, round: u32) -> f32 {
     }
 }
 
-/// The cell box of `idx` (CPU layout) with a little slack for f32 rounding.
+/// The cell box of `idx` (CPU layout, levels of a cascade included) with a little slack for f32
+/// rounding.
 fn inside_cell(grid: &OccupancyGrid, idx: usize, p: &[f32]) -> bool {
     let r = grid.resolution();
+    let (m, idx) = (idx / (r * r * r), idx % (r * r * r));
     let ijk = [idx % r, (idx / r) % r, idx / (r * r)];
-    let h = grid.cell_size();
+    let (lo, _) = grid.level_box(m);
+    let h = grid.level_cell_size(m);
     (0..3).all(|a| {
-        let lo = AABB.0[a] + ijk[a] as f32 * h[a];
-        let hi = AABB.0[a] + (ijk[a] + 1) as f32 * h[a];
-        p[a] >= lo - 1e-5 && p[a] <= hi + 1e-5
+        let c0 = lo[a] + ijk[a] as f32 * h[a];
+        let c1 = lo[a] + (ijk[a] + 1) as f32 * h[a];
+        p[a] >= c0 - 1e-5 && p[a] <= c1 + 1e-5
     })
 }
 
@@ -111,9 +114,12 @@ fn assert_same_grid(ctx: &GpuContext, g: &GpuOccupancyGrid, cpu: &OccupancyGrid,
 #[test]
 fn warm_up_updates_match_the_cpu_exactly() {
     let Some(ctx) = context() else { return };
-    // Threshold 0.01 (mean above it) and threshold 10 (the mean decides), odd and even resolutions.
-    for (res, threshold, step_size) in [(24u32, 0.01f32, 0.01f32), (13, 10.0, 0.02), (1, 0.01, 0.005)] {
-        let cfg = OccupancyGridConfig { resolution: res, threshold, warmup_steps: 1000, ..Default::default() };
+    // Threshold 0.01 (mean above it) and threshold 10 (the mean decides), odd and even
+    // resolutions, and cascades (the mean over the finest level, every level's cells chosen).
+    for (res, threshold, step_size, cascades) in
+        [(24u32, 0.01f32, 0.01f32, 1u32), (13, 10.0, 0.02, 1), (1, 0.01, 0.005, 1), (16, 10.0, 0.01, 3), (16, 0.01, 0.02, 2)]
+    {
+        let cfg = OccupancyGridConfig { resolution: res, threshold, warmup_steps: 1000, cascades: Some(cascades), ..Default::default() };
         let g = GpuOccupancyGrid::new(&ctx, &cfg, AABB).unwrap();
         let mut cpu = OccupancyGrid::new(cfg.clone(), AABB.0, AABB.1);
         assert_same_grid(&ctx, &g, &cpu, "initial");
@@ -139,7 +145,7 @@ fn warm_up_updates_match_the_cpu_exactly() {
                 }
             }, &mut rng);
             assert_eq!(k, n);
-            assert_same_grid(&ctx, &g, &cpu, &format!("res {res} round {round}"));
+            assert_same_grid(&ctx, &g, &cpu, &format!("res {res} × {cascades} round {round}"));
         }
         // Something is occupied and something is not (the test exercises both sides).
         let st = g.download_stats(&ctx).unwrap();

@@ -289,7 +289,7 @@ fn grid(seed: u32, res: u32, min: [f32; 3], max: [f32; 3]) -> OccupancyGrid {
 
 /// The grid's bits in the u32 layout the marcher reads.
 fn bitfield(g: &OccupancyGrid) -> Vec<u32> {
-    let n = g.resolution().pow(3);
+    let n = g.densities().len();
     let mut w = vec![0u32; n.div_ceil(32)];
     for i in 0..n {
         if g.is_cell_occupied(i) {
@@ -431,12 +431,15 @@ fn run_gpu(ctx: &GpuContext, m: &GpuMarcher, bits: &[u32], o: &[f32], d: &[f32],
 #[allow(clippy::too_many_arguments)]
 fn compare(g: &OccupancyGrid, gpu: &GpuOut, ref_off: &[u32], ref_t: &[f32], o: &[f32], d: &[f32], step: impl Into<Stepping>, n: usize, what: &str) {
     let stepping: Stepping = step.into();
-    let (lo, hi) = g.aabb();
     let res = g.resolution() as f32;
+    // On a cell face of any level (the faces of a cascade's inner boxes are among them).
     let near_face = |t: f32, r: usize| {
-        (0..3).any(|a| {
-            let gc = (o[3 * r + a] + t * d[3 * r + a] - lo[a]) * res / (hi[a] - lo[a]);
-            (gc - gc.round()).abs() < 1e-3
+        (0..g.cascades()).any(|m| {
+            let (lo, hi) = g.level_box(m);
+            (0..3).any(|a| {
+                let gc = (o[3 * r + a] + t * d[3 * r + a] - lo[a]) * res / (hi[a] - lo[a]);
+                (gc - gc.round()).abs() < 1e-3
+            })
         })
     };
     let total = gpu.offsets[n] as usize;
@@ -496,7 +499,7 @@ fn marching_without_jitter_matches_the_cpu_march() {
         assert_eq!(ref_off, cpu.ray_offsets, "seed {seed}: dense walk vs march");
         assert_eq!(ref_t, cpu.t, "seed {seed}: dense walk vs march");
 
-        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: max_samples as u32, cone_angle: 0.0 };
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, cascades: 1, step_size: step, near, far, max_samples_per_ray: max_samples as u32, cone_angle: 0.0 };
         // Capacity above what is needed; fewer rays than the capacity (the rest must get offsets = total).
         let cap_rays = n_rays + 37;
         let m = GpuMarcher::new(&ctx, cfg, cap_rays, cpu.len() + 100).unwrap();
@@ -522,7 +525,7 @@ fn marching_with_jitter_matches_a_dense_walk_with_the_same_offsets() {
         let useed = seed * 1_000_003;
         let (ref_off, ref_t) = dense_walk(&g, &o, &d, near, far, step, 1024, &|r| rand_f32(useed, MARCH_STREAM_U, r as u32));
         assert!(ref_t.len() > n_rays);
-        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: 1024, cone_angle: 0.0 };
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, cascades: 1, step_size: step, near, far, max_samples_per_ray: 1024, cone_angle: 0.0 };
         let m = GpuMarcher::new(&ctx, cfg, n_rays, ref_t.len()).unwrap();
         let gpu = run_gpu(&ctx, &m, &bitfield(&g), &o, &d, n_rays, useed, true);
         compare(&g, &gpu, &ref_off, &ref_t, &o, &d, step, n_rays, &format!("jitter seed {seed}"));
@@ -557,10 +560,55 @@ fn cone_steps_match_the_cpu_march() {
         // Steps grow: far fewer samples than constant steps of `step` give.
         let (_, flat) = dense_walk(&g, &o, &d, near, far, step, 1024, &u);
         assert!(ref_t.len() > n_rays && 2 * ref_t.len() < flat.len(), "seed {seed}: {} cone samples, {} flat", ref_t.len(), flat.len());
-        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: 1024, cone_angle: cone };
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, cascades: 1, step_size: step, near, far, max_samples_per_ray: 1024, cone_angle: cone };
         let m = GpuMarcher::new(&ctx, cfg, n_rays, ref_t.len() + 100).unwrap();
         let gpu = run_gpu(&ctx, &m, &bitfield(&g), &o, &d, n_rays, useed, jitter);
         compare(&g, &gpu, &ref_off, &ref_t, &o, &d, stepping, n_rays, &format!("cone seed {seed}"));
+    }
+}
+
+#[test]
+fn a_cascade_marches_as_the_cpu() {
+    let Some(ctx) = context() else { return };
+    // Cells occupied at random on every level of 2–4 levels; rays from about the centre (inside
+    // the finest level) and from far out, through every level; constant and cone steps.
+    let (lo, hi) = ([-3.0f32, -1.0, -2.5], [5.0f32, 7.0, 5.5]);
+    let centre: [f32; 3] = std::array::from_fn(|a| 0.5 * (lo[a] + hi[a]));
+    for (seed, levels, stepping) in [(61u32, 3u32, Stepping::from(0.011)), (62, 4, Stepping::new(0.002, 0.02)), (63, 2, Stepping::from(0.02))] {
+        let cfg = OccupancyGridConfig { resolution: 16, cascades: Some(levels), ..Default::default() };
+        let mut g = OccupancyGrid::new(cfg, lo, hi);
+        let dens: Vec<f32> = (0..g.densities().len() as u32)
+            .map(|i| if nerf_gpu::rng::rand_u32(seed, 5, i) % 100 < 6 { 10.0 } else { 0.0 })
+            .collect();
+        g.set_densities(&dens, 0.01).unwrap();
+        let n_rays = 1500;
+        let mut rng = nerf_core::rng(seed as u64, 3);
+        let (mut o, mut d) = (vec![], vec![]);
+        for i in 0..n_rays {
+            let spread = if i % 2 == 0 { 2.0 } else { 14.0 };
+            o.extend((0..3).map(|a| centre[a] + (rng.gen::<f32>() - 0.5) * spread));
+            let v: [f32; 3] = std::array::from_fn(|_| rng.gen::<f32>() - 0.5);
+            let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            d.extend(v.map(|x| x / l));
+        }
+        let (near, far) = (0.05f32, 20.0f32);
+        let mut cpu = RaySamples::default();
+        march(&g, &o, &d, &vec![near; n_rays], &vec![far; n_rays], stepping, 1024, None, &mut cpu);
+        assert!(cpu.len() > 5 * n_rays, "seed {seed}: too few samples ({})", cpu.len());
+        let mc = MarchConfig {
+            aabb_min: lo,
+            aabb_max: hi,
+            resolution: 16,
+            cascades: levels,
+            step_size: stepping.step,
+            near,
+            far,
+            max_samples_per_ray: 1024,
+            cone_angle: stepping.cone_angle,
+        };
+        let m = GpuMarcher::new(&ctx, mc, n_rays, cpu.len() + 100).unwrap();
+        let gpu = run_gpu(&ctx, &m, &bitfield(&g), &o, &d, n_rays, 5, false);
+        compare(&g, &gpu, &cpu.ray_offsets, &cpu.t, &o, &d, stepping, n_rays, &format!("{levels} levels, seed {seed}"));
     }
 }
 
@@ -574,7 +622,7 @@ fn marching_clips_to_the_sample_capacity() {
     let (o, d) = rays(31, n_rays);
     let (ref_off, ref_t) = dense_walk(&g, &o, &d, 0.0, 6.0, step, 1024, &|_| 0.5);
     let total = ref_t.len();
-    let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: 32, step_size: step, near: 0.0, far: 6.0, max_samples_per_ray: 1024, cone_angle: 0.0 };
+    let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: 32, cascades: 1, step_size: step, near: 0.0, far: 6.0, max_samples_per_ray: 1024, cone_angle: 0.0 };
     let bits = bitfield(&g);
     for cap in [total / 3, total - 1, 1] {
         let m = GpuMarcher::new(&ctx, cfg, n_rays, cap).unwrap();
@@ -600,13 +648,16 @@ fn marching_clips_to_the_sample_capacity() {
 #[test]
 fn marcher_rejects_bad_configurations() {
     let Some(ctx) = context() else { return };
-    let good = MarchConfig { aabb_min: [-1.0; 3], aabb_max: [1.0; 3], resolution: 16, step_size: 0.01, near: 0.0, far: 5.0, max_samples_per_ray: 64, cone_angle: 0.0 };
+    let good = MarchConfig { aabb_min: [-1.0; 3], aabb_max: [1.0; 3], resolution: 16, cascades: 1, step_size: 0.01, near: 0.0, far: 5.0, max_samples_per_ray: 64, cone_angle: 0.0 };
     assert!(GpuMarcher::new(&ctx, good, 10, 10).is_ok());
     for (bad, word) in [
         (MarchConfig { resolution: 0, ..good }, "resolution"),
         (MarchConfig { step_size: 0.0, ..good }, "step"),
         (MarchConfig { cone_angle: -0.1, ..good }, "cone"),
         (MarchConfig { cone_angle: f32::NAN, ..good }, "cone"),
+        (MarchConfig { cascades: 0, ..good }, "cascades"),
+        (MarchConfig { cascades: 9, ..good }, "cascades"),
+        (MarchConfig { cascades: 2, resolution: 24, ..good }, "divisible by 16"),
         (MarchConfig { aabb_max: [1.0, -1.0, 1.0], ..good }, "box"),
     ] {
         let e = GpuMarcher::new(&ctx, bad, 10, 10).err().expect("accepted").to_string();
@@ -662,7 +713,7 @@ fn rendering_in_rounds_matches_marching_everything_then_compositing() {
         let (o, d) = rays(seed as u64, n_rays);
         let mut rng = nerf_core::rng(seed as u64, 9);
         let bg: Vec<f32> = (0..3 * n_rays).map(|_| rng.gen()).collect();
-        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, step_size: step, near, far, max_samples_per_ray: max_samples as u32, cone_angle: cone };
+        let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: res, cascades: 1, step_size: step, near, far, max_samples_per_ray: max_samples as u32, cone_angle: cone };
         let mut cpu = RaySamples::default();
         march(&g, &o, &d, &vec![near; n_rays], &vec![far; n_rays], Stepping::new(step, cone), max_samples, None, &mut cpu);
         let total = cpu.len();

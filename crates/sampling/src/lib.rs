@@ -9,8 +9,8 @@
 //! * [`sample_pdf`] — nerf-pytorch's inverse-CDF sampler for one ray, conventions included.
 //! * [`hierarchical`] — the coarse-to-fine pass over a whole packed batch.
 //! * [`OccupancyGrid`] and [`march`] — Instant-NGP's empty-space skipping: an EMA occupancy grid
-//!   fed by any density function, and constant-step ray marching that emits samples only in
-//!   occupied cells (with `dt = step_size`, see [`march`]).
+//!   (one level or a cascade) fed by any density function, and ray marching (constant or cone
+//!   steps) that emits samples only in occupied cells (with `dt` the step, see [`march`]).
 //!
 //! Interval convention: `δ_i = t_{i+1} − t_i`, and the last interval is `far − t_{N−1}` (finite;
 //! nerf-pytorch uses `1e10`). All samplers reuse the output's allocations, allocate nothing per
@@ -24,7 +24,10 @@ mod pdf;
 mod segment;
 mod stratified;
 
-pub use occupancy::{march, OccupancyGrid, OccupancyGridConfig, RayMarch, Stepping, DENSITY_CHUNK, MAX_RESOLUTION, MAX_STEP_RATIO};
+pub use occupancy::{
+    cascade_box, march, OccupancyGrid, OccupancyGridConfig, RayMarch, Stepping, DENSITY_CHUNK, MAX_CASCADES, MAX_RESOLUTION,
+    MAX_STEP_RATIO,
+};
 pub use packed::{compacted_rows, RaySamples};
 pub use pdf::{hierarchical, sample_pdf};
 pub use segment::{clip_segments, segment};

@@ -198,7 +198,7 @@ impl OccupancyGridConfig {
             }
             if c > 1 && self.resolution % 16 != 0 {
                 return Err(format!(
-                    "occupancy grid: a cascade of {c} levels needs a resolution divisible by 16, got {}",
+                    "occupancy grid: a cascade of {c} levels needs a resolution divisible by 16, got {} (or set cascades = 1)",
                     self.resolution
                 ));
             }
@@ -222,6 +222,21 @@ impl OccupancyGridConfig {
     pub fn levels(&self) -> u32 {
         self.cascades.unwrap_or(1)
     }
+}
+
+/// The box `(lo, hi)` of level `m` of a cascade of `levels` over `[aabb_min, aabb_max]`
+/// ([`OccupancyGrid::level_box`]): the outermost level is the box itself (bit for bit), level `m`
+/// the box shrunk about its centre by `2^(levels − 1 − m)`. Cells per axis are `(hi − lo)/res`
+/// wide; the GPU marcher builds its levels with this function.
+pub fn cascade_box(aabb_min: [f32; 3], aabb_max: [f32; 3], levels: usize, m: usize) -> ([f32; 3], [f32; 3]) {
+    assert!(m < levels, "level {m} of a cascade of {levels}");
+    if m + 1 == levels {
+        return (aabb_min, aabb_max);
+    }
+    let s = 0.5f32.powi((levels - 1 - m) as i32);
+    let c: [f32; 3] = std::array::from_fn(|a| 0.5 * (aabb_min[a] + aabb_max[a]));
+    let h: [f32; 3] = std::array::from_fn(|a| 0.5 * (aabb_max[a] - aabb_min[a]) * s);
+    (std::array::from_fn(|a| c[a] - h[a]), std::array::from_fn(|a| c[a] + h[a]))
 }
 
 /// The box and cells of one level of a cascade.
@@ -305,22 +320,9 @@ impl OccupancyGrid {
         let n_levels = cfg.levels() as usize;
         let level_cells = res * res * res;
         let n = n_levels * level_cells;
-        // The outermost level is the box itself (bit for bit the one-level grid); level m is the
-        // box shrunk about its centre by 2^(levels − 1 − m) (exact power-of-two scalings).
         let levels: Vec<Level> = (0..n_levels)
             .map(|m| {
-                let (lo, hi) = if m + 1 == n_levels {
-                    (aabb_min, aabb_max)
-                } else {
-                    let s = 0.5f32.powi((n_levels - 1 - m) as i32);
-                    let lo = std::array::from_fn(|a| {
-                        0.5 * (aabb_min[a] + aabb_max[a]) - 0.5 * (aabb_max[a] - aabb_min[a]) * s
-                    });
-                    let hi = std::array::from_fn(|a| {
-                        0.5 * (aabb_min[a] + aabb_max[a]) + 0.5 * (aabb_max[a] - aabb_min[a]) * s
-                    });
-                    (lo, hi)
-                };
+                let (lo, hi) = cascade_box(aabb_min, aabb_max, n_levels, m);
                 Level {
                     lo,
                     hi,

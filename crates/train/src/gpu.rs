@@ -295,12 +295,13 @@ impl GpuEngine {
         let mut compaction = None;
         let sampler = match &config.sampler {
             SamplerConfig::Occupancy { grid, step_size, max_samples_per_ray, cone_angle } => {
-                let g = GpuOccupancyGrid::new(&ctx, grid, (bounds.aabb_min, bounds.aabb_max)).map_err(gerr)?;
+                let g = GpuOccupancyGrid::new(&ctx, &bounds.grid_config(grid), (bounds.aabb_min, bounds.aabb_max)).map_err(gerr)?;
                 let n_cells = g.n_cells();
                 let mc = MarchConfig {
                     aabb_min: bounds.aabb_min,
                     aabb_max: bounds.aabb_max,
                     resolution: g.resolution() as u32,
+                    cascades: g.cascades() as u32,
                     step_size: *step_size,
                     near: bounds.near,
                     far: bounds.far,

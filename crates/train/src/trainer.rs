@@ -6,7 +6,7 @@ use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
 use nerf_optim::{Adam, AdamState, Ema, EmaState};
 use nerf_render::{composite_backward, composite_forward, composited_counts, photometric_loss_grad, CompositeOutputs};
-use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, RaySamples};
+use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, OccupancyGridConfig, RaySamples};
 use std::sync::{Mutex, MutexGuard};
 
 /// Where the scene lives: what fields and samplers need to know about it.
@@ -24,12 +24,32 @@ pub struct SceneBounds {
     /// ([`nerf_sampling::clip_segments`]) instead of `[near, far]`: NDC scenes, where the box
     /// (`z' ∈ [−1, 1]`) gives every ray its NDC segment. The occupancy marcher always clips.
     pub clip_to_box: bool,
+    /// Levels of the occupancy grid's cascade when the config leaves `cascades` out: 1, or for
+    /// an instant-ngp box `1 + ⌈log₂ aabb_scale⌉` (at most 8), so that the finest level covers
+    /// the unit cube of instant-ngp units, as instant-ngp's cascades do.
+    pub cascades: u32,
 }
 
 impl SceneBounds {
     /// The bounds of a loaded dataset (clipped to the box in NDC scenes).
     pub fn of(ds: &Dataset) -> Self {
-        Self { aabb_min: ds.aabb.min, aabb_max: ds.aabb.max, near: ds.near, far: ds.far, clip_to_box: ds.clips_to_aabb() }
+        let cascades = match ds.ngp {
+            Some(b) if b.aabb_scale > 1.0 => 1 + (b.aabb_scale.log2().ceil() as u32).min(nerf_sampling::MAX_CASCADES - 1),
+            _ => 1,
+        };
+        Self {
+            aabb_min: ds.aabb.min,
+            aabb_max: ds.aabb.max,
+            near: ds.near,
+            far: ds.far,
+            clip_to_box: ds.clips_to_aabb(),
+            cascades,
+        }
+    }
+
+    /// The occupancy grid's settings with `cascades` filled in from the scene when absent.
+    pub fn grid_config(&self, grid: &OccupancyGridConfig) -> OccupancyGridConfig {
+        OccupancyGridConfig { cascades: Some(grid.cascades.unwrap_or(self.cascades)), ..grid.clone() }
     }
 
     /// Per-ray segments into `near`/`far` (resized to the rays): `[near, far]`, clipped to the
@@ -169,7 +189,7 @@ impl Trainer {
         let adam = Adam::new(config.adam.clone());
         let grid = match &config.sampler {
             SamplerConfig::Occupancy { grid, .. } => Some(
-                OccupancyGrid::try_new(grid.clone(), bounds.aabb_min, bounds.aabb_max)
+                OccupancyGrid::try_new(bounds.grid_config(grid), bounds.aabb_min, bounds.aabb_max)
                     .map_err(|e| TrainError::Config(format!("sampler.grid: {e}")))?,
             ),
             _ => None,
