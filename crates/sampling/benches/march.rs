@@ -1,6 +1,6 @@
 //! Occupancy-grid ray marching: 2^14 rays through a 128³ grid with ~5% occupied cells (constant
-//! steps, and cone steps on the scattered grid).
-//! Throughput is reported in emitted samples per second.
+//! steps, and cone steps on the scattered grid), reported in emitted samples per second; and the
+//! ball in a box four times as large with one grid or a cascade of three, in rays per second.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use nerf_sampling::{march, OccupancyGrid, OccupancyGridConfig, RaySamples, Stepping};
@@ -81,6 +81,27 @@ fn bench(c: &mut Criterion) {
                 )
             })
         });
+    }
+    group.finish();
+
+    // (d) the ball in a box four times as large ([-4, 4]³, instant-ngp's aabb_scale 4): one 128³
+    // grid over the box against a cascade of 3 (the finest over [-1, 1]³), same rays and steps.
+    let mut group = c.benchmark_group("march_box4_ball");
+    for (name, cascades) in [("one_grid", 1u32), ("cascade_3", 3)] {
+        let cfg = OccupancyGridConfig { cascades: Some(cascades), ..Default::default() };
+        let mut grid = OccupancyGrid::new(cfg, [-4.0; 3], [4.0; 3]);
+        grid.fill_from(step, &mut |p: &[f32], s: &mut [f32]| {
+            for (i, s) in s.iter_mut().enumerate() {
+                let r2 = p[3 * i].powi(2) + p[3 * i + 1].powi(2) + p[3 * i + 2].powi(2);
+                *s = if r2 < 0.457f32 * 0.457 { 100.0 } else { 0.0 };
+            }
+        });
+        let mut out = RaySamples::default();
+        march(&grid, &o, &d, &near, &far, step, 1024, None, &mut out);
+        eprintln!("box4 {name}: {} samples for {} rays ({:.1}/ray)", out.len(), N_RAYS, out.len() as f64 / N_RAYS as f64);
+        group.throughput(Throughput::Elements(N_RAYS as u64));
+        let mut rng = nerf_core::rng(5, 0);
+        group.bench_function(name, |b| b.iter(|| march(&grid, &o, &d, &near, &far, step, 1024, Some(&mut rng), &mut out)));
     }
     group.finish();
 }
