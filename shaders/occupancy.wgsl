@@ -15,7 +15,9 @@
 //                one jittered point per chosen cell (jitter rand_f32(seed, 2+axis, j), clamped to
 //                the cell of its level as the CPU) → positions [m][3], cells [m]; counters_out[1] = m.
 //   (the caller evaluates σ at the positions)
-//   scatter_max: tmp[cell] = max(tmp[cell], enc(sanitise(σ))) (NaN/negative → 0, +∞ → f32 max).
+//   scatter_max: tmp[cell] = max(tmp[cell], enc(sanitise(σ))) (NaN/negative → 0, +∞ → f32 max),
+//                except for cells no training camera sees (seen [⌈n/32⌉] u32 bits; all set unless
+//                marked), which are never refreshed (their density stays 0).
 //   ema:         chosen cells: d = finite(d) ? max(decay·d, t) : t; tmp reset; workgroup sums of d
 //                over the finest level's cells (the others add 0).
 //   reduce:      one workgroup: Kahan sum of the partials → mean = (Σ/res³)·step_size,
@@ -64,6 +66,7 @@ const F32_MAX: f32 = 3.40282347e38;
 @group(0) @binding(9) var<storage, read_write> cells: array<u32>;
 @group(0) @binding(10) var<storage, read_write> counters_out: array<u32>;
 @group(0) @binding(11) var<storage, read> sigma: array<f32>;
+@group(0) @binding(12) var<storage, read> seen: array<u32>;
 
 var<workgroup> wg_f: array<f32, WG>;
 var<workgroup> wg_u: array<u32, WG>;
@@ -117,12 +120,16 @@ fn scatter_max(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     if (j >= stats[1]) {
         return;
     }
+    let c = cells[j];
+    if (((seen[c >> 5u] >> (c & 31u)) & 1u) == 0u) {
+        return;
+    }
     let s0 = sigma[j];
     var s = 0.0;
     if (s0 > 0.0) {
         s = min(s0, F32_MAX);
     }
-    atomicMax(&tmp[cells[j]], bitcast<u32>(s) + 1u);
+    atomicMax(&tmp[c], bitcast<u32>(s) + 1u);
 }
 
 @compute @workgroup_size(WG)

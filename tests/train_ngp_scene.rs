@@ -108,6 +108,18 @@ fn the_gpu_trains_the_one_file_scene_as_the_cpu_does() {
         g.step(&train).unwrap();
     }
     g.finish().unwrap();
+    // The cells no training camera sees (most of the box, far from the object) were marked at the
+    // first step: never occupied, on the GPU as on the CPU.
+    let grid = c.occupancy_grid().unwrap();
+    let seen = grid.seen_fraction();
+    println!("cells seen by a training camera: {:.1} %", 100.0 * seen);
+    assert!(seen > 0.05 && seen < 0.95, "{seen}");
+    assert!((0..grid.densities().len()).all(|i| grid.is_cell_seen(i) || !grid.is_cell_occupied(i)));
+    let cpu_bits: Vec<bool> = (0..grid.densities().len()).map(|i| grid.is_cell_seen(i)).collect();
+    let state = g.sampler_state().unwrap();
+    let gpu_grid = &state.iter().find(|(k, _)| k == "occupancy_density").unwrap().1;
+    assert_eq!(gpu_grid.len(), cpu_bits.len());
+    assert!(cpu_bits.iter().zip(gpu_grid.iter()).all(|(&s, &d)| s || d == 0.0), "an unseen cell has a density on the GPU");
     let (gpu, cpu) = (common::sparse_psnr(&g, &test, 17), common::sparse_psnr(&c, &test, 17));
     println!("after {} steps: gpu {gpu:.2} dB, cpu {cpu:.2} dB, untrained {untrained:.2} dB (every 17th pixel)", cfg.iters);
     // Measured: 13.49 dB on the GPU (lavapipe), 13.64 dB on the CPU, 7.11 dB untrained. A GPU

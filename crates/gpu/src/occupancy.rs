@@ -56,6 +56,8 @@ pub struct GpuOccupancyGrid {
     n_words: usize,
     density: wgpu::Buffer,
     bits: wgpu::Buffer,
+    /// Cells a training camera sees (bits as `bits`; all set unless marked).
+    seen: wgpu::Buffer,
     tmp: wgpu::Buffer,
     occupied: wgpu::Buffer,
     stats: wgpu::Buffer,
@@ -141,6 +143,7 @@ impl GpuOccupancyGrid {
             n_words,
             density: ctx.upload("occupancy.density", &vec![f32::INFINITY; n_cells]),
             bits: ctx.zeros("occupancy.bits", 4 * n_words),
+            seen: ctx.upload("occupancy.seen", &vec![u32::MAX; n_words]),
             tmp: ctx.zeros("occupancy.tmp", 4 * n_cells),
             occupied: ctx.zeros("occupancy.occupied", 4 * n_cells),
             stats: ctx.zeros("occupancy.stats", 16),
@@ -248,7 +251,7 @@ impl GpuOccupancyGrid {
         self.k.scatter_max.record(
             ctx,
             enc,
-            &[(3, &self.tmp), (5, &self.stats), (9, cells), (11, sigma)],
+            &[(3, &self.tmp), (5, &self.stats), (9, cells), (11, sigma), (12, &self.seen)],
             groups_1d(self.n_cells, WG),
         );
         self.record_recompute(ctx, enc, &self.uniform);
@@ -283,7 +286,9 @@ impl GpuOccupancyGrid {
         ctx.queue.submit([enc.finish()]);
     }
 
-    /// Copies a CPU grid's densities (a checkpoint) and recomputes the bits with its step size.
+    /// Copies a CPU grid's densities (a checkpoint) and its marks of the cells cameras see
+    /// (`OccupancyGrid::mark_seen`: unseen cells are never refreshed; all cells without marks)
+    /// and recomputes the bits with its step size.
     /// Errors when its resolution, levels or box differ from this grid's.
     pub fn upload_from(&self, ctx: &GpuContext, grid: &OccupancyGrid) -> Result<(), GpuError> {
         if grid.resolution() != self.resolution() || grid.cascades() != self.cascades() || grid.aabb() != self.aabb() {
@@ -298,6 +303,7 @@ impl GpuOccupancyGrid {
             )));
         }
         ctx.write(&self.density, 0, grid.densities());
+        ctx.write(&self.seen, 0, &grid.seen_words().unwrap_or_else(|| vec![u32::MAX; self.n_words]));
         ctx.write(&self.tmp, 0, &vec![0u32; self.n_cells]);
         self.recompute(ctx, grid.step_size());
         Ok(())

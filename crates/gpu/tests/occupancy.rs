@@ -275,3 +275,48 @@ fn a_whole_warm_up_update_in_one_submission_matches_the_cpu() {
         assert_eq!(g.download_stats(&ctx).unwrap().n_chosen, n);
     }
 }
+
+#[test]
+fn cells_no_camera_sees_are_never_refreshed_on_the_gpu_either() {
+    let Some(ctx) = context() else { return };
+    let cfg = OccupancyGridConfig { resolution: 20, threshold: 0.01, warmup_steps: 1000, ..Default::default() };
+    let step_size = 0.01;
+    // Marks from a CPU grid (the trainer's path: mark on the CPU, upload with the densities).
+    let mut cpu = OccupancyGrid::new(cfg.clone(), AABB.0, AABB.1);
+    cpu.mark_seen(&|p, r| p[0] - r < 0.2 && p[2] + r > 0.4);
+    let n_seen = (0..cpu.densities().len()).filter(|&i| cpu.is_cell_seen(i)).count();
+    assert!(n_seen > 1000 && n_seen < 6000, "{n_seen} seen");
+    let g = GpuOccupancyGrid::new(&ctx, &cfg, AABB).unwrap();
+    g.upload_from(&ctx, &cpu).unwrap();
+    assert_same_grid(&ctx, &g, &cpu, "marked");
+    let n = g.n_cells();
+    let s = scratch(&ctx, n);
+    let r = cfg.resolution as usize;
+    let h = cpu.cell_size();
+    // The cell of a point strictly inside one (one level).
+    let cell_of = |p: &[f32]| -> usize {
+        let ijk: [usize; 3] = std::array::from_fn(|a| (((p[a] - AABB.0[a]) / h[a]) as usize).min(r - 1));
+        ijk[0] + r * (ijk[1] + r * ijk[2])
+    };
+    let mut rng = nerf_core::rng(3, 0);
+    for round in 0..3u32 {
+        // The GPU evaluates every chosen cell; the refresh ignores the unseen ones.
+        let (_, cells, m) = choose(&ctx, &g, &s, round as u64 * 16, 500 + round);
+        assert_eq!(m, n);
+        let sigma: Vec<f32> = cells.iter().map(|&c| sigma_of(c as usize, round)).collect();
+        apply(&ctx, &g, &s, &sigma, step_size);
+        // The CPU asks only for the seen cells' points.
+        let mut asked = 0;
+        cpu.update(round as u64 * 16, step_size, &mut |p, out| {
+            for (i, o) in out.iter_mut().enumerate() {
+                let c = cell_of(&p[3 * i..3 * i + 3]);
+                *o = sigma_of(c, round);
+                asked += 1;
+            }
+        }, &mut rng);
+        assert_eq!(asked, n_seen);
+        assert_same_grid(&ctx, &g, &cpu, &format!("round {round}"));
+        let d = g.download(&ctx).unwrap();
+        assert!((0..n).all(|i| cpu.is_cell_seen(i) || d[i] == 0.0), "an unseen cell was refreshed");
+    }
+}

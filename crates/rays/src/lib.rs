@@ -276,6 +276,26 @@ impl Camera {
         ]
     }
 
+    /// Whether the ball of radius `r` about `c` (world coordinates) may show in the image: it lies
+    /// in front of the camera (depth > −r) and within `r` of the inner side of each of the four
+    /// planes through the camera centre and the image edges (`u ∈ [0, W]`, `v ∈ [0, H]`). A ball
+    /// that shows passes; one that passes may still miss the frustum near its corners (the test is
+    /// conservative, as instant-ngp's `mark_untrained_density_grid`).
+    pub fn sees_sphere(&self, c: Vec3, r: f32) -> bool {
+        let p = self.rotation.transpose() * (c - self.position); // camera axes: x right, y up, −z forward
+        let depth = -p.z;
+        if depth <= -r {
+            return false;
+        }
+        let k = &self.intrinsics;
+        // x/depth ∈ [−cx/fx, (W − cx)/fx], y/depth ∈ [−(H − cy)/fy, cy/fy]; the signed distance to
+        // the plane x = a·depth is (x − a·depth)/√(1 + a²).
+        let inside = |x: f32, lo: f32, hi: f32| {
+            (x - hi * depth) / (1.0 + hi * hi).sqrt() <= r && (lo * depth - x) / (1.0 + lo * lo).sqrt() <= r
+        };
+        inside(p.x, -k.cx / k.fx, (k.width as f32 - k.cx) / k.fx) && inside(p.y, -(k.height as f32 - k.cy) / k.fy, k.cy / k.fy)
+    }
+
     /// World direction (not normalised) through continuous image coordinates `(u, v)`:
     /// `R·[(u−cx)/fx, −(v−cy)/fy, −1]`.
     #[inline]
@@ -437,6 +457,43 @@ mod tests {
             [0.0, 0.0, 0.0, 1.0],
         ];
         Camera::from_c2w(k, &c2w).unwrap()
+    }
+
+    #[test]
+    fn sees_sphere_is_the_image_for_points_and_conservative_for_balls() {
+        // An off-centre principal point, so the four planes differ.
+        let k = Intrinsics { width: 80, height: 60, fx: 70.0, fy: 75.0, cx: 30.0, cy: 35.0 };
+        let cam = Camera { intrinsics: k, ..test_camera() };
+        let shows = |p: Vec3| {
+            let q = cam.rotation.transpose() * (p - cam.position);
+            let d = -q.z;
+            let (u, v) = (k.cx + k.fx * q.x / d, k.cy - k.fy * q.y / d);
+            d > 0.0 && (0.0..=k.width as f32).contains(&u) && (0.0..=k.height as f32).contains(&v)
+        };
+        let mut g = nerf_core::rng(17, 0);
+        use rand::Rng as _;
+        let (mut seen, mut unseen) = (0, 0);
+        for _ in 0..4000 {
+            let c = cam.position + Vec3::new(g.gen_range(-6.0..6.0), g.gen_range(-6.0..6.0), g.gen_range(-6.0..6.0));
+            // A point: exactly the projection test.
+            assert_eq!(cam.sees_sphere(c, 0.0), shows(c), "{c:?}");
+            // A ball: any visible point of it makes it seen.
+            let r = g.gen_range(0.05f32..1.0);
+            let visible = (0..300).any(|_| {
+                let v = Vec3::new(g.gen_range(-1.0..1.0), g.gen_range(-1.0..1.0), g.gen_range(-1.0..1.0));
+                v.length() <= 1.0 && shows(c + v * r)
+            });
+            let s = cam.sees_sphere(c, r);
+            if visible {
+                assert!(s, "ball at {c:?} r {r} shows but is not seen");
+            }
+            seen += s as usize;
+            unseen += !s as usize;
+        }
+        assert!(seen > 150 && unseen > 2000, "{seen} seen, {unseen} not");
+        // Behind the camera by more than the radius.
+        let back = cam.position + cam.rotation * Vec3::new(0.0, 0.0, 2.0);
+        assert!(!cam.sees_sphere(back, 1.9) && cam.sees_sphere(back, 2.1));
     }
 
     #[test]

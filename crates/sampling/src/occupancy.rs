@@ -274,6 +274,9 @@ pub struct OccupancyGrid {
     density: Vec<f32>,
     /// One bit per cell: occupied.
     bits: Vec<u64>,
+    /// One bit per cell: seen by a training camera ([`OccupancyGrid::mark_seen`]); empty = every
+    /// cell (the default).
+    seen: Vec<u64>,
     /// One bit per block of `BLOCK³` cells: any cell of the block occupied (for skipping);
     /// block `b` of level `m` is bit `m·cres³ + b`.
     coarse: Vec<u64>,
@@ -348,6 +351,7 @@ impl OccupancyGrid {
             margin,
             density: vec![f32::INFINITY; n],
             bits: vec![0; n.div_ceil(64)],
+            seen: Vec::new(),
             coarse: vec![0; (n_levels * cres.pow(3)).div_ceil(64)],
             cres,
             n_occupied: 0,
@@ -440,7 +444,8 @@ impl OccupancyGrid {
     /// and applies the EMA: a chosen cell becomes `max(decay·old, σ_new)` (`σ_new` replaces a
     /// never-sampled `+∞`; a cell chosen twice takes the larger new value), unchosen cells keep
     /// their value (nerfacc's rule). Negative or NaN `σ` count as 0, `+∞` as `f32::MAX`. Then the occupancy bits and
-    /// the mean are recomputed with `step_size`.
+    /// the mean are recomputed with `step_size`. Chosen cells that no training camera sees
+    /// ([`mark_seen`](Self::mark_seen)) are dropped before `density` is asked.
     ///
     /// One `u64` is drawn from `rng`; the result does not depend on the thread count.
     pub fn update(
@@ -513,6 +518,21 @@ impl OccupancyGrid {
                         }
                     });
             }
+            if !self.seen.is_empty() {
+                // Cells no training camera sees are never refreshed (instant-ngp's untrained cells).
+                let mut kept = 0;
+                for j in 0..m {
+                    let c = cells[j] as usize;
+                    if (self.seen[c >> 6] >> (c & 63)) & 1 != 0 {
+                        cells[kept] = cells[j];
+                        pos.copy_within(3 * j..3 * j + 3, 3 * kept);
+                        kept += 1;
+                    }
+                }
+                cells.truncate(kept);
+                pos.truncate(3 * kept);
+                sigma.truncate(kept);
+            }
             density(&pos, &mut sigma);
             for (&c, &s) in cells.iter().zip(&sigma) {
                 let t = &mut self.tmp[c as usize];
@@ -578,7 +598,72 @@ impl OccupancyGrid {
             start += m;
         }
         self.chunk_pos = pos;
+        self.clear_unseen();
         self.recompute(step_size);
+    }
+
+    /// Marks the cells that some training camera may see: `visible(centre, radius)` is asked for
+    /// the ball around each cell (radius: half the cell's diagonal), e.g. `Camera::sees_sphere`
+    /// over the training cameras. Cells not seen get density 0 — never occupied — and are left
+    /// out of every later update (instant-ngp's `mark_untrained_density_grid`): rays of the
+    /// training views never cross them, so their density would only be the field's guess, and
+    /// refreshing them would cost density queries for nothing. Calling it again replaces the marks.
+    pub fn mark_seen(&mut self, visible: &(dyn Fn([f32; 3], f32) -> bool + Sync)) {
+        let n = self.n_cells();
+        let mut seen = vec![0u64; n.div_ceil(64)];
+        let this = &*self;
+        seen.par_iter_mut().enumerate().for_each(|(w, word)| {
+            let mut c = [0f32; 3];
+            for i in 64 * w..(64 * w + 64).min(n) {
+                this.cell_point(i, [0.5; 3], &mut c);
+                let h = this.levels[i / this.level_cells].cell;
+                let r = 0.5 * (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt();
+                if visible(c, r) {
+                    *word |= 1 << (i - 64 * w);
+                }
+            }
+        });
+        self.seen = seen;
+        self.clear_unseen();
+        let step = self.step_size;
+        self.recompute(step);
+    }
+
+    /// Fraction of the cells some training camera sees (1 before [`mark_seen`](Self::mark_seen)).
+    pub fn seen_fraction(&self) -> f32 {
+        if self.seen.is_empty() {
+            return 1.0;
+        }
+        self.seen.iter().map(|w| w.count_ones() as usize).sum::<usize>() as f32 / self.n_cells() as f32
+    }
+
+    /// Is cell `idx` seen by a training camera? (`true` for every cell before
+    /// [`mark_seen`](Self::mark_seen).) Panics if out of range.
+    pub fn is_cell_seen(&self, idx: usize) -> bool {
+        assert!(idx < self.n_cells(), "cell {idx} out of range");
+        self.seen.is_empty() || (self.seen[idx >> 6] >> (idx & 63)) & 1 != 0
+    }
+
+    /// The seen marks as 32-bit words (bit `i mod 32` of word `i/32` = cell `i`; the GPU grid's
+    /// layout), `None` before [`mark_seen`](Self::mark_seen).
+    pub fn seen_words(&self) -> Option<Vec<u32>> {
+        if self.seen.is_empty() {
+            return None;
+        }
+        let n_words = self.n_cells().div_ceil(32);
+        Some((0..n_words).map(|w| (self.seen[w / 2] >> (32 * (w % 2))) as u32).collect())
+    }
+
+    /// Density 0 for every cell not seen.
+    fn clear_unseen(&mut self) {
+        if self.seen.is_empty() {
+            return;
+        }
+        for (i, d) in self.density.iter_mut().enumerate() {
+            if (self.seen[i >> 6] >> (i & 63)) & 1 == 0 {
+                *d = 0.0;
+            }
+        }
     }
 
     /// Recomputes the mean, the threshold and the occupancy bits.
@@ -716,6 +801,7 @@ impl OccupancyGrid {
             ));
         }
         self.density.copy_from_slice(d);
+        self.clear_unseen();
         self.recompute(step_size);
         Ok(())
     }

@@ -231,3 +231,44 @@ fn a_cascade_march_in_rounds_emits_the_samples_of_march() {
         }
     }
 }
+
+#[test]
+fn cells_no_camera_sees_are_never_occupied_nor_refreshed() {
+    // "Seen": cells whose ball reaches x > 1 (a camera looking at that half of the box).
+    let c = OccupancyGridConfig { warmup_steps: 32, ..cfg(16, 2) };
+    let mut g = OccupancyGrid::new(c, LO, HI);
+    assert_eq!(g.seen_fraction(), 1.0);
+    g.mark_seen(&|p, r| p[0] + r > 1.0);
+    let n = g.densities().len();
+    let seen: Vec<bool> = (0..n).map(|i| g.is_cell_seen(i)).collect();
+    let n_seen = seen.iter().filter(|&&s| s).count();
+    assert!(n_seen > n / 4 && n_seen < 3 * n / 4, "{n_seen} of {n} seen");
+    assert!((g.seen_fraction() - n_seen as f32 / n as f32).abs() < 1e-6);
+    for (i, &s) in seen.iter().enumerate() {
+        assert_eq!(g.densities()[i] == 0.0, !s, "cell {i}: unseen cells start at 0, seen ones at +inf");
+        assert_eq!(g.is_cell_occupied(i), s);
+    }
+    // Warm-up asks the density of the seen cells only; afterwards of seen cells only too.
+    let asked = std::cell::Cell::new(0usize);
+    let mut everywhere = |p: &[f32], s: &mut [f32]| {
+        asked.set(asked.get() + s.len());
+        for (i, s) in s.iter_mut().enumerate() {
+            assert!(p[3 * i] > 1.0 - 1.0, "an unseen point was asked: {:?}", &p[3 * i..3 * i + 3]);
+            *s = 50.0;
+        }
+    };
+    let mut rng = nerf_core::rng(1, 0);
+    g.update(0, 0.01, &mut everywhere, &mut rng);
+    assert_eq!(asked.get(), n_seen, "warm-up: every seen cell once");
+    asked.set(0);
+    g.update(100, 0.01, &mut everywhere, &mut rng);
+    assert!(asked.get() > 0 && asked.get() < n / 4 + n_seen / 4, "{} asked after warm-up", asked.get());
+    for (i, &s) in seen.iter().enumerate() {
+        assert_eq!(g.is_cell_occupied(i), s, "cell {i}: a dense field everywhere occupies exactly the seen cells");
+    }
+    // Restored and filled grids keep unseen cells at 0.
+    g.set_densities(&vec![50.0; n], 0.01).unwrap();
+    assert!((0..n).all(|i| g.is_cell_occupied(i) == seen[i]));
+    g.fill_from(0.01, &mut |_, s: &mut [f32]| s.fill(50.0));
+    assert!((0..n).all(|i| (g.densities()[i] == 0.0) == !seen[i]));
+}

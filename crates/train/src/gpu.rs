@@ -891,6 +891,19 @@ impl GpuEngine {
         Ok(v)
     }
 
+    /// Marks the grid's cells no training camera sees (`OccupancyGrid::mark_seen`) on a CPU copy
+    /// of the device's densities, and uploads densities and marks.
+    pub(crate) fn mark_seen(&mut self, visible: &(dyn Fn([f32; 3], f32) -> bool + Sync)) -> Result<(), TrainError> {
+        if let Sampler::Occupancy(o) = &self.sampler {
+            let (lo, hi) = o.grid.aabb();
+            let mut g = nerf_sampling::OccupancyGrid::try_new(o.grid.config().clone(), lo, hi).map_err(TrainError::Config)?;
+            g.set_densities(&o.grid.download(&self.ctx).map_err(gerr)?, o.step_size).map_err(TrainError::Config)?;
+            g.mark_seen(visible);
+            o.grid.upload_from(&self.ctx, &g).map_err(gerr)?;
+        }
+        Ok(())
+    }
+
     pub(crate) fn restore(
         &mut self,
         fields: &[Vec<(String, Vec<f32>)>],

@@ -144,6 +144,9 @@ pub struct Trainer {
     ema_fields: Option<Mutex<EmaFields>>,
     /// What `new_on` changed in the config to fit the adapter's limits.
     device_note: Option<String>,
+    /// Whether the occupancy grid's cells have been marked with the training cameras (at the
+    /// first step, and again after a restore).
+    seen_marked: bool,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -203,6 +206,7 @@ impl Trainer {
             ema_version: 0,
             ema_fields,
             device_note: None,
+            seen_marked: false,
             stages: (0..n).map(|_| Stage::default()).collect(),
             marched: RaySamples::default(),
             marched_sigma: Vec::new(),
@@ -344,6 +348,10 @@ impl Trainer {
     /// A loss that is computed (every CPU step; every read-back on the GPU) and not finite is
     /// [`TrainError::Diverged`]: NaN or infinite parameters never train on silently.
     pub fn step(&mut self, data: &Dataset) -> Result<StepStats, TrainError> {
+        if !self.seen_marked {
+            self.mark_seen(data)?;
+            self.seen_marked = true;
+        }
         match self.gpu.as_mut() {
             Some(g) => {
                 // The GPU path returns `Diverged` itself (a NaN loss there also means "not read").
@@ -362,6 +370,24 @@ impl Trainer {
                 }
             }
         }
+    }
+
+    /// Marks the occupancy-grid cells that no training camera of `data` sees (instant-ngp's
+    /// untrained cells: never occupied, never refreshed; `OccupancyGrid::mark_seen` with
+    /// `Camera::sees_sphere`). Euclidean scenes only: an NDC grid is not in the cameras' space.
+    fn mark_seen(&mut self, data: &Dataset) -> Result<(), TrainError> {
+        if data.ndc.is_some() || data.cameras.is_empty() {
+            return Ok(());
+        }
+        let cameras = &data.cameras;
+        let visible = move |c: [f32; 3], r: f32| cameras.iter().any(|cam| cam.sees_sphere(c.into(), r));
+        if let Some(g) = self.gpu.as_mut() {
+            return g.mark_seen(&visible);
+        }
+        if let Some(g) = self.grid.as_mut() {
+            g.mark_seen(&visible);
+        }
+        Ok(())
     }
 
     fn cpu_step(&mut self, data: &Dataset) -> StepStats {
@@ -649,6 +675,8 @@ impl Trainer {
             check_ema_groups(s, &self.group_names, fields)?;
         }
         let ema = ema.unwrap_or(EmaState { step: 0, groups: Vec::new() });
+        // The cameras' marks are made again at the next step (the restored densities replace them).
+        self.seen_marked = false;
         if let Some(g) = self.gpu.as_mut() {
             let ema = self.config.ema_decay.is_some().then_some(&ema);
             g.restore(fields, &adam, &sampler_state, ema)?;
