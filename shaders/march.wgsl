@@ -183,6 +183,8 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
     let fres = f32(P.res);
     let hi_cell = vec3<f32>(fres - 1.0);
     let q = P.res / 4u;
+    // 1/d once per ray (components where d = 0 are never used).
+    let inv_d = 1.0 / select(s.d, vec3<f32>(1.0), s.d == vec3<f32>(0.0));
     var k = k0;
     var count = 0u;
     var t = t_at(s, k0);
@@ -228,7 +230,7 @@ fn march_from(s: RaySetup, k0: u32, max_n: u32, base: u32, write: bool) -> vec2<
         var ts = s.t1;
         for (var a = 0u; a < 3u; a = a + 1u) {
             if (s.d[a] != 0.0) {
-                let inv = 1.0 / s.d[a];
+                let inv = inv_d[a];
                 let fa = P.lv_cell[m][a] * inv;
                 let fb = (P.lv_lo[m][a] - s.o[a]) * inv;
                 let face = select(lo[a], hi[a], s.d[a] > 0.0);
