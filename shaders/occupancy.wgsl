@@ -20,7 +20,7 @@
 //                marked), which are never refreshed (their density stays 0).
 //   ema:         chosen cells: d = finite(d) ? max(decay·d, t) : t; tmp reset; workgroup sums of d
 //                over the finest level's cells (the others add 0).
-//   reduce:      one workgroup: Kahan sum of the partials → mean = (Σ/res³)·step_size,
+//   reduce:      one workgroup: Kahan sum of the partials → mean = (Σ/mean_cells)·step_size,
 //                thr = min(threshold, mean) (an infinite mean gives threshold, as on the CPU).
 //   bits:        one invocation per 32-cell word: bit = d·step_size > thr; workgroup popcounts.
 //   scan_blocks: one workgroup: exclusive scan of the block counts → block offsets, n_occupied.
@@ -44,7 +44,7 @@ struct OccParams {
     warm: u32,          // per update (written by record_choose): 1 = choose every cell
     step_size: f32,     // per update (written by record_apply)
     level_cells: u32,   // res³
-    _p0: u32,
+    mean_cells: u32,    // the mean's divisor: level 0's cells a camera sees (all unless marked)
     _p1: u32,
     _p2: u32,
     lv_lo: array<vec4<f32>, 8>,    // per level: the box's lower corner
@@ -188,7 +188,7 @@ fn reduce(@builtin(local_invocation_index) lid: u32) {
         workgroupBarrier();
     }
     if (lid == 0u) {
-        let mean = (wg_f[0] / f32(prm.level_cells)) * prm.step_size;
+        let mean = (wg_f[0] / f32(prm.mean_cells)) * prm.step_size;
         stats[2] = bitcast<u32>(min(prm.threshold, mean));
         stats[3] = bitcast<u32>(mean);
     }

@@ -188,7 +188,9 @@ pub(crate) struct OccParams {
     pub(crate) step_size: f32,
     /// Cells per level (`res³`); the mean of the threshold is over the first (finest) level.
     pub(crate) level_cells: u32,
-    pub(crate) _pad: [u32; 3],
+    /// The divisor of that mean: the finest level's cells a camera sees (`OccupancyGrid::mean_cells`).
+    pub(crate) mean_cells: u32,
+    pub(crate) _pad: [u32; 2],
     /// Per level of the cascade (finest first): the box's lower corner (w unused).
     pub(crate) lv_lo: [[f32; 4]; 8],
     /// Per level: the cell size (w unused).

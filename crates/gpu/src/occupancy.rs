@@ -36,6 +36,8 @@ const WG: u32 = 256;
 /// Byte offsets of the per-update fields of [`OccParams`].
 const SEED_OFFSET: u64 = 13 * 4;
 const STEP_SIZE_OFFSET: u64 = 15 * 4;
+/// Byte offset of `mean_cells` in [`OccParams`].
+const MEAN_CELLS_OFFSET: u64 = 17 * 4;
 
 struct Kernels {
     choose: Kernel,
@@ -117,7 +119,8 @@ impl GpuOccupancyGrid {
             warm: 1,
             step_size: cpu.step_size(),
             level_cells: level_cells as u32,
-            _pad: [0; 3],
+            mean_cells: level_cells as u32,
+            _pad: [0; 2],
             lv_lo,
             lv_cell,
         };
@@ -154,7 +157,7 @@ impl GpuOccupancyGrid {
             base,
             k,
         };
-        grid.recompute(ctx, cpu.step_size());
+        grid.recompute(ctx, cpu.step_size(), level_cells as u32);
         Ok(grid)
     }
 
@@ -279,8 +282,8 @@ impl GpuOccupancyGrid {
 
     /// Recomputes bits and the occupied list from the current densities with `step_size` and
     /// submits (set-up path).
-    fn recompute(&self, ctx: &GpuContext, step_size: f32) {
-        ctx.write(&self.setup_uniform, 0, &[OccParams { step_size, ..self.base }]);
+    fn recompute(&self, ctx: &GpuContext, step_size: f32, mean_cells: u32) {
+        ctx.write(&self.setup_uniform, 0, &[OccParams { step_size, mean_cells, ..self.base }]);
         let mut enc = ctx.encoder("occupancy.recompute");
         self.record_recompute(ctx, &mut enc, &self.setup_uniform);
         ctx.queue.submit([enc.finish()]);
@@ -303,9 +306,12 @@ impl GpuOccupancyGrid {
             )));
         }
         ctx.write(&self.density, 0, grid.densities());
+        // The mean's divisor (the cells cameras see), for the updates and the set-up below.
+        let mc = grid.mean_cells() as u32;
+        ctx.write(&self.uniform, MEAN_CELLS_OFFSET, &[mc]);
         ctx.write(&self.seen, 0, &grid.seen_words().unwrap_or_else(|| vec![u32::MAX; self.n_words]));
         ctx.write(&self.tmp, 0, &vec![0u32; self.n_cells]);
-        self.recompute(ctx, grid.step_size());
+        self.recompute(ctx, grid.step_size(), mc);
         Ok(())
     }
 

@@ -654,6 +654,18 @@ impl OccupancyGrid {
         Some((0..n_words).map(|w| (self.seen[w / 2] >> (32 * (w % 2))) as u32).collect())
     }
 
+    /// Cells the threshold's mean is taken over: the finest level's cells a camera sees (all of
+    /// them before [`mark_seen`](Self::mark_seen); at least 1).
+    pub fn mean_cells(&self) -> usize {
+        if self.seen.is_empty() {
+            return self.level_cells;
+        }
+        let n0 = self.level_cells;
+        let full = self.seen[..n0 / 64].iter().map(|w| w.count_ones() as usize).sum::<usize>();
+        let rest = if n0 % 64 != 0 { (self.seen[n0 / 64] & ((1u64 << (n0 % 64)) - 1)).count_ones() as usize } else { 0 };
+        (full + rest).max(1)
+    }
+
     /// Density 0 for every cell not seen.
     fn clear_unseen(&mut self) {
         if self.seen.is_empty() {
@@ -670,13 +682,14 @@ impl OccupancyGrid {
     fn recompute(&mut self, step_size: f32) {
         self.step_size = step_size;
         let n = self.n_cells();
-        // The mean is over the finest level (instant-ngp's), all the cells with one level.
+        // The mean is over the finest level (instant-ngp's), all the cells with one level, and
+        // only over the cells a camera sees (the others hold 0 and would lower the threshold).
         let n0 = self.level_cells;
         let sum: f64 = self.density[..n0]
             .par_chunks(GEN_BLOCK)
             .map(|c| c.iter().map(|&d| d as f64).sum::<f64>())
             .sum();
-        let mean = (sum / n0 as f64) as f32 * step_size;
+        let mean = (sum / self.mean_cells() as f64) as f32 * step_size;
         // `min` with an infinite mean (never-sampled cells) gives `threshold`.
         let thr = self.cfg.threshold.min(mean);
         let density = &self.density;

@@ -272,3 +272,20 @@ fn cells_no_camera_sees_are_never_occupied_nor_refreshed() {
     g.fill_from(0.01, &mut |_, s: &mut [f32]| s.fill(50.0));
     assert!((0..n).all(|i| (g.densities()[i] == 0.0) == !seen[i]));
 }
+
+#[test]
+fn the_threshold_mean_leaves_out_cells_no_camera_sees() {
+    // Seen cells (x > 1) at σ·step = 0.004; unseen ones hold 0. The mean over the seen cells is
+    // 0.004, so a seen cell at 0.003 is empty; a mean over every cell (lower) would mark it.
+    let mut g = OccupancyGrid::new(cfg(16, 1), LO, HI);
+    g.mark_seen(&|p, r| p[0] + r > 1.0);
+    let n = g.densities().len();
+    let seen: Vec<usize> = (0..n).filter(|&i| g.is_cell_seen(i)).collect();
+    assert_eq!(g.mean_cells(), seen.len());
+    let mut d = vec![0.004f32; n];
+    d[seen[0]] = 0.003;
+    g.set_densities(&d, 1.0).unwrap();
+    assert!(!g.is_cell_occupied(seen[0]), "0.003 is below the seen cells' mean of ~0.004");
+    assert!(g.is_cell_occupied(seen[1]));
+    assert!(seen.len() < n * 3 / 4, "{} of {n} seen: the all-cell mean would be far lower", seen.len());
+}
