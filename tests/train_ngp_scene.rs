@@ -126,3 +126,61 @@ fn the_gpu_trains_the_one_file_scene_as_the_cpu_does() {
     // path that ignored the box, the clipping or the cascade would not track the CPU.
     assert!((gpu - cpu).abs() < 1.0 && gpu > untrained + 1.0, "gpu {gpu:.2} dB vs cpu {cpu:.2} dB (untrained {untrained:.2} dB)");
 }
+
+#[test]
+fn checkpoints_keep_the_cells_no_camera_sees() {
+    // In a box four times as large, one grid over it has many unseen cells; the threshold's mean
+    // is over the seen ones. A trainer restored from a checkpoint must get the same marks, hence the same bits,
+    // before any step of its own (eval and render of a checkpoint take no step).
+    let dir = tempfile::tempdir().unwrap();
+    write_ngp_copy(dir.path(), 4);
+    let train = load_scene(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    let registry = nerf::registry();
+    let bounds = SceneBounds::of(&train);
+    let mut cfg = common::small_hash_config(2, 16, 64);
+    // One grid over the whole box (with the default cascade the finest level is all seen).
+    if let nerf::train::SamplerConfig::Occupancy { grid, .. } = &mut cfg.sampler {
+        grid.cascades = Some(1);
+    }
+    let mut c = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
+    for _ in 0..cfg.iters {
+        c.step(&train).unwrap();
+    }
+    let grid = c.occupancy_grid().unwrap();
+    let n = grid.densities().len();
+    let bits = |g: &nerf::sampling::OccupancyGrid| (0..n).map(|i| g.is_cell_occupied(i)).collect::<Vec<_>>();
+    assert!(grid.seen_fraction() < 0.95, "{}", grid.seen_fraction());
+    let state = c.sampler_state().unwrap();
+    assert!(state.iter().any(|(k, _)| k == nerf::train::SEEN_ENTRY), "the marks are in the checkpoint");
+    let adam = c.adam_state().unwrap();
+    let fields = c.export_fields().unwrap();
+    let mut r = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
+    r.restore(c.step_count(), &fields, adam.clone(), &state).unwrap();
+    let rg = r.occupancy_grid().unwrap();
+    assert_eq!(rg.seen_words(), grid.seen_words());
+    assert_eq!(bits(rg), bits(grid), "the restored grid's bits are the trained grid's");
+    // Without the marks the mean takes in the unseen cells' zeros and the bits differ: the
+    // assertion above is one that a checkpoint without them fails.
+    let unmarked: Vec<_> = state.iter().filter(|(k, _)| k != nerf::train::SEEN_ENTRY).cloned().collect();
+    let mut u = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
+    u.restore(c.step_count(), &fields, adam, &unmarked).unwrap();
+    assert_ne!(bits(u.occupancy_grid().unwrap()), bits(grid));
+
+    // The GPU trainer stores its marks too; restored on the CPU they are the CPU's marks (the
+    // same cameras), and restored on the GPU they are stored again.
+    let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
+    let mut g = Trainer::new_on(cfg.clone(), &registry, bounds, Some(ctx.clone())).unwrap();
+    for _ in 0..cfg.iters {
+        g.step(&train).unwrap();
+    }
+    g.finish().unwrap();
+    let (gs, ga, gf) = (g.sampler_state().unwrap(), g.adam_state().unwrap(), g.export_fields().unwrap());
+    let mut on_cpu = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
+    on_cpu.restore(g.step_count(), &gf, ga.clone(), &gs).unwrap();
+    assert_eq!(on_cpu.occupancy_grid().unwrap().seen_words(), grid.seen_words());
+    let mut on_gpu = Trainer::new_on(cfg, &registry, bounds, Some(ctx)).unwrap();
+    on_gpu.restore(g.step_count(), &gf, ga, &gs).unwrap();
+    let entry = |s: &[(String, Vec<f32>)]| s.iter().find(|(k, _)| k == nerf::train::SEEN_ENTRY).map(|(_, v)| v.clone());
+    assert_eq!(entry(&on_gpu.sampler_state().unwrap()), entry(&gs));
+    assert!(entry(&gs).is_some());
+}

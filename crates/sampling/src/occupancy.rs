@@ -666,6 +666,27 @@ impl OccupancyGrid {
         (full + rest).max(1)
     }
 
+    /// Sets the seen marks from 32-bit words in [`seen_words`](Self::seen_words)' layout (e.g. read
+    /// back from a checkpoint), then, as [`mark_seen`](Self::mark_seen), clears the unseen cells'
+    /// densities and recomputes the bits. Errors when the number of words does not fit the grid.
+    pub fn set_seen_words(&mut self, words: &[u32]) -> Result<(), String> {
+        let n = self.n_cells();
+        if words.len() != n.div_ceil(32) {
+            return Err(format!("seen marks: {} words for a grid of {n} cells (expected {})", words.len(), n.div_ceil(32)));
+        }
+        let mut seen: Vec<u64> =
+            words.chunks(2).map(|w| w[0] as u64 | (w.get(1).copied().unwrap_or(0) as u64) << 32).collect();
+        if n % 64 != 0 {
+            // Bits past the last cell would be counted by `seen_fraction`.
+            *seen.last_mut().expect("a grid has cells") &= (1u64 << (n % 64)) - 1;
+        }
+        self.seen = seen;
+        self.clear_unseen();
+        let step = self.step_size;
+        self.recompute(step);
+        Ok(())
+    }
+
     /// Density 0 for every cell not seen.
     fn clear_unseen(&mut self) {
         if self.seen.is_empty() {

@@ -289,3 +289,24 @@ fn the_threshold_mean_leaves_out_cells_no_camera_sees() {
     assert!(g.is_cell_occupied(seen[1]));
     assert!(seen.len() < n * 3 / 4, "{} of {n} seen: the all-cell mean would be far lower", seen.len());
 }
+
+#[test]
+fn seen_marks_set_from_words_give_the_marked_grid() {
+    // A checkpoint's marks restored into a fresh grid give the same marks, densities and bits.
+    let mut g = OccupancyGrid::new(cfg(16, 2), LO, HI);
+    g.mark_seen(&|p, r| p[0] + r > 0.5);
+    let n = g.densities().len();
+    let d: Vec<f32> = (0..n).map(|i| 0.001 * (i % 13) as f32).collect();
+    g.set_densities(&d, 1.0).unwrap();
+    let mut h = OccupancyGrid::new(cfg(16, 2), LO, HI);
+    h.set_seen_words(&g.seen_words().unwrap()).unwrap();
+    h.set_densities(&d, 1.0).unwrap();
+    assert_eq!(h.seen_words(), g.seen_words());
+    assert_eq!(h.seen_fraction(), g.seen_fraction());
+    assert_eq!(h.densities(), g.densities());
+    assert!((0..n).all(|i| h.is_cell_occupied(i) == g.is_cell_occupied(i)));
+    assert!(g.seen_fraction() > 0.1 && g.seen_fraction() < 0.9, "{}", g.seen_fraction());
+    // The wrong number of words is an error naming both counts.
+    let e = h.set_seen_words(&[0; 3]).unwrap_err();
+    assert!(e.contains("3 words") && e.contains(&format!("{n} cells")), "{e}");
+}

@@ -163,6 +163,9 @@ struct Occupancy {
     counters: wgpu::Buffer,
     /// The density query at those points, in chunks of the field's capacity.
     density: ChunkedDensity,
+    /// The cells a training camera sees, once marked (`OccupancyGrid::seen_words`), for
+    /// checkpoints.
+    seen: Option<Vec<u32>>,
 }
 
 /// Training on compacted samples (`compact_samples`): the marched samples of a step and their
@@ -334,6 +337,7 @@ impl GpuEngine {
                     counters: ctx.zeros("occupancy counters", 16),
                     density: ChunkedDensity::new(&ctx, capacity_samples, n_cells),
                     grid: g,
+                    seen: None,
                 }))
             }
             SamplerConfig::Stratified { n_samples } => {
@@ -887,6 +891,9 @@ impl GpuEngine {
         let mut v = vec![("samples_per_ray".to_string(), spr)];
         if let Sampler::Occupancy(o) = &self.sampler {
             v.push(("occupancy_density".to_string(), o.grid.download(&self.ctx).map_err(gerr)?));
+            if let Some(w) = &o.seen {
+                v.push((crate::trainer::SEEN_ENTRY.to_string(), crate::trainer::seen_to_entry(w)));
+            }
         }
         Ok(v)
     }
@@ -894,12 +901,13 @@ impl GpuEngine {
     /// Marks the grid's cells no training camera sees (`OccupancyGrid::mark_seen`) on a CPU copy
     /// of the device's densities, and uploads densities and marks.
     pub(crate) fn mark_seen(&mut self, visible: &(dyn Fn([f32; 3], f32) -> bool + Sync)) -> Result<(), TrainError> {
-        if let Sampler::Occupancy(o) = &self.sampler {
+        if let Sampler::Occupancy(o) = &mut self.sampler {
             let (lo, hi) = o.grid.aabb();
             let mut g = nerf_sampling::OccupancyGrid::try_new(o.grid.config().clone(), lo, hi).map_err(TrainError::Config)?;
             g.set_densities(&o.grid.download(&self.ctx).map_err(gerr)?, o.step_size).map_err(TrainError::Config)?;
             g.mark_seen(visible);
             o.grid.upload_from(&self.ctx, &g).map_err(gerr)?;
+            o.seen = g.seen_words();
         }
         Ok(())
     }
@@ -909,6 +917,7 @@ impl GpuEngine {
         fields: &[Vec<(String, Vec<f32>)>],
         adam: &AdamState,
         sampler_state: &[(String, Vec<f32>)],
+        seen: Option<&[u32]>,
         ema: Option<&EmaState>,
     ) -> Result<(), TrainError> {
         if fields.len() != self.fields.len() {
@@ -932,6 +941,9 @@ impl GpuEngine {
                 }
             }
         }
+        if let Sampler::Occupancy(o) = &mut self.sampler {
+            o.seen = seen.map(|w| w.to_vec());
+        }
         for (name, v) in sampler_state {
             match (name.as_str(), &self.sampler) {
                 ("samples_per_ray", _) if v.len() == 1 => {
@@ -941,9 +953,13 @@ impl GpuEngine {
                 ("occupancy_density", Sampler::Occupancy(o)) => {
                     let (lo, hi) = o.grid.aabb();
                     let mut g = nerf_sampling::OccupancyGrid::try_new(o.grid.config().clone(), lo, hi).map_err(TrainError::Config)?;
+                    if let Some(w) = seen {
+                        g.set_seen_words(w).map_err(|e| TrainError::Config(format!("checkpoint: {e}")))?;
+                    }
                     g.set_densities(v, o.step_size).map_err(TrainError::Config)?;
                     o.grid.upload_from(&self.ctx, &g).map_err(gerr)?
                 }
+                (crate::trainer::SEEN_ENTRY, Sampler::Occupancy(_)) => {}
                 _ => return Err(TrainError::Config(format!("unexpected sampler state `{name}` in checkpoint"))),
             }
         }

@@ -635,6 +635,9 @@ impl Trainer {
                 let mut v = vec![("samples_per_ray".to_string(), vec![self.samples_per_ray])];
                 if let Some(g) = &self.grid {
                     v.push(("occupancy_density".to_string(), g.densities().to_vec()));
+                    if let Some(w) = g.seen_words() {
+                        v.push((SEEN_ENTRY.to_string(), seen_to_entry(&w)));
+                    }
                 }
                 v
             }
@@ -675,13 +678,18 @@ impl Trainer {
             check_ema_groups(s, &self.group_names, fields)?;
         }
         let ema = ema.unwrap_or(EmaState { step: 0, groups: Vec::new() });
-        // The cameras' marks are made again at the next step (the restored densities replace them).
-        self.seen_marked = false;
+        // Marks stored in the checkpoint come back with the densities (so that the threshold and
+        // bits are the trained grid's); without them the cameras mark again at the next step.
+        let seen = seen_from_state(&sampler_state)?;
+        self.seen_marked = seen.is_some();
         if let Some(g) = self.gpu.as_mut() {
             let ema = self.config.ema_decay.is_some().then_some(&ema);
-            g.restore(fields, &adam, &sampler_state, ema)?;
+            g.restore(fields, &adam, &sampler_state, seen.as_deref(), ema)?;
             self.step = step;
             return Ok(());
+        }
+        if let (Some(w), Some(g)) = (&seen, self.grid.as_mut()) {
+            g.set_seen_words(w).map_err(|e| TrainError::Config(format!("checkpoint: {e}")))?;
         }
         for (name, v) in &sampler_state {
             match (name.as_str(), self.grid.as_mut(), &self.config.sampler) {
@@ -689,6 +697,7 @@ impl Trainer {
                 ("occupancy_density", Some(g), SamplerConfig::Occupancy { step_size, .. }) => {
                     g.set_densities(v, *step_size).map_err(TrainError::Config)?
                 }
+                (SEEN_ENTRY, Some(_), _) => {}
                 _ => return Err(TrainError::Config(format!("unexpected sampler state `{name}` in checkpoint"))),
             }
         }
@@ -713,6 +722,35 @@ impl Trainer {
         self.step = step;
         Ok(())
     }
+}
+
+/// Name of the occupancy grid's seen marks in [`Trainer::sampler_state`] (see [`seen_to_entry`]).
+pub const SEEN_ENTRY: &str = "occupancy_seen";
+
+/// The grid's seen marks (`OccupancyGrid::seen_words`) as checkpoint values: each 32-bit word as
+/// two `f32`s holding its low and high 16 bits (integers, exact in `f32`).
+pub fn seen_to_entry(words: &[u32]) -> Vec<f32> {
+    words.iter().flat_map(|&w| [(w & 0xFFFF) as f32, (w >> 16) as f32]).collect()
+}
+
+/// The inverse of [`seen_to_entry`]; errors on an odd length or a value that is not an integer
+/// in `0..65536`.
+pub fn seen_from_entry(v: &[f32]) -> Result<Vec<u32>, TrainError> {
+    let half = |x: f32| (x >= 0.0 && x < 65536.0 && x.fract() == 0.0).then_some(x as u32);
+    if v.len() % 2 != 0 {
+        return Err(TrainError::Config(format!("malformed `{SEEN_ENTRY}` in checkpoint: odd length {}", v.len())));
+    }
+    v.chunks(2)
+        .map(|p| match (half(p[0]), half(p[1])) {
+            (Some(lo), Some(hi)) => Ok(lo | hi << 16),
+            _ => Err(TrainError::Config(format!("malformed `{SEEN_ENTRY}` in checkpoint: {p:?} are not 16-bit halves"))),
+        })
+        .collect()
+}
+
+/// The seen marks of a checkpoint's sampler state, when it has them.
+fn seen_from_state(state: &[(String, Vec<f32>)]) -> Result<Option<Vec<u32>>, TrainError> {
+    state.iter().find(|(n, _)| n == SEEN_ENTRY).map(|(_, v)| seen_from_entry(v)).transpose()
 }
 
 /// Name of the moving average's update count in [`Trainer::sampler_state`].
@@ -849,4 +887,25 @@ fn run_stage(
         thr,
         &mut st.comp,
     );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn seen_marks_round_trip_through_checkpoint_values() {
+        let words = vec![0u32, u32::MAX, 0x8000_0001, 0x1234_5678, 0xFFFF_0000];
+        let v = seen_to_entry(&words);
+        assert_eq!(v.len(), 2 * words.len());
+        assert_eq!(seen_from_entry(&v).unwrap(), words);
+        let state = vec![("samples_per_ray".to_string(), vec![3.0]), (SEEN_ENTRY.to_string(), v.clone())];
+        assert_eq!(seen_from_state(&state).unwrap(), Some(words));
+        assert_eq!(seen_from_state(&state[..1]).unwrap(), None);
+        // A value that is not a 16-bit half, or an odd count, is a malformed checkpoint.
+        for bad in [vec![1.5, 0.0], vec![65536.0, 0.0], vec![-1.0, 0.0], vec![f32::NAN, 0.0], vec![1.0]] {
+            let e = seen_from_entry(&bad).unwrap_err().to_string();
+            assert!(e.contains(SEEN_ENTRY), "{e}");
+        }
+    }
 }
