@@ -277,7 +277,7 @@ fn gpu_and_cpu_ema_training_reach_the_same_psnr() {
         grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every: 16, warmup_steps: 64, ..Default::default() },
         step_size: 0.01,
         max_samples_per_ray: 512,
-        cone_angle: 0.0,
+        cone_angle: None,
     };
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);

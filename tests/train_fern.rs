@@ -19,7 +19,7 @@ fn config(iters: u64) -> nerf::train::TrainConfig {
         grid: nerf::sampling::OccupancyGridConfig { resolution: 64, update_every: 16, warmup_steps: 64, ..Default::default() },
         step_size: 0.02,
         max_samples_per_ray: 512,
-        cone_angle: 0.0,
+        cone_angle: None,
     };
     c
 }

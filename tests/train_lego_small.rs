@@ -122,7 +122,7 @@ fn resumed_training_matches_uninterrupted_training() {
         grid: nerf::sampling::OccupancyGridConfig { resolution: 16, update_every: 2, warmup_steps: 2, ..Default::default() },
         step_size: 0.02,
         max_samples_per_ray: 256,
-        cone_angle: 0.0,
+        cone_angle: None,
     };
     check_resume(config);
 }

@@ -70,7 +70,7 @@ fn hash_field_learns_lego_stored_as_one_transforms_json() {
     let test = load_scene(dir.path(), Split::Test, &LoadOptions::default()).unwrap();
     assert_eq!((train.n_views(), test.n_views()), (100, 15));
     assert!(train.ngp.is_some() && SceneBounds::of(&train).clip_to_box);
-    assert_eq!(SceneBounds::of(&train).cascades, 1);
+    assert_eq!((SceneBounds::of(&train).cascades, SceneBounds::of(&train).cone_angle), (1, 0.0));
     let ngp = train_and_score(&train, &test);
     // The Blender original: the same views, NeRF's near/far and cube of half-extent 1.5.
     let blender = train_and_score(&common::load(Split::Train, ViewSelection::All), &common::load(Split::Test, ViewSelection::All));
@@ -93,12 +93,11 @@ fn the_gpu_trains_the_one_file_scene_as_the_cpu_does() {
     let bounds = SceneBounds::of(&train);
     // A box of 4 instant-ngp units: a cascade of 3 grids, the finest over the unit cube.
     assert_eq!(bounds.cascades, 3);
-    let mut cfg = common::small_hash_config(60, 16, 64);
-    // instant-ngp's cone steps (its setting for aabb_scale > 1): growing from t = 0.01·256 = 2.56,
-    // inside the range the rays cross the box, so both devices march them.
-    if let nerf::train::SamplerConfig::Occupancy { cone_angle, .. } = &mut cfg.sampler {
-        *cone_angle = 1.0 / 256.0;
-    }
+    // The config leaves the cone out: the scene picks instant-ngp's cone steps (its setting for
+    // aabb_scale > 1), growing from t = 0.01·256 = 2.56, inside the range the rays cross the box,
+    // so both devices march them.
+    assert_eq!(bounds.cone_angle, 1.0 / 256.0);
+    let cfg = common::small_hash_config(60, 16, 64);
     let mut c = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
     let mut g = Trainer::new_on(cfg.clone(), &registry, bounds, Some(ctx)).unwrap();
     assert_eq!(c.occupancy_grid().map(|g| g.cascades()), Some(3));

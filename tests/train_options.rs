@@ -33,7 +33,7 @@ fn config() -> TrainConfig {
             grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every: 16, warmup_steps: 64, ..Default::default() },
             step_size: 0.02,
             max_samples_per_ray: 256,
-            cone_angle: 0.0,
+            cone_angle: None,
         },
         batch_rays: 256,
         seed: 3,

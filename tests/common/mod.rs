@@ -29,7 +29,7 @@ pub fn small_hash_config(iters: u64, update_every: u64, warmup_steps: u64) -> Tr
         grid: nerf::sampling::OccupancyGridConfig { resolution: 32, update_every, warmup_steps, ..Default::default() },
         step_size: 0.01,
         max_samples_per_ray: 512,
-        cone_angle: 0.0,
+        cone_angle: None,
     };
     c
 }

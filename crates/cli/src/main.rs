@@ -246,6 +246,34 @@ fn build_config(a: &TrainArgs) -> Result<TrainConfig> {
     Ok(c)
 }
 
+/// What a run in an instant-ngp box with `aabb_scale` > 1 does about the box, and what instant-ngp
+/// would do besides: cone steps and a cascade of occupancy grids (picked by the scene unless the
+/// config sets them), and a hash grid's finest resolution scaled with the box (a field config
+/// setting, so only suggested: for a field whose default config has `grid.max_resolution` that
+/// the run's config leaves out).
+fn large_box_note(config: &nerf::train::TrainConfig, bounds: &SceneBounds, aabb_scale: f32) -> String {
+    let mut parts = vec![match &config.sampler {
+        nerf::train::SamplerConfig::Occupancy { cone_angle, grid, step_size, .. } => {
+            let cone = bounds.stepping(*step_size, *cone_angle).cone_angle;
+            let levels = bounds.grid_config(grid).cascades.unwrap_or(1);
+            let steps = if cone > 0.0 { format!("cone steps (cone_angle = {cone})") } else { "constant steps (cone_angle = 0)".into() };
+            format!("marching with {steps} through a cascade of {levels} occupancy grids")
+        }
+        _ => "instant-ngp marches such a box with an occupancy grid ([sampler] kind = \"occupancy\"), \
+              cone steps and a cascade of grids"
+            .into(),
+    }];
+    let field_default = nerf::registry().get(&config.field).ok().map(|e| (e.default_config)());
+    let has_max_res = |v: &serde_json::Value| v.pointer("/grid/max_resolution").is_some();
+    if field_default.as_ref().is_some_and(has_max_res) && !has_max_res(&config.field_config) {
+        parts.push(format!(
+            "instant-ngp also scales the hash grid's finest resolution with the box ([field_config.grid] max_resolution = {})",
+            (2048.0 * aabb_scale).round()
+        ));
+    }
+    parts.join("; ") + " (see docs/architecture.md)"
+}
+
 fn cmd_train(a: TrainArgs) -> Result<()> {
     let config = build_config(&a)?;
     let load = |split, views: &ViewSelection| {
@@ -254,17 +282,7 @@ fn cmd_train(a: TrainArgs) -> Result<()> {
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
     if let Some(b) = train.ngp.filter(|b| b.aabb_scale > 1.0) {
-        let cone = matches!(config.sampler, nerf::train::SamplerConfig::Occupancy { cone_angle, .. } if cone_angle > 0.0);
-        if !cone {
-            eprintln!(
-                "note: {}: aabb_scale {} — instant-ngp marches boxes larger than 1 with cone steps \
-                 ([sampler] cone_angle = 0.00390625) and scales the hash grid's finest resolution with the box \
-                 ([field_config.grid] max_resolution = {}); see docs/architecture.md",
-                a.scene.display(),
-                b.aabb_scale,
-                (2048.0 * b.aabb_scale).round()
-            );
-        }
+        eprintln!("note: {}: aabb_scale {}: {}", a.scene.display(), b.aabb_scale, large_box_note(&config, &SceneBounds::of(&train), b.aabb_scale));
     }
     eprintln!(
         "training `{}` on {} ({} train views, {} test views, {}x{}) -> {}",

@@ -444,7 +444,7 @@ fn every_shipped_config_trains() {
 }
 
 #[test]
-fn a_large_instant_ngp_box_without_cone_steps_gets_a_note() {
+fn a_large_instant_ngp_box_gets_cone_steps_and_a_note() {
     let d = tempfile::tempdir().unwrap();
     let scene = small_scene(d.path());
     // The exported scene with instant-ngp's box keys, aabb_scale 2.
@@ -454,28 +454,42 @@ fn a_large_instant_ngp_box_without_cone_steps_gets_a_note() {
         t["aabb_scale"] = serde_json::json!(2);
         std::fs::write(&p, t.to_string()).unwrap();
     }
+    // The paper's sampler: the note says what instant-ngp would use (the tiny field has no grid,
+    // so no resolution advice).
     let o = train_tiny(&scene, &d.path().join("run"), &["--iters", "1"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let e = stderr(&o);
-    assert!(e.contains("aabb_scale 2") && e.contains("cone_angle") && e.contains("max_resolution = 4096"), "{e}");
-    // With cone steps configured (the hash field's occupancy sampler) the note is gone.
-    let cfg = d.path().join("cone.toml");
-    std::fs::write(
-        &cfg,
-        "field = \"hash\"\ntarget_samples_per_step = 1024\nlog_every = 1\n[field_config.grid]\nlog2_hashmap_size = 10\n\
-         [sampler]\nkind = \"occupancy\"\nstep_size = 0.05\nmax_samples_per_ray = 64\ncone_angle = 0.00390625\n[sampler.grid]\nresolution = 16\n",
-    )
-    .unwrap();
-    let o = nerf()
-        .arg("train")
-        .arg(&scene)
-        .arg("--config")
-        .arg(&cfg)
-        .arg("--out")
-        .arg(d.path().join("run_cone"))
-        .args(["--quiet", "--no-renders", "--iters", "2", "--device", "cpu"])
-        .output()
+    assert!(e.contains("aabb_scale 2") && e.contains("kind = \"occupancy\"") && !e.contains("max_resolution"), "{e}");
+    // The hash field's occupancy sampler with the cone and cascade left out: the scene picks
+    // instant-ngp's (cone 1/256, 1 + log2(2) = 2 levels), and the hash grid's resolution is advised.
+    let hash = |name: &str, extra: &str| {
+        let cfg = d.path().join(format!("{name}.toml"));
+        std::fs::write(
+            &cfg,
+            format!(
+                "field = \"hash\"\ntarget_samples_per_step = 1024\nlog_every = 1\n[field_config.grid]\nlog2_hashmap_size = 10\n{extra}\
+                 [sampler]\nkind = \"occupancy\"\nstep_size = 0.05\nmax_samples_per_ray = 64\n{}[sampler.grid]\nresolution = 16\n",
+                if name == "constant" { "cone_angle = 0.0\n" } else { "" }
+            ),
+        )
         .unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
-    assert!(!stderr(&o).contains("cone_angle"), "{}", stderr(&o));
+        let o = nerf()
+            .arg("train")
+            .arg(&scene)
+            .arg("--config")
+            .arg(&cfg)
+            .arg("--out")
+            .arg(d.path().join(name))
+            .args(["--quiet", "--no-renders", "--iters", "2", "--device", "cpu"])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        stderr(&o)
+    };
+    let e = hash("auto", "");
+    assert!(e.contains("cone steps (cone_angle = 0.00390625)") && e.contains("cascade of 2"), "{e}");
+    assert!(e.contains("max_resolution = 4096"), "{e}");
+    // Set in the config: constant steps kept, the resolution set, no advice.
+    let e = hash("constant", "max_resolution = 4096\n");
+    assert!(e.contains("constant steps (cone_angle = 0)") && !e.contains("max_resolution"), "{e}");
 }

@@ -36,15 +36,12 @@ pub enum SamplerConfig {
         /// Upper bound on samples per ray.
         max_samples_per_ray: usize,
         /// instant-ngp's cone steps: the step at distance `t` is `clamp(t·cone_angle, step_size,
-        /// 1024·step_size)` ([`nerf_sampling::Stepping`]; instant-ngp uses 1/256 when its
-        /// `aabb_scale` > 1). 0 (the default): constant steps.
-        #[serde(default, skip_serializing_if = "is_zero")]
-        cone_angle: f32,
+        /// 1024·step_size)` ([`nerf_sampling::Stepping`]); 0: constant steps. Left out, the scene
+        /// picks it as instant-ngp does ([`SceneBounds::cone_angle`](crate::SceneBounds::cone_angle)):
+        /// 1/256 in an instant-ngp box with `aabb_scale` > 1, 0 otherwise.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        cone_angle: Option<f32>,
     },
-}
-
-fn is_zero(x: &f32) -> bool {
-    *x == 0.0
 }
 
 impl SamplerConfig {
@@ -215,7 +212,7 @@ impl TrainConfig {
                 return Err("sampler.n_coarse must be at least 2".into())
             }
             SamplerConfig::Occupancy { step_size, max_samples_per_ray, cone_angle, .. } => {
-                if !(cone_angle.is_finite() && cone_angle >= 0.0) {
+                if let Some(cone_angle) = cone_angle.filter(|c| !(c.is_finite() && *c >= 0.0)) {
                     return Err(format!("sampler.cone_angle must be finite and not negative, got {cone_angle}"));
                 }
                 if !(step_size.is_finite() && step_size > 0.0) {
@@ -321,5 +318,31 @@ mod tests {
             let e = c.validate().unwrap_err();
             assert!(e.contains("ema_decay"), "{e}");
         }
+    }
+
+    #[test]
+    fn cone_angle_left_out_is_the_scenes_and_zero_is_kept() {
+        let occ = |extra: &str| -> TrainConfig {
+            toml::from_str(&format!("[sampler]\nkind = \"occupancy\"\nstep_size = 0.01\nmax_samples_per_ray = 8\n{extra}")).unwrap()
+        };
+        let cone = |c: &TrainConfig| match c.sampler {
+            SamplerConfig::Occupancy { cone_angle, .. } => cone_angle,
+            _ => unreachable!(),
+        };
+        // Left out: None (the scene picks), and written back without the key.
+        let c = occ("");
+        assert_eq!(cone(&c), None);
+        assert!(!toml::to_string(&c).unwrap().contains("cone_angle"));
+        // 0 (constant steps) is a choice that survives a round trip, so an explicit 0 is not
+        // replaced by the scene's cone.
+        for v in [0.0f32, 0.00390625] {
+            let c = occ(&format!("cone_angle = {v:?}\n"));
+            assert_eq!(cone(&c), Some(v));
+            let back: TrainConfig = toml::from_str(&toml::to_string(&c).unwrap()).unwrap();
+            assert_eq!(cone(&back), Some(v));
+            assert!(c.validate().is_ok());
+        }
+        let e = occ("cone_angle = -0.1\n").validate().unwrap_err();
+        assert!(e.contains("cone_angle") && e.contains("-0.1"), "{e}");
     }
 }

@@ -309,7 +309,7 @@ impl GpuEngine {
                     near: bounds.near,
                     far: bounds.far,
                     max_samples_per_ray: *max_samples_per_ray as u32,
-                    cone_angle: *cone_angle,
+                    cone_angle: bounds.stepping(*step_size, *cone_angle).cone_angle,
                 };
                 let marcher = GpuMarcher::new(&ctx, mc, capacity_rays, capacity_samples).map_err(gerr)?;
                 if config.compact_samples {

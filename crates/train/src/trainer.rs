@@ -9,6 +9,9 @@ use nerf_render::{composite_backward, composite_forward, composited_counts, phot
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, OccupancyGridConfig, RaySamples};
 use std::sync::{Mutex, MutexGuard};
 
+/// instant-ngp's cone angle for boxes with `aabb_scale` > 1 (its `cone_angle_constant`).
+pub const NGP_CONE_ANGLE: f32 = 1.0 / 256.0;
+
 /// Where the scene lives: what fields and samplers need to know about it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SceneBounds {
@@ -28,6 +31,10 @@ pub struct SceneBounds {
     /// an instant-ngp box `1 + ⌈log₂ aabb_scale⌉` (at most 8), so that the finest level covers
     /// the unit cube of instant-ngp units, as instant-ngp's cascades do.
     pub cascades: u32,
+    /// The cone steps' angle when the config leaves `cone_angle` out: instant-ngp's 1/256 in an
+    /// instant-ngp box with `aabb_scale` > 1 (distant space in geometrically growing steps), 0
+    /// (constant steps) otherwise.
+    pub cone_angle: f32,
 }
 
 impl SceneBounds {
@@ -44,7 +51,13 @@ impl SceneBounds {
             far: ds.far,
             clip_to_box: ds.clips_to_aabb(),
             cascades,
+            cone_angle: if matches!(ds.ngp, Some(b) if b.aabb_scale > 1.0) { NGP_CONE_ANGLE } else { 0.0 },
         }
+    }
+
+    /// The marcher's steps: `step_size` with the config's cone angle, or the scene's when left out.
+    pub fn stepping(&self, step_size: f32, cone_angle: Option<f32>) -> nerf_sampling::Stepping {
+        nerf_sampling::Stepping::new(step_size, cone_angle.unwrap_or(self.cone_angle))
     }
 
     /// The occupancy grid's settings with `cascades` filled in from the scene when absent.
@@ -423,7 +436,7 @@ impl Trainer {
             // instant-ngp's compacted batch: density of every marched sample (inference), then
             // train on the samples compositing reaches before the transmittance threshold.
             let m = &mut self.marched;
-            first_stage_samples(cfg, self.grid.as_ref(), &b.origins, &b.dirs, &self.near, &self.far, perturb.then_some(&mut rng), m);
+            first_stage_samples(cfg, &self.bounds, self.grid.as_ref(), &b.origins, &b.dirs, &self.near, &self.far, perturb.then_some(&mut rng), m);
             self.marched_sigma.resize(m.len(), 0.0);
             self.fields[0].density_for_training(&m.positions, &mut self.marched_sigma);
             composited_counts(&m.ray_offsets, &self.marched_sigma, &m.dt, thr, &mut self.keep);
@@ -435,6 +448,7 @@ impl Trainer {
         } else {
             first_stage_samples(
                 cfg,
+                &self.bounds,
                 self.grid.as_ref(),
                 &b.origins,
                 &b.dirs,
@@ -539,7 +553,7 @@ impl Trainer {
         {
             // Occupancy grid: rounds that stop marching a ray once it is opaque (same image).
             let p = crate::rounds::MarchParams {
-                step: nerf_sampling::Stepping::new(*step_size, *cone_angle),
+                step: self.bounds.stepping(*step_size, *cone_angle),
                 max_samples: *max_samples_per_ray,
                 near: self.bounds.near,
                 far: self.bounds.far,
@@ -570,7 +584,7 @@ impl Trainer {
             let r1 = (r0 + chunk).min(n);
             let (o, d, bg) = (&origins[3 * r0..3 * r1], &dirs[3 * r0..3 * r1], &background[3 * r0..3 * r1]);
             self.bounds.segments(o, d, &mut near, &mut far);
-            first_stage_samples(&self.config, self.grid.as_ref(), o, d, &near, &far, None, &mut stages[0].samples);
+            first_stage_samples(&self.config, &self.bounds, self.grid.as_ref(), o, d, &near, &far, None, &mut stages[0].samples);
             query_stage(fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
             if let SamplerConfig::Hierarchical { n_fine, .. } = self.config.sampler {
                 let (s0, s1) = stages.split_at_mut(1);
@@ -837,6 +851,7 @@ fn max_samples_per_ray(s: &SamplerConfig) -> usize {
 #[allow(clippy::too_many_arguments)]
 fn first_stage_samples(
     cfg: &TrainConfig,
+    bounds: &SceneBounds,
     grid: Option<&OccupancyGrid>,
     origins: &[f32],
     dirs: &[f32],
@@ -851,7 +866,7 @@ fn first_stage_samples(
         }
         SamplerConfig::Occupancy { step_size, max_samples_per_ray, cone_angle, .. } => {
             let grid = grid.expect("occupancy sampler has a grid");
-            let stepping = nerf_sampling::Stepping::new(*step_size, *cone_angle);
+            let stepping = bounds.stepping(*step_size, *cone_angle);
             march(grid, origins, dirs, near, far, stepping, *max_samples_per_ray, rng, out)
         }
     }
@@ -907,5 +922,22 @@ mod tests {
             let e = seen_from_entry(&bad).unwrap_err().to_string();
             assert!(e.contains(SEEN_ENTRY), "{e}");
         }
+    }
+
+    #[test]
+    fn the_scenes_cone_fills_in_only_what_the_config_leaves_out() {
+        let b = SceneBounds {
+            aabb_min: [-1.0; 3],
+            aabb_max: [1.0; 3],
+            near: 0.1,
+            far: 5.0,
+            clip_to_box: true,
+            cascades: 3,
+            cone_angle: NGP_CONE_ANGLE,
+        };
+        assert_eq!(b.stepping(0.01, None).cone_angle, 1.0 / 256.0);
+        assert_eq!(b.stepping(0.01, Some(0.0)).cone_angle, 0.0);
+        assert_eq!(b.stepping(0.01, Some(0.5)).cone_angle, 0.5);
+        assert_eq!(b.stepping(0.01, None).step, 0.01);
     }
 }
