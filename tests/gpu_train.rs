@@ -213,7 +213,7 @@ fn a_step_larger_than_the_adapters_binding_limit_is_fitted_to_it() {
     config.target_samples_per_step = Some(asked);
     let cfg: nerf::field_hash::HashNerfConfig = serde_json::from_value(config.field_config.clone()).unwrap();
     let bounds = SceneBounds::of(&train);
-    let fctx = nerf::field::FieldContext { aabb_min: bounds.aabb_min, aabb_max: bounds.aabb_max, seed: 1 };
+    let fctx = nerf::field::FieldContext { aabb_min: bounds.aabb_min, aabb_max: bounds.aabb_max, seed: 1, scene_scale: 1.0 };
     let cpu = nerf::field_hash::HashNerf::<f32>::new(cfg, &fctx).unwrap();
     let fps = nerf::gpu::mlp::FusedMlp::new(&ctx, &cpu.mlps()[1].config).unwrap().tape_floats_per_sample() as u64;
     assert!(2 * asked as u64 * 4 * fps >= 2 * limit, "the test's step must not fit ({fps} floats per sample)");

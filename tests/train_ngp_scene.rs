@@ -97,7 +97,10 @@ fn the_gpu_trains_the_one_file_scene_as_the_cpu_does() {
     // aabb_scale > 1), growing from t = 0.01·256 = 2.56, inside the range the rays cross the box,
     // so both devices march them.
     assert_eq!(bounds.cone_angle, 1.0 / 256.0);
-    let cfg = common::small_hash_config(60, 16, 64);
+    let mut cfg = common::small_hash_config(60, 16, 64);
+    // The hash grid's finest resolution as over the unit box (left out, it would grow to
+    // 2048 × 4 with the box, which 60 steps on 100×100 images cannot use).
+    cfg.field_config["grid"]["max_resolution"] = 2048.into();
     let mut c = Trainer::new(cfg.clone(), &registry, bounds).unwrap();
     let mut g = Trainer::new_on(cfg.clone(), &registry, bounds, Some(ctx)).unwrap();
     assert_eq!(c.occupancy_grid().map(|g| g.cascades()), Some(3));

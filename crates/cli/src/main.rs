@@ -246,32 +246,22 @@ fn build_config(a: &TrainArgs) -> Result<TrainConfig> {
     Ok(c)
 }
 
-/// What a run in an instant-ngp box with `aabb_scale` > 1 does about the box, and what instant-ngp
-/// would do besides: cone steps and a cascade of occupancy grids (picked by the scene unless the
-/// config sets them), and a hash grid's finest resolution scaled with the box (a field config
-/// setting, so only suggested: for a field whose default config has `grid.max_resolution` that
-/// the run's config leaves out).
-fn large_box_note(config: &nerf::train::TrainConfig, bounds: &SceneBounds, aabb_scale: f32) -> String {
-    let mut parts = vec![match &config.sampler {
+/// What a run in an instant-ngp box with `aabb_scale` > 1 does about the box: cone steps and a
+/// cascade of occupancy grids (picked by the scene unless the config sets them), or, with another
+/// sampler, what instant-ngp would use. (A grid field scales its finest resolution with the box
+/// itself: `FieldContext::scene_scale`.)
+fn large_box_note(config: &nerf::train::TrainConfig, bounds: &SceneBounds) -> String {
+    match &config.sampler {
         nerf::train::SamplerConfig::Occupancy { cone_angle, grid, step_size, .. } => {
             let cone = bounds.stepping(*step_size, *cone_angle).cone_angle;
             let levels = bounds.grid_config(grid).cascades.unwrap_or(1);
             let steps = if cone > 0.0 { format!("cone steps (cone_angle = {cone})") } else { "constant steps (cone_angle = 0)".into() };
-            format!("marching with {steps} through a cascade of {levels} occupancy grids")
+            format!("marching with {steps} through a cascade of {levels} occupancy grids (see docs/architecture.md)")
         }
-        _ => "instant-ngp marches such a box with an occupancy grid ([sampler] kind = \"occupancy\"), \
-              cone steps and a cascade of grids"
+        _ => "instant-ngp marches such a box with an occupancy grid ([sampler] kind = \"occupancy\"), cone steps and \
+              a cascade of grids (see docs/architecture.md)"
             .into(),
-    }];
-    let field_default = nerf::registry().get(&config.field).ok().map(|e| (e.default_config)());
-    let has_max_res = |v: &serde_json::Value| v.pointer("/grid/max_resolution").is_some();
-    if field_default.as_ref().is_some_and(has_max_res) && !has_max_res(&config.field_config) {
-        parts.push(format!(
-            "instant-ngp also scales the hash grid's finest resolution with the box ([field_config.grid] max_resolution = {})",
-            (2048.0 * aabb_scale).round()
-        ));
     }
-    parts.join("; ") + " (see docs/architecture.md)"
 }
 
 fn cmd_train(a: TrainArgs) -> Result<()> {
@@ -282,7 +272,7 @@ fn cmd_train(a: TrainArgs) -> Result<()> {
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
     if let Some(b) = train.ngp.filter(|b| b.aabb_scale > 1.0) {
-        eprintln!("note: {}: aabb_scale {}: {}", a.scene.display(), b.aabb_scale, large_box_note(&config, &SceneBounds::of(&train), b.aabb_scale));
+        eprintln!("note: {}: aabb_scale {}: {}", a.scene.display(), b.aabb_scale, large_box_note(&config, &SceneBounds::of(&train)));
     }
     eprintln!(
         "training `{}` on {} ({} train views, {} test views, {}x{}) -> {}",

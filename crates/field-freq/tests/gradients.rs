@@ -104,6 +104,7 @@ fn invalid_configs_are_rejected_with_a_message() {
         aabb_min: [-1.0; 3],
         aabb_max: [1.0; 3],
         seed: 0,
+        scene_scale: 1.0,
     })
     .err()
     .unwrap()

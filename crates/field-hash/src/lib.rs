@@ -488,8 +488,17 @@ impl RadianceField for HashNerf<f32> {
 }
 
 /// Registry constructor: `config` is a (possibly partial) [`HashNerfConfig`] as JSON.
+///
+/// A config that leaves `grid.max_resolution` out gets the default scaled with the scene's box
+/// ([`FieldContext::scene_scale`], instant-ngp's `aabb_scale`): instant-ngp's 2048 × `aabb_scale`,
+/// the same resolution per unit of the scene in a larger box. [`RadianceField::config`] reports
+/// the resolution used.
 pub fn build(config: &serde_json::Value, ctx: &FieldContext) -> Result<Box<dyn RadianceField>, FieldError> {
-    let cfg: HashNerfConfig = config_from_json("hash", config)?;
+    let mut cfg: HashNerfConfig = config_from_json("hash", config)?;
+    if config.pointer("/grid/max_resolution").is_none() && ctx.scene_scale > 1.0 {
+        let scaled = (cfg.grid.max_resolution as f64 * ctx.scene_scale as f64).round();
+        cfg.grid.max_resolution = scaled.min(nerf_encoding::hash_grid::MAX_RESOLUTION as f64) as u32;
+    }
     Ok(Box::new(HashNerf::<f32>::new(cfg, ctx)?))
 }
 

@@ -7,7 +7,7 @@ use nerf_field_hash::{GpuMlp, HashNerf, HashNerfConfig};
 use rand::Rng as _;
 
 fn unit_ctx(seed: u64) -> FieldContext {
-    FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0; 3], seed }
+    FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0; 3], seed, scene_scale: 1.0 }
 }
 
 fn small() -> HashNerfConfig {
@@ -142,7 +142,7 @@ fn density_gradient_is_truncated_for_large_log_density() {
 
 #[test]
 fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
-    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 2 };
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 2, scene_scale: 1.0 };
     let mut f: Box<dyn RadianceField> = nerf_field_hash::build(&serde_json::json!({"grid": {"log2_hashmap_size": 14}}), &ctx).unwrap();
     let mut rng = nerf_core::rng(3, 0);
     let n = 40_000; // > one inference chunk
@@ -189,7 +189,7 @@ fn train_pass(f: &mut dyn RadianceField, rows: Option<(&[u32], &[f32])>, pos: &[
 
 #[test]
 fn forward_on_rows_of_the_density_pass_equals_a_fresh_forward() {
-    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 4 };
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 4, scene_scale: 1.0 };
     let mut f = nerf_field_hash::build(&serde_json::json!({"grid": {"log2_hashmap_size": 14}}), &ctx).unwrap();
     let mut rng = nerf_core::rng(5, 0);
     let n_all = 40_000; // > one inference chunk
@@ -232,6 +232,25 @@ fn bad_configs_are_rejected() {
     assert!(nerf_field_hash::build(&serde_json::json!({"sh_degree": 7}), &unit_ctx(0)).is_err());
     let e = nerf_field_hash::build(&serde_json::json!({"grid": {"levls": 3}}), &unit_ctx(0)).err().unwrap();
     assert!(e.to_string().contains("levls"), "{e}");
-    let flat = FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0, 0.0, 1.0], seed: 0 };
+    let flat = FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0, 0.0, 1.0], seed: 0, scene_scale: 1.0 };
     assert!(nerf_field_hash::build(&serde_json::Value::Null, &flat).is_err());
+}
+
+#[test]
+fn the_finest_resolution_left_out_grows_with_the_scenes_box() {
+    // instant-ngp: 2048 × aabb_scale over the box. A resolution the config sets is kept, and a
+    // scene of scale 1 keeps the default.
+    let res = |config: serde_json::Value, scene_scale: f32| -> u64 {
+        let ctx = FieldContext { aabb_min: [-6.0; 3], aabb_max: [6.0; 3], seed: 0, scene_scale };
+        let f = nerf_field_hash::build(&config, &ctx).unwrap();
+        f.config()["grid"]["max_resolution"].as_u64().unwrap()
+    };
+    let small = serde_json::json!({"grid": {"log2_hashmap_size": 12}});
+    let default = HashNerfConfig::default().grid.max_resolution as u64;
+    assert_eq!(default, 2048);
+    assert_eq!(res(small.clone(), 1.0), default);
+    assert_eq!(res(small.clone(), 4.0), 4 * default);
+    assert_eq!(res(small.clone(), 2.5), 5120);
+    assert_eq!(res(serde_json::json!({"grid": {"log2_hashmap_size": 12, "max_resolution": 1024}}), 4.0), 1024);
+    assert_eq!(res(serde_json::Value::Null, 16.0), 16 * default);
 }

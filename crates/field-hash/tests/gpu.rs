@@ -21,7 +21,7 @@ fn check_small_field_with(storage: nerf_encoding::Precision, seed: u64, subgroup
     cfg.grid.max_resolution = 64;
     cfg.grid.storage = storage;
     let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
-    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed };
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed, scene_scale: 1.0 };
     let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
     // Outputs: f32 sums in another order (trilinear interpolation, 64-wide dot products), exp of
     // σ. Gradients: sums over 700 samples in another order (atomics, split-K reductions).
@@ -54,7 +54,7 @@ fn a_capacity_beyond_the_devices_binding_limit_is_a_clear_error() {
     cfg.grid.n_levels = 2;
     cfg.grid.log2_hashmap_size = 10;
     let aabb = ([-1.5f32; 3], [1.5f32; 3]);
-    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 7 };
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 7, scene_scale: 1.0 };
     let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
     // The colour MLP's tape is the largest per-sample buffer: one sample more than the limit holds.
     let color_fps = nerf_gpu::mlp::FusedMlp::new(&ctx, &cpu.mlps()[1].config).unwrap().tape_floats_per_sample();
@@ -77,7 +77,7 @@ fn the_cooperative_matrix_mlps_match_the_cpu_field_where_the_adapter_has_them() 
     assert_eq!(serde_json::to_value(&cfg).unwrap()["gpu_mlp"], "coop");
     let Some(ctx) = GpuContext::for_tests() else { return };
     let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
-    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 7 };
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 7, scene_scale: 1.0 };
     let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
     if !(ctx.features.cooperative_matrix && ctx.features.shader_f16) {
         let err = match nerf_field::RadianceField::to_gpu(&cpu, &ctx, 1024).expect("a GPU twin") {
@@ -102,7 +102,7 @@ fn chunked_density_matches_the_cpu_field_beyond_the_fields_capacity() {
     cfg.grid.n_levels = 4;
     cfg.grid.log2_hashmap_size = 12;
     let aabb = ([-1.5f32; 3], [1.5f32; 3]);
-    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 9 };
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 9, scene_scale: 1.0 };
     let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
     let (chunk, total) = (300, 1000); // chunks of 300, 300, 300, 100
     let gpu = cpu.to_gpu(&ctx, chunk).unwrap().unwrap();
@@ -150,7 +150,7 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     cfg.grid.base_resolution = 4;
     cfg.grid.max_resolution = 64;
     let aabb = ([-1.5f32; 3], [1.5f32; 3]);
-    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 11 };
+    let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 11, scene_scale: 1.0 };
     let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
     // A marched batch of up to 700 samples in chunks of 300 (the first in place, the others
     // through the chunk buffers), n of them marched; m kept rows drawn from them (repeats too).

@@ -10,7 +10,7 @@ use nerf_field_voxel::{DenseGrid, VoxelNerf, VoxelNerfConfig};
 use rand::Rng as _;
 
 fn unit_ctx(seed: u64) -> FieldContext {
-    FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0; 3], seed }
+    FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0; 3], seed, scene_scale: 1.0 }
 }
 
 /// Points in `[0,1]³` whose fractional cell coordinates stay ≥ 0.05 from every face, so a
@@ -149,7 +149,7 @@ fn loss(f: &VoxelNerf<f64>, pos: &[f64], dirs: &[f64], a: &[f64], b: &[f64]) -> 
 
 #[test]
 fn whole_field_backward_matches_finite_differences_f64() {
-    let ctx = FieldContext { aabb_min: [-1.0, -1.0, -2.0], aabb_max: [1.0, 1.0, 2.0], seed: 5 };
+    let ctx = FieldContext { aabb_min: [-1.0, -1.0, -2.0], aabb_max: [1.0, 1.0, 2.0], seed: 5, scene_scale: 1.0 };
     let mut f = VoxelNerf::<f64>::new(small(), &ctx).unwrap();
     let mut rng = nerf_core::rng(9, 0);
     // Non-trivial density and features (the init is 0 and ±1e-4).
@@ -207,7 +207,7 @@ fn whole_field_backward_matches_finite_differences_f64() {
 fn initial_field_is_almost_empty_with_alpha_init_per_voxel() {
     // σ·voxel_size = −ln(1 − alpha_init) at d = 0 (DVGO's act_shift); the init is d ∈ ±1e-4,
     // read as s·d ∈ ±3e-3, which moves σ by < 0.5 %.
-    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 0 };
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 0, scene_scale: 1.0 };
     let cfg = VoxelNerfConfig { resolution: 16, ..Default::default() };
     let f = VoxelNerf::<f64>::new(cfg.clone(), &ctx).unwrap();
     let mut s = [0.0; 2];
@@ -221,7 +221,7 @@ fn initial_field_is_almost_empty_with_alpha_init_per_voxel() {
 
 #[test]
 fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
-    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 2 };
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 2, scene_scale: 1.0 };
     let cfg = serde_json::json!({"resolution": 32, "hidden": 32, "mlp_weight_decay": 1e-6});
     let mut f: Box<dyn RadianceField> = nerf_field_voxel::build(&cfg, &ctx).unwrap();
     assert_eq!(f.kind(), "voxel");
@@ -297,6 +297,6 @@ fn bad_configs_are_rejected_naming_the_key() {
         let e = nerf_field_voxel::build(&cfg, &ctx).err().unwrap_or_else(|| panic!("{cfg} accepted"));
         assert!(e.to_string().contains(key), "{cfg}: {e}");
     }
-    let flat = FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0, 0.0, 1.0], seed: 0 };
+    let flat = FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0, 0.0, 1.0], seed: 0, scene_scale: 1.0 };
     assert!(nerf_field_voxel::build(&serde_json::Value::Null, &flat).is_err());
 }

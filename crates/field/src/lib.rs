@@ -28,6 +28,16 @@ pub struct FieldContext {
     pub aabb_max: [f32; 3],
     /// Seed for parameter initialisation.
     pub seed: u64,
+    /// How large the box is against the scene's own unit: instant-ngp's `aabb_scale` for an
+    /// instant-ngp scene (a box of `aabb_scale` unit cubes per side), 1 for any other. A grid
+    /// field whose config leaves its finest resolution out scales it by this, as instant-ngp does
+    /// (2048 × `aabb_scale`), so that the resolution per unit of the scene stays the same.
+    #[serde(default = "unit_scale")]
+    pub scene_scale: f32,
+}
+
+fn unit_scale() -> f32 {
+    1.0
 }
 
 /// Errors raised when a field is built or its parameters are loaded.
@@ -324,7 +334,7 @@ mod tests {
             train_preset: || json!(null),
             build: |_, _| Err(FieldError::InvalidConfig { field: "demo".into(), message: "x".into() }),
         });
-        let ctx = FieldContext { aabb_min: [-1.0; 3], aabb_max: [1.0; 3], seed: 0 };
+        let ctx = FieldContext { aabb_min: [-1.0; 3], aabb_max: [1.0; 3], seed: 0, scene_scale: 1.0 };
         let e = r.build("nope", &json!(null), &ctx).err().unwrap();
         assert!(e.to_string().contains("demo"), "{e}");
         assert!(r.build("demo", &json!(null), &ctx).is_err());

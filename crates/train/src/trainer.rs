@@ -35,6 +35,9 @@ pub struct SceneBounds {
     /// instant-ngp box with `aabb_scale` > 1 (distant space in geometrically growing steps), 0
     /// (constant steps) otherwise.
     pub cone_angle: f32,
+    /// The box against the scene's unit, for the fields ([`FieldContext::scene_scale`]):
+    /// instant-ngp's `aabb_scale` for an instant-ngp scene, 1 otherwise.
+    pub scene_scale: f32,
 }
 
 impl SceneBounds {
@@ -52,6 +55,7 @@ impl SceneBounds {
             clip_to_box: ds.clips_to_aabb(),
             cascades,
             cone_angle: if matches!(ds.ngp, Some(b) if b.aabb_scale > 1.0) { NGP_CONE_ANGLE } else { 0.0 },
+            scene_scale: ds.ngp.map_or(1.0, |b| b.aabb_scale),
         }
     }
 
@@ -178,6 +182,7 @@ impl Trainer {
                         aabb_min: bounds.aabb_min,
                         aabb_max: bounds.aabb_max,
                         seed: config.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(i as u64),
+                        scene_scale: bounds.scene_scale,
                     };
                     Ok(registry.build(&config.field, &config.field_config, &ctx)?)
                 })
@@ -934,6 +939,7 @@ mod tests {
             clip_to_box: true,
             cascades: 3,
             cone_angle: NGP_CONE_ANGLE,
+            scene_scale: 4.0,
         };
         assert_eq!(b.stepping(0.01, None).cone_angle, 1.0 / 256.0);
         assert_eq!(b.stepping(0.01, Some(0.0)).cone_angle, 0.0);
