@@ -147,6 +147,10 @@ struct RenderArgs {
     /// the first frame's surfaces (1st to 99th percentile; NDC scenes: NDC depth, i.e. disparity).
     #[arg(long)]
     depth: bool,
+    /// Also write the frames as one looping animated GIF, `render.gif`, shown at FPS frames per
+    /// second (each frame in 256 colours: a preview to share; the PNGs keep full colour).
+    #[arg(long, value_name = "FPS")]
+    gif: Option<f32>,
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
@@ -358,6 +362,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
     let mut render_seconds = 0.0;
     let (mut depth_range, mut gray) = (None, Vec::new());
+    let mut gif = a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?;
     for (i, cam) in path.iter().enumerate() {
         cam.rays_into(ck.config.pixel_convention, &mut o, &mut d);
         train.warp_rays(&mut o, &mut d);
@@ -365,12 +370,18 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
         render_seconds += t.elapsed().as_secs_f64();
         nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
+        if let Some(g) = gif.as_mut() {
+            g.push(&rgb)?;
+        }
         if a.depth {
             // One range for the whole path (the first frame with surfaces), so frames compare.
             depth_range = depth_range.or_else(|| nerf::render::depth_range(&depth, &opacity));
             nerf::render::depth_to_gray(&depth, &opacity, depth_range.unwrap_or((0.0, 1.0)), &mut gray);
             nerf::data::save_png(&out.join(format!("depth_{i:04}.png")), k.width, k.height, &gray)?;
         }
+    }
+    if let Some(g) = gif {
+        g.finish()?;
     }
     let fps = a.frames as f64 / render_seconds.max(1e-9);
     let cameras: Vec<_> = path.iter().map(|c| c.c2w()).collect();
@@ -382,6 +393,13 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     }))?;
     nerf::train::run::write_atomic(&out.join("render.json"), text.as_bytes())?;
     println!("{} frames at {}x{} ({fps:.2} frames/s on {}) -> {}", a.frames, k.width, k.height, trainer.device(), out.display());
+    // A video at full colour is one ffmpeg call away.
+    println!(
+        "video: ffmpeg -framerate {} -i {} -pix_fmt yuv420p {}",
+        a.gif.unwrap_or(30.0),
+        out.join("frame_%04d.png").display(),
+        out.join("render.mp4").display()
+    );
     Ok(())
 }
 

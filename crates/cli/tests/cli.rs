@@ -387,8 +387,20 @@ fn render_writes_an_orbit_of_novel_views() {
     let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let out = d.path().join("frames");
-    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "20", "--device", "cpu", "--out"]).arg(&out).output().unwrap();
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "20", "--device", "cpu", "--gif", "10", "--out"]).arg(&out).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
+    // The same frames as one looping GIF at 10 frames/s.
+    {
+        use image::AnimationDecoder as _;
+        let f = std::fs::File::open(out.join("render.gif")).unwrap();
+        let frames = image::codecs::gif::GifDecoder::new(std::io::BufReader::new(f)).unwrap().into_frames().collect_frames().unwrap();
+        assert_eq!(frames.len(), 3);
+        assert!(frames.iter().all(|f| f.delay().numer_denom_ms() == (100, 1) && f.buffer().dimensions() == (20, 20)));
+        let png = image::open(out.join("frame_0001.png")).unwrap().to_rgb8();
+        let diff = png.pixels().zip(frames[1].buffer().pixels()).map(|(a, b)| (0..3).map(|c| (a[c] as i32 - b[c] as i32).abs()).sum::<i32>()).sum::<i32>();
+        assert!((diff as f64) / (3.0 * 400.0) < 12.0, "the GIF frame is the PNG in 256 colours: mean error {diff}");
+    }
+    assert!(String::from_utf8_lossy(&o.stdout).contains("ffmpeg -framerate 10"), "{}", String::from_utf8_lossy(&o.stdout));
     for i in 0..3 {
         let img = image::open(out.join(format!("frame_{i:04}.png"))).unwrap();
         assert_eq!((img.width(), img.height()), (20, 20), "frame {i}: the training images are square");
@@ -412,6 +424,8 @@ fn render_writes_an_orbit_of_novel_views() {
     // Bad arguments: a clear one-line error.
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "0"]).output().unwrap();
     assert_clean_failure(&o, &["--frames"]);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--device", "cpu", "--gif", "0", "--out"]).arg(d.path().join("g")).output().unwrap();
+    assert_clean_failure(&o, &["render.gif", "frames/s"]);
     let o = nerf().arg("render").arg(d.path().join("nope")).arg(&s).output().unwrap();
     assert_clean_failure(&o, &["checkpoint.bin"]);
 }

@@ -1086,6 +1086,109 @@ pub fn save_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(),
     write_png(path, width, height, &bytes, image::ExtendedColorType::Rgb8)
 }
 
+/// A looping animated GIF written frame by frame (`nerf render --gif`): each frame quantised to
+/// its own 256-colour palette (NeuQuant, the `image` crate's GIF encoder), so it is a preview,
+/// not a lossless copy. The file is written under a temporary name and renamed into place by
+/// [`GifWriter::finish`], so an interrupted render never leaves a truncated GIF behind.
+pub struct GifWriter {
+    enc: Option<image::codecs::gif::GifEncoder<SharedFile>>,
+    file: SharedFile,
+    tmp: PathBuf,
+    path: PathBuf,
+    width: u32,
+    height: u32,
+    delay: image::Delay,
+    rgba: Vec<u8>,
+    done: bool,
+}
+
+impl GifWriter {
+    /// Starts `path` for frames of `width × height` shown at `fps` frames per second (GIF delays
+    /// are in hundredths of a second, so the rate is rounded to one of those). Errors on a rate
+    /// that is not positive and finite (naming `path`) and on I/O errors.
+    pub fn create(path: &Path, width: u32, height: u32, fps: f32) -> Result<Self, DataError> {
+        if !(fps.is_finite() && fps > 0.0) || width == 0 || height == 0 || width > 65535 || height > 65535 {
+            let reason = format!("{width}x{height} frames at {fps} frames/s (need a positive rate and 1..=65535 pixels a side)");
+            return Err(DataError::Encode {
+                path: path.to_path_buf(),
+                source: image::ImageError::Parameter(image::error::ParameterError::from_kind(
+                    image::error::ParameterErrorKind::Generic(reason),
+                )),
+            });
+        }
+        let tmp = path.with_extension("gif.tmp");
+        let file = std::fs::File::create(&tmp).map_err(|source| DataError::Io { path: tmp.clone(), source })?;
+        let file = SharedFile(std::rc::Rc::new(std::cell::RefCell::new(std::io::BufWriter::new(file))));
+        let mut enc = image::codecs::gif::GifEncoder::new_with_speed(file.clone(), 10);
+        let encode = |source| DataError::Encode { path: path.to_path_buf(), source };
+        enc.set_repeat(image::codecs::gif::Repeat::Infinite).map_err(encode)?;
+        // Hundredths of a second per frame, at least 1.
+        let centis = (100.0 / fps).round().max(1.0) as u32;
+        Ok(Self {
+            enc: Some(enc),
+            file,
+            tmp,
+            path: path.to_path_buf(),
+            width,
+            height,
+            delay: image::Delay::from_numer_denom_ms(10 * centis, 1),
+            rgba: Vec::new(),
+            done: false,
+        })
+    }
+
+    /// Appends one frame (`3·W·H` RGB values in `[0, 1]`, clamped).
+    pub fn push(&mut self, rgb: &[f32]) -> Result<(), DataError> {
+        assert_eq!(rgb.len(), 3 * self.width as usize * self.height as usize, "GifWriter::push: rgb is not 3·W·H long");
+        self.rgba.clear();
+        self.rgba.extend(rgb.chunks_exact(3).flat_map(|p| [to_u8(p[0]), to_u8(p[1]), to_u8(p[2]), 255]));
+        let img = image::RgbaImage::from_raw(self.width, self.height, std::mem::take(&mut self.rgba)).expect("4·W·H bytes");
+        let frame = image::Frame::from_parts(img, 0, 0, self.delay);
+        let enc = self.enc.as_mut().expect("not finished");
+        enc.encode_frame(frame).map_err(|source| DataError::Encode { path: self.path.clone(), source })
+    }
+
+    /// Writes the GIF trailer, flushes and syncs the file, and renames it into place.
+    pub fn finish(mut self) -> Result<(), DataError> {
+        use std::io::Write as _;
+        // Dropping the encoder writes the trailer (into the buffer); the flush and sync below
+        // report what writing it to disk met.
+        drop(self.enc.take());
+        let io = |source| DataError::Io { path: self.tmp.clone(), source };
+        let mut f = self.file.0.borrow_mut();
+        f.flush().map_err(io)?;
+        f.get_ref().sync_all().map_err(io)?;
+        drop(f);
+        std::fs::rename(&self.tmp, &self.path).map_err(|source| DataError::Io { path: self.path.clone(), source })?;
+        self.done = true;
+        Ok(())
+    }
+}
+
+/// The GIF's file, shared between the encoder (which owns its writer) and [`GifWriter::finish`]
+/// (which flushes it and reports errors the encoder's drop would swallow).
+#[derive(Clone)]
+struct SharedFile(std::rc::Rc<std::cell::RefCell<std::io::BufWriter<std::fs::File>>>);
+
+impl std::io::Write for SharedFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.borrow_mut().write(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.0.borrow_mut().flush()
+    }
+}
+
+impl Drop for GifWriter {
+    fn drop(&mut self) {
+        // Not finished (an error in between): leave no partial file.
+        drop(self.enc.take());
+        if !self.done {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
 /// Writes a dataset back out in the Blender format: `out_root/transforms_<split>.json` with
 /// `camera_angle_x` recomputed for the dataset's width (from the first camera's `fx`),
 /// `frames[k] = { "file_path": "./<split>/r_<k>", "transform_matrix": 4×4 }`, and RGBA 8-bit PNGs
