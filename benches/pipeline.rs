@@ -10,6 +10,9 @@
 //! included: there its numbers are only a smoke test), each iteration waiting for the device so
 //! the time is the step's, not its submission's. Skipped without an adapter.
 //!
+//! `occupancy_mark_seen`: marking the grid cells no training camera sees, over the in-repo
+//! scene's cameras in a box four times as large.
+//!
 //! `NERF_BENCH_SMALL=1` shrinks every size for a quick CI-sized run.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
@@ -146,5 +149,28 @@ fn training_iteration_gpu(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, encoding, training_iteration, training_iteration_gpu);
+/// Marking the occupancy-grid cells no training camera sees (done once, at a run's first step):
+/// the in-repo scene's 100 cameras, a box four times the Blender cube (instant-ngp's
+/// `aabb_scale` 4), one 128³ grid and the cascade of 3 the scene gets by default.
+fn mark_seen(c: &mut Criterion) {
+    let data = load_blender(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/lego_100").as_ref(), Split::Train, &LoadOptions::default())
+        .expect("the in-repo scene");
+    let cams = &data.cameras;
+    let visible = |p: [f32; 3], r: f32| cams.iter().any(|cam| cam.sees_sphere(p.into(), r));
+    let res = if small() { 32 } else { 128 };
+    let mut g = c.benchmark_group("occupancy_mark_seen");
+    g.sample_size(10);
+    for cascades in [1u32, 3] {
+        let cfg = nerf::sampling::OccupancyGridConfig { resolution: res, cascades: Some(cascades), ..Default::default() };
+        let mut grid = nerf::sampling::OccupancyGrid::new(cfg, [-6.06; 3], [6.06; 3]);
+        g.throughput(Throughput::Elements(grid.densities().len() as u64));
+        g.bench_function(BenchmarkId::new(format!("cascades_{cascades}"), format!("{res}^3_100_cameras")), |b| {
+            b.iter(|| grid.mark_seen(&visible))
+        });
+        println!("cascades {cascades}: {:.1} % of the cells seen", 100.0 * grid.seen_fraction());
+    }
+    g.finish();
+}
+
+criterion_group!(benches, encoding, training_iteration, mark_seen, training_iteration_gpu);
 criterion_main!(benches);
