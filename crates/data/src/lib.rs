@@ -1098,7 +1098,6 @@ pub struct GifWriter {
     width: u32,
     height: u32,
     delay: image::Delay,
-    rgba: Vec<u8>,
     done: bool,
 }
 
@@ -1132,7 +1131,6 @@ impl GifWriter {
             width,
             height,
             delay: image::Delay::from_numer_denom_ms(10 * centis, 1),
-            rgba: Vec::new(),
             done: false,
         })
     }
@@ -1140,9 +1138,9 @@ impl GifWriter {
     /// Appends one frame (`3·W·H` RGB values in `[0, 1]`, clamped).
     pub fn push(&mut self, rgb: &[f32]) -> Result<(), DataError> {
         assert_eq!(rgb.len(), 3 * self.width as usize * self.height as usize, "GifWriter::push: rgb is not 3·W·H long");
-        self.rgba.clear();
-        self.rgba.extend(rgb.chunks_exact(3).flat_map(|p| [to_u8(p[0]), to_u8(p[1]), to_u8(p[2]), 255]));
-        let img = image::RgbaImage::from_raw(self.width, self.height, std::mem::take(&mut self.rgba)).expect("4·W·H bytes");
+        // The encoder takes the frame's buffer, so there is nothing to reuse between frames.
+        let rgba = rgb.chunks_exact(3).flat_map(|p| [to_u8(p[0]), to_u8(p[1]), to_u8(p[2]), 255]).collect();
+        let img = image::RgbaImage::from_raw(self.width, self.height, rgba).expect("4·W·H bytes");
         let frame = image::Frame::from_parts(img, 0, 0, self.delay);
         let enc = self.enc.as_mut().expect("not finished");
         enc.encode_frame(frame).map_err(|source| DataError::Encode { path: self.path.clone(), source })
