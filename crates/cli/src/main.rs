@@ -25,7 +25,7 @@ enum Command {
     /// Evaluate a trained run (its checkpoint) on a scene's test views.
     Eval(EvalArgs),
     /// Render novel views of a trained run: an orbit around the scene at the training cameras'
-    /// distance and elevation, written as PNG frames.
+    /// distance and elevation (or a nerfstudio camera path), written as PNG frames.
     Render(RenderArgs),
     /// Write a reduced copy of a scene as transforms files (fewer views, lower resolution).
     ExportScene(ExportArgs),
@@ -134,13 +134,19 @@ struct RenderArgs {
     /// The scene the run was trained on: its training cameras define the path (an orbit; for an
     /// LLFF scene, nerf-pytorch's spiral of two turns in front of the cameras).
     scene: PathBuf,
-    /// Frames of the path (evenly spaced).
-    #[arg(long, default_value_t = 60)]
-    frames: usize,
-    /// Frame width in pixels (default: the training images'); the height keeps their aspect.
+    /// Frames of the path (evenly spaced) [default: 60].
+    #[arg(long)]
+    frames: Option<usize>,
+    /// Render along this camera path instead: a nerfstudio `camera_path.json` (what its viewer
+    /// exports; poses in the frame of the scene's cameras, see docs/formats.md). Every render writes
+    /// the path it took as such a file, to edit and render again.
+    #[arg(long = "camera-path", value_name = "FILE", conflicts_with = "frames")]
+    camera_path: Option<PathBuf>,
+    /// Frame width in pixels (default: the training images', or the camera path's); the height
+    /// keeps the aspect.
     #[arg(long)]
     width: Option<u32>,
-    /// Where to write frame_0000.png, … and render.json (default: `RUN/render`).
+    /// Where to write frame_0000.png, …, render.json and camera_path.json (default: `RUN/render`).
     #[arg(long)]
     out: Option<PathBuf>,
     /// Also write depth_0000.png, …: expected depth, near bright and far dark, over the range of
@@ -330,30 +336,55 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
 }
 
 fn cmd_render(a: RenderArgs) -> Result<()> {
-    if a.frames == 0 {
+    if a.frames == Some(0) {
         bail!("--frames must be at least 1");
     }
+    // A user's path is read before the checkpoint, so a typo there fails fast.
+    let user_path = a.camera_path.as_deref().map(nerf::data::load_camera_path).transpose()?;
     let ck_path = a.run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
     let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
     let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
-    let mut k = train.cameras[0].intrinsics;
-    if let Some(w) = a.width {
-        let s = w as f32 / k.width as f32;
-        let h = (k.height as f32 * s).round().max(1.0) as u32;
-        k = nerf::rays::Intrinsics { width: w, height: h, fx: k.fx * s, fy: k.fy * s, cx: k.cx * s, cy: k.cy * s };
-    }
-    k.validate().map_err(|e| anyhow::anyhow!("--width {}: {e}", k.width))?;
-    let center = nerf::rays::glam::Vec3::from_array(train.aabb.center());
-    // Forward-facing captures get nerf-pytorch's spiral; object-centred ones a turntable orbit.
-    let path = if nerf::data::is_llff(&a.scene) {
-        nerf::data::llff::render_path(&train, k, a.frames)
-            .with_context(|| format!("{}: the training cameras do not define a spiral", a.scene.display()))?
-    } else {
-        nerf::rays::orbit(&train.cameras, center, k, a.frames)
-            .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?
+    // --width scales the intrinsics; the height keeps the aspect.
+    let sized = |k: nerf::rays::Intrinsics| -> Result<nerf::rays::Intrinsics> {
+        let k = match a.width {
+            Some(w) => {
+                let s = w as f32 / k.width as f32;
+                let h = (k.height as f32 * s).round().max(1.0) as u32;
+                nerf::rays::Intrinsics { width: w, height: h, fx: k.fx * s, fy: k.fy * s, cx: k.cx * s, cy: k.cy * s }
+            }
+            None => k,
+        };
+        k.validate().map_err(|e| anyhow::anyhow!("--width {}: {e}", k.width))?;
+        Ok(k)
     };
+    let (path, path_fps) = match user_path {
+        Some(p) => {
+            let mut cams = p.cameras;
+            for c in &mut cams {
+                c.intrinsics = sized(c.intrinsics)?;
+            }
+            (cams, p.fps)
+        }
+        None => {
+            let k = sized(train.cameras[0].intrinsics)?;
+            let frames = a.frames.unwrap_or(60);
+            let center = nerf::rays::glam::Vec3::from_array(train.aabb.center());
+            // Forward-facing captures get nerf-pytorch's spiral; object-centred ones a turntable orbit.
+            let path = if nerf::data::is_llff(&a.scene) {
+                nerf::data::llff::render_path(&train, k, frames)
+                    .with_context(|| format!("{}: the training cameras do not define a spiral", a.scene.display()))?
+            } else {
+                nerf::rays::orbit(&train.cameras, center, k, frames)
+                    .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?
+            };
+            (path, None)
+        }
+    };
+    let k = path[0].intrinsics; // every camera of a path has the same size
+    let n_frames = path.len();
+    let video_fps = a.gif.map(f64::from).or(path_fps).unwrap_or(30.0);
     let out = a.out.unwrap_or_else(|| a.run.join("render"));
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;
     let n = (k.width * k.height) as usize;
@@ -383,20 +414,22 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     if let Some(g) = gif {
         g.finish()?;
     }
-    let fps = a.frames as f64 / render_seconds.max(1e-9);
+    let fps = n_frames as f64 / render_seconds.max(1e-9);
     let cameras: Vec<_> = path.iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "frames": a.frames, "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "frames": n_frames, "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;
     nerf::train::run::write_atomic(&out.join("render.json"), text.as_bytes())?;
-    println!("{} frames at {}x{} ({fps:.2} frames/s on {}) -> {}", a.frames, k.width, k.height, trainer.device(), out.display());
+    // The path as nerfstudio's camera_path.json: `--camera-path` renders it again.
+    let text = serde_json::to_string_pretty(&nerf::data::camera_path_json(&path, video_fps))?;
+    nerf::train::run::write_atomic(&out.join("camera_path.json"), text.as_bytes())?;
+    println!("{n_frames} frames at {}x{} ({fps:.2} frames/s on {}) -> {}", k.width, k.height, trainer.device(), out.display());
     // A video at full colour is one ffmpeg call away.
     println!(
-        "video: ffmpeg -framerate {} -i {} -pix_fmt yuv420p {}",
-        a.gif.unwrap_or(30.0),
+        "video: ffmpeg -framerate {video_fps} -i {} -pix_fmt yuv420p {}",
         out.join("frame_%04d.png").display(),
         out.join("render.mp4").display()
     );

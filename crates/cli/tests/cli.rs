@@ -421,7 +421,28 @@ fn render_writes_an_orbit_of_novel_views() {
     assert!(pos.iter().all(|p| (norm(p) - norm(&pos[0])).abs() < 1e-4 && norm(p) > 1.0), "{pos:?}");
     let dist = |a: &[f64; 3], b: &[f64; 3]| norm(&[a[0] - b[0], a[1] - b[1], a[2] - b[2]]);
     assert!((dist(&pos[0], &pos[1]) - dist(&pos[1], &pos[2])).abs() < 1e-4 && dist(&pos[0], &pos[1]) > 0.5, "{pos:?}");
+    // The orbit's camera_path.json renders the same frames again; --width rescales it.
+    let again = d.path().join("again");
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(out.join("camera_path.json"))
+        .args(["--device", "cpu", "--out"]).arg(&again).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("ffmpeg -framerate 10"), "the path's fps: {}", String::from_utf8_lossy(&o.stdout));
+    for i in 0..3 {
+        let (a, b) = (image::open(out.join(format!("frame_{i:04}.png"))).unwrap(), image::open(again.join(format!("frame_{i:04}.png"))).unwrap());
+        assert_eq!(a.to_rgb8().as_raw(), b.to_rgb8().as_raw(), "frame {i}");
+    }
+    assert!(!again.join("frame_0003.png").exists());
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(out.join("camera_path.json"))
+        .args(["--device", "cpu", "--width", "10", "--out"]).arg(d.path().join("small")).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(image::open(d.path().join("small/frame_0002.png")).unwrap().width(), 10);
     // Bad arguments: a clear one-line error.
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(out.join("camera_path.json")).args(["--frames", "2"]).output().unwrap();
+    let e = stderr(&o);
+    assert!(o.status.code() == Some(2) && e.contains("--frames") && e.contains("--camera-path"), "a usage error: {e}");
+    std::fs::write(d.path().join("bad_path.json"), r#"{"render_width": 8, "camera_path": []}"#).unwrap();
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(d.path().join("bad_path.json")).output().unwrap();
+    assert_clean_failure(&o, &["bad_path.json", "render_height"]);
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "0"]).output().unwrap();
     assert_clean_failure(&o, &["--frames"]);
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--device", "cpu", "--gif", "0", "--out"]).arg(d.path().join("g")).output().unwrap();

@@ -16,12 +16,15 @@
 //! training loop does not allocate: [`Dataset::sample_rays`] for training (uniform over all pixels
 //! of all views, optional jitter and random backgrounds), [`Dataset::view_rays`] for evaluation.
 //! Forward-facing scenes give their rays in NDC ([`Dataset::ndc`], [`Dataset::warp`]).
+//! Camera paths to render along are read and written in nerfstudio's format ([`camera_path`]).
 
 use std::path::{Path, PathBuf};
 
 use nerf_rays::glam::Vec3;
 use nerf_rays::{Aabb, Camera, Ndc, PixelConvention, Ray};
 
+pub mod camera_path;
+pub use camera_path::{camera_path_json, load_camera_path, CameraPath};
 pub mod llff;
 pub use llff::{is_llff, load_llff};
 pub mod ngp;

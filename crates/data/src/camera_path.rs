@@ -1,0 +1,125 @@
+//! Camera paths in nerfstudio's `camera_path.json` format, read by `nerf render --camera-path`
+//! and written beside every render so a path can be edited and rendered again.
+//!
+//! The file (what nerfstudio's viewer exports and `ns-render camera-path` reads):
+//!
+//! ```json
+//! { "camera_type": "perspective", "render_width": 800, "render_height": 800, "fps": 30,
+//!   "camera_path": [ { "camera_to_world": [16 numbers, row-major 4×4], "fov": 50.0 }, … ] }
+//! ```
+//!
+//! `fov` is the vertical field of view in degrees, so `fy = ½·H / tan(½·fov)`; pixels are square
+//! (`fx = fy`) and the principal point is the image centre (as nerfstudio's
+//! `get_path_from_json`). Poses use OpenGL axes (the camera looks down −z, +y up), as
+//! `transform_matrix` in a transforms file, and are in the frame of the cameras the scene's loader
+//! gives: a transforms file's own frame (Blender, instant-ngp, nerfstudio data), nerf-pytorch's
+//! recentred and rescaled frame for LLFF. Other keys (`keyframes`, `seconds`, `aspect`, …) are
+//! ignored; only perspective cameras are supported.
+
+use std::path::Path;
+
+use nerf_rays::{Camera, Intrinsics};
+
+use crate::DataError;
+
+/// A camera path: one camera per frame and the frame rate the file asks for.
+#[derive(Clone, Debug)]
+pub struct CameraPath {
+    /// One pinhole camera per frame, all of the file's `render_width × render_height`.
+    pub cameras: Vec<Camera>,
+    /// `fps` of the file, if it gives one.
+    pub fps: Option<f64>,
+}
+
+/// Reads a nerfstudio camera path (see the module docs). Errors name the file and the key:
+/// missing file, malformed JSON, a missing or invalid `render_width`, `render_height`,
+/// `camera_path[i].camera_to_world` (12 or 16 finite numbers) or `camera_path[i].fov` (degrees in
+/// (0, 180)), a camera type other than perspective, an empty path.
+pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
+    let text = std::fs::read_to_string(path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|source| DataError::Json { path: path.to_path_buf(), source })?;
+    let missing = |key: &str| DataError::MissingKey { path: path.to_path_buf(), key: key.into() };
+    let invalid = |key: &str, reason: String| DataError::InvalidValue { path: path.to_path_buf(), key: key.into(), reason };
+    if !v.is_object() {
+        return Err(invalid("(top level)", "a camera path is a JSON object".into()));
+    }
+    if let Some(t) = v.get("camera_type") {
+        match t.as_str() {
+            Some("perspective") => {}
+            _ => return Err(invalid("camera_type", format!("{t}: only \"perspective\" cameras can be rendered"))),
+        }
+    }
+    let size = |key: &str| -> Result<u32, DataError> {
+        let x = v.get(key).ok_or_else(|| missing(key))?;
+        x.as_u64().filter(|&n| n > 0 && n <= 1 << 16).map(|n| n as u32).ok_or_else(|| {
+            invalid(key, format!("{x}: must be a whole number of pixels in 1..=65536"))
+        })
+    };
+    let (width, height) = (size("render_width")?, size("render_height")?);
+    let fps = match v.get("fps") {
+        None | Some(serde_json::Value::Null) => None,
+        Some(x) => Some(x.as_f64().filter(|f| f.is_finite() && *f > 0.0).ok_or_else(|| invalid("fps", format!("{x}: must be a positive number")))?),
+    };
+    let frames = v.get("camera_path").ok_or_else(|| missing("camera_path"))?;
+    let frames = frames.as_array().ok_or_else(|| invalid("camera_path", "must be an array of cameras".into()))?;
+    if frames.is_empty() {
+        return Err(invalid("camera_path", "has no cameras".into()));
+    }
+    let mut cameras = Vec::with_capacity(frames.len());
+    for (i, f) in frames.iter().enumerate() {
+        let key = |k: &str| format!("camera_path[{i}].{k}");
+        let m = f.get("camera_to_world").ok_or_else(|| missing(&key("camera_to_world")))?;
+        let values: Option<Vec<f64>> = m.as_array().and_then(|a| a.iter().map(|x| x.as_f64()).collect());
+        let values = values
+            .filter(|vals| vals.len() == 16 || vals.len() == 12)
+            .ok_or_else(|| invalid(&key("camera_to_world"), "must be 16 numbers (a row-major 4×4 matrix) or 12 (its top 3 rows)".into()))?;
+        let rows: Vec<[f32; 4]> = values.chunks(4).take(3).map(|r| std::array::from_fn(|c| r[c] as f32)).collect();
+        let fov = f.get("fov").ok_or_else(|| missing(&key("fov")))?;
+        let deg = fov.as_f64().filter(|d| *d > 0.0 && *d < 180.0).ok_or_else(|| {
+            invalid(&key("fov"), format!("{fov}: the vertical field of view must be in (0, 180) degrees"))
+        })?;
+        let cam = Camera::from_c2w(intrinsics_from_fov_y(width, height, deg), &rows)
+            .map_err(|e| invalid(&key("camera_to_world"), e.to_string()))?;
+        cameras.push(cam);
+    }
+    Ok(CameraPath { cameras, fps })
+}
+
+/// Square-pixel intrinsics with the principal point at the image centre and vertical field of view
+/// `fov_y_degrees`: `fx = fy = ½·H / tan(½·fov)` (computed in f64).
+pub fn intrinsics_from_fov_y(width: u32, height: u32, fov_y_degrees: f64) -> Intrinsics {
+    let f = (0.5 * height as f64 / (0.5 * fov_y_degrees.to_radians()).tan()) as f32;
+    Intrinsics { width, height, fx: f, fy: f, cx: width as f32 * 0.5, cy: height as f32 * 0.5 }
+}
+
+/// `cameras` as a nerfstudio camera path (the inverse of [`load_camera_path`]): the size of the
+/// first camera, each camera's vertical field of view from its `fy`, its pose row-major.
+/// The format cannot hold non-square pixels or an off-centre principal point: such cameras come
+/// back with `fx = fy` and the image centre.
+///
+/// # Panics
+/// If `cameras` is empty.
+pub fn camera_path_json(cameras: &[Camera], fps: f64) -> serde_json::Value {
+    let k = cameras[0].intrinsics;
+    let path: Vec<serde_json::Value> = cameras
+        .iter()
+        .map(|c| {
+            let fov = 2.0 * (0.5 * c.intrinsics.height as f64 / c.intrinsics.fy as f64).atan();
+            let m: Vec<f32> = c.c2w().iter().flatten().copied().collect();
+            serde_json::json!({
+                "camera_to_world": m,
+                "fov": fov.to_degrees(),
+                "aspect": c.intrinsics.width as f64 / c.intrinsics.height as f64,
+            })
+        })
+        .collect();
+    serde_json::json!({
+        "camera_type": "perspective",
+        "render_width": k.width,
+        "render_height": k.height,
+        "fps": fps,
+        "seconds": cameras.len() as f64 / fps,
+        "camera_path": path,
+    })
+}
