@@ -28,7 +28,7 @@ pub use camera_path::{camera_path_json, load_camera_path, CameraPath};
 pub mod llff;
 pub use llff::{is_llff, load_llff};
 pub mod ngp;
-pub use ngp::{Distortion, Focal, Lens, NgpBox};
+pub use ngp::{Distortion, Focal, Lens, NerfstudioNormalization, NgpBox};
 use rand::Rng as _;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -846,7 +846,9 @@ pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datas
 /// validated, even for unselected views. NeRF's Blender scenes get `near = 2`, `far = 6` and
 /// `aabb = Aabb::cube(1.5)`; instant-ngp scenes ([`Dataset::ngp`]) the cube of their
 /// [`NgpBox`], `near = `[`NgpBox::near`] and a `far` past the cube's farthest corner from every
-/// camera of the file (the same for every split).
+/// camera of the file (the same for every split). A nerfstudio file ([`ngp::is_nerfstudio`]) has
+/// its poses normalised as nerfstudio does ([`NerfstudioNormalization`], from every frame of the
+/// file) and trains in nerfstudio's box `[−1, 1]³`.
 pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
     let split_path = root.join(split.transforms_file());
     let single_path = root.join(ngp::NGP_TRANSFORMS);
@@ -881,10 +883,8 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
         ));
     }
     ngp::Lens::parse(&tpath, &json, None)?;
-    let ngp_box = match ngp::NgpBox::parse(&tpath, &json)? {
-        None if one_file => Some(NgpBox::default()),
-        b => b,
-    };
+    let parsed_box = ngp::NgpBox::parse(&tpath, &json)?;
+    let nerfstudio = one_file && ngp::is_nerfstudio(&json);
     let frames_v = json.get("frames").ok_or_else(|| missing("frames".into()))?;
     let frames_json = frames_v.as_array().ok_or_else(|| {
         invalid(
@@ -967,6 +967,18 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
             reason: "the factor must be at least 1".into(),
         });
     }
+    // nerfstudio's poses are COLMAP's: normalised here as nerfstudio does, from every frame of
+    // the file (cameras that all sit at one point, e.g. a single view, cannot be: they keep
+    // instant-ngp's placement).
+    let normalization = if nerfstudio { ngp::NerfstudioNormalization::of(&frames.iter().map(|f| &f.c2w[..]).collect::<Vec<_>>()) } else { None };
+    let ngp_box = match normalization {
+        Some(n) => {
+            frames.iter_mut().for_each(|f| n.apply(&mut f.c2w));
+            Some(NgpBox { aabb_scale: parsed_box.map_or(1.0, |b| b.aabb_scale), ..ngp::NerfstudioNormalization::BOX })
+        }
+        None if one_file => Some(parsed_box.unwrap_or_default()),
+        None => parsed_box,
+    };
     // Every frame's camera centre (all splits: `far` must not depend on the split or selection).
     let centres: Vec<Vec3> = frames.iter().map(|f| Vec3::new(f.c2w[0][3], f.c2w[1][3], f.c2w[2][3])).collect();
     let frames: Vec<&Frame> = selected.iter().map(|&i| &frames[in_split[i]]).collect();

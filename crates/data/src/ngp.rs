@@ -26,6 +26,13 @@
 //!   `transforms.json`, gets that cube as its [`Dataset::aabb`](crate::Dataset::aabb), rays that
 //!   start [`NGP_NEAR`] (instant-ngp units) from the camera and end where they leave the cube;
 //!   split Blender scenes without the keys keep NeRF's `near = 2`, `far = 6`.
+//! - **nerfstudio's normalisation**: a file from nerfstudio's `ns-process-data` ([`is_nerfstudio`]:
+//!   `applied_transform` or `camera_model`, no `scale` or `offset`) holds COLMAP's poses at
+//!   COLMAP's arbitrary scale and orientation. The loader normalises them as nerfstudio's
+//!   dataparser does ([`NerfstudioNormalization`]: mean up onto +z, mean centre to the origin,
+//!   the farthest camera coordinate to 1), so the scene's cameras are in nerfstudio's frame (the
+//!   frame of its viewer's camera paths) and it trains in nerfstudio's box `[−1, 1]³`, grown by
+//!   `aabb_scale` when the file gives one.
 
 use std::path::Path;
 
@@ -368,5 +375,135 @@ impl NgpBox {
     /// The distance along unit rays where rays start: [`NGP_NEAR`]` / scale`.
     pub fn near(&self) -> f32 {
         NGP_NEAR / self.scale
+    }
+}
+
+/// Whether a transforms file is nerfstudio's (what `ns-process-data` writes): it has
+/// `applied_transform` or `camera_model` at the top level and neither of instant-ngp's `scale` and
+/// `offset`. Such a scene gets nerfstudio's normalisation ([`NerfstudioNormalization`]) instead
+/// of instant-ngp's default placement, which assumes poses already scaled by `colmap2nerf.py`.
+pub fn is_nerfstudio(top: &Value) -> bool {
+    (top.get("applied_transform").is_some() || top.get("camera_model").is_some())
+        && top.get("scale").is_none()
+        && top.get("offset").is_none()
+}
+
+/// nerfstudio's normalisation of captured poses (its `nerfstudio` dataparser with the defaults
+/// `orientation_method = "up"`, `center_method = "poses"`, `auto_scale_poses = true`,
+/// `scene_scale = 1`; `camera_utils.auto_orient_and_center_poses`): rotate the mean camera up
+/// vector onto +z, move the mean camera centre `c` to the origin, then scale by
+/// `s = 1 / max |t'|` over every rotated, centred camera centre and axis. The scene then trains in
+/// the cube `[−1, 1]³` ([`NerfstudioNormalization::BOX`]), which holds every camera.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NerfstudioNormalization {
+    /// The rotation (rows), applied after centring.
+    pub rotation: [[f64; 3]; 3],
+    /// The mean camera centre `c` (file coordinates).
+    pub center: [f64; 3],
+    /// The scale `s`.
+    pub scale: f64,
+}
+
+impl NerfstudioNormalization {
+    /// nerfstudio's scene box `[−1, 1]³` as an instant-ngp box (`p·0.5 + 0.5` in `[0, 1]`);
+    /// an `aabb_scale` in the file grows it about the origin.
+    pub const BOX: NgpBox = NgpBox { scale: 0.5, offset: [0.5; 3], aabb_scale: 1.0 };
+
+    /// The normalisation of cameras with these camera-to-world matrices (3 or 4 rows). `None`
+    /// when there are none, their up vectors cancel out, or their centres all coincide (a single
+    /// view: nothing to scale by).
+    pub fn of(c2ws: &[&[[f32; 4]]]) -> Option<Self> {
+        if c2ws.is_empty() || c2ws.iter().any(|m| m.len() < 3 || m.iter().flatten().any(|v| !v.is_finite())) {
+            return None; // a bad pose is reported, with its frame, where the camera is built
+        }
+        let n = c2ws.len() as f64;
+        let col = |m: &[[f32; 4]], c: usize| -> [f64; 3] { std::array::from_fn(|r| m[r][c] as f64) };
+        let mean = |c: usize| -> [f64; 3] {
+            let mut acc = [0.0; 3];
+            for m in c2ws {
+                let v = col(m, c);
+                (0..3).for_each(|a| acc[a] += v[a] / n);
+            }
+            acc
+        };
+        let center = mean(3);
+        let rotation = rotation_between(mean(1), [0.0, 0.0, 1.0])?;
+        let mut scale = 0.0f64;
+        for m in c2ws {
+            let t = col(m, 3);
+            let d: [f64; 3] = std::array::from_fn(|a| t[a] - center[a]);
+            for row in &rotation {
+                scale = scale.max((row[0] * d[0] + row[1] * d[1] + row[2] * d[2]).abs());
+            }
+        }
+        (scale.is_finite() && scale > 0.0).then(|| Self { rotation, center, scale: 1.0 / scale })
+    }
+
+    /// A camera-to-world matrix (3 or 4 rows) in the normalised frame: `R·rotation_block`,
+    /// `s·R·(t − c)`; the bottom row of a 4×4 matrix is left as it is.
+    pub fn apply(&self, c2w: &mut [[f32; 4]]) {
+        let r = &self.rotation;
+        let m: [[f64; 4]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| c2w[i][j] as f64));
+        for i in 0..3 {
+            for j in 0..3 {
+                c2w[i][j] = (r[i][0] * m[0][j] + r[i][1] * m[1][j] + r[i][2] * m[2][j]) as f32;
+            }
+            let d: [f64; 3] = std::array::from_fn(|a| m[a][3] - self.center[a]);
+            c2w[i][3] = (self.scale * (r[i][0] * d[0] + r[i][1] * d[1] + r[i][2] * d[2])) as f32;
+        }
+    }
+}
+
+/// nerfstudio's `rotation_matrix_between(a, b)`: the rotation about `a × b` taking the direction
+/// of `a` onto that of `b` (Rodrigues' formula); for (anti)parallel vectors the axis is `a × x̂`
+/// (or `a × ŷ` when `a` has no x part). `None` when `a` or `b` is zero or not finite.
+fn rotation_between(a: [f64; 3], b: [f64; 3]) -> Option<[[f64; 3]; 3]> {
+    let norm = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    let cross = |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let (na, nb) = (norm(a), norm(b));
+    if !(na.is_finite() && nb.is_finite() && na > 0.0 && nb > 0.0) {
+        return None;
+    }
+    let (a, b) = (a.map(|x| x / na), b.map(|x| x / nb));
+    let mut v = cross(a, b);
+    if v.iter().map(|x| x.abs()).sum::<f64>() < 1e-6 {
+        let x = if a[0].abs() < 1e-6 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+        v = cross(a, x);
+    }
+    let nv = norm(v);
+    let v = v.map(|x| x / nv);
+    let k = [[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]];
+    let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0);
+    let theta = cos.acos();
+    let (st, ct) = (theta.sin(), 1.0 - theta.cos());
+    Some(std::array::from_fn(|i| {
+        std::array::from_fn(|j| {
+            let kk: f64 = (0..3).map(|m| k[i][m] * k[m][j]).sum();
+            (i == j) as u8 as f64 + st * k[i][j] + ct * kk
+        })
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::rotation_between;
+
+    /// A rotation taking `a`'s direction onto `b`'s, for generic, parallel and opposite vectors.
+    #[test]
+    fn rotation_between_takes_a_onto_b() {
+        let z = [0.0, 0.0, 1.0];
+        for a in [[0.3, -1.2, 0.5], [0.0, 0.0, 2.0], [0.0, 0.0, -1.0], [1e-9, 0.0, -3.0], [0.0, 1.0, 0.0]] {
+            let r = rotation_between(a, z).unwrap();
+            let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+            let ra: Vec<f64> = (0..3).map(|i| (0..3).map(|j| r[i][j] * a[j] / n).sum()).collect();
+            assert!((0..3).all(|i| (ra[i] - z[i]).abs() < 1e-9), "{a:?} → {ra:?}");
+            for i in 0..3 {
+                for j in 0..3 {
+                    let dot: f64 = (0..3).map(|k| r[i][k] * r[j][k]).sum();
+                    assert!((dot - (i == j) as u8 as f64).abs() < 1e-9, "orthonormal rows: {r:?}");
+                }
+            }
+        }
+        assert!(rotation_between([0.0; 3], z).is_none());
     }
 }

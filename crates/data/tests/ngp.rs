@@ -438,3 +438,91 @@ fn nerfstudio_split_lists_pick_the_frames() {
     let e = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap_err();
     assert!(e.to_string().contains("array of strings"), "{e}");
 }
+
+/// nerfstudio's `ns-process-data` keeps COLMAP's poses at COLMAP's scale and orientation; the
+/// loader normalises them as nerfstudio's dataparser does, wherever the capture sits, however it
+/// is turned and however large it is.
+#[test]
+fn nerfstudio_scenes_are_normalised_as_nerfstudio_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let k = load(&lego_100(), Split::Train).cameras[0].intrinsics;
+    // lego's cameras moved rigidly and scaled: p → s·Q·p + shift, camera axes turned by Q.
+    let q = glam::Mat3::from_euler(glam::EulerRot::XYZ, 0.7, -0.4, 1.9);
+    let moved = |frames: Vec<Value>, s: f32, shift: [f32; 3], q: glam::Mat3| -> Vec<Value> {
+        frames
+            .into_iter()
+            .map(|mut f| {
+                let m: Vec<Vec<f32>> = (0..4).map(|r| (0..4).map(|c| f["transform_matrix"][r][c].as_f64().unwrap() as f32).collect()).collect();
+                let rot = glam::Mat3::from_cols_array_2d(&std::array::from_fn(|c| std::array::from_fn(|r| m[r][c]))); // columns
+                let t = glam::Vec3::new(m[0][3], m[1][3], m[2][3]);
+                let (rot, t) = (q * rot, s * (q * t) + glam::Vec3::from_array(shift));
+                let rows: Vec<Vec<f32>> = (0..3).map(|r| vec![rot.col(0)[r], rot.col(1)[r], rot.col(2)[r], t[r]]).chain([vec![0.0, 0.0, 0.0, 1.0]]).collect();
+                f["transform_matrix"] = json!(rows);
+                f
+            })
+            .collect()
+    };
+    let scene = |frames: Vec<Value>, extra: Value| {
+        let mut t = json!({"camera_model": "OPENCV", "fl_x": k.fx as f64, "fl_y": k.fy as f64, "cx": 50.0, "cy": 50.0, "w": 100, "h": 100,
+            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "applied_transform": [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]], "frames": frames});
+        for (key, v) in extra.as_object().unwrap() {
+            t[key] = v.clone();
+        }
+        write_json(&dir.path().join("transforms.json"), &t);
+        (load(dir.path(), Split::Train), load(dir.path(), Split::Test))
+    };
+    let orig = interleaved_lego();
+    let (train0, test0) = scene(orig.clone(), json!({}));
+    // Moved and scaled: the same cameras (nerfstudio's frame does not depend on where the
+    // capture sits or on its scale).
+    let big = moved(orig.clone(), 7.0, [10.0, -3.0, 5.0], glam::Mat3::IDENTITY);
+    let (train, test) = scene(big.clone(), json!({}));
+    for (a, b) in train0.cameras.iter().chain(&test0.cameras).zip(train.cameras.iter().chain(&test.cameras)) {
+        assert!((a.position - b.position).abs().max_element() < 1e-4, "{} vs {}", a.position, b.position);
+        assert!((a.rotation - b.rotation).abs().to_cols_array().iter().all(|d| *d < 1e-4), "{:?} vs {:?}", a.rotation, b.rotation);
+    }
+    // Turned as well: the same rig up to a turn about the up axis (nerfstudio only levels it)
+    // and so a scale (the farthest coordinate along the turned axes is 1).
+    let (turned, turned_test) = scene(moved(orig.clone(), 7.0, [10.0, -3.0, 5.0], q), json!({}));
+    let rig = |d: &Dataset, e: &Dataset| -> Vec<glam::Vec3> { d.cameras.iter().chain(&e.cameras).map(|c| c.position).collect() };
+    let (p0, p1) = (rig(&train0, &test0), rig(&turned, &turned_test));
+    let ratio = (p1[1] - p1[0]).length() / (p0[1] - p0[0]).length();
+    assert!(ratio > 0.5 && ratio < 2.0, "{ratio}");
+    for i in 0..p0.len() {
+        assert!((ratio * p0[i].z - p1[i].z).abs() < 1e-4, "heights agree: {} vs {} (×{ratio})", p0[i], p1[i]);
+        for j in 0..i {
+            assert!((ratio * (p0[i] - p0[j]).length() - (p1[i] - p1[j]).length()).abs() < 1e-4, "distances agree");
+        }
+    }
+    // In that frame: every camera (both splits) inside [−1, 1]³ and one on its surface, their
+    // mean centre at the origin, their mean up vector along +z; the box is [−1, 1]³.
+    for (tr, te) in [(&train, &test), (&turned, &turned_test)] {
+        let all: Vec<_> = tr.cameras.iter().chain(&te.cameras).collect();
+        let max = all.iter().map(|c| c.position.abs().max_element()).fold(0.0f32, f32::max);
+        assert!((max - 1.0).abs() < 1e-5, "{max}");
+        let mean = all.iter().map(|c| c.position).sum::<glam::Vec3>() / all.len() as f32;
+        assert!(mean.abs().max_element() < 1e-5, "{mean}");
+        let up = all.iter().map(|c| c.rotation.col(1)).sum::<glam::Vec3>().normalize();
+        assert!((up - glam::Vec3::Z).length() < 1e-5, "{up}");
+    }
+    assert_eq!(train.ngp, Some(NgpBox { scale: 0.5, offset: [0.5; 3], aabb_scale: 1.0 }));
+    assert_eq!((train.aabb.min, train.aabb.max), ([-1.0; 3], [1.0; 3]));
+    assert_eq!((test.aabb, test.near, test.far), (train.aabb, train.near, train.far), "one box for every split");
+    assert!((train.near - NGP_NEAR / 0.5).abs() < 1e-6);
+    // The images are the frames' own: only the poses change.
+    assert!(train.images == train0.images);
+    // `aabb_scale` grows the box about the origin.
+    let (train4, _) = scene(big.clone(), json!({"aabb_scale": 4}));
+    assert_eq!((train4.aabb.min, train4.aabb.max), ([-4.0; 3], [4.0; 3]));
+    assert_eq!(train4.cameras[3].position, train.cameras[3].position);
+    // instant-ngp's `scale` / `offset` keep their meaning: the file is then instant-ngp's, poses as written.
+    let (ngp, _) = scene(big.clone(), json!({"scale": 0.5, "offset": [0.5, 0.5, 0.5]}));
+    assert_eq!(ngp.ngp, Some(NgpBox { scale: 0.5, offset: [0.5; 3], aabb_scale: 1.0 }));
+    let first_train = |frames: &[Value]| -> [f32; 3] { std::array::from_fn(|r| frames[1]["transform_matrix"][r][3].as_f64().unwrap() as f32) };
+    assert_eq!(ngp.cameras[0].position.to_array(), first_train(&big));
+    // Cameras that all sit at one point (a single view) cannot be normalised: instant-ngp's cube.
+    let one_point: Vec<Value> = big.iter().map(|f| { let mut f = f.clone(); for r in 0..3 { f["transform_matrix"][r][3] = json!(1.0); } f }).collect();
+    let (one, _) = scene(one_point, json!({}));
+    assert_eq!(one.ngp, Some(NgpBox::default()));
+    assert_eq!(one.cameras[0].position, glam::Vec3::ONE);
+}
