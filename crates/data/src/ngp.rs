@@ -27,7 +27,8 @@
 //!   start [`NGP_NEAR`] (instant-ngp units) from the camera and end where they leave the cube;
 //!   split Blender scenes without the keys keep NeRF's `near = 2`, `far = 6`.
 //! - **nerfstudio's normalisation**: a file from nerfstudio's `ns-process-data` ([`is_nerfstudio`]:
-//!   `applied_transform` or `camera_model`, no `scale` or `offset`) holds COLMAP's poses at
+//!   `applied_transform`, or `camera_model` without `aabb_scale`; no `scale` or `offset`) holds
+//!   COLMAP's poses at
 //!   COLMAP's arbitrary scale and orientation. The loader normalises them as nerfstudio's
 //!   dataparser does ([`NerfstudioNormalization`]: mean up onto +z, mean centre to the origin,
 //!   the farthest camera coordinate to 1), so the scene's cameras are in nerfstudio's frame (the
@@ -378,14 +379,15 @@ impl NgpBox {
     }
 }
 
-/// Whether a transforms file is nerfstudio's (what `ns-process-data` writes): it has
-/// `applied_transform` or `camera_model` at the top level and neither of instant-ngp's `scale` and
-/// `offset`. Such a scene gets nerfstudio's normalisation ([`NerfstudioNormalization`]) instead
-/// of instant-ngp's default placement, which assumes poses already scaled by `colmap2nerf.py`.
+/// Whether a transforms file is nerfstudio's (what `ns-process-data` writes): neither of
+/// instant-ngp's `scale` and `offset`, and either `applied_transform` (written only by nerfstudio)
+/// or `camera_model` without `aabb_scale` (tools that write instant-ngp files with poses already
+/// scaled, as `colmap2nerf.py` does, may add `camera_model`, but always write `aabb_scale`). Such a
+/// scene gets nerfstudio's normalisation ([`NerfstudioNormalization`]) instead of instant-ngp's
+/// default placement.
 pub fn is_nerfstudio(top: &Value) -> bool {
-    (top.get("applied_transform").is_some() || top.get("camera_model").is_some())
-        && top.get("scale").is_none()
-        && top.get("offset").is_none()
+    let has = |k: &str| top.get(k).is_some();
+    !has("scale") && !has("offset") && (has("applied_transform") || (has("camera_model") && !has("aabb_scale")))
 }
 
 /// nerfstudio's normalisation of captured poses (its `nerfstudio` dataparser with the defaults

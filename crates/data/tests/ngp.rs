@@ -515,6 +515,11 @@ fn nerfstudio_scenes_are_normalised_as_nerfstudio_does() {
     let (train4, _) = scene(big.clone(), json!({"aabb_scale": 4}));
     assert_eq!((train4.aabb.min, train4.aabb.max), ([-4.0; 3], [4.0; 3]));
     assert_eq!(train4.cameras[3].position, train.cameras[3].position);
+    // `camera_model` with `aabb_scale` but no `applied_transform`: an instant-ngp file that some
+    // tool gave a camera model (its poses are taken as already scaled).
+    write_json(&dir.path().join("transforms.json"), &json!({"camera_model": "OPENCV", "aabb_scale": 16, "fl_x": k.fx as f64, "w": 100, "h": 100, "frames": big.clone()}));
+    let ngp16 = load(dir.path(), Split::Train);
+    assert_eq!(ngp16.ngp, Some(NgpBox { aabb_scale: 16.0, ..NgpBox::default() }));
     // instant-ngp's `scale` / `offset` keep their meaning: the file is then instant-ngp's, poses as written.
     let (ngp, _) = scene(big.clone(), json!({"scale": 0.5, "offset": [0.5, 0.5, 0.5]}));
     assert_eq!(ngp.ngp, Some(NgpBox { scale: 0.5, offset: [0.5; 3], aabb_scale: 1.0 }));
