@@ -526,3 +526,43 @@ fn a_large_instant_ngp_box_gets_cone_steps_and_a_note() {
     let e = hash("constant");
     assert!(e.contains("constant steps (cone_angle = 0)"), "{e}");
 }
+
+/// A nerfstudio capture (COLMAP's poses, `applied_transform`) trains in nerfstudio's frame, and
+/// the run records that frame's transform as nerfstudio does (`dataparser_transforms.json`); a
+/// Blender scene's run has none.
+#[test]
+fn a_nerfstudio_capture_run_writes_its_dataparser_transforms() {
+    let d = tempfile::tempdir().unwrap();
+    let lego = repo().join("scenes/lego_100");
+    let tr: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(lego.join("transforms_train.json")).unwrap()).unwrap();
+    // Ten training views as one nerfstudio file, every camera centre at 5·p + (1, 2, 3).
+    let frames: Vec<serde_json::Value> = tr["frames"].as_array().unwrap()[..10]
+        .iter()
+        .map(|f| {
+            let mut m = f["transform_matrix"].clone();
+            for r in 0..3 {
+                m[r][3] = serde_json::json!(5.0 * m[r][3].as_f64().unwrap() + (r + 1) as f64);
+            }
+            let rel = f["file_path"].as_str().unwrap().trim_start_matches("./");
+            serde_json::json!({"file_path": lego.join(format!("{rel}.png")), "transform_matrix": m})
+        })
+        .collect();
+    let scene = d.path().join("capture");
+    std::fs::create_dir_all(&scene).unwrap();
+    let f = 0.5 * 100.0 / (0.5 * tr["camera_angle_x"].as_f64().unwrap()).tan();
+    let t = serde_json::json!({"camera_model": "OPENCV", "fl_x": f, "fl_y": f, "cx": 50, "cy": 50, "w": 100, "h": 100,
+        "applied_transform": [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]], "frames": frames});
+    std::fs::write(scene.join("transforms.json"), t.to_string()).unwrap();
+    let run = d.path().join("run");
+    let o = train_tiny(&scene, &run, &["--iters", "1", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let dt: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("dataparser_transforms.json")).unwrap()).unwrap();
+    let s = dt["scale"].as_f64().unwrap();
+    assert!(s > 0.0 && s < 1.0 / 5.0, "the capture's cameras are 5× lego's (4 units away): {s}");
+    let m: Vec<Vec<f64>> = dt["transform"].as_array().unwrap().iter().map(|r| r.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()).collect();
+    assert_eq!((m.len(), m[0].len()), (3, 4));
+    let blender = d.path().join("blender_run");
+    let o = train_tiny(&small_scene(d.path()), &blender, &["--iters", "1", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(blender.join("metrics.json").is_file() && !blender.join("dataparser_transforms.json").exists());
+}

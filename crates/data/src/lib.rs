@@ -366,6 +366,9 @@ pub struct Dataset {
     /// `aabb` is its training cube and `near`/`far` come from it. `None` for NeRF's Blender
     /// scenes and LLFF.
     pub ngp: Option<NgpBox>,
+    /// nerfstudio's normalisation, applied to the poses of a nerfstudio capture ([`ngp`]):
+    /// what maps the file's frame into the one of [`Dataset::cameras`]. `None` for other scenes.
+    pub normalization: Option<NerfstudioNormalization>,
 }
 
 impl std::fmt::Debug for Dataset {
@@ -1042,6 +1045,7 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
         ndc: None,
         depth_bounds: None,
         ngp: ngp_box,
+        normalization,
     })
 }
 

@@ -322,6 +322,7 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         ndc,
         depth_bounds: Some([near_bound as f32, far_bound as f32]),
         ngp: None,
+        normalization: None,
     })
 }
 

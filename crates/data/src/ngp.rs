@@ -441,6 +441,16 @@ impl NerfstudioNormalization {
         (scale.is_finite() && scale > 0.0).then(|| Self { rotation, center, scale: 1.0 / scale })
     }
 
+    /// nerfstudio's `dataparser_transforms.json` for it: `{"transform": 3×4 [R | −R·c],
+    /// "scale": s}`, so a point `p` of the file's frame is `s·(R·p − R·c)` in the normalised one
+    /// (and a normalised point `q` is `Rᵀ·q/s + c` in the file's).
+    pub fn to_json(&self) -> Value {
+        let r = &self.rotation;
+        let t: [f64; 3] = std::array::from_fn(|i| -(0..3).map(|j| r[i][j] * self.center[j]).sum::<f64>());
+        let rows: Vec<[f64; 4]> = (0..3).map(|i| [r[i][0], r[i][1], r[i][2], t[i]]).collect();
+        serde_json::json!({ "transform": rows, "scale": self.scale })
+    }
+
     /// A camera-to-world matrix (3 or 4 rows) in the normalised frame: `R·rotation_block`,
     /// `s·R·(t − c)`; the bottom row of a 4×4 matrix is left as it is.
     pub fn apply(&self, c2w: &mut [[f32; 4]]) {

@@ -64,6 +64,7 @@ fn synthetic(n: usize, w: u32, h: u32, seed: u64) -> Dataset {
         ndc: None,
         depth_bounds: None,
         ngp: None,
+        normalization: None,
     }
 }
 

@@ -511,6 +511,17 @@ fn nerfstudio_scenes_are_normalised_as_nerfstudio_does() {
     assert!((train.near - NGP_NEAR / 0.5).abs() < 1e-6);
     // The images are the frames' own: only the poses change.
     assert!(train.images == train0.images);
+    // nerfstudio's dataparser_transforms.json of the normalisation maps the file's camera
+    // centres onto the loaded ones: q = scale·(transform·[p; 1]).
+    let n = train.normalization.expect("a nerfstudio capture keeps its normalisation");
+    let dt = n.to_json();
+    let (m, sc) = (&dt["transform"], dt["scale"].as_f64().unwrap());
+    for (f, cam) in big.iter().enumerate().filter(|(i, _)| i % 8 != 0).map(|(_, f)| f).zip(&train.cameras) {
+        let p: Vec<f64> = (0..3).map(|r| f["transform_matrix"][r][3].as_f64().unwrap()).chain([1.0]).collect();
+        let q: Vec<f64> = (0..3).map(|i| sc * (0..4).map(|j| m[i][j].as_f64().unwrap() * p[j]).sum::<f64>()).collect();
+        assert!((0..3).all(|a| (q[a] - cam.position[a] as f64).abs() < 1e-5), "{q:?} vs {}", cam.position);
+    }
+    assert!(train0.normalization.is_some() && load(&lego_100(), Split::Train).normalization.is_none());
     // `aabb_scale` grows the box about the origin.
     let (train4, _) = scene(big.clone(), json!({"aabb_scale": 4}));
     assert_eq!((train4.aabb.min, train4.aabb.max), ([-4.0; 3], [4.0; 3]));
@@ -520,6 +531,7 @@ fn nerfstudio_scenes_are_normalised_as_nerfstudio_does() {
     write_json(&dir.path().join("transforms.json"), &json!({"camera_model": "OPENCV", "aabb_scale": 16, "fl_x": k.fx as f64, "w": 100, "h": 100, "frames": big.clone()}));
     let ngp16 = load(dir.path(), Split::Train);
     assert_eq!(ngp16.ngp, Some(NgpBox { aabb_scale: 16.0, ..NgpBox::default() }));
+    assert!(ngp16.normalization.is_none());
     // instant-ngp's `scale` / `offset` keep their meaning: the file is then instant-ngp's, poses as written.
     let (ngp, _) = scene(big.clone(), json!({"scale": 0.5, "offset": [0.5, 0.5, 0.5]}));
     assert_eq!(ngp.ngp, Some(NgpBox { scale: 0.5, offset: [0.5; 3], aabb_scale: 1.0 }));

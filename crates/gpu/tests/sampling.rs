@@ -136,6 +136,7 @@ fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset 
         ndc: None,
         depth_bounds: None,
         ngp: None,
+        normalization: None,
     }
 }
 

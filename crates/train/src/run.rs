@@ -18,7 +18,8 @@ use std::time::Instant;
 /// How a run is carried out (as opposed to what is trained, which is [`TrainConfig`]).
 #[derive(Clone, Debug)]
 pub struct RunOptions {
-    /// Output folder: `checkpoint.bin`, `history.jsonl`, `renders/`, `metrics.json`.
+    /// Output folder: `checkpoint.bin`, `history.jsonl`, `renders/`, `metrics.json` (and, for a
+    /// nerfstudio capture, nerfstudio's `dataparser_transforms.json`).
     pub out_dir: PathBuf,
     /// Continue from `<out_dir>/checkpoint.bin` when it exists.
     pub resume: bool,
@@ -101,12 +102,18 @@ pub fn run(
         }
         // A new run: the previous run's results no longer describe this folder (and a
         // metrics.json left beside an interrupted new run would make it look finished).
-        for stale in [&metrics_path, &out.join("gpu_profile.json")] {
+        for stale in [&metrics_path, &out.join("gpu_profile.json"), &out.join("dataparser_transforms.json")] {
             match std::fs::remove_file(stale) {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io_err(stale)(e)),
                 _ => {}
             }
         }
+    }
+    // A nerfstudio capture: how its poses were normalised, in nerfstudio's own file, so points
+    // and cameras of the run map back to the capture's (COLMAP's) frame.
+    if let Some(n) = &train.normalization {
+        let text = serde_json::to_string_pretty(&n.to_json()).expect("a JSON value serialises");
+        write_atomic(&out.join("dataparser_transforms.json"), text.as_bytes())?;
     }
     let mut trainer = make_trainer(&config, registry, SceneBounds::of(train), opts.device)?;
     if config.gpu_profile.is_some() && trainer.device() == "cpu" {
