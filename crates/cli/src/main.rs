@@ -122,6 +122,9 @@ struct EvalArgs {
     /// Where to write renders and eval.json (default: `RUN/eval`).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
@@ -149,6 +152,9 @@ struct RenderArgs {
     /// Where to write frame_0000.png, …, render.json and camera_path.json (default: `RUN/render`).
     #[arg(long)]
     out: Option<PathBuf>,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
     /// Also write depth_0000.png, …: expected depth, near bright and far dark, over the range of
     /// the first frame's surfaces (1st to 99th percentile; NDC scenes: NDC depth, i.e. disparity).
     #[arg(long)]
@@ -325,7 +331,9 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&test), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
-    let report = nerf::train::evaluate(&trainer, &test, Some(&out), |_, _| {})?;
+    let pb = progress(a.quiet, test.n_views(), "eval {bar:30} {pos}/{len} views");
+    let report = nerf::train::evaluate(&trainer, &test, Some(&out), |i, _| pb.set_position(i as u64))?;
+    pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "test_psnr": report.psnr, "test_ssim": report.ssim,
         "n_test_views": report.views.len(), "width": test.width, "height": test.height, "per_view": report.views,
@@ -333,6 +341,16 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
     println!("test PSNR {:.2} dB, SSIM {:.4} on {} views -> {}", report.psnr, report.ssim, report.views.len(), out.display());
     Ok(())
+}
+
+/// A progress bar on stderr over `len` items (drawn only on a terminal; none with `--quiet`).
+fn progress(quiet: bool, len: usize, template: &str) -> indicatif::ProgressBar {
+    if quiet {
+        return indicatif::ProgressBar::hidden();
+    }
+    let pb = indicatif::ProgressBar::new(len as u64);
+    pb.set_style(indicatif::ProgressStyle::with_template(template).expect("a valid template"));
+    pb
 }
 
 fn cmd_render(a: RenderArgs) -> Result<()> {
@@ -394,7 +412,9 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let mut render_seconds = 0.0;
     let (mut depth_range, mut gray) = (None, Vec::new());
     let mut gif = a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?;
+    let pb = progress(a.quiet, n_frames, "render {bar:30} {pos}/{len} frames, {eta} left");
     for (i, cam) in path.iter().enumerate() {
+        pb.set_position(i as u64);
         cam.rays_into(ck.config.pixel_convention, &mut o, &mut d);
         train.warp_rays(&mut o, &mut d);
         let t = std::time::Instant::now();
@@ -411,6 +431,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
             nerf::data::save_png(&out.join(format!("depth_{i:04}.png")), k.width, k.height, &gray)?;
         }
     }
+    pb.finish_and_clear();
     if let Some(g) = gif {
         g.finish()?;
     }
