@@ -1,7 +1,7 @@
 //! `nerf`: train and evaluate radiance fields from the command line.
 //!
 //! Errors are reported at this edge with `anyhow`, one line naming the file and the problem,
-//! exit code 1 (130 after Ctrl-C, with the checkpoint saved).
+//! exit code 1 (130 after Ctrl-C, with the checkpoint saved, or a render's frames so far kept).
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -201,7 +201,8 @@ fn main() {
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");
-        let interrupted = e.downcast_ref::<TrainError>().is_some_and(|t| matches!(t, TrainError::Interrupted { .. }));
+        let interrupted = e.downcast_ref::<TrainError>().is_some_and(|t| matches!(t, TrainError::Interrupted { .. }))
+            || e.downcast_ref::<RenderInterrupted>().is_some();
         std::process::exit(if interrupted { 130 } else { 1 });
     }
 }
@@ -343,6 +344,29 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     Ok(())
 }
 
+/// A render stopped by Ctrl-C after its current frame (exit code 130).
+#[derive(Debug)]
+struct RenderInterrupted {
+    done: usize,
+    total: usize,
+    out: PathBuf,
+}
+
+impl std::fmt::Display for RenderInterrupted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "interrupted after {} of {} frames: frame_0000.png … frame_{:04}.png, render.json and camera_path.json are in {} (no render.gif)",
+            self.done,
+            self.total,
+            self.done.saturating_sub(1),
+            self.out.display()
+        )
+    }
+}
+
+impl std::error::Error for RenderInterrupted {}
+
 /// A progress bar on stderr over `len` items (drawn only on a terminal; none with `--quiet`).
 fn progress(quiet: bool, len: usize, template: &str) -> indicatif::ProgressBar {
     if quiet {
@@ -412,8 +436,16 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let mut render_seconds = 0.0;
     let (mut depth_range, mut gray) = (None, Vec::new());
     let mut gif = a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?;
+    // Ctrl-C stops after the frame being rendered; the frames so far and the json files stay.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flag = stop.clone();
+    ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst)).context("installing the Ctrl-C handler")?;
+    let mut done = 0;
     let pb = progress(a.quiet, n_frames, "render {bar:30} {pos}/{len} frames, {eta} left");
     for (i, cam) in path.iter().enumerate() {
+        if stop.load(Ordering::SeqCst) {
+            break;
+        }
         pb.set_position(i as u64);
         cam.rays_into(ck.config.pixel_convention, &mut o, &mut d);
         train.warp_rays(&mut o, &mut d);
@@ -430,16 +462,19 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
             nerf::render::depth_to_gray(&depth, &opacity, depth_range.unwrap_or((0.0, 1.0)), &mut gray);
             nerf::data::save_png(&out.join(format!("depth_{i:04}.png")), k.width, k.height, &gray)?;
         }
+        done = i + 1;
     }
     pb.finish_and_clear();
-    if let Some(g) = gif {
-        g.finish()?;
+    let interrupted = done < n_frames;
+    match gif {
+        Some(g) if !interrupted => g.finish()?,
+        g => drop(g), // an unfinished GIF leaves no file
     }
-    let fps = n_frames as f64 / render_seconds.max(1e-9);
-    let cameras: Vec<_> = path.iter().map(|c| c.c2w()).collect();
+    let fps = done as f64 / render_seconds.max(1e-9);
+    let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "frames": n_frames, "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "frames": done, "path_frames": n_frames, "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;
@@ -447,6 +482,9 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     // The path as nerfstudio's camera_path.json: `--camera-path` renders it again.
     let text = serde_json::to_string_pretty(&nerf::data::camera_path_json(&path, video_fps))?;
     nerf::train::run::write_atomic(&out.join("camera_path.json"), text.as_bytes())?;
+    if interrupted {
+        return Err(RenderInterrupted { done, total: n_frames, out }.into());
+    }
     println!("{n_frames} frames at {}x{} ({fps:.2} frames/s on {}) -> {}", k.width, k.height, trainer.device(), out.display());
     // A video at full colour is one ffmpeg call away.
     println!(

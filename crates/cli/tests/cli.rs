@@ -566,3 +566,43 @@ fn a_nerfstudio_capture_run_writes_its_dataparser_transforms() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(blender.join("metrics.json").is_file() && !blender.join("dataparser_transforms.json").exists());
 }
+
+/// Ctrl-C stops a render after the frame being rendered: exit code 130, the frames so far and
+/// the json files kept, render.json counting them, no GIF (not even a partial one).
+#[cfg(unix)]
+#[test]
+fn ctrl_c_stops_a_render_and_keeps_its_frames() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "1", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = d.path().join("frames");
+    let child = nerf()
+        .arg("render")
+        .arg(&run)
+        .arg(&s)
+        .args(["--frames", "100000", "--width", "8", "--device", "cpu", "--gif", "10", "--out"])
+        .arg(&out)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = std::time::Instant::now();
+    while !out.join("frame_0002.png").exists() {
+        assert!(t0.elapsed().as_secs() < 120, "rendering did not start");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+    let o = child.wait_with_output().unwrap();
+    let e = stderr(&o);
+    assert_eq!(o.status.code(), Some(130), "{e}");
+    assert!(e.contains("interrupted after") && !e.contains("panicked"), "{e}");
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
+    let done = r["frames"].as_u64().unwrap() as usize;
+    assert!(done >= 3 && done < 100000 && r["path_frames"] == 100000, "{r}");
+    let pngs = std::fs::read_dir(&out).unwrap().filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with("frame_")).count();
+    assert_eq!(pngs, done, "render.json counts the frames written");
+    assert!(out.join("camera_path.json").is_file());
+    let gifs: Vec<_> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().file_name()).filter(|n| n.to_string_lossy().contains("gif")).collect();
+    assert!(gifs.is_empty(), "{gifs:?}");
+}
