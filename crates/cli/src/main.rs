@@ -288,6 +288,16 @@ fn cmd_train(a: TrainArgs) -> Result<()> {
     };
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
+    if let Some(n) = &train.normalization {
+        eprintln!(
+            "note: {}: a nerfstudio capture: poses normalised as nerfstudio does (scale {:.4}; see docs/formats.md), \
+             trained in the box [-{s}, {s}]^3 about the cameras{}",
+            a.scene.display(),
+            n.scale,
+            if train.ngp.is_some_and(|b| b.aabb_scale > 1.0) { "" } else { "; for content past the cameras add \"aabb_scale\" (e.g. 16) to the file" },
+            s = train.ngp.map_or(1.0, |b| b.aabb_scale),
+        );
+    }
     if let Some(b) = train.ngp.filter(|b| b.aabb_scale > 1.0) {
         eprintln!("note: {}: aabb_scale {}: {}", a.scene.display(), b.aabb_scale, large_box_note(&config, &SceneBounds::of(&train)));
     }

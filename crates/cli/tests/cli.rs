@@ -556,6 +556,7 @@ fn a_nerfstudio_capture_run_writes_its_dataparser_transforms() {
     let run = d.path().join("run");
     let o = train_tiny(&scene, &run, &["--iters", "1", "--device", "cpu"]);
     assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("a nerfstudio capture") && stderr(&o).contains("aabb_scale"), "{}", stderr(&o));
     let dt: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("dataparser_transforms.json")).unwrap()).unwrap();
     let s = dt["scale"].as_f64().unwrap();
     assert!(s > 0.0 && s < 1.0 / 5.0, "the capture's cameras are 5× lego's (4 units away): {s}");
