@@ -24,8 +24,8 @@ enum Command {
     Train(TrainArgs),
     /// Evaluate a trained run (its checkpoint) on a scene's test views.
     Eval(EvalArgs),
-    /// Render novel views of a trained run: an orbit around the scene at the training cameras'
-    /// distance and elevation (or a nerfstudio camera path), written as PNG frames.
+    /// Render novel views of a trained run along a path (an orbit around the scene, nerf-pytorch's
+    /// spiral, a path through the test cameras, or a nerfstudio camera path), written as PNG frames.
     Render(RenderArgs),
     /// Write a reduced copy of a scene as transforms files (fewer views, lower resolution).
     ExportScene(ExportArgs),
@@ -134,12 +134,17 @@ struct EvalArgs {
 struct RenderArgs {
     /// A run folder written by `nerf train` (holds checkpoint.bin).
     run: PathBuf,
-    /// The scene the run was trained on: its training cameras define the path (an orbit; for an
-    /// LLFF scene, nerf-pytorch's spiral of two turns in front of the cameras).
+    /// The scene the run was trained on: its cameras define the path (see `--path`).
     scene: PathBuf,
     /// Frames of the path (evenly spaced) [default: 60].
     #[arg(long)]
     frames: Option<usize>,
+    /// The path: `orbit` (a turntable around the scene at the training cameras' distance and
+    /// elevation), `spiral` (nerf-pytorch's, for LLFF scenes), `interpolate` (nerfstudio's: through
+    /// the run's test views in order, positions lerped and rotations slerped), or `auto`:
+    /// spiral for LLFF scenes, orbit otherwise.
+    #[arg(long, value_enum, default_value = "auto", conflicts_with = "camera_path")]
+    path: PathKind,
     /// Render along this camera path instead: a nerfstudio `camera_path.json` (what its viewer
     /// exports; poses in the frame of the scene's cameras, see docs/formats.md). Every render writes
     /// the path it took as such a file, to edit and render again.
@@ -166,6 +171,19 @@ struct RenderArgs {
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
+}
+
+/// The generated camera paths of `nerf render`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum PathKind {
+    /// Spiral for LLFF scenes, orbit otherwise.
+    Auto,
+    /// A turntable orbit.
+    Orbit,
+    /// nerf-pytorch's spiral (LLFF scenes).
+    Spiral,
+    /// Through the test cameras (nerfstudio's `interpolate`).
+    Interpolate,
 }
 
 #[derive(Args)]
@@ -424,12 +442,25 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
             let frames = a.frames.unwrap_or(60);
             let center = nerf::rays::glam::Vec3::from_array(train.aabb.center());
             // Forward-facing captures get nerf-pytorch's spiral; object-centred ones a turntable orbit.
-            let path = if nerf::data::is_llff(&a.scene) {
-                nerf::data::llff::render_path(&train, k, frames)
-                    .with_context(|| format!("{}: the training cameras do not define a spiral", a.scene.display()))?
-            } else {
-                nerf::rays::orbit(&train.cameras, center, k, frames)
-                    .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?
+            let kind = match a.path {
+                PathKind::Auto if nerf::data::is_llff(&a.scene) => PathKind::Spiral,
+                PathKind::Auto => PathKind::Orbit,
+                p => p,
+            };
+            let path = match kind {
+                PathKind::Spiral => nerf::data::llff::render_path(&train, k, frames).with_context(|| {
+                    format!("{}: no spiral: it needs an LLFF scene (its depth bounds) and its cameras", a.scene.display())
+                })?,
+                PathKind::Interpolate => {
+                    // The run's test views (what `nerf eval` loads), in the scene's order.
+                    let opts = LoadOptions { downscale: ck.config.downscale, views: ck.config.test_views.clone(), ndc: ck.config.ndc };
+                    let test = load_scene(&a.scene, Split::Test, &opts)?;
+                    nerf::rays::interpolate(&test.cameras, k, frames).with_context(|| {
+                        format!("{}: --path interpolate needs at least 2 test cameras and 2 frames", a.scene.display())
+                    })?
+                }
+                _ => nerf::rays::orbit(&train.cameras, center, k, frames)
+                    .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?,
             };
             (path, None)
         }

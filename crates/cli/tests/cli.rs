@@ -607,3 +607,32 @@ fn ctrl_c_stops_a_render_and_keeps_its_frames() {
     let gifs: Vec<_> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().file_name()).filter(|n| n.to_string_lossy().contains("gif")).collect();
     assert!(gifs.is_empty(), "{gifs:?}");
 }
+
+/// `--path interpolate` goes through the run's test cameras in order (nerfstudio's
+/// `interpolate`); `--path spiral` needs an LLFF scene.
+#[test]
+fn render_paths_through_the_test_cameras() {
+    let d = tempfile::tempdir().unwrap();
+    let s = d.path().join("scene");
+    let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(&s)
+        .args(["--downscale", "4", "--train-views", "first:3", "--test-views", "first:3"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "1", "--device", "cpu", "--test-views", "all"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = d.path().join("frames");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--path", "interpolate", "--frames", "5", "--device", "cpu", "--out"]).arg(&out).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
+    let t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(s.join("transforms_test.json")).unwrap()).unwrap();
+    let pos = |m: &serde_json::Value| -> [f64; 3] { std::array::from_fn(|i| m[i][3].as_f64().unwrap()) };
+    // Frames 0, 2 and 4 of 5 are test cameras 0, 1 and 2.
+    for (frame, cam) in [(0, 0), (2, 1), (4, 2)] {
+        let (a, b) = (pos(&r["camera_to_world"][frame]), pos(&t["frames"][cam]["transform_matrix"]));
+        assert!((0..3).all(|i| (a[i] - b[i]).abs() < 1e-4), "frame {frame}: {a:?} vs test camera {cam}: {b:?}");
+    }
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--path", "spiral", "--device", "cpu"]).output().unwrap();
+    assert_clean_failure(&o, &["spiral", "LLFF"]);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--path", "orbit", "--camera-path", "x.json"]).output().unwrap();
+    assert_eq!(o.status.code(), Some(2), "a usage error: {}", stderr(&o));
+}

@@ -444,6 +444,40 @@ pub fn spiral(cameras: &[Camera], near: f32, far: f32, intrinsics: Intrinsics, n
     )
 }
 
+/// nerfstudio's `interpolate` trajectory (`ns-render interpolate`, `get_interpolated_poses_many`):
+/// `n` cameras along the path through `cameras` in their order, evenly spaced in the path's
+/// parameter `u ∈ [0, cameras.len() − 1]` (the first frame is the first camera, the last frame the
+/// last one). Between cameras `i` and `i + 1` the position is interpolated linearly and the
+/// orientation by quaternion slerp; `intrinsics` for every frame. `None` for fewer than two cameras
+/// or `n < 2`.
+pub fn interpolate(cameras: &[Camera], intrinsics: Intrinsics, n: usize) -> Option<Vec<Camera>> {
+    if cameras.len() < 2 || n < 2 {
+        return None;
+    }
+    // Orthonormalised first: file poses carry rounding, and from_mat3 wants a rotation.
+    let quat = |c: &Camera| {
+        let z = c.rotation.z_axis.try_normalize().unwrap_or(Vec3::Z);
+        let x = c.rotation.y_axis.cross(z).try_normalize().unwrap_or(Vec3::X);
+        glam::Quat::from_mat3(&Mat3::from_cols(x, z.cross(x), z))
+    };
+    let quats: Vec<glam::Quat> = cameras.iter().map(quat).collect();
+    let last = (cameras.len() - 1) as f32;
+    Some(
+        (0..n)
+            .map(|j| {
+                let u = last * j as f32 / (n - 1) as f32;
+                let i = (u.floor() as usize).min(cameras.len() - 2);
+                let t = u - i as f32;
+                let (a, b) = (&cameras[i], &cameras[i + 1]);
+                // The shorter way round (q and −q are the same rotation).
+                let qb = if quats[i].dot(quats[i + 1]) < 0.0 { -quats[i + 1] } else { quats[i + 1] };
+                let q = quats[i].slerp(qb, t).normalize();
+                Camera { intrinsics, rotation: Mat3::from_quat(q), position: a.position.lerp(b.position, t) }
+            })
+            .collect(),
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -650,5 +684,33 @@ mod tests {
         assert!(q.x.abs() < 1e-5 && q.y < -0.2, "{q}");
         assert!(spiral(&[], near, far, k, 8).is_none());
         assert!(spiral(&rig, far, near, k, 8).is_none());
+    }
+
+    #[test]
+    fn interpolated_cameras_pass_through_the_given_ones_and_turn_evenly_between() {
+        let k = Intrinsics::from_fov_x(40, 30, 0.9);
+        let at = |yaw: f32, p: Vec3| Camera { intrinsics: k, rotation: Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(-0.2), position: p };
+        // Three cameras: the second turned 60° from the first, the third 100° from the second
+        // (a turn written the long way round: −260° is +100°).
+        let cams = [at(0.0, Vec3::ZERO), at(1.0472, Vec3::new(2.0, 0.0, 0.0)), at(1.0472 + 1.7453 - std::f32::consts::TAU, Vec3::new(2.0, 4.0, 0.0))];
+        let path = interpolate(&cams, k, 9).unwrap();
+        assert_eq!(path.len(), 9);
+        // u = 0, 0.25, …, 2: frames 0, 4 and 8 are the cameras themselves.
+        for (f, c) in [(0, &cams[0]), (4, &cams[1]), (8, &cams[2])] {
+            assert!((path[f].position - c.position).length() < 1e-5, "frame {f}");
+            assert!((path[f].rotation - c.rotation).to_cols_array().iter().all(|d| d.abs() < 1e-5), "frame {f}");
+        }
+        // Positions on the segments, evenly spaced; rotations unit and evenly turned (15° steps,
+        // then 25° steps: the shorter way round).
+        assert!((path[1].position - Vec3::new(0.5, 0.0, 0.0)).length() < 1e-5);
+        assert!((path[6].position - Vec3::new(2.0, 2.0, 0.0)).length() < 1e-5);
+        let angle = |a: &Camera, b: &Camera| (a.rotation.transpose() * b.rotation).to_cols_array()[..].iter().step_by(4).sum::<f32>();
+        let deg = |a: &Camera, b: &Camera| ((angle(a, b) - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+        for j in 0..8 {
+            let want = if j < 4 { 15.0 } else { 25.0 };
+            assert!((deg(&path[j], &path[j + 1]) - want).abs() < 0.05, "step {j}: {}", deg(&path[j], &path[j + 1]));
+            assert!((path[j].rotation.determinant() - 1.0).abs() < 1e-5);
+        }
+        assert!(interpolate(&cams[..1], k, 9).is_none() && interpolate(&cams, k, 1).is_none());
     }
 }
