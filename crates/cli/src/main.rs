@@ -382,12 +382,15 @@ struct RenderInterrupted {
 
 impl std::fmt::Display for RenderInterrupted {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let frames = match self.done {
+            0 => String::new(),
+            n => format!("frame_0000.png … frame_{:04}.png, ", n - 1),
+        };
         write!(
             f,
-            "interrupted after {} of {} frames: frame_0000.png … frame_{:04}.png, render.json and camera_path.json are in {} (no render.gif)",
+            "interrupted after {} of {} frames: {frames}render.json and camera_path.json are in {} (no render.gif)",
             self.done,
             self.total,
-            self.done.saturating_sub(1),
             self.out.display()
         )
     }
