@@ -29,6 +29,9 @@ enum Command {
     Render(RenderArgs),
     /// Write a reduced copy of a scene as transforms files (fewer views, lower resolution).
     ExportScene(ExportArgs),
+    /// Export a coloured point cloud of a trained run as PLY (nerfstudio's `ns-export pointcloud`):
+    /// where random training rays stop.
+    ExportPoints(PointsArgs),
     /// List the registered fields and their default configs.
     Fields,
     /// Run an ablation file: a grid of runs with the same scenes, seeds and budget; writes
@@ -173,6 +176,32 @@ struct RenderArgs {
     device: nerf::gpu::DevicePreference,
 }
 
+#[derive(Args)]
+struct PointsArgs {
+    /// A run folder written by `nerf train` (holds checkpoint.bin).
+    run: PathBuf,
+    /// The scene the run was trained on (its training cameras cast the rays).
+    scene: PathBuf,
+    /// Points to export.
+    #[arg(long, default_value_t = 1_000_000)]
+    points: usize,
+    /// Keep a ray's point only when its opacity is at least this (0 to 1).
+    #[arg(long = "min-opacity", default_value_t = 0.5)]
+    min_opacity: f32,
+    /// Where to write the PLY file (default: `RUN/points.ply`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Seed of the random rays.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+    /// Where to render: auto, cpu or gpu (as `train --device`).
+    #[arg(long, default_value = "auto")]
+    device: nerf::gpu::DevicePreference,
+}
+
 /// The generated camera paths of `nerf render`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 enum PathKind {
@@ -214,6 +243,7 @@ fn main() {
         Command::Eval(a) => cmd_eval(a),
         Command::Render(a) => cmd_render(a),
         Command::ExportScene(a) => cmd_export(a),
+        Command::ExportPoints(a) => cmd_export_points(a),
         Command::Fields => cmd_fields(),
         Command::Ablate(a) => cmd_ablate(a),
     };
@@ -536,6 +566,48 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         out.join("frame_%04d.png").display(),
         out.join("render.mp4").display()
     );
+    Ok(())
+}
+
+/// Random training rays, rendered in batches, until `--points` of them stop inside the scene
+/// box with enough opacity (or 20 times as many rays as points were cast); their expected
+/// termination points and colours (`nerf::render::surface_points`) as PLY.
+fn cmd_export_points(a: PointsArgs) -> Result<()> {
+    if a.points == 0 || !(0.0..=1.0).contains(&a.min_opacity) {
+        bail!("--points must be at least 1 and --min-opacity in [0, 1]");
+    }
+    let ck = Checkpoint::load(&a.run.join("checkpoint.bin"))?;
+    let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
+    if train.ndc.is_some() {
+        bail!("{}: the run's rays are in NDC, whose depths are not distances: a point cloud needs a run trained with --no-ndc", a.run.display());
+    }
+    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
+    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+    let out = a.out.unwrap_or_else(|| a.run.join("points.ply"));
+    let batch = 1 << 16;
+    let max_rays = 20 * a.points.max(batch);
+    let mut rng = nerf::core::rng(a.seed, 0x706f_696e_7473); // "points"
+    let mut rays = nerf::data::RayBatch::default();
+    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * batch], vec![0.0; batch], vec![0.0; batch]);
+    let mut points = Vec::with_capacity(a.points);
+    let pb = progress(a.quiet, a.points, "points {bar:30} {pos}/{len}");
+    let mut cast = 0;
+    while points.len() < a.points && cast < max_rays {
+        train.sample_rays(batch, ck.config.eval_background, ck.config.pixel_convention, false, &mut rng, &mut rays);
+        trainer.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut opacity, &mut depth)?;
+        let bounds = (train.aabb.min, train.aabb.max);
+        nerf::render::surface_points(&rays.origins, &rays.dirs, &rgb, &opacity, &depth, &rays.background, a.min_opacity, bounds, &mut points);
+        cast += batch;
+        pb.set_position(points.len().min(a.points) as u64);
+    }
+    pb.finish_and_clear();
+    points.truncate(a.points);
+    if points.is_empty() {
+        bail!("{}: none of {cast} rays stopped in the scene box with opacity ≥ {}: nothing to export", a.run.display(), a.min_opacity);
+    }
+    let records: Vec<([f32; 3], [f32; 3])> = points.iter().map(|p| (p.position, p.color)).collect();
+    nerf::data::write_ply_points(&out, &records)?;
+    println!("{} points (of {cast} rays) -> {}", points.len(), out.display());
     Ok(())
 }
 

@@ -155,6 +155,12 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
         let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "2", "--width", "32", "--device", "cpu", "--depth"]).output().unwrap();
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(run.join("render/frame_0001.png").is_file() && run.join("render/depth_0001.png").is_file());
+        // A point cloud needs distances: the Euclidean run gives one, the NDC run a clear error.
+        let o = nerf().arg("export-points").arg(&run).arg(&fern).args(["--points", "50", "--min-opacity", "0", "--device", "cpu"]).output().unwrap();
+        match space {
+            "ndc" => assert_clean_failure(&o, &["NDC", "--no-ndc"]),
+            _ => assert!(o.status.success() && run.join("points.ply").is_file(), "{}", stderr(&o)),
+        }
     }
     // Resuming in the other ray space is refused, naming the checkpoint.
     let run = d.path().join("ndc");
@@ -635,4 +641,31 @@ fn render_paths_through_the_test_cameras() {
     assert_clean_failure(&o, &["spiral", "LLFF"]);
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--path", "orbit", "--camera-path", "x.json"]).output().unwrap();
     assert_eq!(o.status.code(), Some(2), "a usage error: {}", stderr(&o));
+}
+
+/// `nerf export-points`: a binary PLY of where random training rays stop, every point inside the
+/// scene box; bad arguments are clear errors.
+#[test]
+fn export_points_writes_a_ply_inside_the_scene_box() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    // A barely trained field: every ray that stops anywhere in the box counts.
+    let o = nerf().arg("export-points").arg(&run).arg(&s).args(["--points", "300", "--min-opacity", "0", "--device", "cpu"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(run.join("points.ply")).unwrap();
+    let end = b"end_header\n";
+    let h = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    assert!(std::str::from_utf8(&bytes[..h]).unwrap().contains("element vertex 300\n"));
+    assert_eq!(bytes.len() - h, 300 * 15);
+    for r in bytes[h..].chunks_exact(15) {
+        let p: Vec<f32> = (0..3).map(|k| f32::from_le_bytes(r[4 * k..4 * k + 4].try_into().unwrap())).collect();
+        assert!(p.iter().all(|v| v.abs() <= 1.5), "outside the Blender cube: {p:?}");
+    }
+    for (args, needle) in [(["--points", "0"], "--points"), (["--min-opacity", "2"], "--min-opacity")] {
+        let o = nerf().arg("export-points").arg(&run).arg(&s).args(args).output().unwrap();
+        assert_clean_failure(&o, &[needle]);
+    }
 }

@@ -1090,6 +1090,29 @@ fn write_png(
     })
 }
 
+/// Writes a coloured point cloud as a binary little-endian PLY file (`float x, y, z` and
+/// `uchar red, green, blue` per vertex; what MeshLab, CloudCompare, Blender and Open3D read),
+/// colours in `[0, 1]` clamped and rounded to u8. Written under a temporary name and renamed, so
+/// the file is whole or absent; the error names the path. (The format is a few lines of header
+/// and packed records: not worth a dependency.)
+pub fn write_ply_points(path: &Path, points: &[([f32; 3], [f32; 3])]) -> Result<(), DataError> {
+    let mut bytes = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment written by nerf-rs\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n",
+        points.len()
+    )
+    .into_bytes();
+    bytes.reserve(15 * points.len());
+    for (p, c) in points {
+        p.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+        bytes.extend(c.iter().map(|&v| to_u8(v)));
+    }
+    let tmp = path.with_extension("ply.tmp");
+    std::fs::write(&tmp, &bytes).map_err(|source| DataError::Io { path: tmp.clone(), source })?;
+    std::fs::rename(&tmp, path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })
+}
+
 /// Writes an RGB f32 image (`3·W·H` values, row-major; clamped to `[0, 1]`, rounded to u8) as PNG,
 /// creating the parent folder if needed; the error names the path.
 ///

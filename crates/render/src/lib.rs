@@ -18,11 +18,14 @@
 //! the same code in `f64`. They are allocation-free (outputs are caller-owned and reused), `O(n)`
 //! per ray, and run in parallel over blocks of rays with rayon for large batches.
 //!
-//! [`depth_range`] and [`depth_to_gray`] turn the expected depth into a viewable image.
+//! [`depth_range`] and [`depth_to_gray`] turn the expected depth into a viewable image;
+//! [`surface_points`] into a point cloud.
 
 mod depth;
+mod points;
 
 pub use depth::{depth_range, depth_to_gray};
+pub use points::{surface_points, SurfacePoint};
 use nerf_core::Real;
 use nerf_core::par::{cut, for_ray_blocks, SplitAt};
 use rayon::prelude::*;
