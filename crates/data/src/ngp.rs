@@ -470,30 +470,17 @@ impl NerfstudioNormalization {
 /// of `a` onto that of `b` (Rodrigues' formula); for (anti)parallel vectors the axis is `a × x̂`
 /// (or `a × ŷ` when `a` has no x part). `None` when `a` or `b` is zero or not finite.
 fn rotation_between(a: [f64; 3], b: [f64; 3]) -> Option<[[f64; 3]; 3]> {
-    let norm = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-    let cross = |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-    let (na, nb) = (norm(a), norm(b));
-    if !(na.is_finite() && nb.is_finite() && na > 0.0 && nb > 0.0) {
-        return None;
-    }
-    let (a, b) = (a.map(|x| x / na), b.map(|x| x / nb));
-    let mut v = cross(a, b);
-    if v.iter().map(|x| x.abs()).sum::<f64>() < 1e-6 {
-        let x = if a[0].abs() < 1e-6 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
-        v = cross(a, x);
-    }
-    let nv = norm(v);
-    let v = v.map(|x| x / nv);
-    let k = [[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]];
-    let cos = (a[0] * b[0] + a[1] * b[1] + a[2] * b[2]).clamp(-1.0, 1.0);
-    let theta = cos.acos();
-    let (st, ct) = (theta.sin(), 1.0 - theta.cos());
-    Some(std::array::from_fn(|i| {
-        std::array::from_fn(|j| {
-            let kk: f64 = (0..3).map(|m| k[i][m] * k[m][j]).sum();
-            (i == j) as u8 as f64 + st * k[i][j] + ct * kk
-        })
-    }))
+    use nerf_rays::glam::{DMat3, DQuat, DVec3};
+    let (a, b) = (DVec3::from_array(a).try_normalize()?, DVec3::from_array(b).try_normalize()?);
+    let q = if a.cross(b).abs().element_sum() < 1e-6 {
+        // (Anti)parallel: nerfstudio's axis, turned by the angle between them (0 or π).
+        let x = if a.x.abs() < 1e-6 { DVec3::X } else { DVec3::Y };
+        DQuat::from_axis_angle(a.cross(x).normalize(), a.dot(b).clamp(-1.0, 1.0).acos())
+    } else {
+        DQuat::from_rotation_arc(a, b) // the rotation about a × b: Rodrigues' formula
+    };
+    let m = DMat3::from_quat(q);
+    Some(std::array::from_fn(|i| std::array::from_fn(|j| m.col(j)[i])))
 }
 
 #[cfg(test)]
