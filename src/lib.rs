@@ -12,6 +12,7 @@
 //! | [`data`] | nerf-data | Blender datasets, ray batches, PNG |
 //! | [`sampling`] | nerf-sampling | packed samples: stratified, hierarchical, occupancy-grid marching |
 //! | [`render`] | nerf-render | compositing forward/backward, loss |
+//! | [`mesh`] | nerf-mesh | density lattice and isosurface mesh of a trained field |
 //! | [`metrics`] | nerf-metrics | PSNR, SSIM |
 //! | [`encoding`] | nerf-encoding | frequency, hash-grid and spherical-harmonics encodings |
 //! | [`mlp`] | nerf-mlp | MLPs with backward (GEMM) |
@@ -32,6 +33,7 @@ pub use nerf_field_freq as field_freq;
 pub use nerf_field_hash as field_hash;
 pub use nerf_field_voxel as field_voxel;
 pub use nerf_gpu as gpu;
+pub use nerf_mesh as mesh;
 pub use nerf_metrics as metrics;
 pub use nerf_mlp as mlp;
 pub use nerf_optim as optim;

@@ -84,6 +84,43 @@ fn gpu_checkpoint_renders_the_same_on_the_cpu(ctx: Arc<GpuContext>, config: &Tra
     let mean_diff = g_rgb.iter().zip(&c_rgb).map(|(a, b)| (a - b).abs()).sum::<f32>() / g_rgb.len() as f32;
     let op_diff = g_op.iter().zip(&c_op).map(|(a, b)| (a - b).abs()).sum::<f32>() / n as f32;
     assert!(op_diff < 1e-3, "opacity mean |Δ| {op_diff}");
+    // The rendering field at random points (mesh export): density, and density with colour.
+    let m = 3001;
+    let mut rng = nerf::core::rng(config.seed ^ 0x6d65_7368, 7);
+    use rand::Rng;
+    let pos: Vec<f32> = (0..3 * m).map(|i| rng.gen_range(train.aabb.min[i % 3]..train.aabb.max[i % 3])).collect();
+    let dirs: Vec<f32> = (0..m)
+        .flat_map(|_| {
+            let v: [f32; 3] = std::array::from_fn(|_| rng.gen_range(-1.0f32..1.0));
+            let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3);
+            v.map(|x| x / l)
+        })
+        .collect();
+    let points = |t: &Trainer| {
+        let (mut s0, mut s, mut c) = (vec![f32::NAN; m], vec![f32::NAN; m], vec![f32::NAN; 3 * m]);
+        t.density_at(&pos, &mut s0).unwrap();
+        t.query_points(&pos, &dirs, &mut s, &mut c).unwrap();
+        assert_eq!(s0, s, "{}: density_at and query_points disagree", t.device());
+        (s, c)
+    };
+    let ((gs, gc), (cs, cc)) = (points(&gpu), points(&cpu));
+    let (lo, hi) = cs.iter().fold((f32::MAX, f32::MIN), |(l, h), &x| (l.min(x), h.max(x)));
+    assert!(hi - lo > 1e-3 && lo >= 0.0, "densities from {lo} to {hi}");
+    for (k, (a, b)) in gs.iter().zip(&cs).enumerate() {
+        assert!((a - b).abs() <= 1e-3 * (1.0 + b.abs()), "point {k}: σ {a} on the GPU, {b} on the CPU");
+    }
+    let c_diff = gc.iter().zip(&cc).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(c_diff < 1e-4, "colour max |Δ| {c_diff}");
+    // The occupancy grid read back from the GPU is the one restored on the CPU.
+    match (gpu.occupancy_grid_now().unwrap(), cpu.occupancy_grid_now().unwrap()) {
+        (Some(g), Some(c)) => {
+            assert_eq!(g.densities(), c.densities());
+            assert!(g.occupied_fraction() > 0.0 && g.occupied_fraction() < 1.0, "occupied {}", g.occupied_fraction());
+            assert!((0..c.densities().len()).all(|i| g.is_cell_occupied(i) == c.is_cell_occupied(i)));
+        }
+        (None, None) => assert!(!matches!(config.sampler, SamplerConfig::Occupancy { .. })),
+        _ => panic!("a grid on one device only"),
+    }
     (max_diff, mean_diff)
 }
 

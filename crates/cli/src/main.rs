@@ -32,6 +32,9 @@ enum Command {
     /// Export a coloured point cloud of a trained run as PLY (nerfstudio's `ns-export pointcloud`):
     /// where random training rays stop.
     ExportPoints(PointsArgs),
+    /// Export the surface of a trained run as a coloured triangle mesh in PLY (instant-ngp's
+    /// marching-cubes mesh): the isosurface of its density at a threshold, over the scene box.
+    ExportMesh(MeshArgs),
     /// List the registered fields and their default configs.
     Fields,
     /// Run an ablation file: a grid of runs with the same scenes, seeds and budget; writes
@@ -202,6 +205,54 @@ struct PointsArgs {
     device: nerf::gpu::DevicePreference,
 }
 
+#[derive(Args)]
+struct MeshArgs {
+    /// A run folder written by `nerf train` (holds checkpoint.bin).
+    run: PathBuf,
+    /// The scene the run was trained on (its box and units).
+    scene: PathBuf,
+    /// Lattice nodes along the box's longest side (as many per unit length along the others).
+    #[arg(long, default_value_t = 256)]
+    resolution: u32,
+    /// Density at the surface, per instant-ngp scene unit (the scene's own unit for instant-ngp
+    /// and nerfstudio scenes; the box's longest side otherwise, as instant-ngp's 0.33 scale
+    /// makes it for Blender scenes). instant-ngp's default is 2.5.
+    #[arg(long, default_value_t = 2.5)]
+    threshold: f32,
+    /// The box to mesh, `x0,y0,z0,x1,y1,z1` in the scene's coordinates (clipped to the scene's
+    /// box). Default: the scene's box; for an instant-ngp box with `aabb_scale` > 1, its unit cube
+    /// (where instant-ngp puts the object, its finest occupancy level).
+    #[arg(long = "box", value_parser = parse_box)]
+    mesh_box: Option<([f32; 3], [f32; 3])>,
+    /// Where to write the PLY file (default: `RUN/mesh.ply`).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Evaluate the density in the whole box. By default a run with an occupancy grid counts the
+    /// cells its grid marks empty (never seen by a training camera, or empty at the last refresh)
+    /// as empty space, which drops the floaters no camera constrained.
+    #[arg(long = "no-grid-mask")]
+    no_grid_mask: bool,
+    /// No progress bar.
+    #[arg(long)]
+    quiet: bool,
+    /// Where to evaluate the field: auto, cpu or gpu (as `train --device`).
+    #[arg(long, default_value = "auto")]
+    device: nerf::gpu::DevicePreference,
+}
+
+/// `x0,y0,z0,x1,y1,z1`: a box with `x0 < x1`, `y0 < y1`, `z0 < z1`.
+fn parse_box(s: &str) -> Result<([f32; 3], [f32; 3]), String> {
+    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>().map_err(|e| format!("`{x}`: {e}"))).collect::<Result<_, _>>()?;
+    if v.len() != 6 || v.iter().any(|x| !x.is_finite()) {
+        return Err(format!("expected six finite numbers x0,y0,z0,x1,y1,z1, got `{s}`"));
+    }
+    let (lo, hi) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
+    if (0..3).any(|a| lo[a] >= hi[a]) {
+        return Err(format!("an empty box: {lo:?} to {hi:?}"));
+    }
+    Ok((lo, hi))
+}
+
 /// The generated camera paths of `nerf render`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 enum PathKind {
@@ -244,6 +295,7 @@ fn main() {
         Command::Render(a) => cmd_render(a),
         Command::ExportScene(a) => cmd_export(a),
         Command::ExportPoints(a) => cmd_export_points(a),
+        Command::ExportMesh(a) => cmd_export_mesh(a),
         Command::Fields => cmd_fields(),
         Command::Ablate(a) => cmd_ablate(a),
     };
@@ -608,6 +660,95 @@ fn cmd_export_points(a: PointsArgs) -> Result<()> {
     let records: Vec<([f32; 3], [f32; 3])> = points.iter().map(|p| (p.position, p.color)).collect();
     nerf::data::write_ply_points(&out, &records)?;
     println!("{} points (of {cast} rays) -> {}", points.len(), out.display());
+    Ok(())
+}
+
+fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
+    if !(2..=2048).contains(&a.resolution) || !(a.threshold.is_finite() && a.threshold > 0.0) {
+        bail!("--resolution must be in 2..=2048 and --threshold a positive number");
+    }
+    let ck = Checkpoint::load(&a.run.join("checkpoint.bin"))?;
+    let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
+    if train.ndc.is_some() {
+        bail!("{}: the run's field lives in NDC space, not the scene's: a mesh needs a run trained with --no-ndc", a.run.display());
+    }
+    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
+    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+    let out = a.out.unwrap_or_else(|| a.run.join("mesh.ply"));
+    let scene_box = (train.aabb.min, train.aabb.max);
+    // σ per scene unit from σ per instant-ngp unit (σ is an inverse length): an instant-ngp unit
+    // is 1/scale scene units, or the box's longest side where the scene has no instant-ngp box.
+    let ngp_unit = match train.ngp {
+        Some(b) => 1.0 / b.scale,
+        None => (0..3).map(|k| scene_box.1[k] - scene_box.0[k]).fold(0.0f32, f32::max),
+    };
+    let threshold = a.threshold / ngp_unit;
+    let (lo, hi) = match (a.mesh_box, train.ngp) {
+        (Some(b), _) => b,
+        (None, Some(b)) if b.aabb_scale > 1.0 => nerf::data::NgpBox { aabb_scale: 1.0, ..b }.world_aabb(),
+        _ => scene_box,
+    };
+    let (lo, hi): ([f32; 3], [f32; 3]) =
+        (std::array::from_fn(|k| lo[k].max(scene_box.0[k])), std::array::from_fn(|k| hi[k].min(scene_box.1[k])));
+    if (0..3).any(|k| lo[k] >= hi[k]) {
+        bail!("--box {:?} to {:?} misses the scene's box {:?} to {:?}", a.mesh_box.unwrap().0, a.mesh_box.unwrap().1, scene_box.0, scene_box.1);
+    }
+    println!("meshing the box {lo:?} to {hi:?} at σ = {threshold:.4} per scene unit");
+    let lattice = nerf::mesh::Lattice::over_box(lo, hi, a.resolution);
+    let n = lattice.len();
+    let grid = if a.no_grid_mask { None } else { trainer.occupancy_grid_now()? };
+    let mut density = vec![0.0f32; n];
+    let batch = 1 << 18;
+    let pb = progress(a.quiet, n, "density {bar:30} {pos}/{len} points");
+    let (mut points, mut kept, mut rows, mut sigma) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for p0 in (0..n).step_by(batch) {
+        let p1 = (p0 + batch).min(n);
+        lattice.points(p0..p1, &mut points);
+        // Only the nodes in occupied cells go to the field; the others stay empty (σ = 0).
+        (kept.clear(), rows.clear());
+        for (k, p) in points.chunks_exact(3).enumerate() {
+            if grid.as_ref().is_none_or(|g| g.is_occupied([p[0], p[1], p[2]])) {
+                kept.extend_from_slice(p);
+                rows.push(p0 + k);
+            }
+        }
+        sigma.resize(rows.len(), 0.0);
+        trainer.density_at(&kept, &mut sigma)?;
+        rows.iter().zip(&sigma).for_each(|(&r, &s)| density[r] = s);
+        pb.set_position(p1 as u64);
+    }
+    pb.finish_and_clear();
+    let inside = density.iter().filter(|&&s| s > threshold).count();
+    if inside == 0 {
+        let top = density.iter().copied().filter(|s| s.is_finite()).fold(0.0f32, f32::max);
+        bail!(
+            "{}: no density above the threshold {} (σ {threshold:.4} per scene unit) on the {:?} lattice; the highest is {:.4} ({:.3} per instant-ngp unit): try a lower --threshold",
+            a.run.display(),
+            a.threshold,
+            lattice.dims,
+            top,
+            top * ngp_unit
+        );
+    }
+    let mesh = nerf::mesh::extract_mesh(&lattice, &density, threshold);
+    drop(density);
+    // Vertex colours: the field seen head-on, looking along the inward normal (instant-ngp's).
+    let nv = mesh.positions.len();
+    let pos: Vec<f32> = mesh.positions.iter().flatten().copied().collect();
+    let dirs: Vec<f32> = mesh.normals.iter().flat_map(|n| if *n == [0.0; 3] { [0.0, 0.0, -1.0] } else { n.map(|v| -v) }).collect();
+    let (mut sigma, mut rgb) = (vec![0.0; nv], vec![0.0; 3 * nv]);
+    trainer.query_points(&pos, &dirs, &mut sigma, &mut rgb)?;
+    let colors: Vec<[f32; 3]> = rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    nerf::data::write_ply_mesh(&out, &mesh.positions, &mesh.normals, &colors, &mesh.indices)?;
+    println!(
+        "{} vertices, {} triangles ({:?} lattice, {:.1} % of its nodes denser than {} per instant-ngp unit) -> {}",
+        nv,
+        mesh.n_triangles(),
+        lattice.dims,
+        100.0 * inside as f64 / n as f64,
+        a.threshold,
+        out.display()
+    );
     Ok(())
 }
 

@@ -161,6 +161,12 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
             "ndc" => assert_clean_failure(&o, &["NDC", "--no-ndc"]),
             _ => assert!(o.status.success() && run.join("points.ply").is_file(), "{}", stderr(&o)),
         }
+        // So does a mesh (the field lives in NDC space there).
+        let o = nerf().arg("export-mesh").arg(&run).arg(&fern).args(["--resolution", "16", "--threshold", "1e-6", "--device", "cpu"]).output().unwrap();
+        match space {
+            "ndc" => assert_clean_failure(&o, &["NDC", "--no-ndc"]),
+            _ => assert!(o.status.success() && run.join("mesh.ply").is_file(), "{}", stderr(&o)),
+        }
     }
     // Resuming in the other ray space is refused, naming the checkpoint.
     let run = d.path().join("ndc");
@@ -667,5 +673,74 @@ fn export_points_writes_a_ply_inside_the_scene_box() {
     for (args, needle) in [(["--points", "0"], "--points"), (["--min-opacity", "2"], "--min-opacity")] {
         let o = nerf().arg("export-points").arg(&run).arg(&s).args(args).output().unwrap();
         assert_clean_failure(&o, &[needle]);
+    }
+}
+
+/// `nerf export-mesh`: a binary PLY triangle mesh inside the scene box with unit normals; a
+/// threshold above every density is a clear error that names the highest one, which then gives a
+/// mesh; bad arguments are clear errors.
+#[test]
+fn export_mesh_writes_a_ply_mesh_inside_the_scene_box() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mesh = |threshold: &str| {
+        nerf().arg("export-mesh").arg(&run).arg(&s).args(["--resolution", "24", "--threshold", threshold, "--device", "cpu"]).output().unwrap()
+    };
+    // The highest density on a lattice, from the error a threshold above it gives.
+    let highest = |o: Output| -> f32 {
+        assert_clean_failure(&o, &["--threshold", "highest"]);
+        let e = stderr(&o);
+        let top: f32 = e.split('(').filter_map(|p| p.split(" per instant-ngp unit)").next()?.parse().ok()).next().unwrap_or_else(|| panic!("{e}"));
+        assert!(top > 0.0, "{e}");
+        top
+    };
+    let top = highest(mesh("1e9"));
+    assert!(!run.join("mesh.ply").exists());
+    let o = mesh(&format!("{}", 0.5 * top));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(run.join("mesh.ply")).unwrap();
+    let end = b"end_header\n";
+    let h = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let header = std::str::from_utf8(&bytes[..h]).unwrap();
+    let count = |e: &str| -> usize { header.split(&format!("element {e} ")).nth(1).unwrap().lines().next().unwrap().parse().unwrap() };
+    let (nv, nf) = (count("vertex"), count("face"));
+    assert!(nv > 0 && nf > 0 && bytes.len() - h == 27 * nv + 13 * nf, "{header}");
+    assert!(String::from_utf8_lossy(&o.stdout).contains(&format!("{nv} vertices, {nf} triangles")));
+    let f = |o: usize| f32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
+    for v in 0..nv {
+        let r = h + 27 * v;
+        let (p, n): (Vec<f32>, Vec<f32>) = ((0..3).map(|k| f(r + 4 * k)).collect(), (3..6).map(|k| f(r + 4 * k)).collect());
+        assert!(p.iter().all(|x| x.abs() <= 1.5), "vertex outside the Blender cube: {p:?}");
+        let len = n.iter().map(|x| x * x).sum::<f32>().sqrt();
+        assert!(len == 0.0 || (len - 1.0).abs() < 1e-4, "normal {n:?}");
+    }
+    for t in bytes[h + 27 * nv..].chunks_exact(13) {
+        assert_eq!(t[0], 3);
+        assert!((0..3).all(|j| (i32::from_le_bytes(t[1 + 4 * j..5 + 4 * j].try_into().unwrap()) as usize) < nv));
+    }
+    for (args, needle) in [(["--resolution", "1"], "--resolution"), (["--threshold", "0"], "--threshold"), (["--box", "5,5,5,6,6,6"], "misses")] {
+        let o = nerf().arg("export-mesh").arg(&run).arg(&s).args(args).output().unwrap();
+        assert_clean_failure(&o, &[needle]);
+    }
+    let o = nerf().arg("export-mesh").arg(&run).arg(&s).args(["--box", "1,1,1,0,0,0"]).output().unwrap();
+    assert!(o.status.code() == Some(2) && stderr(&o).contains("empty box"), "{}", stderr(&o));
+    // A smaller box: every vertex inside it.
+    let part = |threshold: f32| {
+        nerf().arg("export-mesh").arg(&run).arg(&s).args(["--box=-0.5,-0.25,-0.5,0.5,0.5,0.75", "--resolution", "16"])
+            .args(["--threshold", &format!("{threshold}"), "--device", "cpu", "--out"]).arg(d.path().join("part.ply")).output().unwrap()
+    };
+    let o = part(0.5 * highest(part(1e9)));
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(d.path().join("part.ply")).unwrap();
+    let h = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let header = std::str::from_utf8(&bytes[..h]).unwrap();
+    let nv: usize = header.split("element vertex ").nth(1).unwrap().lines().next().unwrap().parse().unwrap();
+    assert!(nv > 0);
+    for v in 0..nv {
+        let p: Vec<f32> = (0..3).map(|k| f32::from_le_bytes(bytes[h + 27 * v + 4 * k..][..4].try_into().unwrap())).collect();
+        assert!(p[0].abs() <= 0.5 && (-0.25..=0.5).contains(&p[1]) && (-0.5..=0.75).contains(&p[2]), "vertex outside --box: {p:?}");
     }
 }

@@ -1108,8 +1108,51 @@ pub fn write_ply_points(path: &Path, points: &[([f32; 3], [f32; 3])]) -> Result<
         p.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
         bytes.extend(c.iter().map(|&v| to_u8(v)));
     }
+    write_ply_bytes(path, &bytes)
+}
+
+/// Writes a triangle mesh as a binary little-endian PLY file: per vertex `float x, y, z`,
+/// `float nx, ny, nz` and `uchar red, green, blue` (colours in `[0, 1]`, clamped and rounded), per
+/// face `list uchar int vertex_indices` of 3 — what MeshLab, Blender and Open3D read, and the
+/// layout of instant-ngp's mesh export. Written under a temporary name and renamed, so the file is
+/// whole or absent; the error names the path.
+///
+/// # Panics
+/// If `normals` or `colors` is not one per position, or an index is not below the vertex count.
+pub fn write_ply_mesh(
+    path: &Path,
+    positions: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    colors: &[[f32; 3]],
+    indices: &[u32],
+) -> Result<(), DataError> {
+    assert!(normals.len() == positions.len() && colors.len() == positions.len(), "write_ply_mesh: one normal and colour per vertex");
+    assert!(indices.len() % 3 == 0 && indices.iter().all(|&i| (i as usize) < positions.len()), "write_ply_mesh: bad triangles");
+    let mut bytes = format!(
+        "ply\nformat binary_little_endian 1.0\ncomment written by nerf-rs\nelement vertex {}\n\
+         property float x\nproperty float y\nproperty float z\n\
+         property float nx\nproperty float ny\nproperty float nz\n\
+         property uchar red\nproperty uchar green\nproperty uchar blue\n\
+         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        positions.len(),
+        indices.len() / 3
+    )
+    .into_bytes();
+    bytes.reserve(27 * positions.len() + 13 * (indices.len() / 3));
+    for ((p, n), c) in positions.iter().zip(normals).zip(colors) {
+        p.iter().chain(n).for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+        bytes.extend(c.iter().map(|&v| to_u8(v)));
+    }
+    for t in indices.chunks_exact(3) {
+        bytes.push(3);
+        t.iter().for_each(|&i| bytes.extend_from_slice(&(i as i32).to_le_bytes()));
+    }
+    write_ply_bytes(path, &bytes)
+}
+
+fn write_ply_bytes(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
     let tmp = path.with_extension("ply.tmp");
-    std::fs::write(&tmp, &bytes).map_err(|source| DataError::Io { path: tmp.clone(), source })?;
+    std::fs::write(&tmp, bytes).map_err(|source| DataError::Io { path: tmp.clone(), source })?;
     std::fs::rename(&tmp, path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })
 }
 

@@ -29,3 +29,40 @@ fn ply_points_read_back() {
     let e = write_ply_points(&d.path().join("nope/points.ply"), &points).unwrap_err();
     assert!(e.to_string().contains("nope"), "{e}");
 }
+
+#[test]
+fn ply_meshes_read_back() {
+    let d = tempfile::tempdir().unwrap();
+    let path = d.path().join("mesh.ply");
+    let positions = [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let normals = [[-0.577f32, -0.577, -0.577], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let colors = [[1.0f32, 0.5, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.1, 0.2, 0.3]];
+    let indices = [0u32, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3];
+    nerf_data::write_ply_mesh(&path, &positions, &normals, &colors, &indices).unwrap();
+    let bytes = std::fs::read(&path).unwrap();
+    let end = b"end_header\n";
+    let h = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    let header = std::str::from_utf8(&bytes[..h]).unwrap();
+    assert!(header.contains("element vertex 4\n") && header.contains("element face 4\nproperty list uchar int vertex_indices\n"), "{header}");
+    let props: Vec<&str> = header.lines().filter(|l| l.starts_with("property")).take(9).collect();
+    assert_eq!(props[3..6], ["property float nx", "property float ny", "property float nz"]);
+    let body = &bytes[h..];
+    assert_eq!(body.len(), 4 * 27 + 4 * 13);
+    let f = |o: usize| f32::from_le_bytes(body[o..o + 4].try_into().unwrap());
+    for (i, (p, n)) in positions.iter().zip(&normals).enumerate() {
+        let got: Vec<f32> = (0..6).map(|k| f(27 * i + 4 * k)).collect();
+        assert_eq!(got, [p.as_slice(), n.as_slice()].concat());
+    }
+    assert_eq!(&body[24..27], &[255, 128, 0]);
+    assert_eq!(&body[27 * 3 + 24..27 * 4], &[26, 51, 77]);
+    let faces = &body[4 * 27..];
+    for (k, t) in indices.chunks_exact(3).enumerate() {
+        let r = &faces[13 * k..13 * (k + 1)];
+        assert_eq!(r[0], 3);
+        let got: Vec<u32> = (0..3).map(|j| i32::from_le_bytes(r[1 + 4 * j..5 + 4 * j].try_into().unwrap()) as u32).collect();
+        assert_eq!(got, t);
+    }
+    assert!(!d.path().join("mesh.ply.tmp").exists());
+    let e = nerf_data::write_ply_mesh(&d.path().join("nope/mesh.ply"), &positions, &normals, &colors, &indices).unwrap_err();
+    assert!(e.to_string().contains("nope"), "{e}");
+}

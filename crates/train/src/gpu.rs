@@ -670,6 +670,63 @@ impl GpuEngine {
         r
     }
 
+    /// The rendering field's (the last) density, and colour when `dirs` and `rgb` are given, at
+    /// points: in batches of its stage's sample capacity, with the moving average as rendering.
+    pub(crate) fn query_points(
+        &self,
+        positions: &[f32],
+        dirs: Option<&[f32]>,
+        sigma: &mut [f32],
+        mut rgb: Option<&mut [f32]>,
+    ) -> Result<(), TrainError> {
+        let swap = !self.ema_backup.is_empty() && self.adams.iter().flatten().any(|a| a.ema_step_count() > 0);
+        if swap {
+            self.record_ema_swap(true);
+        }
+        let ctx = &*self.ctx;
+        let (field, st) = (self.fields.last().expect("a field"), self.stages.last().expect("a stage"));
+        let batch = st.packed.capacity_samples.min(field.capacity()).max(1);
+        let n = sigma.len();
+        let mut r = Ok(());
+        for p0 in (0..n).step_by(batch) {
+            let p1 = (p0 + batch).min(n);
+            let m = p1 - p0;
+            ctx.write(&st.counters, 4, &[m as u32]);
+            ctx.write(&st.packed.positions, 0, &positions[3 * p0..3 * p1]);
+            let mut enc = ctx.encoder("query points");
+            let out = match (dirs, rgb.as_deref_mut()) {
+                (Some(d), Some(c)) => {
+                    ctx.write(&st.packed.dirs, 0, &d[3 * p0..3 * p1]);
+                    field.record_query(ctx, &mut enc, st.samples(), &st.sigma, &st.rgb);
+                    Some(&mut c[3 * p0..3 * p1])
+                }
+                _ => {
+                    field.record_density(ctx, &mut enc, st.samples(), &st.sigma);
+                    None
+                }
+            };
+            ctx.queue.submit([enc.finish()]);
+            let parts: Vec<(&wgpu::Buffer, usize)> = if out.is_some() { vec![(&st.sigma, m), (&st.rgb, 3 * m)] } else { vec![(&st.sigma, m)] };
+            match ctx.read_words(&parts) {
+                Ok(got) => {
+                    sigma[p0..p1].iter_mut().zip(&got[0]).for_each(|(d, &w)| *d = f32::from_bits(w));
+                    if let Some(c) = out {
+                        c.iter_mut().zip(&got[1]).for_each(|(d, &w)| *d = f32::from_bits(w));
+                    }
+                }
+                Err(e) => {
+                    r = Err(gerr(e));
+                    break;
+                }
+            }
+        }
+        if swap {
+            self.record_ema_swap(false);
+        }
+        self.reset_batch();
+        r
+    }
+
     /// Submits the copies that put the moving average into the fields' parameter buffers (raw
     /// parameters to the backup first; `to_ema`) or the raw parameters back (`!to_ema`).
     fn record_ema_swap(&self, to_ema: bool) {

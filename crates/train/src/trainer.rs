@@ -604,6 +604,44 @@ impl Trainer {
         Ok(())
     }
 
+    /// Density σ of the rendering field (the last: NeRF's fine network) at `positions` (`3·n`
+    /// into `sigma`, `n`), on the trainer's device, with the parameters' moving average when
+    /// rendering uses it ([`render_rays`](Self::render_rays)). For meshes: the field sampled on a
+    /// lattice (`nerf_mesh`).
+    pub fn density_at(&self, positions: &[f32], sigma: &mut [f32]) -> Result<(), TrainError> {
+        self.points(positions, None, sigma, None)
+    }
+
+    /// Density σ (`n`) and colour (`3·n`) of the rendering field at `positions` seen along the
+    /// unit `dirs` (`3·n` each), as [`density_at`](Self::density_at). For the colours of a
+    /// mesh's vertices.
+    pub fn query_points(&self, positions: &[f32], dirs: &[f32], sigma: &mut [f32], rgb: &mut [f32]) -> Result<(), TrainError> {
+        self.points(positions, Some(dirs), sigma, Some(rgb))
+    }
+
+    fn points(&self, positions: &[f32], dirs: Option<&[f32]>, sigma: &mut [f32], mut rgb: Option<&mut [f32]>) -> Result<(), TrainError> {
+        let n = sigma.len();
+        assert!(positions.len() == 3 * n && dirs.is_none_or(|d| d.len() == 3 * n), "points: 3 values per point");
+        assert!(rgb.as_ref().is_none_or(|c| c.len() == 3 * n), "points: 3 colour values per point");
+        if let Some(g) = &self.gpu {
+            return g.query_points(positions, dirs, sigma, rgb);
+        }
+        let ema_fields = self.ema_render_fields();
+        let fields = ema_fields.as_ref().map_or(&self.fields, |g| &g.fields);
+        let field = fields.last().expect("a trainer has a field").as_ref();
+        // Bounded batches: a field's query allocates its activations per call.
+        const BATCH: usize = 1 << 16;
+        for p0 in (0..n).step_by(BATCH) {
+            let p1 = (p0 + BATCH).min(n);
+            let pos = &positions[3 * p0..3 * p1];
+            match (dirs, rgb.as_deref_mut()) {
+                (Some(d), Some(c)) => field.query(pos, &d[3 * p0..3 * p1], &mut sigma[p0..p1], &mut c[3 * p0..3 * p1]),
+                _ => field.density(pos, &mut sigma[p0..p1]),
+            }
+        }
+        Ok(())
+    }
+
     /// The rendering instances holding the moving average, filled from it if it changed since;
     /// `None` without an average (off, or no update yet): render with the raw parameters.
     fn ema_render_fields(&self) -> Option<MutexGuard<'_, EmaFields>> {
@@ -670,6 +708,26 @@ impl Trainer {
     /// The occupancy grid of the CPU path, when the sampler has one.
     pub fn occupancy_grid(&self) -> Option<&OccupancyGrid> {
         self.grid.as_ref()
+    }
+
+    /// A copy of the occupancy grid as training left it, on either device (the cell densities and
+    /// seen marks read back from the GPU); `None` without an occupancy sampler. For masks over
+    /// the scene (`nerf export-mesh`).
+    pub fn occupancy_grid_now(&self) -> Result<Option<OccupancyGrid>, TrainError> {
+        let (Some(grid), SamplerConfig::Occupancy { step_size, .. }) = (&self.grid, &self.config.sampler) else {
+            return Ok(None);
+        };
+        let mut grid = grid.clone();
+        if let Some(g) = &self.gpu {
+            let state = g.sampler_state()?;
+            if let Some(w) = seen_from_state(&state)? {
+                grid.set_seen_words(&w).map_err(|e| TrainError::Config(format!("occupancy grid: {e}")))?;
+            }
+            if let Some((_, d)) = state.iter().find(|(n, _)| n == "occupancy_density") {
+                grid.set_densities(d, *step_size).map_err(TrainError::Config)?;
+            }
+        }
+        Ok(Some(grid))
     }
 
     /// Optimiser state (for checkpoints; read back from the device on the GPU).
