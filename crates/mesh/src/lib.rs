@@ -4,8 +4,8 @@
 //!
 //! The isosurface comes from naive surface nets (Gibson 1998, the `fast-surface-nets` crate): one
 //! vertex per lattice cell the surface crosses (the mean of the crossings on the cell's edges),
-//! one quad (two triangles) per crossed lattice edge. It gives the same surface as marching cubes
-//! up to a fraction of a cell, with fewer and better-shaped triangles. The lattice is padded with
+//! one quad (two triangles) per crossed lattice edge. It places the surface where marching cubes
+//! would, to within a fraction of a cell. The lattice is padded with
 //! empty space on every side, so the mesh is closed: where the field is dense up to the box, the
 //! box's faces close it (its vertices are clamped into the box).
 //!
