@@ -225,7 +225,8 @@ struct MeshArgs {
     /// (where instant-ngp puts the object, its finest occupancy level).
     #[arg(long = "box", value_parser = parse_box)]
     mesh_box: Option<([f32; 3], [f32; 3])>,
-    /// Where to write the PLY file (default: `RUN/mesh.ply`).
+    /// Where to write the mesh (default: `RUN/mesh.ply`): binary PLY for `.ply`, Wavefront OBJ
+    /// for `.obj`.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Evaluate the density in the whole box. By default a run with an occupancy grid counts the
@@ -668,6 +669,12 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
     if !(2..=1024).contains(&a.resolution) || !(a.threshold.is_finite() && a.threshold > 0.0) {
         bail!("--resolution must be in 2..=1024 (about 13 bytes of memory per lattice node: 14 GB at 1024) and --threshold a positive number");
     }
+    let out = a.out.unwrap_or_else(|| a.run.join("mesh.ply"));
+    let obj = match out.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+        Some("ply") => false,
+        Some("obj") => true,
+        _ => bail!("{}: the mesh is written as .ply or .obj, by the file's extension", out.display()),
+    };
     let ck = Checkpoint::load(&a.run.join("checkpoint.bin"))?;
     let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
     if train.ndc.is_some() {
@@ -675,7 +682,6 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
     }
     let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
-    let out = a.out.unwrap_or_else(|| a.run.join("mesh.ply"));
     let scene_box = (train.aabb.min, train.aabb.max);
     // σ per scene unit from σ per instant-ngp unit (σ is an inverse length): an instant-ngp unit
     // is 1/scale scene units, or the box's longest side where the scene has no instant-ngp box.
@@ -740,7 +746,8 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
     let (mut sigma, mut rgb) = (vec![0.0; nv], vec![0.0; 3 * nv]);
     trainer.query_points(&pos, &dirs, &mut sigma, &mut rgb)?;
     let colors: Vec<[f32; 3]> = rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-    nerf::data::write_ply_mesh(&out, &mesh.positions, &mesh.normals, &colors, &mesh.indices)?;
+    let write = if obj { nerf::data::write_obj_mesh } else { nerf::data::write_ply_mesh };
+    write(&out, &mesh.positions, &mesh.normals, &colors, &mesh.indices)?;
     println!(
         "{} vertices, {} triangles ({:?} lattice, {:.1} % of its nodes denser than {} per instant-ngp unit) -> {}",
         nv,

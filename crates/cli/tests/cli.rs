@@ -725,6 +725,15 @@ fn export_mesh_writes_a_ply_mesh_inside_the_scene_box() {
         let o = nerf().arg("export-mesh").arg(&run).arg(&s).args(args).output().unwrap();
         assert_clean_failure(&o, &[needle]);
     }
+    let o = nerf().arg("export-mesh").arg(&run).arg(&s).args(["--out", "mesh.stl"]).output().unwrap();
+    assert_clean_failure(&o, &["mesh.stl", ".ply or .obj"]);
+    // The same mesh as OBJ text: as many vertices and faces.
+    let o = nerf().arg("export-mesh").arg(&run).arg(&s).args(["--resolution", "24", "--threshold", &format!("{}", 0.5 * top)])
+        .args(["--device", "cpu", "--out"]).arg(d.path().join("mesh.obj")).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let obj = std::fs::read_to_string(d.path().join("mesh.obj")).unwrap();
+    let lines = |p: &str| obj.lines().filter(|l| l.starts_with(p)).count();
+    assert_eq!((lines("v "), lines("vn "), lines("f ")), (nv, nv, nf));
     let o = nerf().arg("export-mesh").arg(&run).arg(&s).args(["--box", "1,1,1,0,0,0"]).output().unwrap();
     assert!(o.status.code() == Some(2) && stderr(&o).contains("empty box"), "{}", stderr(&o));
     // A smaller box: every vertex inside it.

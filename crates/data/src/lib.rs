@@ -1150,6 +1150,41 @@ pub fn write_ply_mesh(
     write_ply_bytes(path, &bytes)
 }
 
+/// Writes a triangle mesh as Wavefront OBJ text, as [`write_ply_mesh`] takes it: `v x y z r g b`
+/// (the vertex-colour extension MeshLab, Blender and Open3D read; colours in `[0, 1]`, clamped),
+/// `vn nx ny nz`, and `f a//a b//b c//c` (1-based, counter-clockwise seen from outside). Written
+/// under a temporary name and renamed; the error names the path.
+///
+/// # Panics
+/// As [`write_ply_mesh`].
+pub fn write_obj_mesh(
+    path: &Path,
+    positions: &[[f32; 3]],
+    normals: &[[f32; 3]],
+    colors: &[[f32; 3]],
+    indices: &[u32],
+) -> Result<(), DataError> {
+    use std::fmt::Write as _;
+    assert!(normals.len() == positions.len() && colors.len() == positions.len(), "write_obj_mesh: one normal and colour per vertex");
+    assert!(indices.len() % 3 == 0 && indices.iter().all(|&i| (i as usize) < positions.len()), "write_obj_mesh: bad triangles");
+    let mut text = String::with_capacity(64 * positions.len() + 32 * (indices.len() / 3));
+    text.push_str("# written by nerf-rs\n");
+    for (p, c) in positions.iter().zip(colors) {
+        let c = c.map(|v| if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) });
+        let _ = writeln!(text, "v {} {} {} {:.4} {:.4} {:.4}", p[0], p[1], p[2], c[0], c[1], c[2]);
+    }
+    for n in normals {
+        let _ = writeln!(text, "vn {} {} {}", n[0], n[1], n[2]);
+    }
+    for t in indices.chunks_exact(3) {
+        let [a, b, c] = [t[0] + 1, t[1] + 1, t[2] + 1];
+        let _ = writeln!(text, "f {a}//{a} {b}//{b} {c}//{c}");
+    }
+    let tmp = path.with_extension("obj.tmp");
+    std::fs::write(&tmp, text).map_err(|source| DataError::Io { path: tmp.clone(), source })?;
+    std::fs::rename(&tmp, path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })
+}
+
 fn write_ply_bytes(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
     let tmp = path.with_extension("ply.tmp");
     std::fs::write(&tmp, bytes).map_err(|source| DataError::Io { path: tmp.clone(), source })?;

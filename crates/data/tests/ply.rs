@@ -66,3 +66,38 @@ fn ply_meshes_read_back() {
     let e = nerf_data::write_ply_mesh(&d.path().join("nope/mesh.ply"), &positions, &normals, &colors, &indices).unwrap_err();
     assert!(e.to_string().contains("nope"), "{e}");
 }
+
+#[test]
+fn obj_meshes_read_back() {
+    let d = tempfile::tempdir().unwrap();
+    let path = d.path().join("mesh.obj");
+    let positions = [[0.0f32, 0.0, 0.0], [1.5, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -2.25]];
+    let normals = [[-0.6f32, -0.8, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let colors = [[1.0f32, 0.5, 0.0], [2.0, -1.0, 0.25], [1.0, 1.0, 1.0], [0.1, 0.2, 0.3]];
+    let indices = [0u32, 2, 1, 0, 1, 3, 0, 3, 2, 1, 2, 3];
+    nerf_data::write_obj_mesh(&path, &positions, &normals, &colors, &indices).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let nums = |l: &str| -> Vec<f32> { l.split_whitespace().skip(1).map(|x| x.parse().unwrap()).collect() };
+    let v: Vec<Vec<f32>> = text.lines().filter(|l| l.starts_with("v ")).map(nums).collect();
+    let vn: Vec<Vec<f32>> = text.lines().filter(|l| l.starts_with("vn ")).map(nums).collect();
+    assert_eq!(v.len(), 4);
+    for (k, p) in positions.iter().enumerate() {
+        assert_eq!(v[k][..3], p[..]);
+        assert_eq!(vn[k], normals[k].to_vec());
+    }
+    assert_eq!(v[0][3..], [1.0, 0.5, 0.0]);
+    assert_eq!(v[1][3..], [1.0, 0.0, 0.25], "colours clamped to [0, 1]");
+    let f: Vec<Vec<u32>> = text
+        .lines()
+        .filter(|l| l.starts_with("f "))
+        .map(|l| l.split_whitespace().skip(1).map(|c| {
+            let (a, b) = c.split_once("//").unwrap();
+            assert_eq!(a, b, "normal index = vertex index");
+            a.parse().unwrap()
+        }).collect())
+        .collect();
+    assert_eq!(f.concat(), indices.iter().map(|i| i + 1).collect::<Vec<_>>(), "1-based, in order");
+    assert!(!d.path().join("mesh.obj.tmp").exists());
+    let e = nerf_data::write_obj_mesh(&d.path().join("nope/mesh.obj"), &positions, &normals, &colors, &indices).unwrap_err();
+    assert!(e.to_string().contains("nope"), "{e}");
+}
