@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 use nerf::data::{load_scene, write_blender, LoadOptions, Split, ViewSelection};
 use nerf::field::merge_json;
+use nerf::rays::Projection;
 use nerf::train::{make_trainer, run, Checkpoint, RunOptions, SceneBounds, TrainConfig, TrainError};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -156,6 +157,12 @@ struct RenderArgs {
     /// the path it took as such a file, to edit and render again.
     #[arg(long = "camera-path", value_name = "FILE", conflicts_with = "frames")]
     camera_path: Option<PathBuf>,
+    /// What a frame is: `perspective` (a pinhole camera with the training views' field of view)
+    /// or `equirectangular` (nerfstudio's 360° panorama from the path's camera, twice as wide as
+    /// high: twice the training images' height unless `--width`). A camera path file names its
+    /// own.
+    #[arg(long = "camera-type", value_enum, default_value = "perspective", conflicts_with = "camera_path")]
+    camera_type: CameraType,
     /// Frame width in pixels (default: the training images', or the camera path's); the height
     /// keeps the aspect.
     #[arg(long)]
@@ -253,6 +260,15 @@ fn parse_box(s: &str) -> Result<([f32; 3], [f32; 3]), String> {
         return Err(format!("an empty box: {lo:?} to {hi:?}"));
     }
     Ok((lo, hi))
+}
+
+/// The frames of `nerf render` (nerfstudio's camera types).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum CameraType {
+    /// A pinhole camera.
+    Perspective,
+    /// A 360° panorama.
+    Equirectangular,
 }
 
 /// The generated camera paths of `nerf render`.
@@ -516,6 +532,14 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         k.validate().map_err(|e| anyhow::anyhow!("--width {}: {e}", k.width))?;
         Ok(k)
     };
+    let projection = match (&user_path, a.camera_type) {
+        (Some(p), _) => p.projection,
+        (None, CameraType::Perspective) => Projection::Perspective,
+        (None, CameraType::Equirectangular) => Projection::Equirectangular,
+    };
+    if projection == Projection::Equirectangular && train.ndc.is_some() {
+        bail!("{}: the run's rays are in NDC, which holds only what lies in front of the cameras: a panorama needs a run trained with --no-ndc", a.run.display());
+    }
     let (path, path_fps) = match user_path {
         Some(p) => {
             let mut cams = p.cameras;
@@ -525,7 +549,11 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
             (cams, p.fps)
         }
         None => {
-            let k = sized(train.cameras[0].intrinsics)?;
+            let k = match projection {
+                Projection::Perspective => train.cameras[0].intrinsics,
+                Projection::Equirectangular => nerf::data::equirect_intrinsics(2 * train.height, train.height),
+            };
+            let k = sized(k)?;
             let frames = a.frames.unwrap_or(60);
             let center = nerf::rays::glam::Vec3::from_array(train.aabb.center());
             // Forward-facing captures get nerf-pytorch's spiral; object-centred ones a turntable orbit.
@@ -575,7 +603,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
             break;
         }
         pb.set_position(i as u64);
-        cam.rays_into(ck.config.pixel_convention, &mut o, &mut d);
+        cam.frame_rays_into(projection, ck.config.pixel_convention, &mut o, &mut d);
         train.warp_rays(&mut o, &mut d);
         let t = std::time::Instant::now();
         trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
@@ -602,13 +630,13 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "frames": done, "path_frames": n_frames, "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;
     nerf::train::run::write_atomic(&out.join("render.json"), text.as_bytes())?;
     // The path as nerfstudio's camera_path.json: `--camera-path` renders it again.
-    let text = serde_json::to_string_pretty(&nerf::data::camera_path_json(&path, video_fps))?;
+    let text = serde_json::to_string_pretty(&nerf::data::camera_path_json(&path, projection, video_fps))?;
     nerf::train::run::write_atomic(&out.join("camera_path.json"), text.as_bytes())?;
     if interrupted {
         return Err(RenderInterrupted { done, total: n_frames, out }.into());

@@ -161,6 +161,12 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
             "ndc" => assert_clean_failure(&o, &["NDC", "--no-ndc"]),
             _ => assert!(o.status.success() && run.join("points.ply").is_file(), "{}", stderr(&o)),
         }
+        // And a panorama (NDC holds only what lies in front of the cameras).
+        let o = nerf().arg("render").arg(&run).arg(&fern).args(["--camera-type", "equirectangular", "--frames", "1", "--width", "16", "--device", "cpu"]).output().unwrap();
+        match space {
+            "ndc" => assert_clean_failure(&o, &["NDC", "panorama", "--no-ndc"]),
+            _ => assert!(o.status.success(), "{}", stderr(&o)),
+        }
         // So does a mesh (the field lives in NDC space there).
         let o = nerf().arg("export-mesh").arg(&run).arg(&fern).args(["--resolution", "16", "--threshold", "1e-6", "--device", "cpu"]).output().unwrap();
         match space {
@@ -752,4 +758,41 @@ fn export_mesh_writes_a_ply_mesh_inside_the_scene_box() {
         let p: Vec<f32> = (0..3).map(|k| f32::from_le_bytes(bytes[h + 27 * v + 4 * k..][..4].try_into().unwrap())).collect();
         assert!(p[0].abs() <= 0.5 && (-0.25..=0.5).contains(&p[1]) && (-0.5..=0.75).contains(&p[2]), "vertex outside --box: {p:?}");
     }
+}
+
+/// `nerf render --camera-type equirectangular`: 360° panoramas twice as wide as high, a camera
+/// path that says so and renders the same frames again; an NDC run is refused (see the LLFF test).
+#[test]
+fn render_writes_equirectangular_panoramas() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = d.path().join("pano");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--camera-type", "equirectangular", "--frames", "2", "--width", "24", "--device", "cpu", "--out"])
+        .arg(&out).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    for i in 0..2 {
+        let img = image::open(out.join(format!("frame_{i:04}.png"))).unwrap();
+        assert_eq!((img.width(), img.height()), (24, 12), "frame {i}");
+    }
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
+    assert_eq!(r["camera_type"], "equirectangular");
+    let p: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("camera_path.json")).unwrap()).unwrap();
+    assert_eq!((p["camera_type"].as_str(), p["render_width"].as_u64(), p["render_height"].as_u64()), (Some("equirectangular"), Some(24), Some(12)));
+    let again = d.path().join("again");
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(out.join("camera_path.json"))
+        .args(["--device", "cpu", "--out"]).arg(&again).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    for i in 0..2 {
+        let (a, b) = (image::open(out.join(format!("frame_{i:04}.png"))).unwrap(), image::open(again.join(format!("frame_{i:04}.png"))).unwrap());
+        assert_eq!(a.to_rgb8().as_raw(), b.to_rgb8().as_raw(), "frame {i}");
+    }
+    // A perspective render of the same path differs (another projection, another size).
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "2", "--device", "cpu", "--out"]).arg(d.path().join("persp")).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(image::open(d.path().join("persp/frame_0000.png")).unwrap().width(), 50);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--camera-type", "equirectangular", "--camera-path"]).arg(out.join("camera_path.json")).output().unwrap();
+    assert!(o.status.code() == Some(2) && stderr(&o).contains("--camera-type"), "a usage error: {}", stderr(&o));
 }

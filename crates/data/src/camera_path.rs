@@ -14,19 +14,23 @@
 //! `transform_matrix` in a transforms file, and are in the frame of the cameras the scene's loader
 //! gives: a transforms file's own frame (Blender, instant-ngp, nerfstudio data), nerf-pytorch's
 //! recentred and rescaled frame for LLFF. Other keys (`keyframes`, `seconds`, `aspect`, …) are
-//! ignored; only perspective cameras are supported.
+//! ignored. `camera_type` is `perspective` (also when absent) or `equirectangular`: a 360°
+//! panorama per frame (`nerf_rays::Camera::equirect_dir`), whose `fov` is not needed.
 
 use std::path::Path;
 
-use nerf_rays::{Camera, Intrinsics};
+use nerf_rays::{Camera, Intrinsics, Projection};
 
 use crate::DataError;
 
 /// A camera path: one camera per frame and the frame rate the file asks for.
 #[derive(Clone, Debug)]
 pub struct CameraPath {
-    /// One pinhole camera per frame, all of the file's `render_width × render_height`.
+    /// One camera per frame, all of the file's `render_width × render_height`: pinhole
+    /// intrinsics from `fov`, or (equirectangular) only the size.
     pub cameras: Vec<Camera>,
+    /// `camera_type`: perspective (also when absent) or equirectangular.
+    pub projection: Projection,
     /// `fps` of the file, if it gives one.
     pub fps: Option<f64>,
 }
@@ -34,7 +38,8 @@ pub struct CameraPath {
 /// Reads a nerfstudio camera path (see the module docs). Errors name the file and the key:
 /// missing file, malformed JSON, a missing or invalid `render_width`, `render_height`,
 /// `camera_path[i].camera_to_world` (12 or 16 finite numbers) or `camera_path[i].fov` (degrees in
-/// (0, 180)), a camera type other than perspective, an empty path.
+/// (0, 180); perspective paths only), a camera type other than perspective and equirectangular,
+/// an empty path.
 pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
     let text = std::fs::read_to_string(path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })?;
     let v: serde_json::Value =
@@ -44,12 +49,16 @@ pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
     if !v.is_object() {
         return Err(invalid("(top level)", "a camera path is a JSON object".into()));
     }
-    if let Some(t) = v.get("camera_type") {
-        match t.as_str() {
-            Some("perspective") => {}
-            _ => return Err(invalid("camera_type", format!("{t}: only \"perspective\" cameras can be rendered"))),
-        }
-    }
+    let projection = match v.get("camera_type") {
+        None => Projection::Perspective,
+        Some(t) => match t.as_str() {
+            Some("perspective") => Projection::Perspective,
+            Some("equirectangular") => Projection::Equirectangular,
+            _ => {
+                return Err(invalid("camera_type", format!("{t}: only \"perspective\" and \"equirectangular\" cameras can be rendered")))
+            }
+        },
+    };
     let size = |key: &str| -> Result<u32, DataError> {
         let x = v.get(key).ok_or_else(|| missing(key))?;
         x.as_u64().filter(|&n| n > 0 && n <= 1 << 16).map(|n| n as u32).ok_or_else(|| {
@@ -75,15 +84,22 @@ pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
             .filter(|vals| vals.len() == 16 || vals.len() == 12)
             .ok_or_else(|| invalid(&key("camera_to_world"), "must be 16 numbers (a row-major 4×4 matrix) or 12 (its top 3 rows)".into()))?;
         let rows: Vec<[f32; 4]> = values.chunks(4).take(3).map(|r| std::array::from_fn(|c| r[c] as f32)).collect();
-        let fov = f.get("fov").ok_or_else(|| missing(&key("fov")))?;
-        let deg = fov.as_f64().filter(|d| *d > 0.0 && *d < 180.0).ok_or_else(|| {
-            invalid(&key("fov"), format!("{fov}: the vertical field of view must be in (0, 180) degrees"))
-        })?;
-        let cam = Camera::from_c2w(intrinsics_from_fov_y(width, height, deg), &rows)
+        let k = match projection {
+            // A panorama sees everything: its `fov`, which nerfstudio writes anyway, is not used.
+            Projection::Equirectangular => equirect_intrinsics(width, height),
+            Projection::Perspective => {
+                let fov = f.get("fov").ok_or_else(|| missing(&key("fov")))?;
+                let deg = fov.as_f64().filter(|d| *d > 0.0 && *d < 180.0).ok_or_else(|| {
+                    invalid(&key("fov"), format!("{fov}: the vertical field of view must be in (0, 180) degrees"))
+                })?;
+                intrinsics_from_fov_y(width, height, deg)
+            }
+        };
+        let cam = Camera::from_c2w(k, &rows)
             .map_err(|e| invalid(&key("camera_to_world"), e.to_string()))?;
         cameras.push(cam);
     }
-    Ok(CameraPath { cameras, fps })
+    Ok(CameraPath { cameras, projection, fps })
 }
 
 /// Square-pixel intrinsics with the principal point at the image centre and vertical field of view
@@ -93,14 +109,20 @@ pub fn intrinsics_from_fov_y(width: u32, height: u32, fov_y_degrees: f64) -> Int
     Intrinsics { width, height, fx: f, fy: f, cx: width as f32 * 0.5, cy: height as f32 * 0.5 }
 }
 
-/// `cameras` as a nerfstudio camera path (the inverse of [`load_camera_path`]): the size of the
-/// first camera, each camera's vertical field of view from its `fy`, its pose row-major.
-/// The format cannot hold non-square pixels or an off-centre principal point: such cameras come
-/// back with `fx = fy` and the image centre.
+/// The intrinsics nerfstudio gives a `width × height` equirectangular camera (`fx = W/2`,
+/// `fy = H`, the principal point at the centre); only the size is used for its rays.
+pub fn equirect_intrinsics(width: u32, height: u32) -> Intrinsics {
+    Intrinsics { width, height, fx: 0.5 * width as f32, fy: height as f32, cx: 0.5 * width as f32, cy: 0.5 * height as f32 }
+}
+
+/// `cameras` as a nerfstudio camera path of `projection` (the inverse of [`load_camera_path`]):
+/// the size of the first camera, each camera's vertical field of view from its `fy`, its pose
+/// row-major. The format cannot hold non-square pixels or an off-centre principal point: such
+/// cameras come back with `fx = fy` and the image centre.
 ///
 /// # Panics
 /// If `cameras` is empty.
-pub fn camera_path_json(cameras: &[Camera], fps: f64) -> serde_json::Value {
+pub fn camera_path_json(cameras: &[Camera], projection: Projection, fps: f64) -> serde_json::Value {
     let k = cameras[0].intrinsics;
     let path: Vec<serde_json::Value> = cameras
         .iter()
@@ -115,7 +137,7 @@ pub fn camera_path_json(cameras: &[Camera], fps: f64) -> serde_json::Value {
         })
         .collect();
     serde_json::json!({
-        "camera_type": "perspective",
+        "camera_type": projection.name(),
         "render_width": k.width,
         "render_height": k.height,
         "fps": fps,

@@ -24,7 +24,7 @@ use nerf_rays::glam::Vec3;
 use nerf_rays::{Aabb, Camera, Ndc, PixelConvention, Ray};
 
 pub mod camera_path;
-pub use camera_path::{camera_path_json, load_camera_path, CameraPath};
+pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, CameraPath};
 pub mod llff;
 pub use llff::{is_llff, load_llff};
 pub mod ngp;

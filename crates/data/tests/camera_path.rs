@@ -3,7 +3,7 @@
 
 use nerf_data::{camera_path_json, load_camera_path, DataError};
 use nerf_rays::glam::{Mat3, Vec3};
-use nerf_rays::{Camera, PixelConvention};
+use nerf_rays::{Camera, PixelConvention, Projection};
 
 fn write(dir: &std::path::Path, name: &str, text: &str) -> std::path::PathBuf {
     let p = dir.join(name);
@@ -61,10 +61,11 @@ fn written_paths_read_back_to_the_same_cameras() {
             Camera { intrinsics: k, rotation, position: Vec3::new(3.1 * t.cos(), 0.7 - t, 2.9 * t.sin()) }
         })
         .collect();
-    let text = serde_json::to_string_pretty(&camera_path_json(&cams, 12.5)).unwrap();
+    let text = serde_json::to_string_pretty(&camera_path_json(&cams, Projection::Perspective, 12.5)).unwrap();
     let p = write(d.path(), "path.json", &text);
     let back = load_camera_path(&p).unwrap();
     assert_eq!(back.fps, Some(12.5));
+    assert_eq!(back.projection, Projection::Perspective);
     assert_eq!(back.cameras.len(), cams.len());
     for (a, b) in cams.iter().zip(&back.cameras) {
         assert_eq!(a.intrinsics, b.intrinsics, "square pixels and a centred principal point come back exactly");
@@ -86,7 +87,7 @@ fn bad_paths_name_the_file_and_the_key() {
         (format!(r#"{{"render_width": 8.5, "render_height": 6, "camera_path": [{cam}]}}"#), "render_width"),
         (r#"{"render_width": 8, "render_height": 6}"#.into(), "camera_path"),
         (r#"{"render_width": 8, "render_height": 6, "camera_path": []}"#.into(), "no cameras"),
-        (format!(r#"{{"camera_type": "fisheye", "render_width": 8, "render_height": 6, "camera_path": [{cam}]}}"#), "perspective"),
+        (format!(r#"{{"camera_type": "fisheye", "render_width": 8, "render_height": 6, "camera_path": [{cam}]}}"#), "equirectangular"),
         (format!(r#"{{"render_width": 8, "render_height": 6, "fps": -1, "camera_path": [{cam}]}}"#), "fps"),
         (
             format!(r#"{{"render_width": 8, "render_height": 6, "camera_path": [{cam}, {{"camera_to_world": [1,0,0], "fov": 50}}]}}"#),
@@ -107,4 +108,33 @@ fn bad_paths_name_the_file_and_the_key() {
     }
     let e = load_camera_path(&d.path().join("missing.json")).unwrap_err();
     assert!(matches!(e, DataError::Io { .. }) && e.to_string().contains("missing.json"), "{e}");
+}
+
+#[test]
+fn equirectangular_paths_need_no_field_of_view_and_read_back() {
+    let d = tempfile::tempdir().unwrap();
+    // nerfstudio writes a fov for panoramas too; it is not used, nor needed.
+    let p = write(
+        d.path(),
+        "pano.json",
+        r#"{"camera_type": "equirectangular", "render_width": 64, "render_height": 32, "fps": 10,
+            "camera_path": [
+              {"camera_to_world": [1,0,0,0, 0,1,0,0, 0,0,1,4, 0,0,0,1], "fov": 75},
+              {"camera_to_world": [0,0,1,4, 0,1,0,0, -1,0,0,0, 0,0,0,1]}
+            ]}"#,
+    );
+    let path = load_camera_path(&p).unwrap();
+    assert_eq!(path.projection, Projection::Equirectangular);
+    assert_eq!(path.cameras.len(), 2);
+    for c in &path.cameras {
+        assert_eq!(c.intrinsics, nerf_data::equirect_intrinsics(64, 32));
+    }
+    assert_eq!(path.cameras[1].position, Vec3::new(4.0, 0.0, 0.0));
+    let text = serde_json::to_string(&camera_path_json(&path.cameras, path.projection, 10.0)).unwrap();
+    assert!(text.contains(r#""camera_type":"equirectangular""#), "{text}");
+    let back = load_camera_path(&write(d.path(), "again.json", &text)).unwrap();
+    assert_eq!(back.projection, Projection::Equirectangular);
+    for (a, b) in path.cameras.iter().zip(&back.cameras) {
+        assert_eq!((a.intrinsics, a.c2w()), (b.intrinsics, b.c2w()));
+    }
 }

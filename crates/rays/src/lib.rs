@@ -142,6 +142,29 @@ impl PixelConvention {
     }
 }
 
+/// How a rendered frame maps its pixels to directions (nerfstudio's `camera_type` of a camera
+/// path). Training views are always [`Perspective`](Self::Perspective).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Projection {
+    /// A pinhole camera with the camera's intrinsics ([`Camera::rays_into`]).
+    #[default]
+    Perspective,
+    /// A 360° panorama ([`Camera::equirect_rays_into`]): longitude across the width, latitude
+    /// down the height; the intrinsics give only the image size (usually `W = 2·H`).
+    Equirectangular,
+}
+
+impl Projection {
+    /// nerfstudio's name of the camera type: `"perspective"` or `"equirectangular"`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Projection::Perspective => "perspective",
+            Projection::Equirectangular => "equirectangular",
+        }
+    }
+}
+
 /// A ray `origin + t·dir`; `dir` is unit length.
 #[derive(Clone, Copy, Debug)]
 pub struct Ray {
@@ -355,6 +378,50 @@ impl Camera {
     }
 }
 
+impl Camera {
+    /// The unit direction, in camera axes (OpenGL: x right, y up, −z forward), of continuous
+    /// image coordinates `(u, v)` of a `width × height` equirectangular panorama, as nerfstudio's
+    /// `EQUIRECTANGULAR` camera: with `x = (u − W/2)/(W/2)` and `y = (H/2 − v)/H`, longitude
+    /// `θ = −π·x` and polar angle `φ = π·(½ − y)`, the direction
+    /// `(−sin θ sin φ, cos φ, −cos θ sin φ)`. The image's centre looks forward, its left and right
+    /// edges backward, a quarter of the width from the left edge to the left, the top row up.
+    pub fn equirect_dir(width: u32, height: u32, u: f32, v: f32) -> Vec3 {
+        let x = (u - 0.5 * width as f32) / (0.5 * width as f32);
+        let y = (0.5 * height as f32 - v) / height as f32;
+        let (theta, phi) = (-std::f32::consts::PI * x, std::f32::consts::PI * (0.5 - y));
+        Vec3::new(-theta.sin() * phi.sin(), phi.cos(), -theta.cos() * phi.sin())
+    }
+
+    /// All rays of an equirectangular panorama from this camera's position and orientation
+    /// ([`Camera::equirect_dir`] rotated into the world), of the intrinsics' `width × height`,
+    /// row-major as [`Camera::rays_into`] writes them.
+    pub fn equirect_rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>) {
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        let n = (w * h) as usize;
+        origins.clear();
+        dirs.clear();
+        origins.reserve(3 * n);
+        dirs.reserve(3 * n);
+        let off = conv.offset();
+        for row in 0..h {
+            for col in 0..w {
+                let d = (self.rotation * Self::equirect_dir(w, h, col as f32 + off, row as f32 + off)).normalize();
+                origins.extend_from_slice(&self.position.to_array());
+                dirs.extend_from_slice(&d.to_array());
+            }
+        }
+    }
+
+    /// The rays of a frame of `projection` ([`rays_into`](Self::rays_into) or
+    /// [`equirect_rays_into`](Self::equirect_rays_into)).
+    pub fn frame_rays_into(&self, projection: Projection, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>) {
+        match projection {
+            Projection::Perspective => self.rays_into(conv, origins, dirs),
+            Projection::Equirectangular => self.equirect_rays_into(conv, origins, dirs),
+        }
+    }
+}
+
 /// A camera path for novel views: `n` cameras on a circle around `center`, at the mean distance and
 /// mean elevation of `cameras` (the training views) about their mean "up" direction, each looking
 /// at `center`, evenly spaced in azimuth and starting at the first camera's azimuth; `intrinsics`
@@ -491,6 +558,43 @@ mod tests {
             [0.0, 0.0, 0.0, 1.0],
         ];
         Camera::from_c2w(k, &c2w).unwrap()
+    }
+
+    #[test]
+    fn equirectangular_panoramas_look_all_around_the_camera() {
+        let (w, h) = (64u32, 32u32);
+        let cam = Camera { intrinsics: Intrinsics { width: w, height: h, fx: 32.0, fy: 32.0, cx: 32.0, cy: 16.0 }, ..test_camera() };
+        let axis = |v: Vec3| cam.rotation * v; // camera axes in the world
+        let at = |u: f32, v: f32| cam.rotation * Camera::equirect_dir(w, h, u, v);
+        let close = |a: Vec3, b: Vec3| (a - b).length() < 1e-5;
+        let (wf, hf) = (w as f32, h as f32);
+        // Centre: forward; a quarter in from the left: left; three quarters: right; edges: back.
+        assert!(close(at(0.5 * wf, 0.5 * hf), axis(Vec3::NEG_Z)), "{}", at(0.5 * wf, 0.5 * hf));
+        assert!(close(at(0.25 * wf, 0.5 * hf), axis(Vec3::NEG_X)));
+        assert!(close(at(0.75 * wf, 0.5 * hf), axis(Vec3::X)));
+        assert!(close(at(0.0, 0.5 * hf), axis(Vec3::Z)) && close(at(wf, 0.5 * hf), axis(Vec3::Z)));
+        // Top edge up, bottom edge down, whatever the column; a quarter of the height: 45° up.
+        for u in [0.0, 10.0, 0.5 * wf, 63.0] {
+            assert!(close(at(u, 0.0), axis(Vec3::Y)) && close(at(u, hf), axis(Vec3::NEG_Y)));
+        }
+        let up45 = at(0.5 * wf, 0.25 * hf);
+        assert!(close(up45, axis(Vec3::new(0.0, 1.0, -1.0).normalize())), "{up45}");
+        // The frame: W·H unit rays from the camera's centre, row-major, pixel centres.
+        let (mut o, mut d) = (Vec::new(), Vec::new());
+        cam.frame_rays_into(Projection::Equirectangular, PixelConvention::Center, &mut o, &mut d);
+        assert_eq!((o.len(), d.len()), (3 * 64 * 32, 3 * 64 * 32));
+        assert!(o.chunks_exact(3).all(|p| p == cam.position.to_array()));
+        assert!(d.chunks_exact(3).all(|v| (Vec3::from_slice(v).length() - 1.0).abs() < 1e-5));
+        let k = (5 * w + 17) as usize; // row 5, column 17
+        assert!(close(Vec3::from_slice(&d[3 * k..3 * k + 3]), at(17.5, 5.5)));
+        // Directions cover the sphere evenly in longitude: their mean over a row is on the axis.
+        let row: Vec3 = (0..w as usize).map(|c| Vec3::from_slice(&d[3 * (3 * w as usize + c)..][..3])).sum::<Vec3>() / wf;
+        assert!(row.dot(axis(Vec3::X)).abs() < 1e-5 && row.dot(axis(Vec3::Z)).abs() < 1e-5, "{row}");
+        // Perspective frames are the pinhole rays.
+        let (mut o2, mut d2) = (Vec::new(), Vec::new());
+        cam.frame_rays_into(Projection::Perspective, PixelConvention::Center, &mut o2, &mut d2);
+        cam.rays_into(PixelConvention::Center, &mut o, &mut d);
+        assert_eq!((o, d), (o2, d2));
     }
 
     #[test]
