@@ -122,3 +122,67 @@ fn composite_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(nu
         d_sample_rgb[3u * k + 2u] = drgb.z * w;
     }
 }
+
+// ---- distortion loss (mip-NeRF 360) -------------------------------------------------------
+// CPU twin: nerf_render::distortion_loss_grad. Per ray, with s_i = scale·t_i, ℓ_i = scale·δ_i
+// and the forward's weights, L = λ/N · (Σ_{i,j} w_i w_j |s_i − s_j| + ⅓ Σ w_i² ℓ_i), N the rays
+// of the step (counters[0]). Writes L per ray and ADDS ∂L/∂σ_k = δ_k (g_k T_{k+1} − Σ_{i>k} g_i w_i)
+// to d_sigma, g_k = ∂L/∂w_k = λ/N (2 (s_k (2 W_{<k} − W) − 2 S_{<k} + S) + ⅔ ℓ_k w_k),
+// T_{k+1} = 1 − W_{≤k}; samples past an early stop get nothing.
+
+struct DistortionParams {
+    scale: f32,
+    lambda: f32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+@group(0) @binding(17) var<uniform> dparams: DistortionParams;
+@group(0) @binding(18) var<storage, read_write> ray_loss: array<f32>;   // n_rays
+
+@compute @workgroup_size(64)
+fn distortion_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let n_rays = min(counters[0], params.n_rays);
+    let r = linear_id(gid, nwg, 64u);
+    if (r >= n_rays) {
+        return;
+    }
+    let s0 = ray_offsets[r];
+    let s1 = ray_offsets[r + 1u];
+    let weight = dparams.lambda / f32(max(n_rays, 1u));
+    let sc = dparams.scale;
+    // The samples compositing reached, and W = Σ w, S = Σ w s over them.
+    var trans = 1.0;
+    var m = s0;
+    var w_all = 0.0;
+    var s_all = 0.0;
+    for (var k = s0; k < s1; k = k + 1u) {
+        if (params.t_threshold > 0.0 && trans < params.t_threshold) {
+            break;
+        }
+        trans = trans * exp(-sigma[k] * dt[k]);
+        w_all = w_all + weights[k];
+        s_all = s_all + weights[k] * sc * t[k];
+        m = k + 1u;
+    }
+    var w_after = 0.0;
+    var s_after = 0.0;
+    var suffix = 0.0;
+    var loss = 0.0;
+    for (var k = m; k > s0; k = k - 1u) {
+        let i = k - 1u;
+        let w = weights[i];
+        let s = sc * t[i];
+        let len = sc * dt[i];
+        let w_before = w_all - w_after - w;
+        let s_before = s_all - s_after - w * s;
+        loss = loss + 2.0 * w * (s * w_before - s_before) + len * w * w / 3.0;
+        let g = weight * (2.0 * (s * (2.0 * w_before - w_all) - 2.0 * s_before + s_all) + 2.0 * len * w / 3.0);
+        let t_next = 1.0 - (w_before + w);
+        d_sigma[i] = d_sigma[i] + dt[i] * (g * t_next - suffix);
+        suffix = suffix + g * w;
+        w_after = w_after + w;
+        s_after = s_after + w * s;
+    }
+    ray_loss[r] = weight * loss;
+}

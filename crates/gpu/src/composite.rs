@@ -5,7 +5,7 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{layout, shaders, GpuContext, GpuError};
-pub use crate::layout::{LossParams, BatchParams};
+pub use crate::layout::{BatchParams, DistortionParams, LossParams};
 
 /// Outputs of [`Compositor::forward`], read back to the host.
 #[derive(Clone, Debug, Default)]
@@ -63,7 +63,9 @@ pub struct CompositeTargets<'a> {
 pub struct Compositor {
     forward: Kernel,
     backward: Kernel,
+    distortion: Kernel,
     params: wgpu::Buffer,
+    distortion_params: wgpu::Buffer,
     capacity_rays: usize,
     zeros: wgpu::Buffer,
 }
@@ -85,7 +87,9 @@ impl Compositor {
         Self {
             forward: Kernel::from_module(ctx, &module, "composite_forward", &[]),
             backward: Kernel::from_module(ctx, &module, "composite_backward", &[]),
+            distortion: Kernel::from_module(ctx, &module, "distortion_backward", &[]),
             params: ctx.uniform("composite params", &params),
+            distortion_params: ctx.uniform("distortion params", &DistortionParams { scale: 1.0, lambda: 0.0, _pad: [0; 2] }),
             capacity_rays,
             zeros: ctx.zeros("composite zeros", 4 * capacity_rays),
         }
@@ -150,6 +154,75 @@ impl Compositor {
             ],
             groups_1d(self.capacity_rays, 64),
         );
+    }
+
+    /// Sets the distortion loss of [`Compositor::record_distortion`]: distances to `s = scale·t`,
+    /// weight λ (the loss is λ times the mean over the step's rays). A queued write: set it before
+    /// the steps it applies to are submitted.
+    pub fn set_distortion(&self, ctx: &GpuContext, scale: f32, lambda: f32) {
+        ctx.write(&self.distortion_params, 0, &[DistortionParams { scale, lambda, _pad: [0; 2] }]);
+    }
+
+    /// Records mip-NeRF 360's distortion loss over the `counters[0]` rays (CPU twin:
+    /// `nerf_render::distortion_loss_grad`): the loss per ray into `ray_loss` and its σ gradient
+    /// **added** to `d_sigma`, from the forward's `weights`.
+    pub fn record_distortion(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        b: &PackedBuffers<'_>,
+        weights: &wgpu::Buffer,
+        d_sigma: &wgpu::Buffer,
+        ray_loss: &wgpu::Buffer,
+    ) {
+        self.distortion.record(
+            ctx,
+            enc,
+            &[
+                (0, &self.params),
+                (1, b.offsets),
+                (2, b.sigma),
+                (4, b.dt),
+                (5, b.t),
+                (10, weights),
+                (14, d_sigma),
+                (16, b.counters),
+                (17, &self.distortion_params),
+                (18, ray_loss),
+            ],
+            groups_1d(self.capacity_rays, 64),
+        );
+    }
+
+    /// The distortion loss of a packed batch (host slices in and out: tests): `d_sigma` (`n`) is
+    /// what the kernel adds the gradient to; returns `(d_sigma, loss per ray)`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn distortion(
+        &self,
+        ctx: &GpuContext,
+        ray_offsets: &[u32],
+        sigma: &[f32],
+        dt: &[f32],
+        t: &[f32],
+        weights: &[f32],
+        scale: f32,
+        lambda: f32,
+        d_sigma: &[f32],
+    ) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
+        let n_rays = ray_offsets.len().saturating_sub(1);
+        assert!(n_rays <= self.capacity_rays, "{n_rays} rays exceed the compositor's capacity");
+        let n = sigma.len();
+        let rgb = vec![0.0; 3 * n];
+        let [c, o, s, col, d, tt, bg] = Self::upload_batch(ctx, ray_offsets, sigma, &rgb, dt, t, None);
+        let w = ctx.upload("weights", weights);
+        let d_s = ctx.upload("d_sigma", d_sigma);
+        let loss = ctx.upload("ray loss", &vec![f32::NAN; n_rays]);
+        self.set_distortion(ctx, scale, lambda);
+        let b = PackedBuffers { counters: &c, offsets: &o, sigma: &s, rgb: &col, dt: &d, t: &tt, background: &bg };
+        let mut enc = ctx.encoder("distortion");
+        self.record_distortion(ctx, &mut enc, &b, &w, &d_s, &loss);
+        ctx.queue.submit([enc.finish()]);
+        Ok((ctx.read_f32(&d_s, n)?, ctx.read_f32(&loss, n_rays)?))
     }
 
     fn upload_batch(

@@ -14,6 +14,18 @@ pub struct CompositeParams {
     /// Padding to 16 bytes (uniform layout).
     pub _pad: u32,
 }
+/// Uniform of the distortion-loss kernel (`composite.wgsl`, `distortion_backward`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct DistortionParams {
+    /// Distances to the normalised `s = scale·t`.
+    pub scale: f32,
+    /// λ: the loss is λ times the mean over the step's rays.
+    pub lambda: f32,
+    /// Padding to 16 bytes (uniform layout).
+    pub _pad: [u32; 2],
+}
+
 /// Slot of the `counters` buffer holding the number of rays of the step.
 pub const COUNTER_N_RAYS: usize = 0;
 /// Slot of the `counters` buffer holding the number of packed samples of the step.

@@ -107,6 +107,37 @@ fn composite_kernel_matches_its_cpu_twin() {
 }
 
 #[test]
+fn distortion_kernel_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    // λ = c·N: a per-ray weight c, so the gradients are not lost against d_sigma's start values.
+    for (seed, thr, scale, c) in [(31u64, 0.0f32, 0.25f32, 0.01f32), (32, 1e-3, 1.0, 0.5), (33, 0.05, 0.1, 2.0)] {
+        let (offsets, sigma, rgb, dt, t, _) = batch(seed, 900);
+        let (n_rays, n) = (offsets.len() - 1, sigma.len());
+        let lambda = c * n_rays as f32;
+        let mut cpu = nerf_render::CompositeOutputs::<f32>::default();
+        nerf_render::composite_forward(&offsets, &sigma, &rgb, &dt, &t, None, thr, &mut cpu);
+        // The kernel adds to d_sigma: start from random values (fresh per seed).
+        let mut rng = nerf_core::rng(seed, 2);
+        let start: Vec<f32> = (0..n).map(|_| rng.gen_range(-1e-3f32..1e-3)).collect();
+        let (mut ds, mut rl) = (start.clone(), vec![f32::NAN; n_rays]);
+        let total = nerf_render::distortion_loss_grad(&offsets, &sigma, &dt, &t, &cpu, scale, lambda / n_rays as f32, &mut ds, &mut rl);
+        let k = Compositor::new(&ctx, n_rays, thr, false);
+        let (g_ds, g_rl) = k.distortion(&ctx, &offsets, &sigma, &dt, &t, &cpu.weights, scale, lambda, &start).unwrap();
+        assert!(total > 0.0 && rl.iter().all(|x| x.is_finite()));
+        for (i, (x, y)) in g_rl.iter().zip(&rl).enumerate() {
+            assert!(x.is_finite() && (x - y).abs() <= 1e-4 * y.abs() + 1e-9, "ray_loss[{i}]: gpu {x} vs cpu {y} (seed {seed})");
+        }
+        // Samples behind an opaque stretch have (almost) no gradient; plenty of others do.
+        let moved = ds.iter().zip(&start).filter(|(a, b)| (*a - *b).abs() > 1e-6).count();
+        assert!(moved > n / 10, "a gradient above 1e-6 at only {moved} of {n} samples");
+        for (i, ((x, y), s0)) in g_ds.iter().zip(&ds).zip(&start).enumerate() {
+            let (gx, gy) = (x - s0, y - s0);
+            assert!(x.is_finite() && (gx - gy).abs() <= 1e-3 * gy.abs() + 1e-7, "d_sigma[{i}]: gpu +{gx} vs cpu +{gy} (seed {seed})");
+        }
+    }
+}
+
+#[test]
 fn composite_kernel_handles_an_empty_batch() {
     let Some(ctx) = context() else { return };
     let k = Compositor::new(&ctx, 2, 0.0, true);

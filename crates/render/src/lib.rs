@@ -19,12 +19,15 @@
 //! per ray, and run in parallel over blocks of rays with rayon for large batches.
 //!
 //! [`depth_range`] and [`depth_to_gray`] turn the expected depth into a viewable image;
-//! [`surface_points`] into a point cloud.
+//! [`surface_points`] into a point cloud. [`distortion_loss_grad`] is mip-NeRF 360's
+//! regulariser on the weights.
 
 mod depth;
+mod distortion;
 mod points;
 
 pub use depth::{depth_range, depth_to_gray};
+pub use distortion::distortion_loss_grad;
 pub use points::{surface_points, SurfacePoint};
 use nerf_core::Real;
 use nerf_core::par::{cut, for_ray_blocks, SplitAt};

@@ -114,6 +114,13 @@ pub struct TrainConfig {
     /// instant-ngp, whose grid update queries its inference network, the occupancy-grid density
     /// updates — keep using the raw weights. Must lie in (0, 1).
     pub ema_decay: Option<f32>,
+    /// Weight λ of mip-NeRF 360's distortion loss on the last stage's weights (nerfacto: 0.002),
+    /// added to the photometric loss as `λ · mean over rays of L_ray`, with distances normalised
+    /// by the scene's depth range (`s = t / (far − near)`; `nerf_render::distortion_loss_grad`):
+    /// it gathers each ray's weight into one short stretch, against floaters and haze. `None`
+    /// (the default) = off. Must be positive.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub distortion_loss: Option<f32>,
     /// Background composited behind training rays (paper on Blender: white).
     pub train_background: Background,
     /// Background for evaluation (white, as the paper's numbers).
@@ -175,6 +182,7 @@ impl Default for TrainConfig {
             adam: AdamConfig::default(),
             loss: LossConfig::Mse,
             ema_decay: None,
+            distortion_loss: None,
             train_background: Background::White,
             eval_background: Background::White,
             pixel_convention: PixelConvention::Center,
@@ -236,6 +244,11 @@ impl TrainConfig {
         if let Some(d) = self.ema_decay {
             if !(d > 0.0 && d < 1.0) {
                 return Err(format!("ema_decay must lie strictly between 0 and 1 (instant-ngp: 0.95), got {d}"));
+            }
+        }
+        if let Some(l) = self.distortion_loss {
+            if !(l.is_finite() && l > 0.0) {
+                return Err(format!("distortion_loss must be a positive number (nerfacto: 0.002), got {l}"));
             }
         }
         if let Some(d) = self.loss.huber_delta() {

@@ -73,6 +73,8 @@ struct Stage {
     depth: wgpu::Buffer,
     d_ray_rgb: wgpu::Buffer,
     sq_err: wgpu::Buffer,
+    /// The distortion loss per ray (`distortion_loss`, last stage).
+    ray_loss: wgpu::Buffer,
     d_sigma: wgpu::Buffer,
     d_rgb: wgpu::Buffer,
     /// `counters` as this step used them, copied before the next batch size overwrites
@@ -94,6 +96,7 @@ impl Stage {
             depth: f("depth", rays),
             d_ray_rgb: f("d ray rgb", 3 * rays),
             sq_err: f("sq err", rays),
+            ray_loss: f("ray loss", rays),
             d_sigma: f("d sigma", samples),
             d_rgb: f("d rgb", 3 * samples),
             logged: f("logged counters", 4),
@@ -364,10 +367,15 @@ impl GpuEngine {
         }
         let glue = TrainGlue::new(&ctx, capacity_rays, batch);
         glue.set_huber_delta(&ctx, config.loss.huber_delta());
+        let compositor = Compositor::new(&ctx, capacity_rays, config.transmittance_threshold, true);
+        if let Some(lambda) = config.distortion_loss {
+            let range = bounds.far - bounds.near;
+            compositor.set_distortion(&ctx, if range > 0.0 { 1.0 / range } else { 1.0 }, lambda);
+        }
         Ok(Self {
             first_rays,
             raygen: GpuRayGen::new(&ctx, config.train_background, config.pixel_convention, config.pixel_jitter),
-            compositor: Compositor::new(&ctx, capacity_rays, config.transmittance_threshold, true),
+            compositor,
             glue,
             rays: GpuRays::new(&ctx, capacity_rays),
             spr: ctx.upload("samples per ray", &[0.0f32]),
@@ -454,6 +462,9 @@ impl GpuEngine {
             let pb = self.packed(st);
             ctx.profile_stage("composite backward");
             self.compositor.record_backward(ctx, &mut enc, &pb, &st.weights, &st.d_ray_rgb, None, None, &st.d_sigma, &st.d_rgb);
+            if cfg.distortion_loss.is_some() && i + 1 == self.stages.len() {
+                self.compositor.record_distortion(ctx, &mut enc, &pb, &st.weights, &st.d_sigma, &st.ray_loss);
+            }
             ctx.profile_stage(if i == 0 { "field backward" } else { "fine field backward" });
             self.fields[i].record_backward(ctx, &mut enc, st.samples(), &st.d_sigma, &st.d_rgb);
         }
@@ -515,6 +526,9 @@ impl GpuEngine {
                 let sq = ctx.read_f32(&st.sq_err, n_rays).map_err(gerr)?;
                 let m = sq.iter().map(|&x| x as f64).sum::<f64>() / (3 * n_rays.max(1)) as f64;
                 l += m;
+                if cfg.distortion_loss.is_some() && i == last {
+                    l += ctx.read_f32(&st.ray_loss, n_rays).map_err(gerr)?.iter().map(|&x| x as f64).sum::<f64>();
+                }
                 total += c[1] as usize;
                 if i == last {
                     mse = m as f32;

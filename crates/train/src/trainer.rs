@@ -5,7 +5,7 @@ use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
 use nerf_optim::{Adam, AdamState, Ema, EmaState};
-use nerf_render::{composite_backward, composite_forward, composited_counts, photometric_loss_grad, CompositeOutputs};
+use nerf_render::{composite_backward, composite_forward, composited_counts, distortion_loss_grad, photometric_loss_grad, CompositeOutputs};
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, OccupancyGridConfig, RaySamples};
 use std::sync::{Mutex, MutexGuard};
 
@@ -93,6 +93,8 @@ struct Stage {
     d_ray_rgb: Vec<f32>,
     d_sigma: Vec<f32>,
     d_rgb: Vec<f32>,
+    /// The distortion loss per ray (`distortion_loss`).
+    ray_loss: Vec<f32>,
 }
 
 /// What one step did.
@@ -100,7 +102,7 @@ struct Stage {
 pub struct StepStats {
     /// Step index (0-based) that was just taken.
     pub step: u64,
-    /// Total loss (sum of the per-stage MSEs).
+    /// Total loss (sum of the per-stage photometric losses, plus the distortion loss when on).
     pub loss: f32,
     /// Photometric MSE of the final stage (the image the user sees).
     pub mse: f32,
@@ -483,7 +485,9 @@ impl Trainer {
         let mut loss = 0.0;
         let mut mse = 0.0;
         let mut n_samples = 0;
-        for (field, st) in self.fields.iter_mut().zip(self.stages.iter_mut()) {
+        let n_stages = self.stages.len();
+        let depth_range = self.bounds.far - self.bounds.near;
+        for (i, (field, st)) in self.fields.iter_mut().zip(self.stages.iter_mut()).enumerate() {
             st.d_ray_rgb.resize(3 * n_rays, 0.0);
             mse = photometric_loss_grad(&st.comp.rgb, &b.target, cfg.loss.huber_delta(), &mut st.d_ray_rgb);
             loss += mse;
@@ -505,6 +509,14 @@ impl Trainer {
                 &mut st.d_sigma,
                 &mut st.d_rgb,
             );
+            if let (Some(lambda), true) = (cfg.distortion_loss, i + 1 == n_stages) {
+                st.ray_loss.resize(n_rays, 0.0);
+                let scale = if depth_range > 0.0 { 1.0 / depth_range } else { 1.0 };
+                let s = &st.samples;
+                loss += distortion_loss_grad(
+                    &s.ray_offsets, &st.sigma, &s.dt, &s.t, &st.comp, scale, lambda / n_rays.max(1) as f32, &mut st.d_sigma, &mut st.ray_loss,
+                );
+            }
             field.backward(&st.d_sigma, &st.d_rgb);
         }
         let lr = cfg.lr.lr(self.step);
