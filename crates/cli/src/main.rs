@@ -508,17 +508,38 @@ fn progress(quiet: bool, len: usize, template: &str) -> indicatif::ProgressBar {
     pb
 }
 
+/// A trained run, ready to query ([`load_run`]).
+struct LoadedRun {
+    /// The run's config (from its checkpoint).
+    config: TrainConfig,
+    /// Steps it trained.
+    step: u64,
+    /// Its scene's training split (cameras, box).
+    train: nerf::data::Dataset,
+    /// A trainer holding the checkpoint's state.
+    trainer: nerf::train::Trainer,
+}
+
+/// Loads a run's checkpoint and its scene's training split into a trainer on `device`. With
+/// `euclidean_for`, an NDC run is refused, naming what needs the scene's own space.
+fn load_run(run: &Path, scene: &Path, device: nerf::gpu::DevicePreference, euclidean_for: Option<&str>) -> Result<LoadedRun> {
+    let Checkpoint { step, config, fields, adam, sampler, .. } = Checkpoint::load(&run.join("checkpoint.bin"))?;
+    let train = load_scene(scene, Split::Train, &LoadOptions { downscale: config.downscale, views: ViewSelection::All, ndc: config.ndc })?;
+    if let (Some(what), Some(_)) = (euclidean_for, &train.ndc) {
+        bail!("{}: the run was trained in NDC space, not the scene's: {what} needs a run trained with --no-ndc", run.display());
+    }
+    let mut trainer = make_trainer(&config, &nerf::registry(), SceneBounds::of(&train), device)?;
+    trainer.restore(step, &fields, adam, &sampler)?;
+    Ok(LoadedRun { config, step, train, trainer })
+}
+
 fn cmd_render(a: RenderArgs) -> Result<()> {
     if a.frames == Some(0) {
         bail!("--frames must be at least 1");
     }
     // A user's path is read before the checkpoint, so a typo there fails fast.
     let user_path = a.camera_path.as_deref().map(nerf::data::load_camera_path).transpose()?;
-    let ck_path = a.run.join("checkpoint.bin");
-    let ck = Checkpoint::load(&ck_path)?;
-    let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
-    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
-    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+    let LoadedRun { config, step, train, trainer } = load_run(&a.run, &a.scene, a.device, None)?;
     // --width scales the intrinsics; the height keeps the aspect.
     let sized = |k: nerf::rays::Intrinsics| -> Result<nerf::rays::Intrinsics> {
         let k = match a.width {
@@ -538,7 +559,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         (None, CameraType::Equirectangular) => Projection::Equirectangular,
     };
     if projection == Projection::Equirectangular && train.ndc.is_some() {
-        bail!("{}: the run's rays are in NDC, which holds only what lies in front of the cameras: a panorama needs a run trained with --no-ndc", a.run.display());
+        bail!("{}: the run was trained in NDC space, which holds only what lies in front of the cameras: a panorama needs a run trained with --no-ndc", a.run.display());
     }
     let (path, path_fps) = match user_path {
         Some(p) => {
@@ -568,7 +589,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
                 })?,
                 PathKind::Interpolate => {
                     // The run's test views (what `nerf eval` loads), in the scene's order.
-                    let opts = LoadOptions { downscale: ck.config.downscale, views: ck.config.test_views.clone(), ndc: ck.config.ndc };
+                    let opts = LoadOptions { downscale: config.downscale, views: config.test_views.clone(), ndc: config.ndc };
                     let test = load_scene(&a.scene, Split::Test, &opts)?;
                     nerf::rays::interpolate(&test.cameras, k, frames).with_context(|| {
                         format!("{}: --path interpolate needs at least 2 test cameras and 2 frames", a.scene.display())
@@ -586,7 +607,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let out = a.out.unwrap_or_else(|| a.run.join("render"));
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;
     let n = (k.width * k.height) as usize;
-    let bg: Vec<f32> = ck.config.eval_background.fixed_rgb().repeat(n);
+    let bg: Vec<f32> = config.eval_background.fixed_rgb().repeat(n);
     let (mut o, mut d) = (Vec::new(), Vec::new());
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
     let mut render_seconds = 0.0;
@@ -603,7 +624,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
             break;
         }
         pb.set_position(i as u64);
-        cam.frame_rays_into(projection, ck.config.pixel_convention, &mut o, &mut d);
+        cam.frame_rays_into(projection, config.pixel_convention, &mut o, &mut d);
         train.warp_rays(&mut o, &mut d);
         let t = std::time::Instant::now();
         trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
@@ -629,7 +650,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let fps = done as f64 / render_seconds.max(1e-9);
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
-        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(),
+        "field": config.field, "iterations": step, "device": trainer.device(), "adapter": trainer.adapter(),
         "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
@@ -658,13 +679,7 @@ fn cmd_export_points(a: PointsArgs) -> Result<()> {
     if a.points == 0 || !(0.0..=1.0).contains(&a.min_opacity) {
         bail!("--points must be at least 1 and --min-opacity in [0, 1]");
     }
-    let ck = Checkpoint::load(&a.run.join("checkpoint.bin"))?;
-    let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
-    if train.ndc.is_some() {
-        bail!("{}: the run's rays are in NDC, whose depths are not distances: a point cloud needs a run trained with --no-ndc", a.run.display());
-    }
-    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
-    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+    let LoadedRun { config, train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"))?;
     let out = a.out.unwrap_or_else(|| a.run.join("points.ply"));
     let batch = 1 << 16;
     let max_rays = 20 * a.points.max(batch);
@@ -675,7 +690,7 @@ fn cmd_export_points(a: PointsArgs) -> Result<()> {
     let pb = progress(a.quiet, a.points, "points {bar:30} {pos}/{len}");
     let mut cast = 0;
     while points.len() < a.points && cast < max_rays {
-        train.sample_rays(batch, ck.config.eval_background, ck.config.pixel_convention, false, &mut rng, &mut rays);
+        train.sample_rays(batch, config.eval_background, config.pixel_convention, false, &mut rng, &mut rays);
         trainer.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut opacity, &mut depth)?;
         let bounds = (train.aabb.min, train.aabb.max);
         nerf::render::surface_points(&rays.origins, &rays.dirs, &rgb, &opacity, &depth, &rays.background, a.min_opacity, bounds, &mut points);
@@ -703,13 +718,7 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
         Some("obj") => true,
         _ => bail!("{}: the mesh is written as .ply or .obj, by the file's extension", out.display()),
     };
-    let ck = Checkpoint::load(&a.run.join("checkpoint.bin"))?;
-    let train = load_scene(&a.scene, Split::Train, &LoadOptions { downscale: ck.config.downscale, views: ViewSelection::All, ndc: ck.config.ndc })?;
-    if train.ndc.is_some() {
-        bail!("{}: the run's field lives in NDC space, not the scene's: a mesh needs a run trained with --no-ndc", a.run.display());
-    }
-    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&train), a.device)?;
-    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+    let LoadedRun { train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a mesh"))?;
     let scene_box = (train.aabb.min, train.aabb.max);
     // σ per scene unit from σ per instant-ngp unit (σ is an inverse length): an instant-ngp unit
     // is 1/scale scene units, or the box's longest side where the scene has no instant-ngp box.

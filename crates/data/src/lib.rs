@@ -1126,8 +1126,7 @@ pub fn write_ply_mesh(
     colors: &[[f32; 3]],
     indices: &[u32],
 ) -> Result<(), DataError> {
-    assert!(normals.len() == positions.len() && colors.len() == positions.len(), "write_ply_mesh: one normal and colour per vertex");
-    assert!(indices.len() % 3 == 0 && indices.iter().all(|&i| (i as usize) < positions.len()), "write_ply_mesh: bad triangles");
+    check_mesh(positions, normals, colors, indices);
     let mut bytes = format!(
         "ply\nformat binary_little_endian 1.0\ncomment written by nerf-rs\nelement vertex {}\n\
          property float x\nproperty float y\nproperty float z\n\
@@ -1165,8 +1164,7 @@ pub fn write_obj_mesh(
     indices: &[u32],
 ) -> Result<(), DataError> {
     use std::fmt::Write as _;
-    assert!(normals.len() == positions.len() && colors.len() == positions.len(), "write_obj_mesh: one normal and colour per vertex");
-    assert!(indices.len() % 3 == 0 && indices.iter().all(|&i| (i as usize) < positions.len()), "write_obj_mesh: bad triangles");
+    check_mesh(positions, normals, colors, indices);
     let mut text = String::with_capacity(64 * positions.len() + 32 * (indices.len() / 3));
     text.push_str("# written by nerf-rs\n");
     for (p, c) in positions.iter().zip(colors) {
@@ -1183,6 +1181,12 @@ pub fn write_obj_mesh(
     let tmp = path.with_extension("obj.tmp");
     std::fs::write(&tmp, text).map_err(|source| DataError::Io { path: tmp.clone(), source })?;
     std::fs::rename(&tmp, path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })
+}
+
+/// The mesh writers' contract: one normal and colour per vertex, whole triangles of valid indices.
+fn check_mesh(positions: &[[f32; 3]], normals: &[[f32; 3]], colors: &[[f32; 3]], indices: &[u32]) {
+    assert!(normals.len() == positions.len() && colors.len() == positions.len(), "a mesh needs one normal and colour per vertex");
+    assert!(indices.len() % 3 == 0 && indices.iter().all(|&i| (i as usize) < positions.len()), "a mesh's triangles index its vertices");
 }
 
 fn write_ply_bytes(path: &Path, bytes: &[u8]) -> Result<(), DataError> {
