@@ -727,15 +727,15 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
         None => (0..3).map(|k| scene_box.1[k] - scene_box.0[k]).fold(0.0f32, f32::max),
     };
     let threshold = a.threshold / ngp_unit;
-    let (lo, hi) = match (a.mesh_box, train.ngp) {
+    let (want_lo, want_hi) = match (a.mesh_box, train.ngp) {
         (Some(b), _) => b,
         (None, Some(b)) if b.aabb_scale > 1.0 => nerf::data::NgpBox { aabb_scale: 1.0, ..b }.world_aabb(),
         _ => scene_box,
     };
     let (lo, hi): ([f32; 3], [f32; 3]) =
-        (std::array::from_fn(|k| lo[k].max(scene_box.0[k])), std::array::from_fn(|k| hi[k].min(scene_box.1[k])));
-    if (0..3).any(|k| lo[k] >= hi[k]) {
-        bail!("--box {:?} to {:?} misses the scene's box {:?} to {:?}", a.mesh_box.unwrap().0, a.mesh_box.unwrap().1, scene_box.0, scene_box.1);
+        (std::array::from_fn(|k| want_lo[k].max(scene_box.0[k])), std::array::from_fn(|k| want_hi[k].min(scene_box.1[k])));
+    if (0..3).any(|k| !(lo[k] < hi[k])) {
+        bail!("the box {want_lo:?} to {want_hi:?} (--box) misses the scene's box {:?} to {:?}", scene_box.0, scene_box.1);
     }
     println!("meshing the box {lo:?} to {hi:?} at σ = {threshold:.4} per scene unit");
     let lattice = nerf::mesh::Lattice::over_box(lo, hi, a.resolution);
