@@ -1,7 +1,8 @@
-//! Compositing throughput: forward and backward over 4096 rays × 192 samples (f32).
+//! Compositing throughput: forward and backward over 4096 rays × 192 samples (f32), and the
+//! distortion loss with its gradient over the same batch.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use nerf_render::{composite_backward, composite_forward, CompositeOutputs};
+use nerf_render::{composite_backward, composite_forward, distortion_loss_grad, CompositeOutputs};
 use rand::Rng;
 use std::hint::black_box;
 
@@ -54,6 +55,12 @@ fn bench(c: &mut Criterion) {
                 black_box(&mut d_sigma),
                 black_box(&mut d_c),
             )
+        })
+    });
+    let mut ray_loss = vec![0.0f32; n_rays];
+    grp.bench_function("distortion_loss_grad", |b| {
+        b.iter(|| {
+            distortion_loss_grad(&offsets, &sigma, &dt, &t, &out, 0.25, 1e-2 / n_rays as f32, black_box(&mut d_sigma), black_box(&mut ray_loss))
         })
     });
     grp.bench_function("forward_early_stop_1e-4", |b| {
