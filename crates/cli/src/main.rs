@@ -776,7 +776,7 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
     }
     let mesh = nerf::mesh::extract_mesh(&lattice, &density, threshold);
     drop(density);
-    // Vertex colours: the field seen head-on, looking along the inward normal (instant-ngp's).
+    // Vertex colours: the field seen head-on, looking along the inward normal.
     let nv = mesh.positions.len();
     let pos: Vec<f32> = mesh.positions.iter().flatten().copied().collect();
     let dirs: Vec<f32> = mesh.normals.iter().flat_map(|n| if *n == [0.0; 3] { [0.0, 0.0, -1.0] } else { n.map(|v| -v) }).collect();
