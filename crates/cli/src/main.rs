@@ -157,10 +157,11 @@ struct RenderArgs {
     /// the path it took as such a file, to edit and render again.
     #[arg(long = "camera-path", value_name = "FILE", conflicts_with = "frames")]
     camera_path: Option<PathBuf>,
-    /// What a frame is: `perspective` (a pinhole camera with the training views' field of view)
-    /// or `equirectangular` (nerfstudio's 360° panorama from the path's camera, twice as wide as
-    /// high: twice the training images' height unless `--width`). A camera path file names its
-    /// own.
+    /// What a frame is: `perspective` (a pinhole camera with the training views' intrinsics),
+    /// `fisheye` (nerfstudio's equidistant fisheye with those intrinsics: as wide in focal lengths,
+    /// but in angle) or `equirectangular` (nerfstudio's 360° panorama from the path's camera,
+    /// twice as wide as high: twice the training images' height unless `--width`). A camera path
+    /// file names its own.
     #[arg(long = "camera-type", value_enum, default_value = "perspective", conflicts_with = "camera_path")]
     camera_type: CameraType,
     /// Frame width in pixels (default: the training images', or the camera path's); the height
@@ -267,6 +268,8 @@ fn parse_box(s: &str) -> Result<([f32; 3], [f32; 3]), String> {
 enum CameraType {
     /// A pinhole camera.
     Perspective,
+    /// An equidistant fisheye.
+    Fisheye,
     /// A 360° panorama.
     Equirectangular,
 }
@@ -556,10 +559,15 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let projection = match (&user_path, a.camera_type) {
         (Some(p), _) => p.projection,
         (None, CameraType::Perspective) => Projection::Perspective,
+        (None, CameraType::Fisheye) => Projection::Fisheye,
         (None, CameraType::Equirectangular) => Projection::Equirectangular,
     };
-    if projection == Projection::Equirectangular && train.ndc.is_some() {
-        bail!("{}: the run was trained in NDC space, which holds only what lies in front of the cameras: a panorama needs a run trained with --no-ndc", a.run.display());
+    if projection != Projection::Perspective && train.ndc.is_some() {
+        bail!(
+            "{}: the run was trained in NDC space, which holds only what lies in front of the cameras: a {} frame needs a run trained with --no-ndc",
+            a.run.display(),
+            projection.name()
+        );
     }
     let (path, path_fps) = match user_path {
         Some(p) => {
@@ -571,7 +579,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
         }
         None => {
             let k = match projection {
-                Projection::Perspective => train.cameras[0].intrinsics,
+                Projection::Perspective | Projection::Fisheye => train.cameras[0].intrinsics,
                 Projection::Equirectangular => nerf::data::equirect_intrinsics(2 * train.height, train.height),
             };
             let k = sized(k)?;

@@ -164,7 +164,7 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
         // And a panorama (NDC holds only what lies in front of the cameras).
         let o = nerf().arg("render").arg(&run).arg(&fern).args(["--camera-type", "equirectangular", "--frames", "1", "--width", "16", "--device", "cpu"]).output().unwrap();
         match space {
-            "ndc" => assert_clean_failure(&o, &["NDC", "panorama", "--no-ndc"]),
+            "ndc" => assert_clean_failure(&o, &["NDC", "equirectangular", "--no-ndc"]),
             _ => assert!(o.status.success(), "{}", stderr(&o)),
         }
         // So does a mesh (the field lives in NDC space there).
@@ -760,10 +760,11 @@ fn export_mesh_writes_a_ply_mesh_inside_the_scene_box() {
     }
 }
 
-/// `nerf render --camera-type equirectangular`: 360° panoramas twice as wide as high, a camera
-/// path that says so and renders the same frames again; an NDC run is refused (see the LLFF test).
+/// `nerf render --camera-type equirectangular|fisheye`: 360° panoramas twice as wide as high and
+/// fisheye frames, camera paths that say so and render the same frames again; an NDC run is
+/// refused (see the LLFF test).
 #[test]
-fn render_writes_equirectangular_panoramas() {
+fn render_writes_panoramas_and_fisheye_frames() {
     let d = tempfile::tempdir().unwrap();
     let s = small_scene(d.path());
     let run = d.path().join("run");
@@ -795,4 +796,18 @@ fn render_writes_equirectangular_panoramas() {
     assert_eq!(image::open(d.path().join("persp/frame_0000.png")).unwrap().width(), 50);
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--camera-type", "equirectangular", "--camera-path"]).arg(out.join("camera_path.json")).output().unwrap();
     assert!(o.status.code() == Some(2) && stderr(&o).contains("--camera-type"), "a usage error: {}", stderr(&o));
+    // A fisheye: the training images' size, a path that says so and renders the same again,
+    // frames unlike the pinhole's.
+    let fish = d.path().join("fish");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--camera-type", "fisheye", "--frames", "2", "--device", "cpu", "--out"]).arg(&fish).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let p: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fish.join("camera_path.json")).unwrap()).unwrap();
+    assert_eq!(p["camera_type"], "fisheye");
+    let again = d.path().join("fish_again");
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(fish.join("camera_path.json")).args(["--device", "cpu", "--out"]).arg(&again).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (f, g, q) = (image::open(fish.join("frame_0001.png")).unwrap().to_rgb8(), image::open(again.join("frame_0001.png")).unwrap().to_rgb8(), image::open(d.path().join("persp/frame_0001.png")).unwrap().to_rgb8());
+    assert_eq!(f.dimensions(), (50, 50));
+    assert_eq!(f.as_raw(), g.as_raw());
+    assert_ne!(f.as_raw(), q.as_raw(), "the fisheye frame is the pinhole's");
 }

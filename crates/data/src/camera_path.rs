@@ -14,8 +14,9 @@
 //! `transform_matrix` in a transforms file, and are in the frame of the cameras the scene's loader
 //! gives: a transforms file's own frame (Blender, instant-ngp, nerfstudio data), nerf-pytorch's
 //! recentred and rescaled frame for LLFF. Other keys (`keyframes`, `seconds`, `aspect`, …) are
-//! ignored. `camera_type` is `perspective` (also when absent) or `equirectangular`: a 360°
-//! panorama per frame (`nerf_rays::Camera::equirect_dir`), whose `fov` is not needed.
+//! ignored. `camera_type` is `perspective` (also when absent), `fisheye` (an equidistant fisheye
+//! with the focal length `fov` gives, `nerf_rays::Camera::fisheye_dir`) or `equirectangular`: a
+//! 360° panorama per frame (`nerf_rays::Camera::equirect_dir`), whose `fov` is not needed.
 
 use std::path::Path;
 
@@ -38,8 +39,8 @@ pub struct CameraPath {
 /// Reads a nerfstudio camera path (see the module docs). Errors name the file and the key:
 /// missing file, malformed JSON, a missing or invalid `render_width`, `render_height`,
 /// `camera_path[i].camera_to_world` (12 or 16 finite numbers) or `camera_path[i].fov` (degrees in
-/// (0, 180); perspective paths only), a camera type other than perspective and equirectangular,
-/// an empty path.
+/// (0, 180); not needed by equirectangular paths), a camera type other than perspective, fisheye
+/// and equirectangular, an empty path.
 pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
     let text = std::fs::read_to_string(path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })?;
     let v: serde_json::Value =
@@ -54,8 +55,9 @@ pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
         Some(t) => match t.as_str() {
             Some("perspective") => Projection::Perspective,
             Some("equirectangular") => Projection::Equirectangular,
+            Some("fisheye") => Projection::Fisheye,
             _ => {
-                return Err(invalid("camera_type", format!("{t}: only \"perspective\" and \"equirectangular\" cameras can be rendered")))
+                return Err(invalid("camera_type", format!("{t}: only \"perspective\", \"fisheye\" and \"equirectangular\" cameras can be rendered")))
             }
         },
     };
@@ -87,7 +89,8 @@ pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
         let k = match projection {
             // A panorama sees everything: its `fov`, which nerfstudio writes anyway, is not used.
             Projection::Equirectangular => equirect_intrinsics(width, height),
-            Projection::Perspective => {
+            // A fisheye's focal length comes from `fov` as a pinhole's (nerfstudio's).
+            Projection::Perspective | Projection::Fisheye => {
                 let fov = f.get("fov").ok_or_else(|| missing(&key("fov")))?;
                 let deg = fov.as_f64().filter(|d| *d > 0.0 && *d < 180.0).ok_or_else(|| {
                     invalid(&key("fov"), format!("{fov}: the vertical field of view must be in (0, 180) degrees"))

@@ -87,7 +87,7 @@ fn bad_paths_name_the_file_and_the_key() {
         (format!(r#"{{"render_width": 8.5, "render_height": 6, "camera_path": [{cam}]}}"#), "render_width"),
         (r#"{"render_width": 8, "render_height": 6}"#.into(), "camera_path"),
         (r#"{"render_width": 8, "render_height": 6, "camera_path": []}"#.into(), "no cameras"),
-        (format!(r#"{{"camera_type": "fisheye", "render_width": 8, "render_height": 6, "camera_path": [{cam}]}}"#), "equirectangular"),
+        (format!(r#"{{"camera_type": "vr180_l", "render_width": 8, "render_height": 6, "camera_path": [{cam}]}}"#), "equirectangular"),
         (format!(r#"{{"render_width": 8, "render_height": 6, "fps": -1, "camera_path": [{cam}]}}"#), "fps"),
         (
             format!(r#"{{"render_width": 8, "render_height": 6, "camera_path": [{cam}, {{"camera_to_world": [1,0,0], "fov": 50}}]}}"#),
@@ -137,4 +137,28 @@ fn equirectangular_paths_need_no_field_of_view_and_read_back() {
     for (a, b) in path.cameras.iter().zip(&back.cameras) {
         assert_eq!((a.intrinsics, a.c2w()), (b.intrinsics, b.c2w()));
     }
+}
+
+#[test]
+fn fisheye_paths_take_their_focal_length_from_the_fov() {
+    let d = tempfile::tempdir().unwrap();
+    let p = write(
+        d.path(),
+        "fish.json",
+        r#"{"camera_type": "fisheye", "render_width": 200, "render_height": 100,
+            "camera_path": [{"camera_to_world": [1,0,0,0, 0,1,0,0, 0,0,1,4, 0,0,0,1], "fov": 90}]}"#,
+    );
+    let path = load_camera_path(&p).unwrap();
+    assert_eq!(path.projection, Projection::Fisheye);
+    assert!((path.cameras[0].intrinsics.fy - 50.0).abs() < 1e-4, "{:?}", path.cameras[0].intrinsics);
+    let text = serde_json::to_string(&camera_path_json(&path.cameras, path.projection, 24.0)).unwrap();
+    assert!(text.contains(r#""camera_type":"fisheye""#), "{text}");
+    let no_fov = write(
+        d.path(),
+        "nofov.json",
+        r#"{"camera_type": "fisheye", "render_width": 8, "render_height": 6,
+            "camera_path": [{"camera_to_world": [1,0,0,0, 0,1,0,0, 0,0,1,4, 0,0,0,1]}]}"#,
+    );
+    let e = load_camera_path(&no_fov).unwrap_err().to_string();
+    assert!(e.contains("nofov.json") && e.contains("camera_path[0].fov"), "{e}");
 }

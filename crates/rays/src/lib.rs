@@ -153,6 +153,9 @@ pub enum Projection {
     /// A 360° panorama ([`Camera::equirect_rays_into`]): longitude across the width, latitude
     /// down the height; the intrinsics give only the image size (usually `W = 2·H`).
     Equirectangular,
+    /// An equidistant fisheye ([`Camera::fisheye_dir`]): the angle from the optical axis grows
+    /// linearly with the distance from the principal point, in units of the focal length.
+    Fisheye,
 }
 
 impl Projection {
@@ -161,6 +164,7 @@ impl Projection {
         match self {
             Projection::Perspective => "perspective",
             Projection::Equirectangular => "equirectangular",
+            Projection::Fisheye => "fisheye",
         }
     }
 }
@@ -412,12 +416,43 @@ impl Camera {
         }
     }
 
-    /// The rays of a frame of `projection` ([`rays_into`](Self::rays_into) or
-    /// [`equirect_rays_into`](Self::equirect_rays_into)).
+    /// The unit direction, in camera axes, of continuous image coordinates `(u, v)` through this
+    /// camera's intrinsics as an equidistant fisheye, nerfstudio's `FISHEYE`: with
+    /// `x = (u − cx)/fx`, `y = −(v − cy)/fy` and `θ = min(√(x² + y²), π)`, the direction
+    /// `(x·sin θ/θ, y·sin θ/θ, −cos θ)` (the optical axis at the principal point; a point `π/2`
+    /// focal lengths from it looks sideways).
+    pub fn fisheye_dir(&self, u: f32, v: f32) -> Vec3 {
+        let k = &self.intrinsics;
+        let (x, y) = ((u - k.cx) / k.fx, -(v - k.cy) / k.fy);
+        let r = (x * x + y * y).sqrt();
+        if r == 0.0 {
+            return Vec3::NEG_Z;
+        }
+        let theta = r.min(std::f32::consts::PI);
+        let s = theta.sin() / r;
+        Vec3::new(x * s, y * s, -theta.cos())
+    }
+
+    /// The rays of a frame of `projection` ([`rays_into`](Self::rays_into),
+    /// [`equirect_rays_into`](Self::equirect_rays_into), or the fisheye's
+    /// [`fisheye_dir`](Self::fisheye_dir)), row-major.
     pub fn frame_rays_into(&self, projection: Projection, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>) {
         match projection {
             Projection::Perspective => self.rays_into(conv, origins, dirs),
             Projection::Equirectangular => self.equirect_rays_into(conv, origins, dirs),
+            Projection::Fisheye => {
+                let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+                origins.clear();
+                dirs.clear();
+                let off = conv.offset();
+                for row in 0..h {
+                    for col in 0..w {
+                        let d = (self.rotation * self.fisheye_dir(col as f32 + off, row as f32 + off)).normalize();
+                        origins.extend_from_slice(&self.position.to_array());
+                        dirs.extend_from_slice(&d.to_array());
+                    }
+                }
+            }
         }
     }
 }
@@ -561,7 +596,7 @@ mod tests {
     }
 
     #[test]
-    fn equirectangular_panoramas_look_all_around_the_camera() {
+    fn panoramas_and_fisheyes_look_where_nerfstudio_does() {
         let (w, h) = (64u32, 32u32);
         let cam = Camera { intrinsics: Intrinsics { width: w, height: h, fx: 32.0, fy: 32.0, cx: 32.0, cy: 16.0 }, ..test_camera() };
         let axis = |v: Vec3| cam.rotation * v; // camera axes in the world
@@ -590,6 +625,21 @@ mod tests {
         // Directions cover the sphere evenly in longitude: their mean over a row is on the axis.
         let row: Vec3 = (0..w as usize).map(|c| Vec3::from_slice(&d[3 * (3 * w as usize + c)..][..3])).sum::<Vec3>() / wf;
         assert!(row.dot(axis(Vec3::X)).abs() < 1e-5 && row.dot(axis(Vec3::Z)).abs() < 1e-5, "{row}");
+        // Fisheye: the principal point looks forward, π/2 focal lengths to its right looks
+        // right, as far above it looks up, π away looks back; small angles agree with the
+        // pinhole; frames are unit rays from the centre.
+        let fish = Camera { intrinsics: Intrinsics { width: 40, height: 30, fx: 10.0, fy: 10.0, cx: 20.0, cy: 15.0 }, ..test_camera() };
+        let f = |u: f32, v: f32| fish.rotation * fish.fisheye_dir(u, v);
+        let half_pi = 10.0 * std::f32::consts::FRAC_PI_2;
+        assert!(close(f(20.0, 15.0), axis(Vec3::NEG_Z)));
+        assert!(close(f(20.0 + half_pi, 15.0), axis(Vec3::X)) && close(f(20.0, 15.0 - half_pi), axis(Vec3::Y)));
+        assert!(close(f(20.0 - 10.0 * std::f32::consts::PI, 15.0), axis(Vec3::Z)));
+        let near_axis = fish.ray_at(20.3, 14.8).dir;
+        assert!((f(20.3, 14.8) - near_axis).length() < 1e-4, "small angles: fisheye ≈ pinhole");
+        fish.frame_rays_into(Projection::Fisheye, PixelConvention::Center, &mut o, &mut d);
+        assert_eq!(d.len(), 3 * 40 * 30);
+        assert!(d.chunks_exact(3).all(|v| (Vec3::from_slice(v).length() - 1.0).abs() < 1e-5));
+        assert!(close(Vec3::from_slice(&d[3 * (7 * 40 + 31)..][..3]), f(31.5, 7.5)));
         // Perspective frames are the pinhole rays.
         let (mut o2, mut d2) = (Vec::new(), Vec::new());
         cam.frame_rays_into(Projection::Perspective, PixelConvention::Center, &mut o2, &mut d2);
