@@ -401,6 +401,13 @@ impl Camera {
     /// row-major as [`Camera::rays_into`] writes them.
     pub fn equirect_rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>) {
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+        self.camera_rays_into(conv, origins, dirs, |u, v| Self::equirect_dir(w, h, u, v));
+    }
+
+    /// Every pixel's ray, row-major, from the camera-axes direction `dir(u, v)` of its point
+    /// (rotated into the world and normalised).
+    fn camera_rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3) {
+        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
         let n = (w * h) as usize;
         origins.clear();
         dirs.clear();
@@ -409,7 +416,7 @@ impl Camera {
         let off = conv.offset();
         for row in 0..h {
             for col in 0..w {
-                let d = (self.rotation * Self::equirect_dir(w, h, col as f32 + off, row as f32 + off)).normalize();
+                let d = (self.rotation * dir(col as f32 + off, row as f32 + off)).normalize();
                 origins.extend_from_slice(&self.position.to_array());
                 dirs.extend_from_slice(&d.to_array());
             }
@@ -440,19 +447,7 @@ impl Camera {
         match projection {
             Projection::Perspective => self.rays_into(conv, origins, dirs),
             Projection::Equirectangular => self.equirect_rays_into(conv, origins, dirs),
-            Projection::Fisheye => {
-                let (w, h) = (self.intrinsics.width, self.intrinsics.height);
-                origins.clear();
-                dirs.clear();
-                let off = conv.offset();
-                for row in 0..h {
-                    for col in 0..w {
-                        let d = (self.rotation * self.fisheye_dir(col as f32 + off, row as f32 + off)).normalize();
-                        origins.extend_from_slice(&self.position.to_array());
-                        dirs.extend_from_slice(&d.to_array());
-                    }
-                }
-            }
+            Projection::Fisheye => self.camera_rays_into(conv, origins, dirs, |u, v| self.fisheye_dir(u, v)),
         }
     }
 }
