@@ -20,12 +20,17 @@
 //!
 //! [`depth_range`] and [`depth_to_gray`] turn the expected depth into a viewable image;
 //! [`surface_points`] into a point cloud. [`distortion_loss_grad`] is mip-NeRF 360's
-//! regulariser on the weights.
+//! regulariser on the weights; [`color_correct_forward`] the per-view affine colour correction
+//! of real captures (exposure, white balance).
 
+mod color;
 mod depth;
 mod distortion;
 mod points;
 
+pub use color::{
+    color_correct_backward, color_correct_forward, identity_color_correction, mean_color_correction, COLOR_PARAMS_PER_VIEW,
+};
 pub use depth::{depth_range, depth_to_gray};
 pub use distortion::distortion_loss_grad;
 pub use points::{surface_points, SurfacePoint};
