@@ -57,6 +57,7 @@ struct Cam {
 @group(0) @binding(6) var<storage, read_write> out_dirs: array<f32>;
 @group(0) @binding(7) var<storage, read_write> out_target: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_background: array<f32>;
+@group(0) @binding(9) var<storage, read_write> out_view: array<u32>;
 
 // nerf_rays::Ndc::ray_or_miss: (origin, unit direction) of the NDC ray.
 fn ndc_ray(o_in: vec3<f32>, d: vec3<f32>) -> array<vec3<f32>, 2> {
@@ -128,4 +129,5 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         out_target[3u * r + c] = tgt[c];
         out_background[3u * r + c] = bg[c];
     }
+    out_view[r] = view;
 }

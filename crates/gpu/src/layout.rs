@@ -274,6 +274,16 @@ pub(crate) struct CompactParams {
     pub(crate) _pad: u32,
 }
 
+// ---- color.rs ----
+/// `ColorParams` of `shaders/color.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ColorParams {
+    pub(crate) n_views: u32,
+    pub(crate) capacity_rays: u32,
+    pub(crate) _pad: [u32; 2],
+}
+
 // ---- sampling.rs ----
 /// One view's camera as `shaders/rays.wgsl` reads it (80 bytes).
 #[repr(C)]

@@ -6,6 +6,7 @@
 //! environment variable. `cpu` never touches wgpu; `auto` falls back to the CPU path when no
 //! adapter exists; `gpu` makes a missing adapter an error ([`GpuError::NoAdapter`]).
 
+pub mod color;
 pub mod compact;
 pub mod composite;
 pub mod dispatch;

@@ -175,7 +175,7 @@ impl GpuImages {
 // ---------------------------------------------------------------------------------------------
 // Ray generation
 
-/// Device buffers of a batch of rays, all `[capacity][3]` f32.
+/// Device buffers of a batch of rays, `[capacity][3]` f32 (and one view index per ray).
 pub struct GpuRays {
     /// Ray origins.
     pub origins: wgpu::Buffer,
@@ -185,6 +185,8 @@ pub struct GpuRays {
     pub target: wgpu::Buffer,
     /// The ray's background colour.
     pub background: wgpu::Buffer,
+    /// The index of the view each ray comes from (`[capacity]` u32).
+    pub views: wgpu::Buffer,
     /// Rays the buffers hold.
     pub capacity: usize,
 }
@@ -193,7 +195,14 @@ impl GpuRays {
     /// Zeroed buffers for `capacity` rays.
     pub fn new(ctx: &GpuContext, capacity: usize) -> Self {
         let b = |label| ctx.zeros(label, 12 * capacity);
-        Self { origins: b("ray_origins"), dirs: b("ray_dirs"), target: b("ray_target"), background: b("ray_background"), capacity }
+        Self {
+            origins: b("ray_origins"),
+            dirs: b("ray_dirs"),
+            target: b("ray_target"),
+            background: b("ray_background"),
+            views: ctx.zeros("ray_views", 4 * capacity),
+            capacity,
+        }
     }
 }
 
@@ -242,6 +251,7 @@ impl GpuRayGen {
                 (6, &rays.dirs),
                 (7, &rays.target),
                 (8, &rays.background),
+                (9, &rays.views),
             ],
             groups_1d(rays.capacity, WG),
         );

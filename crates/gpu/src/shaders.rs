@@ -44,6 +44,8 @@ pub const FIELD_GLUE: &str = wgsl!("field_glue.wgsl");
 pub const ADAM: &str = wgsl!("adam.wgsl");
 /// Inverse-transform (hierarchical) sampling.
 pub const PDF: &str = wgsl!("pdf.wgsl");
+/// Per-view affine colour correction of composited pixels; CPU twins in `nerf-render`.
+pub const COLOR: &str = wgsl!("color.wgsl");
 /// Indirect-dispatch arguments from a device-side count ([`crate::dispatch`]).
 pub const DISPATCH: &str = wgsl!("dispatch.wgsl");
 
@@ -67,6 +69,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("field_glue.wgsl", FIELD_GLUE),
     ("pdf.wgsl", PDF),
     ("dispatch.wgsl", DISPATCH),
+    ("color.wgsl", COLOR),
 ];
 
 /// `source` with `common.wgsl` inserted after its leading `enable …;` directives (which WGSL

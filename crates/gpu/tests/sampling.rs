@@ -148,6 +148,7 @@ fn poisoned_rays(ctx: &GpuContext, cap: usize) -> GpuRays {
         dirs: ctx.upload("d", &nan),
         target: ctx.upload("t", &nan),
         background: ctx.upload("b", &nan),
+        views: ctx.upload("v", &vec![u32::MAX; cap]),
         capacity: cap,
     }
 }
@@ -179,6 +180,10 @@ fn ray_generation_matches_its_cpu_twin() {
         let cpu = ray_batch_cpu(&ds, seed * 7919, m, bg, conv, jitter);
         let read = |b: &wgpu::Buffer| ctx.read_f32(b, 3 * cap).unwrap();
         let (o, d, t, b) = (read(&rays.origins), read(&rays.dirs), read(&rays.target), read(&rays.background));
+        // The view of every ray (the colour correction's index), none past n.
+        let views = ctx.read_u32(&rays.views, cap).unwrap();
+        assert_eq!(&views[..m], &cpu.view_ids[..], "seed {seed}: view indices");
+        assert!(views[m..].iter().all(|&v| v == u32::MAX), "seed {seed}: a view past n written");
         for i in 0..3 * cap {
             if i < 3 * m {
                 // Origins are copied and random backgrounds use the same 24-bit numbers: exact.
