@@ -121,6 +121,13 @@ pub struct TrainConfig {
     /// (the default) = off. Must be positive.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub distortion_loss: Option<f32>,
+    /// Per-view affine colour correction (`[color_correction]`; `nerf_render::color_correct_forward`):
+    /// a 3×3 matrix and an offset per training view, applied to what the field composited and
+    /// learnt with the field, for captures whose exposure or white balance changes between photos
+    /// (nerfstudio's appearance embeddings, instant-ngp's per-image exposure). Renders of novel
+    /// views use the mean correction. `None` (the default) = off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub color_correction: Option<ColorCorrectionConfig>,
     /// Background composited behind training rays (paper on Blender: white).
     pub train_background: Background,
     /// Background for evaluation (white, as the paper's numbers).
@@ -168,6 +175,25 @@ pub struct TrainConfig {
     pub gpu_profile: Option<crate::profile::ProfileWindow>,
 }
 
+/// Settings of the per-view colour correction ([`TrainConfig::color_correction`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ColorCorrectionConfig {
+    /// Adam's learning rate for the corrections (constant; the field's schedule does not apply).
+    #[serde(default = "default_color_lr")]
+    pub lr: f32,
+}
+
+fn default_color_lr() -> f32 {
+    1e-3
+}
+
+impl Default for ColorCorrectionConfig {
+    fn default() -> Self {
+        Self { lr: default_color_lr() }
+    }
+}
+
 impl Default for TrainConfig {
     fn default() -> Self {
         Self {
@@ -183,6 +209,7 @@ impl Default for TrainConfig {
             loss: LossConfig::Mse,
             ema_decay: None,
             distortion_loss: None,
+            color_correction: None,
             train_background: Background::White,
             eval_background: Background::White,
             pixel_convention: PixelConvention::Center,
@@ -244,6 +271,11 @@ impl TrainConfig {
         if let Some(d) = self.ema_decay {
             if !(d > 0.0 && d < 1.0) {
                 return Err(format!("ema_decay must lie strictly between 0 and 1 (instant-ngp: 0.95), got {d}"));
+            }
+        }
+        if let Some(c) = &self.color_correction {
+            if !(c.lr.is_finite() && c.lr > 0.0) {
+                return Err(format!("color_correction.lr must be a positive number, got {}", c.lr));
             }
         }
         if let Some(l) = self.distortion_loss {

@@ -18,6 +18,8 @@ use nerf_gpu::composite::{BatchParams, CompositeTargets, PackedBuffers};
 use nerf_gpu::occupancy::GpuOccupancyGrid;
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
 use nerf_gpu::pdf::{GpuHierarchical, GpuStratified, PackedOut};
+use crate::color::{ColorState, COLOR_GROUP};
+use nerf_gpu::color::{ColorInputs, GpuColorCorrection};
 use nerf_gpu::sampling::{GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples as PackedSamples, MarchConfig};
 use nerf_gpu::{wgpu, Compositor, GpuContext, TrainGlue};
 use nerf_optim::{AdamState, EmaState};
@@ -237,6 +239,21 @@ pub(crate) struct GpuEngine {
     profile: ProfileAccumulator,
     /// Set once the profile window is complete; taken by [`GpuEngine::take_profile`].
     profile_done: Option<GpuProfile>,
+    /// The per-view colour correction (`color_correction`).
+    color: Option<GpuColor>,
+}
+
+/// The colour correction on the device: corrections, their Adam, and the per-ray buffers
+/// between compositing, loss and compositing's backward (shared by the stages, which run one
+/// after the other in a step's encoder).
+struct GpuColor {
+    cc: GpuColorCorrection,
+    adam: GpuAdam,
+    lr: f32,
+    /// Corrected pixels (what the loss sees), `3·capacity_rays`.
+    out: wgpu::Buffer,
+    /// ∂L/∂opacity from the correction, `capacity_rays`.
+    d_opacity: wgpu::Buffer,
 }
 
 impl GpuEngine {
@@ -368,6 +385,21 @@ impl GpuEngine {
         let glue = TrainGlue::new(&ctx, capacity_rays, batch);
         glue.set_huber_delta(&ctx, config.loss.huber_delta());
         let compositor = Compositor::new(&ctx, capacity_rays, config.transmittance_threshold, true);
+        let color = match &config.color_correction {
+            Some(c) => {
+                let cc = GpuColorCorrection::new(&ctx, bounds.n_views, capacity_rays).map_err(gerr)?;
+                let adam_cfg = nerf_optim::AdamConfig { sparse_groups: Vec::new(), ..config.adam.clone() };
+                let adam = GpuAdam::new(&ctx, &adam_cfg, &[GpuParamGroup::new(COLOR_GROUP, 0, cc.len(), 0.0)]).map_err(gerr)?;
+                Some(GpuColor {
+                    adam,
+                    lr: c.lr,
+                    out: ctx.zeros("corrected rgb", 12 * capacity_rays),
+                    d_opacity: ctx.zeros("d opacity", 4 * capacity_rays),
+                    cc,
+                })
+            }
+            None => None,
+        };
         if let Some(lambda) = config.distortion_loss {
             let range = bounds.far - bounds.near;
             compositor.set_distortion(&ctx, if range > 0.0 { 1.0 / range } else { 1.0 }, lambda);
@@ -397,6 +429,7 @@ impl GpuEngine {
             frame: Default::default(),
             profile: Default::default(),
             profile_done: None,
+            color,
             ctx,
         })
     }
@@ -456,12 +489,32 @@ impl GpuEngine {
             self.record_stage_forward(ctx, &mut enc, 1, true);
         }
         // Loss on every stage, backward through compositing into each field, Adam.
+        if let Some(c) = &self.color {
+            enc.clear_buffer(&c.cc.grads, 0, None);
+        }
         for (i, st) in self.stages.iter().enumerate() {
             ctx.profile_stage("loss");
-            self.glue.record_loss(ctx, &mut enc, &st.counters, &st.ray_rgb, &self.rays.target, &st.d_ray_rgb, &st.sq_err);
+            let color_in = ColorInputs {
+                counters: &st.counters,
+                views: &self.rays.views,
+                rgb: &st.ray_rgb,
+                opacity: &st.opacity,
+                background: &self.rays.background,
+            };
+            // With colour correction the loss sees each view's corrected pixels; its backward
+            // turns the loss gradient into compositing's (in place) and an opacity gradient.
+            if let Some(c) = &self.color {
+                c.cc.record_forward(ctx, &mut enc, &color_in, &c.out);
+            }
+            let pred = self.color.as_ref().map_or(&st.ray_rgb, |c| &c.out);
+            self.glue.record_loss(ctx, &mut enc, &st.counters, pred, &self.rays.target, &st.d_ray_rgb, &st.sq_err);
+            if let Some(c) = &self.color {
+                c.cc.record_backward(ctx, &mut enc, &color_in, &st.d_ray_rgb, &c.d_opacity);
+            }
+            let d_opacity = self.color.as_ref().map(|c| &c.d_opacity);
             let pb = self.packed(st);
             ctx.profile_stage("composite backward");
-            self.compositor.record_backward(ctx, &mut enc, &pb, &st.weights, &st.d_ray_rgb, None, None, &st.d_sigma, &st.d_rgb);
+            self.compositor.record_backward(ctx, &mut enc, &pb, &st.weights, &st.d_ray_rgb, d_opacity, None, &st.d_sigma, &st.d_rgb);
             if cfg.distortion_loss.is_some() && i + 1 == self.stages.len() {
                 self.compositor.record_distortion(ctx, &mut enc, &pb, &st.weights, &st.d_sigma, &st.ray_loss);
             }
@@ -469,6 +522,9 @@ impl GpuEngine {
             self.fields[i].record_backward(ctx, &mut enc, st.samples(), &st.d_sigma, &st.d_rgb);
         }
         ctx.profile_stage("adam");
+        if let Some(c) = &self.color {
+            c.adam.record_step(ctx, &mut enc, &c.cc.params, &c.cc.grads, c.lr);
+        }
         for (f, adams) in self.fields.iter().zip(&self.adams) {
             for (g, adam) in f.groups().iter().zip(adams) {
                 adam.record_step(ctx, &mut enc, &g.params, &g.grads, lr);
@@ -955,6 +1011,24 @@ impl GpuEngine {
             out.groups.clear();
         }
         Ok(Some(out))
+    }
+
+    /// The colour corrections and their Adam state (`None` without `color_correction`).
+    pub(crate) fn color_state(&self) -> Result<Option<ColorState>, TrainError> {
+        let Some(c) = &self.color else { return Ok(None) };
+        Ok(Some(ColorState { params: c.cc.read_params(&self.ctx).map_err(gerr)?, adam: c.adam.state(&self.ctx).map_err(gerr)? }))
+    }
+
+    /// The colour corrections only.
+    pub(crate) fn color_params(&self) -> Result<Option<Vec<f32>>, TrainError> {
+        self.color.as_ref().map(|c| c.cc.read_params(&self.ctx).map_err(gerr)).transpose()
+    }
+
+    /// Loads checkpointed corrections (checked for the view count by the caller).
+    pub(crate) fn restore_color(&mut self, s: ColorState) -> Result<(), TrainError> {
+        let Some(c) = &self.color else { return Ok(()) };
+        c.cc.set_params(&self.ctx, &s.params).map_err(gerr)?;
+        c.adam.load_state(&self.ctx, &s.adam).map_err(gerr)
     }
 
     pub(crate) fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {

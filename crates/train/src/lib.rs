@@ -9,6 +9,7 @@
 //! held-out views and `metrics.json`. Nothing here knows which field it drives.
 
 pub mod checkpoint;
+pub mod color;
 pub mod config;
 pub mod eval;
 mod gpu;
@@ -18,6 +19,7 @@ pub mod run;
 pub mod trainer;
 
 pub use checkpoint::Checkpoint;
+pub use color::ColorState;
 pub use config::{LossConfig, SamplerConfig, TrainConfig};
 pub use eval::{evaluate, EvalReport, ViewMetrics};
 pub use profile::{GpuProfile, ProfileWindow};

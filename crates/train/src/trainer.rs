@@ -5,7 +5,11 @@ use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
 use nerf_optim::{Adam, AdamState, Ema, EmaState};
-use nerf_render::{composite_backward, composite_forward, composited_counts, distortion_loss_grad, photometric_loss_grad, CompositeOutputs};
+use crate::color::{check_views, ColorState, CpuColor};
+use nerf_render::{
+    color_correct_backward, color_correct_forward, composite_backward, composite_forward, composited_counts, distortion_loss_grad,
+    mean_color_correction, photometric_loss_grad, CompositeOutputs,
+};
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, OccupancyGridConfig, RaySamples};
 use std::sync::{Mutex, MutexGuard};
 
@@ -38,6 +42,8 @@ pub struct SceneBounds {
     /// The box against the scene's unit, for the fields ([`FieldContext::scene_scale`]):
     /// instant-ngp's `aabb_scale` for an instant-ngp scene, 1 otherwise.
     pub scene_scale: f32,
+    /// Training views of the scene: what per-view state (`color_correction`) is sized for.
+    pub n_views: usize,
 }
 
 impl SceneBounds {
@@ -56,6 +62,7 @@ impl SceneBounds {
             cascades,
             cone_angle: if matches!(ds.ngp, Some(b) if b.aabb_scale > 1.0) { NGP_CONE_ANGLE } else { 0.0 },
             scene_scale: ds.ngp.map_or(1.0, |b| b.aabb_scale),
+            n_views: ds.n_views(),
         }
     }
 
@@ -166,6 +173,8 @@ pub struct Trainer {
     /// Whether the occupancy grid's cells have been marked with the training cameras (at the
     /// first step, and again after a restore).
     seen_marked: bool,
+    /// The per-view colour correction of the CPU path (`config.color_correction`).
+    color: Option<CpuColor>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -210,6 +219,13 @@ impl Trainer {
             }
         }
         let adam = Adam::new(config.adam.clone());
+        let color = match &config.color_correction {
+            Some(_) if bounds.n_views == 0 => {
+                return Err(TrainError::Config("color_correction needs a scene with training views".into()));
+            }
+            Some(c) => Some(CpuColor::new(bounds.n_views, &config.adam, c.lr)),
+            None => None,
+        };
         let grid = match &config.sampler {
             SamplerConfig::Occupancy { grid, .. } => Some(
                 OccupancyGrid::try_new(bounds.grid_config(grid), bounds.aabb_min, bounds.aabb_max)
@@ -227,6 +243,7 @@ impl Trainer {
             ema_fields,
             device_note: None,
             seen_marked: false,
+            color,
             stages: (0..n).map(|_| Stage::default()).collect(),
             marched: RaySamples::default(),
             marched_sigma: Vec::new(),
@@ -291,6 +308,8 @@ impl Trainer {
             // The device keeps (and renders with) its own average.
             t.ema = None;
             t.ema_fields = None;
+            // … and its own colour corrections.
+            t.color = None;
         }
         Ok(t)
     }
@@ -368,6 +387,13 @@ impl Trainer {
     /// A loss that is computed (every CPU step; every read-back on the GPU) and not finite is
     /// [`TrainError::Diverged`]: NaN or infinite parameters never train on silently.
     pub fn step(&mut self, data: &Dataset) -> Result<StepStats, TrainError> {
+        if self.config.color_correction.is_some() && data.n_views() != self.bounds.n_views {
+            return Err(TrainError::Config(format!(
+                "color_correction was set up for {} training views; this dataset has {}",
+                self.bounds.n_views,
+                data.n_views()
+            )));
+        }
         if !self.seen_marked {
             self.mark_seen(data)?;
             self.seen_marked = true;
@@ -489,7 +515,34 @@ impl Trainer {
         let depth_range = self.bounds.far - self.bounds.near;
         for (i, (field, st)) in self.fields.iter_mut().zip(self.stages.iter_mut()).enumerate() {
             st.d_ray_rgb.resize(3 * n_rays, 0.0);
-            mse = photometric_loss_grad(&st.comp.rgb, &b.target, cfg.loss.huber_delta(), &mut st.d_ray_rgb);
+            // With colour correction the loss sees each view's corrected pixels, and compositing's
+            // backward gets the gradient through the correction (with an opacity term).
+            let color = self.color.as_mut().map(|c| {
+                c.out.resize(3 * n_rays, 0.0);
+                color_correct_forward(Some(&b.view_ids), &c.params, &st.comp.rgb, &st.comp.opacity, &b.background, &mut c.out);
+                c
+            });
+            let pred = color.as_ref().map_or(&st.comp.rgb, |c| &c.out);
+            mse = photometric_loss_grad(pred, &b.target, cfg.loss.huber_delta(), &mut st.d_ray_rgb);
+            let (d_ray_rgb, d_opacity) = match color {
+                Some(c) => {
+                    c.d_rgb.resize(3 * n_rays, 0.0);
+                    c.d_opacity.resize(n_rays, 0.0);
+                    color_correct_backward(
+                        Some(&b.view_ids),
+                        &c.params,
+                        &st.comp.rgb,
+                        &st.comp.opacity,
+                        &b.background,
+                        &st.d_ray_rgb,
+                        &mut c.d_rgb,
+                        &mut c.d_opacity,
+                        &mut c.grads,
+                    );
+                    (&c.d_rgb, Some(&c.d_opacity[..]))
+                }
+                None => (&st.d_ray_rgb, None),
+            };
             loss += mse;
             n_samples += st.samples.len();
             let n = st.samples.len();
@@ -503,8 +556,8 @@ impl Trainer {
                 &st.samples.t,
                 Some(&b.background),
                 &st.comp,
-                &st.d_ray_rgb,
-                None,
+                d_ray_rgb,
+                d_opacity,
                 None,
                 &mut st.d_sigma,
                 &mut st.d_rgb,
@@ -528,6 +581,9 @@ impl Trainer {
             }
         }
         adam.step(&mut groups, lr);
+        if let Some(c) = self.color.as_mut() {
+            c.step();
+        }
         if let Some(e) = ema.as_mut() {
             e.update(&groups);
             self.ema_version += 1;
@@ -549,7 +605,29 @@ impl Trainer {
     /// trainer's device. Outputs: rgb `3·n`, opacity `n`, depth `n`. With `ema_decay` set (and at
     /// least one step taken or restored) the field renders with the parameters' moving average;
     /// the occupancy grid is the one training keeps (from the raw parameters).
+    ///
+    /// With `color_correction` the pixels get the mean of the training views' corrections
+    /// (`nerf_render::mean_color_correction`): novel views have none of their own.
     pub fn render_rays(
+        &self,
+        origins: &[f32],
+        dirs: &[f32],
+        background: &[f32],
+        rgb: &mut [f32],
+        opacity: &mut [f32],
+        depth: &mut [f32],
+    ) -> Result<(), TrainError> {
+        self.render_rays_uncorrected(origins, dirs, background, rgb, opacity, depth)?;
+        if let Some(params) = self.color_params()? {
+            let mean = mean_color_correction(&params).map_err(TrainError::Config)?;
+            let raw = rgb.to_vec();
+            color_correct_forward(None, &mean, &raw, opacity, background, rgb);
+        }
+        Ok(())
+    }
+
+    /// [`render_rays`](Self::render_rays) without the colour correction.
+    fn render_rays_uncorrected(
         &self,
         origins: &[f32],
         dirs: &[f32],
@@ -693,9 +771,10 @@ impl Trainer {
     }
 
     /// State besides parameters and optimiser that a resumed run needs, as named tensors: the
-    /// sampler's (occupancy-grid densities, batch sizing) and, with `ema_decay` once a step was
-    /// taken, the parameters' moving average (`ema/step` and `ema/<group>`, see
-    /// [`ema_to_entries`]). Checkpoints store it as is, so [`Trainer::restore`] — resume, `nerf
+    /// sampler's (occupancy-grid densities, batch sizing), with `ema_decay` once a step was
+    /// taken the parameters' moving average (`ema/step` and `ema/<group>`, see
+    /// [`ema_to_entries`]), and with `color_correction` the corrections (`color/…`, see
+    /// [`ColorState::to_entries`]). Checkpoints store it as is, so [`Trainer::restore`] — resume, `nerf
     /// eval`, a move between devices — carries the average without a separate argument.
     pub fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {
         let mut v = match &self.gpu {
@@ -713,6 +792,9 @@ impl Trainer {
         };
         if let Some(s) = self.ema_state()? {
             v.extend(ema_to_entries(&s));
+        }
+        if let Some(s) = self.color_state()? {
+            v.extend(s.to_entries());
         }
         Ok(v)
     }
@@ -742,6 +824,25 @@ impl Trainer {
         Ok(Some(grid))
     }
 
+    /// The per-view colour corrections with their optimiser state (`None` without
+    /// `color_correction`; read back from the device on the GPU). Checkpoints carry it in
+    /// [`Trainer::sampler_state`].
+    pub fn color_state(&self) -> Result<Option<ColorState>, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.color_state();
+        }
+        Ok(self.color.as_ref().map(|c| c.state()))
+    }
+
+    /// The per-view colour corrections only (12 values per training view; `None` without
+    /// `color_correction`).
+    pub fn color_params(&self) -> Result<Option<Vec<f32>>, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.color_params();
+        }
+        Ok(self.color.as_ref().map(|c| c.params.clone()))
+    }
+
     /// Optimiser state (for checkpoints; read back from the device on the GPU).
     pub fn adam_state(&self) -> Result<AdamState, TrainError> {
         if let Some(g) = &self.gpu {
@@ -754,7 +855,9 @@ impl Trainer {
     /// checkpoint has one: see [`Trainer::sampler_state`]) and the step counter from a checkpoint.
     /// With `ema_decay` set and no average in the checkpoint, the average starts afresh (the next
     /// step copies the parameters); an average in the checkpoint of a run without `ema_decay` is
-    /// ignored.
+    /// ignored. The colour corrections (`color_correction`) are treated alike: kept at the
+    /// identity when the checkpoint has none, ignored when the config has none, an error when
+    /// they are for another number of views.
     pub fn restore(
         &mut self,
         step: u64,
@@ -762,7 +865,14 @@ impl Trainer {
         adam: AdamState,
         sampler_state: &[(String, Vec<f32>)],
     ) -> Result<(), TrainError> {
-        let (ema, sampler_state) = ema_from_entries(sampler_state)?;
+        let (color, sampler_state) = ColorState::from_entries(sampler_state)?;
+        let (ema, sampler_state) = ema_from_entries(&sampler_state)?;
+        // A checkpoint without corrections leaves them at the identity; corrections in the
+        // checkpoint of a run without them are ignored.
+        let color = color.filter(|_| self.config.color_correction.is_some());
+        if let Some(c) = &color {
+            check_views(c, self.bounds.n_views)?;
+        }
         if let (Some(s), Some(_)) = (&ema, self.config.ema_decay) {
             check_ema_groups(s, &self.group_names, fields)?;
         }
@@ -774,6 +884,9 @@ impl Trainer {
         if let Some(g) = self.gpu.as_mut() {
             let ema = self.config.ema_decay.is_some().then_some(&ema);
             g.restore(fields, &adam, &sampler_state, seen.as_deref(), ema)?;
+            if let Some(c) = color {
+                g.restore_color(c)?;
+            }
             self.step = step;
             return Ok(());
         }
@@ -801,6 +914,9 @@ impl Trainer {
             f.import_params(groups)?;
         }
         self.adam.load_state(adam).map_err(TrainError::Config)?;
+        if let (Some(c), Some(s)) = (color, self.color.as_mut()) {
+            s.load(c)?;
+        }
         if let Some(e) = self.ema.as_mut() {
             e.load_state(ema).map_err(TrainError::Config)?;
             self.ema_version += 1;
@@ -1010,6 +1126,7 @@ mod tests {
             cascades: 3,
             cone_angle: NGP_CONE_ANGLE,
             scene_scale: 4.0,
+            n_views: 1,
         };
         assert_eq!(b.stepping(0.01, None).cone_angle, 1.0 / 256.0);
         assert_eq!(b.stepping(0.01, Some(0.0)).cone_angle, 0.0);
