@@ -306,6 +306,15 @@ struct ExportArgs {
     /// Attribution text stored in the JSON files.
     #[arg(long)]
     attribution: Option<String>,
+    /// Changes each training view's exposure and white balance, for experiments with
+    /// `color_correction`: colours times per-view, per-channel gains drawn from [1 − X, 1 + X]
+    /// and normalised to a mean of 1 (values over 1 clip in the 8-bit images). Test views are
+    /// kept; the gains go to `exposure_gains.json`.
+    #[arg(long = "exposure-jitter", value_name = "X")]
+    exposure_jitter: Option<f32>,
+    /// Seed of the `--exposure-jitter` gains.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
 }
 
 fn main() {
@@ -809,9 +818,22 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
     if a.src.canonicalize().ok() == a.dst.canonicalize().ok() {
         bail!("{}: destination must differ from the source", a.dst.display());
     }
+    if let Some(x) = a.exposure_jitter {
+        if !(0.0..1.0).contains(&x) {
+            bail!("--exposure-jitter must lie in [0, 1), got {x}");
+        }
+    }
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
         let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false };
-        let ds = load_scene(&a.src, split, &opts)?;
+        let mut ds = load_scene(&a.src, split, &opts)?;
+        if let (Some(x), Split::Train) = (a.exposure_jitter, split) {
+            let gains = nerf::data::exposure_gains(ds.n_views(), x, a.seed);
+            ds.scale_colors(&gains);
+            std::fs::create_dir_all(&a.dst).with_context(|| format!("{}: cannot create", a.dst.display()))?;
+            let path = a.dst.join("exposure_gains.json");
+            let json = serde_json::json!({ "amount": x, "seed": a.seed, "gains": gains });
+            std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))?;
+        }
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;
         println!("{:?}: {} views at {}x{} -> {}", split, ds.n_views(), ds.width, ds.height, a.dst.display());
     }

@@ -455,6 +455,23 @@ impl Dataset {
         self.cameras.len()
     }
 
+    /// Multiplies view `v`'s colours by `gains[v]` (per channel; alpha and the cameras kept): a
+    /// change of exposure and white balance between photographs, for experiments with
+    /// per-view colour correction. Values may exceed 1 (written to 8-bit images they clip).
+    ///
+    /// # Panics
+    /// Unless there is one gain triple per view.
+    pub fn scale_colors(&mut self, gains: &[[f32; 3]]) {
+        assert_eq!(gains.len(), self.n_views(), "one gain triple per view");
+        for (img, g) in self.images.iter_mut().zip(gains) {
+            for px in img.chunks_exact_mut(4) {
+                for c in 0..3 {
+                    px[c] *= g[c];
+                }
+            }
+        }
+    }
+
     /// Whether samplers should keep each ray's `[near, far]` inside [`Dataset::aabb`]: NDC scenes
     /// (the box gives every ray its NDC segment) and instant-ngp scenes (trained inside their cube).
     pub fn clips_to_aabb(&self) -> bool {
@@ -1309,6 +1326,21 @@ impl Drop for GifWriter {
             let _ = std::fs::remove_file(&self.tmp);
         }
     }
+}
+
+/// Per-view colour gains for [`Dataset::scale_colors`]: each view and channel drawn uniformly
+/// from `[1 − amount, 1 + amount]` with `seed`, then divided by the channel's mean over the views,
+/// so that the gains average exactly 1 (the colours of views without a change).
+///
+/// # Panics
+/// Unless `0 ≤ amount < 1`.
+pub fn exposure_gains(n_views: usize, amount: f32, seed: u64) -> Vec<[f32; 3]> {
+    use rand::Rng as _;
+    assert!((0.0..1.0).contains(&amount), "exposure amount must lie in [0, 1), got {amount}");
+    let mut rng = nerf_core::rng(seed, 0x6578_706f_7375_7265); // "exposure"
+    let raw: Vec<[f32; 3]> = (0..n_views).map(|_| std::array::from_fn(|_| 1.0 + amount * (2.0 * rng.gen::<f32>() - 1.0))).collect();
+    let mean: [f32; 3] = std::array::from_fn(|c| raw.iter().map(|g| g[c]).sum::<f32>() / n_views.max(1) as f32);
+    raw.iter().map(|g| std::array::from_fn(|c| g[c] / mean[c])).collect()
 }
 
 /// Writes a dataset back out in the Blender format: `out_root/transforms_<split>.json` with
