@@ -112,14 +112,22 @@ fn colour_corrections_survive_checkpoints_on_both_devices() {
                 assert_eq!(resumed.color_state().unwrap(), first.color_state().unwrap(), "resumed CPU run");
             }
         }
-        // Another number of views: refused, naming both counts.
-        let fewer = SceneBounds { n_views: 9, ..bounds };
-        let mut other = Trainer::new_on(c.clone(), &registry, fewer, None).unwrap();
-        let e = other.restore(6, &fields, adam.clone(), &sampler).unwrap_err().to_string();
-        assert!(e.contains("10 training views") && e.contains("has 9"), "{e}");
-        // A dataset with another number of views than the trainer was built for: refused.
-        let e = other.step(&data).unwrap_err().to_string();
-        assert!(e.contains("9 training views") && e.contains("has 10"), "{e}");
+        // A trainer built for another number of views (as `nerf eval` builds one on the test
+        // views) takes the corrections as they are, and renders with their mean; training it on
+        // a dataset with another number of views than the corrections' is refused.
+        let nine = exposed(load(Split::Train, ViewSelection::First(9)), &gains(9));
+        for to in std::iter::once(None).chain(gpu.clone().map(Some)) {
+            let on = if to.is_some() { "gpu" } else { "cpu" };
+            let mut other = Trainer::new_on(c.clone(), &registry, SceneBounds::of(&nine), to).unwrap();
+            other.restore(6, &fields, adam.clone(), &sampler).unwrap();
+            assert_eq!(other.color_state().unwrap().unwrap(), state, "{from} → {on} (9 views)");
+            let e = other.step(&nine).unwrap_err().to_string();
+            assert!(e.contains("10 training views") && e.contains("has 9"), "{from} → {on}: {e}");
+            // One built for 9 views and not restored trains on them.
+            let mut fresh = Trainer::new_on(c.clone(), &registry, SceneBounds::of(&nine), None).unwrap();
+            fresh.step(&nine).unwrap();
+            assert!(fresh.step(&data).unwrap_err().to_string().contains("9 training views"));
+        }
         // Without corrections in the checkpoint they start at the identity; a run without
         // corrections ignores them.
         let plain: Vec<_> = sampler.iter().filter(|(n, _)| !n.starts_with("color/")).cloned().collect();

@@ -831,7 +831,9 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
             ds.scale_colors(&gains);
             std::fs::create_dir_all(&a.dst).with_context(|| format!("{}: cannot create", a.dst.display()))?;
             let path = a.dst.join("exposure_gains.json");
-            let json = serde_json::json!({ "amount": x, "seed": a.seed, "gains": gains });
+            // The amount as typed (its shortest f32 digits), not the f32's f64 expansion.
+            let amount: f64 = x.to_string().parse()?;
+            let json = serde_json::json!({ "amount": amount, "seed": a.seed, "gains": gains });
             std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))?;
         }
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;

@@ -811,3 +811,62 @@ fn render_writes_panoramas_and_fisheye_frames() {
     assert_eq!(f.as_raw(), g.as_raw());
     assert_ne!(f.as_raw(), q.as_raw(), "the fisheye frame is the pinhole's");
 }
+
+/// `nerf export-scene --exposure-jitter`: the training views' colours are the unchanged export's
+/// times the gains written to `exposure_gains.json` (mean 1 per channel; clipped at 1 in the
+/// PNGs), test views are unchanged; a run with `[color_correction]` trains, checkpoints and
+/// evaluates on it; an amount outside [0, 1) is a clear error.
+#[test]
+fn export_scene_changes_exposures_and_color_correction_trains_on_it() {
+    let d = tempfile::tempdir().unwrap();
+    let plain = small_scene(d.path());
+    let s = d.path().join("exposed");
+    let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(&s)
+        .args(["--downscale", "2", "--train-views", "first:3", "--test-views", "first:1", "--exposure-jitter", "0.3", "--seed", "5"])
+        .output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(s.join("exposure_gains.json")).unwrap()).unwrap();
+    assert_eq!(j["amount"], 0.3);
+    assert_eq!(j["seed"], 5);
+    let gains: Vec<[f64; 3]> = serde_json::from_value(j["gains"].clone()).unwrap();
+    assert_eq!(gains.len(), 3);
+    for c in 0..3 {
+        let mean = gains.iter().map(|g| g[c]).sum::<f64>() / 3.0;
+        assert!((mean - 1.0).abs() < 1e-6, "channel {c}: mean gain {mean}");
+    }
+    assert!(gains.iter().flatten().any(|&g| (g - 1.0).abs() > 0.02), "{gains:?}");
+    let png = |p: PathBuf| image::open(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display())).to_rgba8();
+    for (v, g) in gains.iter().enumerate() {
+        let (a, b) = (png(plain.join(format!("train/r_{v}.png"))), png(s.join(format!("train/r_{v}.png"))));
+        let mut checked = 0;
+        for (pa, pb) in a.pixels().zip(b.pixels()) {
+            assert_eq!(pa[3], pb[3], "view {v}: alpha kept");
+            for c in 0..3 {
+                let want = (pa[c] as f64 * g[c]).min(255.0);
+                // Both PNGs round to 8 bits: the product is within a gain's worth of one level.
+                assert!((pb[c] as f64 - want).abs() <= 1.0 + g[c], "view {v} channel {c}: {} vs {want}", pb[c]);
+                checked += 1;
+            }
+        }
+        assert!(checked > 1000);
+    }
+    assert_eq!(png(plain.join("test/r_0.png")), png(s.join("test/r_0.png")), "test views are unchanged");
+    // A run with the correction on this scene: trains, checkpoints, evaluates.
+    let cfg = d.path().join("cc.toml");
+    std::fs::write(&cfg, "batch_rays = 64\ncheckpoint_every = 3\n[color_correction]\nlr = 0.01\n[field_config]\nwidth = 16\ndepth = 2\nskips = []\n\
+        view_width = 8\n[sampler]\nkind = \"hierarchical\"\nn_coarse = 8\nn_fine = 8\n").unwrap();
+    let run = d.path().join("run");
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
+        .args(["--quiet", "--no-renders", "--iters", "3", "--device", "cpu"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let eval: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
+    assert!(eval["test_psnr"].as_f64().unwrap().is_finite());
+    // The checkpoint's corrections are for 3 views: resuming on 2 is refused.
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
+        .args(["--quiet", "--no-renders", "--iters", "6", "--device", "cpu", "--resume", "--train-views", "first:2"]).output().unwrap();
+    assert_clean_failure(&o, &["3 training views", "has 2"]);
+    let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(d.path().join("x")).args(["--exposure-jitter", "1.5"]).output().unwrap();
+    assert_clean_failure(&o, &["--exposure-jitter", "1.5"]);
+}

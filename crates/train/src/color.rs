@@ -103,10 +103,17 @@ impl CpuColor {
         ColorState { params: self.params.clone(), adam: self.adam.state() }
     }
 
+    /// Takes the checkpoint's corrections, for however many views they are (a trainer built on
+    /// the test views renders with their mean; a training step checks the count).
     pub fn load(&mut self, s: ColorState) -> Result<(), TrainError> {
-        check_views(&s, self.params.len() / COLOR_PARAMS_PER_VIEW)?;
+        self.grads = vec![0.0; s.params.len()];
         self.params = s.params;
+        self.adam = Adam::new(self.adam.config().clone());
         self.adam.load_state(s.adam).map_err(TrainError::Config)
+    }
+
+    pub fn n_views(&self) -> usize {
+        self.params.len() / COLOR_PARAMS_PER_VIEW
     }
 
     /// One Adam step on the gradients gathered this step; zeroes them for the next.
@@ -117,12 +124,12 @@ impl CpuColor {
     }
 }
 
-/// Errors when a checkpoint's corrections are for another number of views than the scene's.
-pub(crate) fn check_views(s: &ColorState, n_views: usize) -> Result<(), TrainError> {
-    if s.n_views() != n_views {
+/// Errors unless a training dataset has as many views as there are corrections.
+pub(crate) fn check_views(corrections: usize, dataset: usize) -> Result<(), TrainError> {
+    if corrections != dataset {
         return Err(TrainError::Config(format!(
-            "the checkpoint's colour correction is for {} training views, this scene has {n_views}",
-            s.n_views()
+            "the run's colour correction is for {corrections} training views; this dataset has {dataset} \
+             (train on the views it was set up for)"
         )));
     }
     Ok(())

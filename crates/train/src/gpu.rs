@@ -249,6 +249,7 @@ pub(crate) struct GpuEngine {
 struct GpuColor {
     cc: GpuColorCorrection,
     adam: GpuAdam,
+    adam_config: nerf_optim::AdamConfig,
     lr: f32,
     /// Corrected pixels (what the loss sees), `3·capacity_rays`.
     out: wgpu::Buffer,
@@ -387,11 +388,12 @@ impl GpuEngine {
         let compositor = Compositor::new(&ctx, capacity_rays, config.transmittance_threshold, true);
         let color = match &config.color_correction {
             Some(c) => {
-                let cc = GpuColorCorrection::new(&ctx, bounds.n_views, capacity_rays).map_err(gerr)?;
-                let adam_cfg = nerf_optim::AdamConfig { sparse_groups: Vec::new(), ..config.adam.clone() };
-                let adam = GpuAdam::new(&ctx, &adam_cfg, &[GpuParamGroup::new(COLOR_GROUP, 0, cc.len(), 0.0)]).map_err(gerr)?;
+                let cc = GpuColorCorrection::new(&ctx, bounds.n_views.max(1), capacity_rays).map_err(gerr)?;
+                let adam_config = nerf_optim::AdamConfig { sparse_groups: Vec::new(), ..config.adam.clone() };
+                let adam = GpuAdam::new(&ctx, &adam_config, &[GpuParamGroup::new(COLOR_GROUP, 0, cc.len(), 0.0)]).map_err(gerr)?;
                 Some(GpuColor {
                     adam,
+                    adam_config,
                     lr: c.lr,
                     out: ctx.zeros("corrected rgb", 12 * capacity_rays),
                     d_opacity: ctx.zeros("d opacity", 4 * capacity_rays),
@@ -1024,11 +1026,22 @@ impl GpuEngine {
         self.color.as_ref().map(|c| c.cc.read_params(&self.ctx).map_err(gerr)).transpose()
     }
 
-    /// Loads checkpointed corrections (checked for the view count by the caller).
+    /// Views the corrections are for (`None` without `color_correction`).
+    pub(crate) fn color_views(&self) -> Option<usize> {
+        self.color.as_ref().map(|c| c.cc.n_views())
+    }
+
+    /// Loads checkpointed corrections, for however many views they are (the buffers are made
+    /// anew for another count).
     pub(crate) fn restore_color(&mut self, s: ColorState) -> Result<(), TrainError> {
-        let Some(c) = &self.color else { return Ok(()) };
-        c.cc.set_params(&self.ctx, &s.params).map_err(gerr)?;
-        c.adam.load_state(&self.ctx, &s.adam).map_err(gerr)
+        let ctx = self.ctx.clone();
+        let Some(c) = self.color.as_mut() else { return Ok(()) };
+        if s.n_views() != c.cc.n_views() {
+            c.cc = GpuColorCorrection::new(&ctx, s.n_views(), self.capacity_rays).map_err(gerr)?;
+            c.adam = GpuAdam::new(&ctx, &c.adam_config, &[GpuParamGroup::new(COLOR_GROUP, 0, c.cc.len(), 0.0)]).map_err(gerr)?;
+        }
+        c.cc.set_params(&ctx, &s.params).map_err(gerr)?;
+        c.adam.load_state(&ctx, &s.adam).map_err(gerr)
     }
 
     pub(crate) fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {

@@ -219,13 +219,8 @@ impl Trainer {
             }
         }
         let adam = Adam::new(config.adam.clone());
-        let color = match &config.color_correction {
-            Some(_) if bounds.n_views == 0 => {
-                return Err(TrainError::Config("color_correction needs a scene with training views".into()));
-            }
-            Some(c) => Some(CpuColor::new(bounds.n_views, &config.adam, c.lr)),
-            None => None,
-        };
+        // Sized for the scene's views (at least one; a restore takes the checkpoint's count).
+        let color = config.color_correction.as_ref().map(|c| CpuColor::new(bounds.n_views.max(1), &config.adam, c.lr));
         let grid = match &config.sampler {
             SamplerConfig::Occupancy { grid, .. } => Some(
                 OccupancyGrid::try_new(bounds.grid_config(grid), bounds.aabb_min, bounds.aabb_max)
@@ -387,12 +382,12 @@ impl Trainer {
     /// A loss that is computed (every CPU step; every read-back on the GPU) and not finite is
     /// [`TrainError::Diverged`]: NaN or infinite parameters never train on silently.
     pub fn step(&mut self, data: &Dataset) -> Result<StepStats, TrainError> {
-        if self.config.color_correction.is_some() && data.n_views() != self.bounds.n_views {
-            return Err(TrainError::Config(format!(
-                "color_correction was set up for {} training views; this dataset has {}",
-                self.bounds.n_views,
-                data.n_views()
-            )));
+        let corrections = match (&self.gpu, &self.color) {
+            (Some(g), _) => g.color_views(),
+            (None, c) => c.as_ref().map(|c| c.n_views()),
+        };
+        if let Some(n) = corrections {
+            check_views(n, data.n_views())?;
         }
         if !self.seen_marked {
             self.mark_seen(data)?;
@@ -856,8 +851,9 @@ impl Trainer {
     /// With `ema_decay` set and no average in the checkpoint, the average starts afresh (the next
     /// step copies the parameters); an average in the checkpoint of a run without `ema_decay` is
     /// ignored. The colour corrections (`color_correction`) are treated alike: kept at the
-    /// identity when the checkpoint has none, ignored when the config has none, an error when
-    /// they are for another number of views.
+    /// identity when the checkpoint has none, ignored when the config has none; they are taken
+    /// for however many views they are (a trainer built on the test views renders with their
+    /// mean), and a training step on a dataset with another number of views is an error.
     pub fn restore(
         &mut self,
         step: u64,
@@ -870,9 +866,6 @@ impl Trainer {
         // A checkpoint without corrections leaves them at the identity; corrections in the
         // checkpoint of a run without them are ignored.
         let color = color.filter(|_| self.config.color_correction.is_some());
-        if let Some(c) = &color {
-            check_views(c, self.bounds.n_views)?;
-        }
         if let (Some(s), Some(_)) = (&ema, self.config.ema_decay) {
             check_ema_groups(s, &self.group_names, fields)?;
         }
