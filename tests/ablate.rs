@@ -228,6 +228,17 @@ fn the_example_ablations_parse_and_plan() {
     let jit = Ablation::load(&dir.join("jitter_lego400.toml")).unwrap().plan(&nerf::registry()).unwrap();
     let jitter: Vec<_> = jit.iter().map(|p| (p.config.pixel_jitter, p.config.compact_samples, p.config.iters)).collect();
     assert_eq!(jitter, [(false, true, 2000), (true, true, 2000)]);
+    // The colour-correction comparisons: off and on per scene, the preset otherwise (fern with
+    // llff_hash.toml's step).
+    for (name, scenes, step) in [("color_correction_lego200.toml", 2, 0.005), ("color_correction_fern.toml", 1, 0.02)] {
+        let plans = Ablation::load(&dir.join(name)).unwrap().plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert_eq!(plans.len(), 2 * scenes, "{name}");
+        assert_eq!(plans.iter().filter(|p| p.config.color_correction.is_some()).count(), scenes, "{name}");
+        for p in &plans {
+            assert!(matches!(p.config.sampler, nerf::train::SamplerConfig::Occupancy { step_size, .. } if step_size == step), "{name}");
+            assert!(p.config.field == "hash" && p.config.iters == 2000 && p.config.validate().is_ok(), "{name}");
+        }
+    }
 }
 
 /// A run whose loss turns NaN (a learning rate of 1e30) is reported as diverged and left out;

@@ -1,8 +1,12 @@
 //! Compositing throughput: forward and backward over 4096 rays × 192 samples (f32), and the
-//! distortion loss with its gradient over the same batch.
+//! distortion loss with its gradient over the same batch; the per-view colour correction of its
+//! 4096 pixels.
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use nerf_render::{composite_backward, composite_forward, distortion_loss_grad, CompositeOutputs};
+use nerf_render::{
+    color_correct_backward, color_correct_forward, composite_backward, composite_forward, distortion_loss_grad, identity_color_correction,
+    CompositeOutputs,
+};
 use rand::Rng;
 use std::hint::black_box;
 
@@ -74,6 +78,32 @@ fn bench(c: &mut Criterion) {
                 Some(&bg),
                 1e-4,
                 black_box(&mut out),
+            )
+        })
+    });
+    grp.finish();
+
+    // The per-view colour correction of the same batch's pixels (100 views), per ray.
+    let mut grp = c.benchmark_group("color_correction_4096_rays");
+    grp.throughput(Throughput::Elements(n_rays as u64));
+    let views: Vec<u32> = (0..n_rays).map(|_| g.gen_range(0..100)).collect();
+    let params: Vec<f32> = identity_color_correction(100).iter().map(|&x| x + 0.1 * (g.gen::<f32>() - 0.5)).collect();
+    let (mut cc_out, mut cc_d_rgb, mut cc_d_op, mut cc_grads) = (vec![0.0f32; 3 * n_rays], vec![0.0f32; 3 * n_rays], vec![0.0f32; n_rays], vec![0.0f32; params.len()]);
+    grp.bench_function("forward", |b| {
+        b.iter(|| color_correct_forward(Some(&views), &params, &out.rgb, &out.opacity, &bg, black_box(&mut cc_out)))
+    });
+    grp.bench_function("backward", |b| {
+        b.iter(|| {
+            color_correct_backward(
+                Some(&views),
+                &params,
+                &out.rgb,
+                &out.opacity,
+                &bg,
+                &d_rgb,
+                black_box(&mut cc_d_rgb),
+                black_box(&mut cc_d_op),
+                black_box(&mut cc_grads),
             )
         })
     });
