@@ -148,7 +148,7 @@ fn colour_corrections_survive_checkpoints_on_both_devices() {
 /// On the GPU the corrections reach the step: training on the exposed views learns gains that
 /// follow the true ones, as on the CPU; and renders use their mean (a render equals the
 /// uncorrected render — the same checkpoint restored with identity corrections — corrected by
-/// `mean_color_correction`).
+/// `mean_color_correction`), or one view's with `set_render_appearance`.
 #[test]
 fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {
     let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
@@ -183,6 +183,18 @@ fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {
         let max = rgb.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
         assert!(max < 1e-5, "{}: render vs the mean correction of the raw render: max |Δ| {max}", t.device());
         assert!(rgb.iter().zip(&raw_rgb).any(|(a, b)| (a - b).abs() > 1e-3), "{}: the mean changed nothing", t.device());
+        // One training view's appearance instead of the mean: that view's correction.
+        let mut t = t;
+        t.set_render_appearance(Some(3)).unwrap();
+        let (rgb3, _) = render(&t);
+        color_correct_forward(None, &params[36..48], &raw_rgb, &raw_op, &rays.background, &mut want);
+        let max = rgb3.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0, f32::max);
+        assert!(max < 1e-5, "{}: render with view 3's appearance: max |Δ| {max}", t.device());
+        assert!(t.set_render_appearance(Some(10)).unwrap_err().to_string().contains("10 views"));
+        assert!(raw.color_params().unwrap().is_some());
+        let mut plain_run = Trainer::new_on(config(1, false), &nerf::registry(), SceneBounds::of(&data), None).unwrap();
+        assert!(plain_run.set_render_appearance(Some(0)).unwrap_err().to_string().contains("no colour correction"));
+        plain_run.set_render_appearance(None).unwrap();
     }
     // The two devices draw different rays, so they are two samples of the same training.
     // Measured (lavapipe, 2 cores): r = 0.713 on the CPU, 0.803 on the GPU after 200 steps;

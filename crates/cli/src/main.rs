@@ -185,6 +185,10 @@ struct RenderArgs {
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
+    /// For a run trained with `[color_correction]`: render with training view N's colour
+    /// correction (how that photo was exposed) instead of the mean of all views'.
+    #[arg(long, value_name = "N")]
+    appearance: Option<usize>,
 }
 
 #[derive(Args)]
@@ -551,7 +555,8 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     // A user's path is read before the checkpoint, so a typo there fails fast.
     let user_path = a.camera_path.as_deref().map(nerf::data::load_camera_path).transpose()?;
-    let LoadedRun { config, step, train, trainer } = load_run(&a.run, &a.scene, a.device, None)?;
+    let LoadedRun { config, step, train, mut trainer } = load_run(&a.run, &a.scene, a.device, None)?;
+    trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
     // --width scales the intrinsics; the height keeps the aspect.
     let sized = |k: nerf::rays::Intrinsics| -> Result<nerf::rays::Intrinsics> {
         let k = match a.width {

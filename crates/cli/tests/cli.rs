@@ -863,6 +863,11 @@ fn export_scene_changes_exposures_and_color_correction_trains_on_it() {
     assert!(o.status.success(), "{}", stderr(&o));
     let eval: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
     assert!(eval["test_psnr"].as_f64().unwrap().is_finite());
+    // Rendering with one training view's appearance; a view past the run's is a clear error.
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--width", "16", "--device", "cpu", "--quiet", "--appearance", "2"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--device", "cpu", "--quiet", "--appearance", "3"]).output().unwrap();
+    assert_clean_failure(&o, &["--appearance", "3 views"]);
     // The checkpoint's corrections are for 3 views: resuming on 2 is refused.
     let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
         .args(["--quiet", "--no-renders", "--iters", "6", "--device", "cpu", "--resume", "--train-views", "first:2"]).output().unwrap();

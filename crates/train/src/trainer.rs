@@ -8,7 +8,7 @@ use nerf_optim::{Adam, AdamState, Ema, EmaState};
 use crate::color::{check_views, ColorState, CpuColor};
 use nerf_render::{
     color_correct_backward, color_correct_forward, composite_backward, composite_forward, composited_counts, distortion_loss_grad,
-    mean_color_correction, photometric_loss_grad, CompositeOutputs,
+    mean_color_correction, photometric_loss_grad, CompositeOutputs, COLOR_PARAMS_PER_VIEW,
 };
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, OccupancyGridConfig, RaySamples};
 use std::sync::{Mutex, MutexGuard};
@@ -175,6 +175,8 @@ pub struct Trainer {
     seen_marked: bool,
     /// The per-view colour correction of the CPU path (`config.color_correction`).
     color: Option<CpuColor>,
+    /// The training view whose colour correction renders use (`None`: the mean).
+    render_appearance: Option<usize>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -239,6 +241,7 @@ impl Trainer {
             device_note: None,
             seen_marked: false,
             color,
+            render_appearance: None,
             stages: (0..n).map(|_| Stage::default()).collect(),
             marched: RaySamples::default(),
             marched_sigma: Vec::new(),
@@ -602,7 +605,8 @@ impl Trainer {
     /// the occupancy grid is the one training keeps (from the raw parameters).
     ///
     /// With `color_correction` the pixels get the mean of the training views' corrections
-    /// (`nerf_render::mean_color_correction`): novel views have none of their own.
+    /// (`nerf_render::mean_color_correction`): novel views have none of their own; or one view's
+    /// ([`set_render_appearance`](Self::set_render_appearance)).
     pub fn render_rays(
         &self,
         origins: &[f32],
@@ -614,10 +618,32 @@ impl Trainer {
     ) -> Result<(), TrainError> {
         self.render_rays_uncorrected(origins, dirs, background, rgb, opacity, depth)?;
         if let Some(params) = self.color_params()? {
-            let mean = mean_color_correction(&params).map_err(TrainError::Config)?;
+            let correction = match self.render_appearance {
+                None => mean_color_correction(&params).map_err(TrainError::Config)?.to_vec(),
+                Some(k) => params.get(COLOR_PARAMS_PER_VIEW * k..COLOR_PARAMS_PER_VIEW * (k + 1)).map(<[f32]>::to_vec).ok_or_else(|| {
+                    TrainError::Config(format!("appearance of training view {k}: the run has {} views", params.len() / COLOR_PARAMS_PER_VIEW))
+                })?,
+            };
             let raw = rgb.to_vec();
-            color_correct_forward(None, &mean, &raw, opacity, background, rgb);
+            color_correct_forward(None, &correction, &raw, opacity, background, rgb);
         }
+        Ok(())
+    }
+
+    /// Renders with training view `view`'s colour correction (how that photo was exposed;
+    /// instant-ngp's "latent from training view") instead of the mean of all views' (`None`).
+    /// Errors when the run has no `color_correction` or no such view.
+    pub fn set_render_appearance(&mut self, view: Option<usize>) -> Result<(), TrainError> {
+        if let Some(k) = view {
+            let Some(params) = self.color_params()? else {
+                return Err(TrainError::Config("the run has no colour correction to render a view's appearance with (train with [color_correction])".into()));
+            };
+            let n = params.len() / COLOR_PARAMS_PER_VIEW;
+            if k >= n {
+                return Err(TrainError::Config(format!("appearance of training view {k}: the run's colour correction has {n} views (0..{n})")));
+            }
+        }
+        self.render_appearance = view;
         Ok(())
     }
 
