@@ -34,8 +34,8 @@ pub struct GpuColorCorrection {
     uniform: wgpu::Buffer,
     /// The corrections, `12·n_views` f32 (identity at creation).
     pub params: wgpu::Buffer,
-    /// Their gradient, `12·n_views` f32: [`record_backward`](Self::record_backward) adds to it;
-    /// the caller clears it before a step.
+    /// Their gradient, `12·n_views` f32 (zero at creation): [`record_backward`](Self::record_backward)
+    /// adds to it; the optimiser's step zeroes it again (`GpuAdam::record_step`).
     pub grads: wgpu::Buffer,
     ray_grads: wgpu::Buffer,
     n_views: usize,

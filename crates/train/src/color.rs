@@ -24,11 +24,6 @@ pub struct ColorState {
 }
 
 impl ColorState {
-    /// Identity corrections for `n_views` views, no step taken.
-    pub fn identity(n_views: usize) -> Self {
-        Self { params: identity_color_correction(n_views), adam: AdamState { step: 0, groups: Vec::new(), steps: Vec::new() } }
-    }
-
     /// Views the corrections are for.
     pub fn n_views(&self) -> usize {
         self.params.len() / COLOR_PARAMS_PER_VIEW

@@ -490,10 +490,8 @@ impl GpuEngine {
             self.record_fine(ctx, &mut enc, h, &a[0], &b[0], perturb.then(|| seed(4)));
             self.record_stage_forward(ctx, &mut enc, 1, true);
         }
-        // Loss on every stage, backward through compositing into each field, Adam.
-        if let Some(c) = &self.color {
-            enc.clear_buffer(&c.cc.grads, 0, None);
-        }
+        // Loss on every stage, backward through compositing into each field, Adam (whose step
+        // zeroes the gradients, the colour corrections' too).
         for (i, st) in self.stages.iter().enumerate() {
             ctx.profile_stage("loss");
             let color_in = ColorInputs {
