@@ -109,6 +109,8 @@ struct Tape<T: Real> {
     // backward scratch
     d_color_in: Vec<T>,
     d_trunk: Vec<T>,
+    /// dL/d(encoding), of positions then of directions (input gradients only).
+    d_enc: Vec<T>,
 }
 
 /// The paper's NeRF field.
@@ -227,6 +229,13 @@ impl<T: Real> FreqNerf<T> {
 
     /// Backward of the last [`Self::forward_t`]: accumulates parameter gradients.
     pub fn backward_t(&mut self, d_sigma: &[T], d_rgb: &[T]) {
+        self.backward_inputs_t(d_sigma, d_rgb, None)
+    }
+
+    /// As [`Self::backward_t`], and with `inputs = Some((d_positions, d_dirs))` also writes the
+    /// gradients in every sample's position and direction (`3·n` each;
+    /// [`RadianceField::backward_with_inputs`]), through both frequency encodings.
+    pub fn backward_inputs_t(&mut self, d_sigma: &[T], d_rgb: &[T], inputs: Option<(&mut [T], &mut [T])>) {
         let t = &mut self.tape;
         let n = t.n;
         assert_eq!(d_sigma.len(), n);
@@ -241,7 +250,19 @@ impl<T: Real> FreqNerf<T> {
             dh[0] = if t.raw_sigma[k] > T::zero() { ds } else { T::zero() };
             dh[1..].copy_from_slice(&t.d_color_in[k * (w + dd)..k * (w + dd) + w]);
         }
-        self.trunk.backward(n, &t.pos_enc, &mut t.trunk, &t.d_trunk, None);
+        let Some((d_pos, d_dirs)) = inputs else {
+            self.trunk.backward(n, &t.pos_enc, &mut t.trunk, &t.d_trunk, None);
+            return;
+        };
+        let pd = Encoding::<T>::output_dim(&self.pos_enc);
+        t.d_enc.resize(n * pd.max(dd), T::zero());
+        self.trunk.backward(n, &t.pos_enc, &mut t.trunk, &t.d_trunk, Some(&mut t.d_enc[..n * pd]));
+        self.pos_enc.backward(&t.pos_in, &t.d_enc[..n * pd], &mut [], Some(d_pos));
+        for k in 0..n {
+            let src = &t.d_color_in[k * (w + dd) + w..(k + 1) * (w + dd)];
+            t.d_enc[k * dd..(k + 1) * dd].copy_from_slice(src);
+        }
+        self.dir_enc.backward(&t.dir_in, &t.d_enc[..n * dd], &mut [], Some(d_dirs));
     }
 
     /// Inference without a tape, chunked to bound memory.
@@ -332,6 +353,19 @@ impl RadianceField for FreqNerf<f32> {
     }
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]) {
         self.backward_t(d_sigma, d_rgb)
+    }
+    fn has_input_gradients(&self) -> bool {
+        true
+    }
+    fn backward_with_inputs(
+        &mut self,
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        d_positions: &mut [f32],
+        d_dirs: &mut [f32],
+    ) -> Result<(), FieldError> {
+        self.backward_inputs_t(d_sigma, d_rgb, Some((d_positions, d_dirs)));
+        Ok(())
     }
     fn zero_grad(&mut self) {
         for m in self.networks_mut() {

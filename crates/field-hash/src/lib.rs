@@ -100,10 +100,13 @@ struct Tape<T: Real> {
     xn: Vec<T>,
     enc: Vec<T>,
     sh: Vec<T>,
+    /// The samples' directions (the SH backward of input gradients reads them).
+    dirs: Vec<T>,
     color_in: Vec<T>,
     density: MlpTape<T>,
     color: MlpTape<T>,
     d_color_in: Vec<T>,
+    d_sh: Vec<T>,
     d_density_out: Vec<T>,
     d_enc: Vec<T>,
 }
@@ -315,6 +318,8 @@ impl<T: Real> HashNerf<T> {
         let dout = self.density.forward(n, &t.enc, &mut t.density);
         t.sh.resize(n * sh_dim, T::zero());
         self.sh.forward(dirs, &mut t.sh);
+        t.dirs.clear();
+        t.dirs.extend_from_slice(dirs);
         t.color_in.resize(n * (dd + sh_dim), T::zero());
         for k in 0..n {
             let row = &dout[k * dd..(k + 1) * dd];
@@ -329,14 +334,23 @@ impl<T: Real> HashNerf<T> {
 
     /// Backward of the last forward: accumulates gradients of the table and both MLPs.
     pub fn backward_t(&mut self, d_sigma: &[T], d_rgb: &[T]) {
+        self.backward_inputs_t(d_sigma, d_rgb, None)
+    }
+
+    /// As [`Self::backward_t`], and with `inputs = Some((d_positions, d_dirs))` also writes the
+    /// gradients in every sample's world position and direction (`3·n` each;
+    /// [`RadianceField::backward_with_inputs`]). A position outside the box is clamped to it
+    /// before the encoding, so its gradient across the clamped axis is 0.
+    pub fn backward_inputs_t(&mut self, d_sigma: &[T], d_rgb: &[T], inputs: Option<(&mut [T], &mut [T])>) {
         let mut t = std::mem::take(&mut self.tape);
         let n = t.n;
         assert_eq!(d_sigma.len(), n);
         let (dd, enc_dim, sh_dim) = (self.dout_dim(), self.enc_dim(), self.sh_dim());
         t.d_color_in.resize(n * (dd + sh_dim), T::zero());
-        // Only the density features' columns of the colour net's input gradient are read (the
-        // SH encoding has no parameters).
-        self.color.backward_cols(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in), dd);
+        // Without input gradients only the density features' columns of the colour net's input
+        // gradient are read (the SH encoding has no parameters).
+        let cols = if inputs.is_some() { dd + sh_dim } else { dd };
+        self.color.backward_cols(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in), cols);
         t.d_density_out.resize(n * dd, T::zero());
         for (k, &ds) in d_sigma.iter().enumerate() {
             let dr = &mut t.d_density_out[k * dd..(k + 1) * dd];
@@ -347,7 +361,29 @@ impl<T: Real> HashNerf<T> {
         }
         t.d_enc.resize(n * enc_dim, T::zero());
         self.density.backward(n, &t.enc, &mut t.density, &t.d_density_out, Some(&mut t.d_enc));
-        self.grid.backward(&t.xn, &t.d_enc, &mut self.grid_grad, None);
+        match inputs {
+            None => self.grid.backward(&t.xn, &t.d_enc, &mut self.grid_grad, None),
+            Some((d_pos, d_dirs)) => {
+                assert_eq!(d_pos.len(), 3 * n);
+                assert_eq!(d_dirs.len(), 3 * n);
+                self.grid.backward(&t.xn, &t.d_enc, &mut self.grid_grad, Some(&mut *d_pos));
+                // x_n = clamp((p − min)·inv_extent, 0, 1): a coordinate on the box's faces is
+                // taken as clamped.
+                for (g, xn) in d_pos.chunks_exact_mut(3).zip(t.xn.chunks_exact(3)) {
+                    for a in 0..3 {
+                        let inside = xn[a] > T::zero() && xn[a] < T::one();
+                        g[a] = if inside { g[a] * self.inv_extent[a] } else { T::zero() };
+                    }
+                }
+                t.d_sh.resize(n * sh_dim, T::zero());
+                for k in 0..n {
+                    let row = &t.d_color_in[k * (dd + sh_dim) + dd..(k + 1) * (dd + sh_dim)];
+                    t.d_sh[k * sh_dim..(k + 1) * sh_dim].copy_from_slice(row);
+                }
+                let mut no_params: [T; 0] = [];
+                self.sh.backward(&t.dirs, &t.d_sh, &mut no_params, Some(d_dirs));
+            }
+        }
         self.tape = t;
     }
 
@@ -444,6 +480,19 @@ impl RadianceField for HashNerf<f32> {
     }
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]) {
         self.backward_t(d_sigma, d_rgb)
+    }
+    fn has_input_gradients(&self) -> bool {
+        true
+    }
+    fn backward_with_inputs(
+        &mut self,
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        d_positions: &mut [f32],
+        d_dirs: &mut [f32],
+    ) -> Result<(), FieldError> {
+        self.backward_inputs_t(d_sigma, d_rgb, Some((d_positions, d_dirs)));
+        Ok(())
     }
     fn to_gpu(
         &self,

@@ -69,6 +69,14 @@ pub enum FieldError {
         /// What the GPU crate reported.
         source: GpuError,
     },
+    /// The field does not offer something a run asks of it.
+    #[error("field `{field}` does not provide {what}")]
+    Unsupported {
+        /// Field name.
+        field: String,
+        /// What was asked for.
+        what: String,
+    },
     /// Parameters loaded from a checkpoint do not match the field's layout.
     #[error("parameter group `{group}` mismatch: {message}")]
     ParamMismatch {
@@ -128,6 +136,27 @@ pub trait RadianceField: Send + Sync {
     /// [`forward_rows`](Self::forward_rows)): given dL/dσ (`n`) and dL/drgb (`3·n`),
     /// *accumulates* parameter gradients.
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]);
+
+    /// Whether [`backward_with_inputs`](Self::backward_with_inputs) is implemented: camera pose
+    /// refinement (`nerf_rays::pose`) needs the field's gradients in its inputs. Default `false`.
+    fn has_input_gradients(&self) -> bool {
+        false
+    }
+
+    /// As [`backward`](Self::backward) (parameter gradients accumulated), and also *writes*
+    /// dL/d(position) into `d_positions` and dL/d(direction) into `d_dirs` (`3·n` each) for every
+    /// sample of the last forward. Where the field clamps a position (to its box) the gradient
+    /// is that of the clamped function. The default returns [`FieldError::Unsupported`].
+    fn backward_with_inputs(
+        &mut self,
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        d_positions: &mut [f32],
+        d_dirs: &mut [f32],
+    ) -> Result<(), FieldError> {
+        let _ = (d_sigma, d_rgb, d_positions, d_dirs);
+        Err(FieldError::Unsupported { field: self.kind().into(), what: "input gradients (camera pose refinement)".into() })
+    }
 
     /// Sets all parameter gradients to zero.
     fn zero_grad(&mut self);

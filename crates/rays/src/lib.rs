@@ -13,8 +13,11 @@
 //! - [`Ndc`] warps the rays of a forward-facing scene into NeRF's normalised device coordinates.
 //! - [`Ray::dir`] is always unit length; [`Camera::pixel_dir_unnormalized`] gives the
 //!   nerf-pytorch direction whose camera-space z component is −1.
+//! - [`pose`] refines the training cameras: a per-view translation and rotation applied to the
+//!   view's rays, with its backward pass (nerfstudio's camera optimizer).
 
 mod ndc;
+pub mod pose;
 
 pub use glam;
 pub use ndc::Ndc;

@@ -115,6 +115,33 @@ impl RaySamples {
             });
     }
 
+    /// Backward of [`fill_geometry`](Self::fill_geometry) with `t` held fixed: given the field's
+    /// input gradients `∂L/∂x` (`d_positions`) and `∂L/∂d` (`d_dirs`) of every sample (`3·n`
+    /// each), *accumulates* (`+=`) each ray's `∂L/∂o = Σ_k ∂L/∂x_k` into `d_origins` and
+    /// `∂L/∂d = Σ_k (t_k ∂L/∂x_k + ∂L/∂d_k)` into `d_ray_dirs` (`3·n_rays` each): what camera
+    /// pose refinement (`nerf_rays::pose`) needs, summed over the stages of a step.
+    pub fn backward_to_rays(&self, d_positions: &[f32], d_dirs: &[f32], d_origins: &mut [f32], d_ray_dirs: &mut [f32]) {
+        let n = self.len();
+        assert_eq!(d_positions.len(), 3 * n, "d_positions must hold 3·n values");
+        assert_eq!(d_dirs.len(), 3 * n, "d_dirs must hold 3·n values");
+        assert_eq!(d_origins.len(), 3 * self.n_rays, "d_origins must hold 3·n_rays values");
+        assert_eq!(d_ray_dirs.len(), 3 * self.n_rays, "d_ray_dirs must hold 3·n_rays values");
+        const RAYS: usize = 256;
+        d_origins.par_chunks_mut(3 * RAYS).zip(d_ray_dirs.par_chunks_mut(3 * RAYS)).enumerate().for_each(|(c, (go, gd))| {
+            for (i, (go, gd)) in go.chunks_exact_mut(3).zip(gd.chunks_exact_mut(3)).enumerate() {
+                let r = c * RAYS + i;
+                for k in self.ray_offsets[r] as usize..self.ray_offsets[r + 1] as usize {
+                    let t = self.t[k];
+                    for a in 0..3 {
+                        let gx = d_positions[3 * k + a];
+                        go[a] += gx;
+                        gd[a] += t * gx + d_dirs[3 * k + a];
+                    }
+                }
+            }
+        });
+    }
+
     /// Keeps the first `keep[r]` samples of each ray `r` (at most all of them) in `out`, in order:
     /// training on compacted samples, where `keep` counts the samples compositing reaches before
     /// early termination (`nerf_render::composited_counts` on an inference pass), so the

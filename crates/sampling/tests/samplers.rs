@@ -219,6 +219,54 @@ fn fill_geometry_rebuilds_positions() {
     assert!(s.is_empty() && s.n_rays == 0 && s.ray_offsets == vec![0]);
 }
 
+/// `backward_to_rays` is the gradient of `fill_geometry` (t fixed) in the rays' origins and
+/// directions: L = Σ a·x + Σ b·d against central differences (in f64 over the f32 positions),
+/// on a batch where some rays kept no samples; it accumulates onto what is there.
+#[test]
+fn backward_to_rays_matches_finite_differences() {
+    let n_rays = 300; // more than one parallel chunk
+    let (o, d, near, far) = rays(n_rays, 5);
+    let mut full = RaySamples::default();
+    stratified(&o, &d, &near, &far, 6, Some(&mut nerf_core::rng(2, 1)), &mut full);
+    let keep: Vec<u32> = (0..n_rays as u32).map(|r| r % 7).collect(); // ray 0, 7, … keep none
+    let mut s = RaySamples::default();
+    full.compact_into(&keep, usize::MAX, &mut s);
+    let n = s.len();
+    let mut g = nerf_core::rng(3, 1);
+    let a: Vec<f32> = (0..3 * n).map(|_| g.gen::<f32>() - 0.5).collect();
+    let b: Vec<f32> = (0..3 * n).map(|_| g.gen::<f32>() - 0.5).collect();
+    let loss = |o: &[f32], d: &[f32]| {
+        let mut s = s.clone();
+        s.fill_geometry(o, d);
+        let x: f64 = s.positions.iter().zip(&a).map(|(p, w)| *p as f64 * *w as f64).sum();
+        x + s.dirs.iter().zip(&b).map(|(p, w)| *p as f64 * *w as f64).sum::<f64>()
+    };
+    let (mut go, mut gd) = (vec![1.0f32; 3 * n_rays], vec![-1.0f32; 3 * n_rays]);
+    s.backward_to_rays(&a, &b, &mut go, &mut gd);
+    let h = 1e-2;
+    for r in (0..n_rays).step_by(13).chain([0, 7, n_rays - 1]) {
+        for c in 0..3 {
+            let i = 3 * r + c;
+            for (dir, grad, base) in [(false, go[i], 1.0), (true, gd[i], -1.0)] {
+                let (mut op, mut om, mut dp, mut dm) = (o.clone(), o.clone(), d.clone(), d.clone());
+                if dir {
+                    dp[i] += h;
+                    dm[i] -= h;
+                } else {
+                    op[i] += h;
+                    om[i] -= h;
+                }
+                let fd = (loss(&op, &dp) - loss(&om, &dm)) / (2.0 * h as f64);
+                let an = (grad - base) as f64;
+                assert!((an - fd).abs() < 2e-3 * (1.0 + fd.abs()), "ray {r} {} [{c}]: {an} vs fd {fd}", if dir { "d" } else { "o" });
+                if r % 7 == 0 {
+                    assert_eq!(an, 0.0, "a ray without samples gets no gradient");
+                }
+            }
+        }
+    }
+}
+
 /// Expected CDF of `sample_pdf`'s piecewise-uniform density (with its `+1e-5` weight floor).
 fn pdf_cdf(bins: &[f64], weights: &[f64], x: f64) -> f64 {
     let w: Vec<f64> = weights.iter().map(|w| w + 1e-5).collect();
