@@ -472,6 +472,23 @@ impl Dataset {
         }
     }
 
+    /// Moves each view's camera by `noise[v] = [τ (3), ω (3)]` ([`pose_noise`]): the centre by
+    /// `τ`, the orientation by the rotation `exp([ω]×)` in world axes (`rotation ← R(ω) ·
+    /// rotation`), so that the view's rays become `o + τ`, `R(ω) d` — what the correction
+    /// `[−τ, −ω]` of camera pose refinement (`nerf_rays::pose`) undoes exactly.
+    ///
+    /// # Panics
+    /// Unless there is one entry per view.
+    pub fn perturb_poses(&mut self, noise: &[[f32; 6]]) {
+        assert_eq!(noise.len(), self.n_views(), "one pose change per view");
+        for (cam, p) in self.cameras.iter_mut().zip(noise) {
+            let r = nerf_rays::pose::so3_exp([p[3], p[4], p[5]]);
+            let r = glam::Mat3::from_cols_array_2d(&r).transpose(); // rows → glam's columns
+            cam.rotation = r * cam.rotation;
+            cam.position += glam::Vec3::new(p[0], p[1], p[2]);
+        }
+    }
+
     /// Whether samplers should keep each ray's `[near, far]` inside [`Dataset::aabb`]: NDC scenes
     /// (the box gives every ray its NDC segment) and instant-ngp scenes (trained inside their cube).
     pub fn clips_to_aabb(&self) -> bool {
@@ -1341,6 +1358,27 @@ pub fn exposure_gains(n_views: usize, amount: f32, seed: u64) -> Vec<[f32; 3]> {
     let raw: Vec<[f32; 3]> = (0..n_views).map(|_| std::array::from_fn(|_| 1.0 + amount * (2.0 * rng.gen::<f32>() - 1.0))).collect();
     let mean: [f32; 3] = std::array::from_fn(|c| raw.iter().map(|g| g[c]).sum::<f32>() / n_views.max(1) as f32);
     raw.iter().map(|g| std::array::from_fn(|c| g[c] / mean[c])).collect()
+}
+
+/// Per-view pose changes for camera-refinement experiments ([`Dataset::perturb_poses`]): for
+/// each view a translation with each axis drawn uniformly from `[−trans, trans]` (scene units)
+/// and a rotation vector with each axis drawn from `[−rot_deg, rot_deg]` degrees (stored in
+/// radians), with `seed`; then each of the six components has its mean over the views taken
+/// out, so that the cameras do not move as a whole (a shift of all views together is no error
+/// any method could see).
+///
+/// # Panics
+/// Unless both amounts are finite and not negative.
+pub fn pose_noise(n_views: usize, rot_deg: f32, trans: f32, seed: u64) -> Vec<[f32; 6]> {
+    use rand::Rng as _;
+    assert!(rot_deg.is_finite() && rot_deg >= 0.0 && trans.is_finite() && trans >= 0.0, "pose noise must be finite and ≥ 0, got {rot_deg}° and {trans}");
+    let mut rng = nerf_core::rng(seed, 0x706f_7365_6e6f_6973); // "posenois"
+    let rot = rot_deg.to_radians();
+    let raw: Vec<[f32; 6]> = (0..n_views)
+        .map(|_| std::array::from_fn(|i| (2.0 * rng.gen::<f32>() - 1.0) * if i < 3 { trans } else { rot }))
+        .collect();
+    let mean: [f32; 6] = std::array::from_fn(|i| raw.iter().map(|p| p[i]).sum::<f32>() / n_views.max(1) as f32);
+    raw.iter().map(|p| std::array::from_fn(|i| p[i] - mean[i])).collect()
 }
 
 /// Writes a dataset back out in the Blender format: `out_root/transforms_<split>.json` with
