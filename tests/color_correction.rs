@@ -96,7 +96,7 @@ fn colour_corrections_survive_checkpoints_on_both_devices() {
         }
         let (fields, adam, sampler) = (first.export_fields().unwrap(), first.adam_state().unwrap(), first.sampler_state().unwrap());
         let state = first.color_state().unwrap().unwrap();
-        assert_eq!(state.n_views(), 10);
+        assert_eq!(state.n_views(&nerf::train::color::COLOR_VIEWS), 10);
         assert_eq!(state.adam.step, 6, "{from}");
         assert_ne!(state.params, identity, "{from}: six steps moved the corrections");
         assert!(sampler.iter().any(|(n, _)| n == "color/params") && sampler.iter().any(|(n, _)| n == "color/m"), "{from}");

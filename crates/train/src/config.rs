@@ -128,6 +128,14 @@ pub struct TrainConfig {
     /// views use the mean correction. `None` (the default) = off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub color_correction: Option<ColorCorrectionConfig>,
+    /// Camera pose refinement (`[camera_optimizer]`; nerfstudio's camera optimizer in `SO3xR3`
+    /// mode, `nerf_rays::pose`): a translation and a rotation per training view, applied to the
+    /// view's rays and learnt with the field through its input gradients, for captures whose
+    /// poses (from structure from motion) are a little off. Test views and novel views keep
+    /// their poses. Needs a field with input gradients (`freq`, `hash`), Euclidean rays
+    /// (an LLFF scene with `ndc = false`) and, for now, the CPU. `None` (the default) = off.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_optimizer: Option<CameraOptimizerConfig>,
     /// Background composited behind training rays (paper on Blender: white).
     pub train_background: Background,
     /// Background for evaluation (white, as the paper's numbers).
@@ -188,6 +196,37 @@ fn default_color_lr() -> f32 {
     1e-3
 }
 
+/// Settings of camera pose refinement ([`TrainConfig::camera_optimizer`]); the defaults are
+/// nerfacto's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CameraOptimizerConfig {
+    /// Adam's learning rate for the corrections at step 0 …
+    pub lr: f32,
+    /// … decaying exponentially to this at `decay_steps`, and constant after.
+    pub lr_final: f32,
+    /// Steps of the decay.
+    pub decay_steps: u64,
+    /// Weight of the mean over views of `‖τ_v‖` (the translations' length) added to the loss.
+    pub trans_penalty: f32,
+    /// Weight of the mean over views of `‖ω_v‖` (the rotations' angle) added to the loss.
+    pub rot_penalty: f32,
+}
+
+impl Default for CameraOptimizerConfig {
+    fn default() -> Self {
+        Self { lr: 1e-3, lr_final: 1e-4, decay_steps: 5000, trans_penalty: 1e-2, rot_penalty: 1e-3 }
+    }
+}
+
+impl CameraOptimizerConfig {
+    /// The learning rate at `step`.
+    pub fn lr_at(&self, step: u64) -> f32 {
+        let f = (step as f64 / self.decay_steps.max(1) as f64).min(1.0);
+        (self.lr as f64 * (self.lr_final as f64 / self.lr as f64).powf(f)) as f32
+    }
+}
+
 impl Default for ColorCorrectionConfig {
     fn default() -> Self {
         Self { lr: default_color_lr() }
@@ -210,6 +249,7 @@ impl Default for TrainConfig {
             ema_decay: None,
             distortion_loss: None,
             color_correction: None,
+            camera_optimizer: None,
             train_background: Background::White,
             eval_background: Background::White,
             pixel_convention: PixelConvention::Center,
@@ -276,6 +316,17 @@ impl TrainConfig {
         if let Some(c) = &self.color_correction {
             if !(c.lr.is_finite() && c.lr > 0.0) {
                 return Err(format!("color_correction.lr must be a positive number, got {}", c.lr));
+            }
+        }
+        if let Some(c) = &self.camera_optimizer {
+            if !(c.lr.is_finite() && c.lr > 0.0 && c.lr_final.is_finite() && c.lr_final > 0.0) {
+                return Err(format!("camera_optimizer.lr and lr_final must be positive numbers, got {} and {}", c.lr, c.lr_final));
+            }
+            if !(c.trans_penalty.is_finite() && c.trans_penalty >= 0.0 && c.rot_penalty.is_finite() && c.rot_penalty >= 0.0) {
+                return Err(format!(
+                    "camera_optimizer.trans_penalty and rot_penalty must be numbers ≥ 0, got {} and {}",
+                    c.trans_penalty, c.rot_penalty
+                ));
             }
         }
         if let Some(l) = self.distortion_loss {

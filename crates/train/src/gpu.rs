@@ -18,7 +18,7 @@ use nerf_gpu::composite::{BatchParams, CompositeTargets, PackedBuffers};
 use nerf_gpu::occupancy::GpuOccupancyGrid;
 use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
 use nerf_gpu::pdf::{GpuHierarchical, GpuStratified, PackedOut};
-use crate::color::{ColorState, COLOR_GROUP};
+use crate::color::{ColorState, COLOR_GROUP, COLOR_VIEWS};
 use nerf_gpu::color::{ColorInputs, GpuColorCorrection};
 use nerf_gpu::sampling::{GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples as PackedSamples, MarchConfig};
 use nerf_gpu::{wgpu, Compositor, GpuContext, TrainGlue};
@@ -1034,8 +1034,8 @@ impl GpuEngine {
     pub(crate) fn restore_color(&mut self, s: ColorState) -> Result<(), TrainError> {
         let ctx = self.ctx.clone();
         let Some(c) = self.color.as_mut() else { return Ok(()) };
-        if s.n_views() != c.cc.n_views() {
-            c.cc = GpuColorCorrection::new(&ctx, s.n_views(), self.capacity_rays).map_err(gerr)?;
+        if s.n_views(&COLOR_VIEWS) != c.cc.n_views() {
+            c.cc = GpuColorCorrection::new(&ctx, s.n_views(&COLOR_VIEWS), self.capacity_rays).map_err(gerr)?;
             c.adam = GpuAdam::new(&ctx, &c.adam_config, &[GpuParamGroup::new(COLOR_GROUP, 0, c.cc.len(), 0.0)]).map_err(gerr)?;
         }
         c.cc.set_params(&ctx, &s.params).map_err(gerr)?;

@@ -10,6 +10,8 @@
 
 pub mod checkpoint;
 pub mod color;
+pub mod pose;
+pub mod views;
 pub mod config;
 pub mod eval;
 mod gpu;
@@ -20,6 +22,7 @@ pub mod trainer;
 
 pub use checkpoint::Checkpoint;
 pub use color::ColorState;
+pub use views::{ViewKind, ViewState};
 pub use config::{LossConfig, SamplerConfig, TrainConfig};
 pub use eval::{evaluate, EvalReport, ViewMetrics};
 pub use profile::{GpuProfile, ProfileWindow};

@@ -5,7 +5,9 @@ use crate::TrainError;
 use nerf_data::{Dataset, RayBatch};
 use nerf_field::{FieldContext, ParamGroupMut, RadianceField, Registry};
 use nerf_optim::{Adam, AdamState, Ema, EmaState};
-use crate::color::{check_views, ColorState, CpuColor};
+use crate::color::{ColorState, CpuColor, COLOR_VIEWS};
+use crate::pose::{CpuPose, PoseState, POSE_VIEWS};
+use crate::views::check_views;
 use nerf_render::{
     color_correct_backward, color_correct_forward, composite_backward, composite_forward, composited_counts, distortion_loss_grad,
     mean_color_correction, photometric_loss_grad, CompositeOutputs, COLOR_PARAMS_PER_VIEW,
@@ -177,6 +179,8 @@ pub struct Trainer {
     color: Option<CpuColor>,
     /// The training view whose colour correction renders use (`None`: the mean).
     render_appearance: Option<usize>,
+    /// Camera pose refinement (`config.camera_optimizer`; CPU only).
+    pose: Option<CpuPose>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -223,6 +227,18 @@ impl Trainer {
         let adam = Adam::new(config.adam.clone());
         // Sized for the scene's views (at least one; a restore takes the checkpoint's count).
         let color = config.color_correction.as_ref().map(|c| CpuColor::new(bounds.n_views.max(1), &config.adam, c.lr));
+        let pose = match &config.camera_optimizer {
+            Some(c) => {
+                if let Some(f) = fields.iter().find(|f| !f.has_input_gradients()) {
+                    return Err(TrainError::Config(format!(
+                        "camera_optimizer needs the field's gradients in its inputs; field `{}` does not provide them (use `freq` or `hash`)",
+                        f.kind()
+                    )));
+                }
+                Some(CpuPose::new(bounds.n_views.max(1), &config.adam, c))
+            }
+            None => None,
+        };
         let grid = match &config.sampler {
             SamplerConfig::Occupancy { grid, .. } => Some(
                 OccupancyGrid::try_new(bounds.grid_config(grid), bounds.aabb_min, bounds.aabb_max)
@@ -242,6 +258,7 @@ impl Trainer {
             seen_marked: false,
             color,
             render_appearance: None,
+            pose,
             stages: (0..n).map(|_| Stage::default()).collect(),
             marched: RaySamples::default(),
             marched_sigma: Vec::new(),
@@ -275,6 +292,9 @@ impl Trainer {
     ) -> Result<Self, TrainError> {
         let mut t = Self::new(config, registry, bounds)?;
         if let Some(ctx) = device {
+            if t.config.camera_optimizer.is_some() {
+                return Err(TrainError::Gpu("camera_optimizer runs on the CPU only for now (use --device cpu)".into()));
+            }
             // Each fit scales the step by the overshoot of the buffer that failed; a few tries
             // cover buffers that do not scale exactly linearly (ray-sized ones, clamps) and the
             // fine stage of a hierarchical sampler (built after the coarse one).
@@ -387,10 +407,18 @@ impl Trainer {
     pub fn step(&mut self, data: &Dataset) -> Result<StepStats, TrainError> {
         let corrections = match (&self.gpu, &self.color) {
             (Some(g), _) => g.color_views(),
-            (None, c) => c.as_ref().map(|c| c.n_views()),
+            (None, c) => c.as_ref().map(|c| c.views.n_views()),
         };
         if let Some(n) = corrections {
-            check_views(n, data.n_views())?;
+            check_views(&COLOR_VIEWS, n, data.n_views())?;
+        }
+        if let Some(p) = &self.pose {
+            check_views(&POSE_VIEWS, p.views.n_views(), data.n_views())?;
+            if data.ndc.is_some() {
+                return Err(TrainError::Config(
+                    "camera_optimizer needs Euclidean rays: train this LLFF scene with ndc = false (--no-ndc)".into(),
+                ));
+            }
         }
         if !self.seen_marked {
             self.mark_seen(data)?;
@@ -448,6 +476,10 @@ impl Trainer {
         };
         data.sample_rays(n_rays, cfg.train_background, cfg.pixel_convention, cfg.pixel_jitter, &mut rng, &mut self.batch);
         let n_rays = self.batch.len();
+        if let Some(p) = self.pose.as_mut() {
+            let b = &mut self.batch;
+            p.correct(&b.view_ids, &mut b.origins, &mut b.dirs);
+        }
         self.bounds.segments(&self.batch.origins, &self.batch.dirs, &mut self.near, &mut self.far);
         for f in self.fields.iter_mut() {
             f.zero_grad();
@@ -517,7 +549,7 @@ impl Trainer {
             // backward gets the gradient through the correction (with an opacity term).
             let color = self.color.as_mut().map(|c| {
                 c.out.resize(3 * n_rays, 0.0);
-                color_correct_forward(Some(&b.view_ids), &c.params, &st.comp.rgb, &st.comp.opacity, &b.background, &mut c.out);
+                color_correct_forward(Some(&b.view_ids), &c.views.params, &st.comp.rgb, &st.comp.opacity, &b.background, &mut c.out);
                 c
             });
             let pred = color.as_ref().map_or(&st.comp.rgb, |c| &c.out);
@@ -528,14 +560,14 @@ impl Trainer {
                     c.d_opacity.resize(n_rays, 0.0);
                     color_correct_backward(
                         Some(&b.view_ids),
-                        &c.params,
+                        &c.views.params,
                         &st.comp.rgb,
                         &st.comp.opacity,
                         &b.background,
                         &st.d_ray_rgb,
                         &mut c.d_rgb,
                         &mut c.d_opacity,
-                        &mut c.grads,
+                        &mut c.views.grads,
                     );
                     (&c.d_rgb, Some(&c.d_opacity[..]))
                 }
@@ -568,7 +600,17 @@ impl Trainer {
                     &s.ray_offsets, &st.sigma, &s.dt, &s.t, &st.comp, scale, lambda / n_rays.max(1) as f32, &mut st.d_sigma, &mut st.ray_loss,
                 );
             }
-            field.backward(&st.d_sigma, &st.d_rgb);
+            match self.pose.as_mut() {
+                None => field.backward(&st.d_sigma, &st.d_rgb),
+                Some(p) => {
+                    // Camera pose refinement: the field's input gradients, gathered per ray.
+                    let (dp, dd) = p.sample_buffers(n);
+                    if let Err(e) = field.backward_with_inputs(&st.d_sigma, &st.d_rgb, dp, dd) {
+                        panic!("field said it has input gradients (checked when the trainer was built): {e}");
+                    }
+                    st.samples.backward_to_rays(&p.d_positions, &p.d_sample_dirs, &mut p.d_origins, &mut p.d_dirs);
+                }
+            }
         }
         let lr = cfg.lr.lr(self.step);
         let Self { fields, group_names, adam, ema, .. } = self;
@@ -580,7 +622,10 @@ impl Trainer {
         }
         adam.step(&mut groups, lr);
         if let Some(c) = self.color.as_mut() {
-            c.step();
+            c.views.step(c.lr);
+        }
+        if let Some(p) = self.pose.as_mut() {
+            loss += p.step(&self.batch.view_ids, self.step);
         }
         if let Some(e) = ema.as_mut() {
             e.update(&groups);
@@ -795,7 +840,7 @@ impl Trainer {
     /// sampler's (occupancy-grid densities, batch sizing), with `ema_decay` once a step was
     /// taken the parameters' moving average (`ema/step` and `ema/<group>`, see
     /// [`ema_to_entries`]), and with `color_correction` the corrections (`color/…`, see
-    /// [`ColorState::to_entries`]). Checkpoints store it as is, so [`Trainer::restore`] — resume, `nerf
+    /// [`crate::views`]), and with `camera_optimizer` the pose corrections (`camera/…`). Checkpoints store it as is, so [`Trainer::restore`] — resume, `nerf
     /// eval`, a move between devices — carries the average without a separate argument.
     pub fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {
         let mut v = match &self.gpu {
@@ -815,7 +860,10 @@ impl Trainer {
             v.extend(ema_to_entries(&s));
         }
         if let Some(s) = self.color_state()? {
-            v.extend(s.to_entries());
+            v.extend(s.to_entries(&COLOR_VIEWS));
+        }
+        if let Some(s) = self.pose_state() {
+            v.extend(s.to_entries(&POSE_VIEWS));
         }
         Ok(v)
     }
@@ -852,7 +900,7 @@ impl Trainer {
         if let Some(g) = &self.gpu {
             return g.color_state();
         }
-        Ok(self.color.as_ref().map(|c| c.state()))
+        Ok(self.color.as_ref().map(|c| c.views.state()))
     }
 
     /// The per-view colour corrections only (12 values per training view; `None` without
@@ -861,7 +909,19 @@ impl Trainer {
         if let Some(g) = &self.gpu {
             return g.color_params();
         }
-        Ok(self.color.as_ref().map(|c| c.params.clone()))
+        Ok(self.color.as_ref().map(|c| c.views.params.clone()))
+    }
+
+    /// The camera pose corrections with their optimiser state (`None` without
+    /// `camera_optimizer`). Checkpoints carry it in [`Trainer::sampler_state`].
+    pub fn pose_state(&self) -> Option<PoseState> {
+        self.pose.as_ref().map(|p| p.views.state())
+    }
+
+    /// The camera pose corrections only: per training view a translation then a rotation vector
+    /// (`nerf_rays::pose`; `None` without `camera_optimizer`).
+    pub fn pose_params(&self) -> Option<&[f32]> {
+        self.pose.as_ref().map(|p| &p.views.params[..])
     }
 
     /// Optimiser state (for checkpoints; read back from the device on the GPU).
@@ -887,11 +947,15 @@ impl Trainer {
         adam: AdamState,
         sampler_state: &[(String, Vec<f32>)],
     ) -> Result<(), TrainError> {
-        let (color, sampler_state) = ColorState::from_entries(sampler_state)?;
+        let (color, sampler_state) = ColorState::from_entries(sampler_state, &COLOR_VIEWS)?;
+        let (pose, sampler_state) = PoseState::from_entries(&sampler_state, &POSE_VIEWS)?;
         let (ema, sampler_state) = ema_from_entries(&sampler_state)?;
         // A checkpoint without corrections leaves them at the identity; corrections in the
         // checkpoint of a run without them are ignored.
         let color = color.filter(|_| self.config.color_correction.is_some());
+        if let (Some(p), Some(s)) = (pose, self.pose.as_mut()) {
+            s.views.load(p)?;
+        }
         if let (Some(s), Some(_)) = (&ema, self.config.ema_decay) {
             check_ema_groups(s, &self.group_names, fields)?;
         }
@@ -934,7 +998,7 @@ impl Trainer {
         }
         self.adam.load_state(adam).map_err(TrainError::Config)?;
         if let (Some(c), Some(s)) = (color, self.color.as_mut()) {
-            s.load(c)?;
+            s.views.load(c)?;
         }
         if let Some(e) = self.ema.as_mut() {
             e.load_state(ema).map_err(TrainError::Config)?;

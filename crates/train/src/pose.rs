@@ -1,0 +1,134 @@
+//! The trainer's side of camera pose refinement (`TrainConfig::camera_optimizer`,
+//! `nerf_rays::pose`): the corrections on the CPU, the per-step buffers that carry the fields'
+//! input gradients back to them, nerfstudio's regulariser, and their name in checkpoints
+//! (`camera/…`, see [`crate::views`]).
+
+use crate::config::CameraOptimizerConfig;
+use crate::views::{CpuViews, ViewKind, ViewState};
+use nerf_optim::AdamConfig;
+use nerf_rays::pose::{pose_correct_backward, pose_correct_rays, Mat3x3, POSE_PARAMS_PER_VIEW};
+
+/// The pose corrections' entries in checkpoints (`camera/params`: per training view a
+/// translation then a rotation vector, `camera/m`, `camera/v`, `camera/step`) and their Adam
+/// group.
+pub const POSE_VIEWS: ViewKind = ViewKind {
+    prefix: "camera/",
+    group: "camera_optimizer",
+    per_view: POSE_PARAMS_PER_VIEW,
+    what: "camera pose refinement",
+};
+
+/// The pose corrections and their optimiser state, as a checkpoint holds them.
+pub type PoseState = ViewState;
+
+/// The CPU path's pose corrections and the buffers of a step.
+pub(crate) struct CpuPose {
+    pub views: CpuViews,
+    pub config: CameraOptimizerConfig,
+    /// The batch's ray directions before the correction (the backward reads them).
+    pub base_dirs: Vec<f32>,
+    /// ∂L/∂o' and ∂L/∂d' per ray, summed over the stages.
+    pub d_origins: Vec<f32>,
+    pub d_dirs: Vec<f32>,
+    /// ∂L/∂x and ∂L/∂d per sample of one stage.
+    pub d_positions: Vec<f32>,
+    pub d_sample_dirs: Vec<f32>,
+    rotations: Vec<Mat3x3<f32>>,
+    acc: Vec<f32>,
+}
+
+impl CpuPose {
+    pub fn new(n_views: usize, adam: &AdamConfig, config: &CameraOptimizerConfig) -> Self {
+        Self {
+            views: CpuViews::new(POSE_VIEWS, vec![0.0; POSE_PARAMS_PER_VIEW * n_views], adam),
+            config: config.clone(),
+            base_dirs: Vec::new(),
+            d_origins: Vec::new(),
+            d_dirs: Vec::new(),
+            d_positions: Vec::new(),
+            d_sample_dirs: Vec::new(),
+            rotations: Vec::new(),
+            acc: Vec::new(),
+        }
+    }
+
+    /// Moves the batch's rays by their views' corrections (keeping the directions before it) and
+    /// zeroes the per-ray gradients.
+    pub fn correct(&mut self, view_ids: &[u32], origins: &mut [f32], dirs: &mut [f32]) {
+        self.base_dirs.clear();
+        self.base_dirs.extend_from_slice(dirs);
+        pose_correct_rays(view_ids, &self.views.params, origins, dirs, &mut self.rotations);
+        self.d_origins.clear();
+        self.d_origins.resize(origins.len(), 0.0);
+        self.d_dirs.clear();
+        self.d_dirs.resize(dirs.len(), 0.0);
+    }
+
+    /// Per-sample input-gradient buffers sized for `n` samples.
+    pub fn sample_buffers(&mut self, n: usize) -> (&mut [f32], &mut [f32]) {
+        self.d_positions.resize(3 * n, 0.0);
+        self.d_sample_dirs.resize(3 * n, 0.0);
+        (&mut self.d_positions, &mut self.d_sample_dirs)
+    }
+
+    /// The corrections' gradients from the per-ray ones and the regulariser, then one Adam step
+    /// at the schedule's rate for `step`. Returns the regulariser's value (added to the loss).
+    pub fn step(&mut self, view_ids: &[u32], step: u64) -> f32 {
+        let v = &mut self.views;
+        pose_correct_backward(view_ids, &v.params, &self.base_dirs, &self.d_origins, &self.d_dirs, &mut self.acc, &mut v.grads);
+        let reg = regulariser(&self.config, &v.params, &mut v.grads);
+        v.step(self.config.lr_at(step));
+        reg
+    }
+}
+
+/// nerfstudio's `camera_opt_regularizer`: `trans_penalty · mean_v ‖τ_v‖ + rot_penalty ·
+/// mean_v ‖ω_v‖`; adds its gradient to `grads` (0 where a vector is 0) and returns its value.
+pub fn regulariser(config: &CameraOptimizerConfig, params: &[f32], grads: &mut [f32]) -> f32 {
+    let n_views = (params.len() / POSE_PARAMS_PER_VIEW).max(1) as f32;
+    let mut total = 0.0;
+    for (p, g) in params.chunks_exact(POSE_PARAMS_PER_VIEW).zip(grads.chunks_exact_mut(POSE_PARAMS_PER_VIEW)) {
+        for (part, weight) in [(0..3, config.trans_penalty), (3..6, config.rot_penalty)] {
+            let norm = p[part.clone()].iter().map(|x| x * x).sum::<f32>().sqrt();
+            total += weight * norm / n_views;
+            if norm > 0.0 {
+                for i in part {
+                    g[i] += weight * p[i] / (norm * n_views);
+                }
+            }
+        }
+    }
+    total
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn regulariser_gradient_matches_finite_differences() {
+        let config = CameraOptimizerConfig { trans_penalty: 0.3, rot_penalty: 0.7, ..Default::default() };
+        let params = vec![0.1, -0.2, 0.3, 0.05, 0.0, -0.1, 0.0, 0.0, 0.0, 0.2, 0.1, 0.4];
+        let mut grads = vec![0.0; 12];
+        let value = regulariser(&config, &params, &mut grads);
+        let want = 0.3 * (0.14f32.sqrt() + 0.0) / 2.0 + 0.7 * (0.0125f32.sqrt() + 0.21f32.sqrt()) / 2.0;
+        assert!((value - want).abs() < 1e-6, "{value} vs {want}");
+        let h = 1e-3;
+        for i in [0, 1, 2, 3, 5, 9, 10, 11] {
+            let (mut p, mut m) = (params.clone(), params.clone());
+            p[i] += h;
+            m[i] -= h;
+            let fd = (regulariser(&config, &p, &mut vec![0.0; 12]) - regulariser(&config, &m, &mut vec![0.0; 12])) / (2.0 * h);
+            assert!((fd - grads[i]).abs() < 2e-3, "[{i}]: {} vs fd {fd}", grads[i]);
+        }
+        assert_eq!(&grads[6..9], &[0.0; 3], "no gradient at a zero translation");
+    }
+
+    #[test]
+    fn the_rate_decays_from_lr_to_lr_final_then_stays() {
+        let c = CameraOptimizerConfig::default();
+        assert!((c.lr_at(0) - 1e-3).abs() < 1e-9);
+        assert!((c.lr_at(2500) - 1e-3 * 0.1f32.sqrt()).abs() < 1e-8);
+        assert!((c.lr_at(5000) - 1e-4).abs() < 1e-9 && c.lr_at(9000) == c.lr_at(5000));
+    }
+}
