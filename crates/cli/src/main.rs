@@ -316,7 +316,17 @@ struct ExportArgs {
     /// kept; the gains go to `exposure_gains.json`.
     #[arg(long = "exposure-jitter", value_name = "X")]
     exposure_jitter: Option<f32>,
-    /// Seed of the `--exposure-jitter` gains.
+    /// Moves each training view's camera by a rotation with each axis drawn from
+    /// [−DEG, DEG] degrees (about the camera centre, in world axes), for experiments with
+    /// `camera_optimizer`; with `--pose-noise-trans` also shifts it. Zero mean over the views;
+    /// test views are kept; the changes go to `pose_noise.json`.
+    #[arg(long = "pose-noise-rot", value_name = "DEG")]
+    pose_noise_rot: Option<f32>,
+    /// Shifts each training view's camera centre by up to UNITS (scene units) per axis (see
+    /// `--pose-noise-rot`).
+    #[arg(long = "pose-noise-trans", value_name = "UNITS")]
+    pose_noise_trans: Option<f32>,
+    /// Seed of the `--exposure-jitter` gains and the `--pose-noise-*` changes.
     #[arg(long, default_value_t = 0)]
     seed: u64,
 }
@@ -828,18 +838,36 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
             bail!("--exposure-jitter must lie in [0, 1), got {x}");
         }
     }
+    for (flag, x) in [("--pose-noise-rot", a.pose_noise_rot), ("--pose-noise-trans", a.pose_noise_trans)] {
+        if x.is_some_and(|x| !(x.is_finite() && x >= 0.0)) {
+            bail!("{flag} must be a finite amount ≥ 0, got {}", x.unwrap());
+        }
+    }
+    // The amount as typed (its shortest f32 digits), not the f32's f64 expansion.
+    let typed = |x: f32| -> Result<f64> { Ok(x.to_string().parse()?) };
+    let write_json = |name: &str, json: serde_json::Value| -> Result<()> {
+        std::fs::create_dir_all(&a.dst).with_context(|| format!("{}: cannot create", a.dst.display()))?;
+        let path = a.dst.join(name);
+        std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
+    };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
         let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false };
         let mut ds = load_scene(&a.src, split, &opts)?;
+        if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
+            let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));
+            let noise = nerf::data::pose_noise(ds.n_views(), rot, trans, a.seed);
+            ds.perturb_poses(&noise);
+            let json = serde_json::json!({
+                "rot_degrees": typed(rot)?, "trans": typed(trans)?, "seed": a.seed,
+                "convention": "per training view: translation τ (scene units) then rotation vector ω (radians) applied to the source camera: centre + τ, rotation exp([ω]x) · rotation; the camera_optimizer correction [−τ, −ω] undoes it",
+                "noise": noise,
+            });
+            write_json("pose_noise.json", json)?;
+        }
         if let (Some(x), Split::Train) = (a.exposure_jitter, split) {
             let gains = nerf::data::exposure_gains(ds.n_views(), x, a.seed);
             ds.scale_colors(&gains);
-            std::fs::create_dir_all(&a.dst).with_context(|| format!("{}: cannot create", a.dst.display()))?;
-            let path = a.dst.join("exposure_gains.json");
-            // The amount as typed (its shortest f32 digits), not the f32's f64 expansion.
-            let amount: f64 = x.to_string().parse()?;
-            let json = serde_json::json!({ "amount": amount, "seed": a.seed, "gains": gains });
-            std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))?;
+            write_json("exposure_gains.json", serde_json::json!({ "amount": typed(x)?, "seed": a.seed, "gains": gains }))?;
         }
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;
         println!("{:?}: {} views at {}x{} -> {}", split, ds.n_views(), ds.width, ds.height, a.dst.display());

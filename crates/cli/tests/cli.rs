@@ -875,3 +875,76 @@ fn export_scene_changes_exposures_and_color_correction_trains_on_it() {
     let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(d.path().join("x")).args(["--exposure-jitter", "1.5"]).output().unwrap();
     assert_clean_failure(&o, &["--exposure-jitter", "1.5"]);
 }
+
+/// `nerf export-scene --pose-noise-rot/--pose-noise-trans`: the training cameras are the
+/// unchanged export's moved by the changes written to `pose_noise.json` (zero mean over the
+/// views), test cameras are unchanged; a run with `[camera_optimizer]` trains on it and writes
+/// its corrected poses to `camera_corrections.json` (and their mean size to metrics.json); a
+/// negative amount is a clear error, and so is the optimizer on a field without input gradients.
+#[test]
+fn export_scene_moves_cameras_and_camera_optimizer_trains_on_it() {
+    let d = tempfile::tempdir().unwrap();
+    let plain = small_scene(d.path());
+    let s = d.path().join("moved");
+    let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(&s)
+        .args(["--downscale", "2", "--train-views", "first:3", "--test-views", "first:1", "--pose-noise-rot", "2", "--pose-noise-trans", "0.05", "--seed", "3"])
+        .output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json = |p: PathBuf| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap() };
+    let j = json(s.join("pose_noise.json"));
+    assert_eq!((j["rot_degrees"].as_f64(), j["trans"].as_f64(), j["seed"].as_u64()), (Some(2.0), Some(0.05), Some(3)));
+    let noise: Vec<[f64; 6]> = serde_json::from_value(j["noise"].clone()).unwrap();
+    assert_eq!(noise.len(), 3);
+    for i in 0..6 {
+        assert!(noise.iter().map(|p| p[i]).sum::<f64>().abs() < 1e-6, "component {i} has zero mean");
+        let bound = if i < 3 { 0.1 } else { 4f64.to_radians() }; // twice the amount: the mean was taken out
+        assert!(noise.iter().all(|p| p[i].abs() <= bound), "{noise:?}");
+    }
+    assert!(noise.iter().any(|p| p[3..].iter().any(|w| w.abs() > 1e-3)), "the cameras turned: {noise:?}");
+    let frames = |p: PathBuf| -> Vec<[[f64; 4]; 4]> {
+        json(p)["frames"].as_array().unwrap().iter().map(|f| serde_json::from_value(f["transform_matrix"].clone()).unwrap()).collect()
+    };
+    let (a, b) = (frames(plain.join("transforms_train.json")), frames(s.join("transforms_train.json")));
+    for (v, ((ma, mb), p)) in a.iter().zip(&b).zip(&noise).enumerate() {
+        for r in 0..3 {
+            assert!((mb[r][3] - ma[r][3] - p[r]).abs() < 1e-5, "view {v}: the centre moved by τ");
+        }
+        // The rotation turned by |ω|: the angle between the optical axes is at most |ω|.
+        let cos = (0..3).map(|r| ma[r][2] * mb[r][2]).sum::<f64>();
+        let w = (p[3] * p[3] + p[4] * p[4] + p[5] * p[5]).sqrt();
+        assert!(cos.min(1.0).acos() <= w + 1e-5, "view {v}");
+    }
+    assert_eq!(frames(plain.join("transforms_test.json")), frames(s.join("transforms_test.json")), "test cameras are unchanged");
+    // A run with the optimizer on this scene writes the corrected poses.
+    let cfg = d.path().join("pose.toml");
+    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 64\ncompact_samples = false\n[camera_optimizer]\nlr = 0.001\n[field_config.grid]\nlog2_hashmap_size = 12\n\
+        [sampler]\nkind = \"stratified\"\nn_samples = 16\n").unwrap();
+    let run = d.path().join("run");
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
+        .args(["--quiet", "--no-renders", "--iters", "4", "--device", "cpu"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let c = json(run.join("camera_corrections.json"));
+    let views = c["views"].as_array().unwrap();
+    assert_eq!(views.len(), 3);
+    let moved = frames(s.join("transforms_train.json"));
+    for (v, e) in views.iter().enumerate() {
+        let p: [f64; 6] = serde_json::from_value(e["correction"].clone()).unwrap();
+        assert!(p.iter().any(|x| *x != 0.0), "view {v} was corrected");
+        let m: [[f64; 4]; 4] = serde_json::from_value(e["camera_to_world"].clone()).unwrap();
+        for r in 0..3 {
+            assert!((m[r][3] - moved[v][r][3] - p[r]).abs() < 1e-5, "view {v}: the corrected centre is the camera's + τ");
+        }
+    }
+    let metrics = json(run.join("metrics.json"));
+    assert!(metrics["camera_corrections"]["mean_rotation_degrees"].as_f64().unwrap() > 0.0);
+    assert!((metrics["config"]["camera_optimizer"]["lr"].as_f64().unwrap() - 0.001).abs() < 1e-9, "the config as trained");
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet"]).output().unwrap();
+    assert!(o.status.success(), "the run evaluates again from its checkpoint: {}", stderr(&o));
+    // What it cannot take.
+    let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(d.path().join("x")).arg("--pose-noise-rot=-1").output().unwrap();
+    assert_clean_failure(&o, &["--pose-noise-rot", "-1"]);
+    std::fs::write(&cfg, "field = \"voxel\"\n[camera_optimizer]\n").unwrap();
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(d.path().join("voxel"))
+        .args(["--quiet", "--iters", "1", "--device", "cpu"]).output().unwrap();
+    assert_clean_failure(&o, &["camera_optimizer", "voxel"]);
+}

@@ -482,10 +482,7 @@ impl Dataset {
     pub fn perturb_poses(&mut self, noise: &[[f32; 6]]) {
         assert_eq!(noise.len(), self.n_views(), "one pose change per view");
         for (cam, p) in self.cameras.iter_mut().zip(noise) {
-            let r = nerf_rays::pose::so3_exp([p[3], p[4], p[5]]);
-            let r = glam::Mat3::from_cols_array_2d(&r).transpose(); // rows → glam's columns
-            cam.rotation = r * cam.rotation;
-            cam.position += glam::Vec3::new(p[0], p[1], p[2]);
+            *cam = nerf_rays::pose::move_camera(cam, p);
         }
     }
 

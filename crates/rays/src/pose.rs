@@ -147,6 +147,16 @@ pub fn pose_correct_rays<T: Real>(
     }
 }
 
+/// The camera whose rays are `camera`'s corrected by `p = [τ, ω]`: centre `position + τ`,
+/// orientation `R(ω) · rotation` — its pixel rays are [`pose_correct_rays`]'s for the same `p`
+/// (for every pixel convention and projection, as both only turn and shift the camera frame).
+/// The corrected poses a run writes, and how test scenes get cameras moved on purpose.
+pub fn move_camera(camera: &crate::Camera, p: &[f32; POSE_PARAMS_PER_VIEW]) -> crate::Camera {
+    let r = so3_exp([p[3], p[4], p[5]]);
+    let r = glam::Mat3::from_cols_array_2d(&r).transpose(); // rows → glam's columns
+    crate::Camera { rotation: r * camera.rotation, position: camera.position + glam::Vec3::new(p[0], p[1], p[2]), ..*camera }
+}
+
 /// Backward of [`pose_correct_rays`]: given `∂L/∂o'` and `∂L/∂d'` (`3·n` each) and the rays'
 /// directions *before* the correction (`dirs`), accumulates (`+=`) `∂L/∂p_v` into `grads`
 /// ([`POSE_PARAMS_PER_VIEW`] per view). `acc` is scratch (12 values per view).
@@ -308,5 +318,24 @@ mod tests {
         // View 1 turns −z by 0.01 rad about x; view 0 by 0.877 rad.
         assert!((d[1] - 0.01f32.sin()).abs() < 1e-6 && (d[2] + 0.01f32.cos()).abs() < 1e-6);
         assert!((d[3] * 0.6 + d[4] * 0.8 - 1.0).abs() > 0.1);
+    }
+
+    #[test]
+    fn a_moved_camera_casts_the_corrected_rays() {
+        let k = crate::Intrinsics::from_fov_x(16, 12, 0.7);
+        let c2w = [[0.6, 0.0, 0.8, 3.0], [0.8, 0.0, -0.6, 1.0], [0.0, 1.0, 0.0, 0.5]];
+        let cam = crate::Camera::from_c2w(k, &c2w).unwrap();
+        let p = [0.05, -0.02, 0.01, 0.02, -0.03, 0.015];
+        let moved = move_camera(&cam, &p);
+        let conv = crate::PixelConvention::Center;
+        for (col, row) in [(0, 0), (7, 5), (15, 11)] {
+            let (r, m) = (cam.ray(col, row, conv), moved.ray(col, row, conv));
+            let (mut o, mut d) = (r.origin.to_array().to_vec(), r.dir.to_array().to_vec());
+            pose_correct_rays(&[0], &p, &mut o, &mut d, &mut Vec::new());
+            for a in 0..3 {
+                assert!((o[a] - m.origin[a]).abs() < 1e-6 && (d[a] - m.dir[a]).abs() < 1e-6, "pixel ({col}, {row}) axis {a}");
+            }
+            assert!((r.dir - m.dir).length() > 1e-3, "the camera turned");
+        }
     }
 }

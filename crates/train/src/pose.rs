@@ -82,6 +82,36 @@ impl CpuPose {
     }
 }
 
+/// What a run learnt, as `camera_corrections.json` holds it: per training view (in the order the
+/// scene lists them) the correction `[τ, ω]`, its size (`|τ|`, `|ω|` in degrees) and the
+/// corrected camera-to-world matrix ([`nerf_rays::pose::move_camera`]; row-major 4×4 in the
+/// scene's ray space, the frame `cameras` are in), and the mean sizes.
+pub fn corrections_json(params: &[f32], cameras: &[nerf_rays::Camera]) -> serde_json::Value {
+    let n = cameras.len().max(1) as f64;
+    let (mut sum_t, mut sum_r) = (0.0, 0.0);
+    let views: Vec<serde_json::Value> = params
+        .chunks_exact(POSE_PARAMS_PER_VIEW)
+        .zip(cameras)
+        .enumerate()
+        .map(|(v, (p, cam))| {
+            let p: [f32; POSE_PARAMS_PER_VIEW] = p.try_into().expect("chunks of 6");
+            let t = p[..3].iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt();
+            let r = p[3..].iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt().to_degrees();
+            (sum_t, sum_r) = (sum_t + t, sum_r + r);
+            serde_json::json!({
+                "view": v, "correction": p, "translation": t, "rotation_degrees": r,
+                "camera_to_world": nerf_rays::pose::move_camera(cam, &p).c2w(),
+            })
+        })
+        .collect();
+    serde_json::json!({
+        "convention": "per training view: translation τ (scene units) then rotation vector ω (radians); rays o' = o + τ, d' = exp([ω]x) d (nerfstudio SO3xR3)",
+        "mean_translation": sum_t / n,
+        "mean_rotation_degrees": sum_r / n,
+        "views": views,
+    })
+}
+
 /// nerfstudio's `camera_opt_regularizer`: `trans_penalty · mean_v ‖τ_v‖ + rot_penalty ·
 /// mean_v ‖ω_v‖`; adds its gradient to `grads` (0 where a vector is 0) and returns its value.
 pub fn regulariser(config: &CameraOptimizerConfig, params: &[f32], grads: &mut [f32]) -> f32 {

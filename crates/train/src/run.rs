@@ -102,7 +102,7 @@ pub fn run(
         }
         // A new run: the previous run's results no longer describe this folder (and a
         // metrics.json left beside an interrupted new run would make it look finished).
-        for stale in [&metrics_path, &out.join("gpu_profile.json"), &out.join("dataparser_transforms.json")] {
+        for stale in [&metrics_path, &out.join("gpu_profile.json"), &out.join("dataparser_transforms.json"), &out.join("camera_corrections.json")] {
             match std::fs::remove_file(stale) {
                 Err(e) if e.kind() != std::io::ErrorKind::NotFound => return Err(io_err(stale)(e)),
                 _ => {}
@@ -238,6 +238,12 @@ pub fn run(
     samples_seen += trainer.samples_seen()?;
     pb.finish_with_message(format!("trained {} steps in {:.1}s", trainer.step_count(), elapsed));
     save(&trainer, elapsed)?;
+    // Camera pose refinement: the corrected training poses.
+    let corrections = trainer.pose_params().map(|p| crate::pose::corrections_json(p, &train.cameras));
+    if let Some(c) = &corrections {
+        let text = serde_json::to_string_pretty(c).expect("a JSON value serialises");
+        write_atomic(&out.join("camera_corrections.json"), text.as_bytes())?;
+    }
 
     let epb = if opts.progress { ProgressBar::new(test.n_views() as u64) } else { ProgressBar::hidden() };
     epb.set_style(ProgressStyle::with_template("eval {bar:30} {pos}/{len} views").expect("valid template"));
@@ -276,6 +282,9 @@ pub fn run(
         "device_note": trainer.device_note(),
         "per_view": report.views,
     });
+    if let Some(c) = &corrections {
+        metrics["camera_corrections"] = json!({ "mean_translation": c["mean_translation"], "mean_rotation_degrees": c["mean_rotation_degrees"] });
+    }
     if let Some(p) = &profile {
         metrics["gpu_profile"] = serde_json::to_value(p).expect("profile serialises");
     }
