@@ -1,7 +1,7 @@
 //! Pipeline benchmarks of the facade: the frequency encoding forward/backward and one full
-//! training iteration of each field — the paper's (coarse + fine), the hash grid and the voxel
-//! grid (occupancy marching, after its warm-up) — on the in-repo scene, side by side in one
-//! group, as samples/s.
+//! training iteration of each field — the paper's (coarse + fine), the hash grid (also with
+//! camera pose refinement) and the voxel grid (occupancy marching, after its warm-up) — on the
+//! in-repo scene, side by side in one group, as samples/s.
 //! Per-component benches live beside their crates: `cargo bench -p nerf-mlp` (MLP at width 256,
 //! GFLOP/s), `-p nerf-render` (compositing), `-p nerf-encoding` (hash grid, SH),
 //! `-p nerf-sampling` (marching).
@@ -70,11 +70,11 @@ fn training_iteration(c: &mut Criterion) {
 
     // The grid fields with their registry presets, measured after the occupancy warm-up so the
     // grid has carved out empty space (samples per step then hover around the target).
-    for field in ["hash", "voxel"] {
-        let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
-        nerf::field::merge_json(&mut v, &(registry.get(field).unwrap().train_preset)());
-        let mut config: TrainConfig = serde_json::from_value(v).unwrap();
-        config.field = field.into();
+    // `hash_camera_optimizer`: the hash preset with camera pose refinement (input gradients
+    // through the field, per-ray sums, the per-view corrections' Adam).
+    for (name, field, pose) in [("hash", "hash", false), ("hash_camera_optimizer", "hash", true), ("voxel", "voxel", false)] {
+        let mut config = preset(&registry, field);
+        config.camera_optimizer = pose.then(Default::default);
         if small() {
             config.field_config = match field {
                 "hash" => serde_json::json!({"grid": {"log2_hashmap_size": 15}}),
@@ -90,7 +90,7 @@ fn training_iteration(c: &mut Criterion) {
             seen = trainer.step(&data).unwrap().n_samples;
         }
         g.throughput(Throughput::Elements(seen as u64));
-        g.bench_function(BenchmarkId::new(field, format!("target_{target}_samples")), |b| {
+        g.bench_function(BenchmarkId::new(name, format!("target_{target}_samples")), |b| {
             b.iter(|| black_box(trainer.step(&data).unwrap()))
         });
     }

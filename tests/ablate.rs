@@ -239,6 +239,13 @@ fn the_example_ablations_parse_and_plan() {
             assert!(p.config.field == "hash" && p.config.iters == 2000 && p.config.validate().is_ok(), "{name}");
         }
     }
+    // The pose-refinement comparison: off and on (nerfacto's defaults) on the moved and the
+    // unchanged scene.
+    let pose = Ablation::load(&dir.join("camera_optimizer_lego200.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(pose.len(), 4);
+    let on: Vec<_> = pose.iter().filter_map(|p| p.config.camera_optimizer.clone()).collect();
+    assert_eq!(on, vec![nerf::train::config::CameraOptimizerConfig::default(); 2]);
+    assert!(pose.iter().all(|p| p.config.field == "hash" && p.config.iters == 2000 && p.config.validate().is_ok()));
 }
 
 /// A run whose loss turns NaN (a learning rate of 1e30) is reported as diverged and left out;
