@@ -483,7 +483,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
     let test = load_scene(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc })?;
-    let mut trainer = make_trainer(&ck.config, &nerf::registry(), SceneBounds::of(&test), a.device)?;
+    let mut trainer = make_trainer(&ck.config.for_rendering(), &nerf::registry(), SceneBounds::of(&test), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
     let pb = progress(a.quiet, test.n_views(), "eval {bar:30} {pos}/{len} views");
@@ -554,7 +554,7 @@ fn load_run(run: &Path, scene: &Path, device: nerf::gpu::DevicePreference, eucli
     if let (Some(what), Some(_)) = (euclidean_for, &train.ndc) {
         bail!("{}: the run was trained in NDC space, not the scene's: {what} needs a run trained with --no-ndc", run.display());
     }
-    let mut trainer = make_trainer(&config, &nerf::registry(), SceneBounds::of(&train), device)?;
+    let mut trainer = make_trainer(&config.for_rendering(), &nerf::registry(), SceneBounds::of(&train), device)?;
     trainer.restore(step, &fields, adam, &sampler)?;
     Ok(LoadedRun { config, step, train, trainer })
 }

@@ -940,6 +940,22 @@ fn export_scene_moves_cameras_and_camera_optimizer_trains_on_it() {
     assert!((metrics["config"]["camera_optimizer"]["lr"].as_f64().unwrap() - 0.001).abs() < 1e-9, "the config as trained");
     let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet"]).output().unwrap();
     assert!(o.status.success(), "the run evaluates again from its checkpoint: {}", stderr(&o));
+    // Training with it needs the CPU; rendering the run does not (the corrections are the
+    // training photos'): on a GPU adapter (lavapipe here) `eval` and `render` run.
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(d.path().join("gpu"))
+        .args(["--quiet", "--iters", "1", "--device", "gpu"]).output().unwrap();
+    assert!(!o.status.success());
+    if stderr(&o).contains("no GPU adapter") {
+        eprintln!("NOTICE: no GPU adapter; GPU rendering of the run not checked");
+    } else {
+        assert_clean_failure(&o, &["camera_optimizer runs on the CPU only", "--device cpu"]);
+        let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "gpu", "--quiet"]).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let gpu_eval = json(run.join("eval/eval.json"));
+        assert_eq!(gpu_eval["device"].as_str(), Some("gpu"), "{gpu_eval}");
+        let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--width", "16", "--device", "gpu", "--quiet"]).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
     // What it cannot take.
     let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(d.path().join("x")).arg("--pose-noise-rot=-1").output().unwrap();
     assert_clean_failure(&o, &["--pose-noise-rot", "-1"]);

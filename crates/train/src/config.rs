@@ -274,6 +274,14 @@ fn is_true(b: &bool) -> bool {
 }
 
 impl TrainConfig {
+    /// The config a trainer that only renders a run needs: without the parts that act on the
+    /// training photos alone and that the GPU path cannot take yet (`camera_optimizer`: the
+    /// corrections belong to the training views and renders use the cameras as given). Its
+    /// checkpoint restores into such a trainer (the `camera/…` entries are skipped).
+    pub fn for_rendering(&self) -> TrainConfig {
+        TrainConfig { camera_optimizer: None, ..self.clone() }
+    }
+
     /// Checks values that would make a run meaningless.
     pub fn validate(&self) -> Result<(), String> {
         if self.batch_rays == 0 {
