@@ -246,6 +246,13 @@ fn the_example_ablations_parse_and_plan() {
     let on: Vec<_> = pose.iter().filter_map(|p| p.config.camera_optimizer.clone()).collect();
     assert_eq!(on, vec![nerf::train::config::CameraOptimizerConfig::default(); 2]);
     assert!(pose.iter().all(|p| p.config.field == "hash" && p.config.iters == 2000 && p.config.validate().is_ok()));
+    // On fern: Euclidean rays (NDC is refused), llff_hash.toml's step.
+    let fern = Ablation::load(&dir.join("camera_optimizer_fern.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(fern.iter().map(|p| p.config.camera_optimizer.is_some()).collect::<Vec<_>>(), [false, true]);
+    for p in &fern {
+        assert!(!p.config.ndc && p.config.validate().is_ok());
+        assert!(matches!(p.config.sampler, nerf::train::SamplerConfig::Occupancy { step_size, .. } if step_size == 0.02));
+    }
 }
 
 /// A run whose loss turns NaN (a learning rate of 1e30) is reported as diverged and left out;
