@@ -36,7 +36,7 @@ name = "freq"
 config = {{ field = "freq", batch_rays = 64, field_config = {{ width = 16, depth = 2, skips = [], view_width = 8 }}, sampler = {{ kind = "hierarchical", n_coarse = 8, n_fine = 8 }} }}
 [[runs]]
 name = "hash"
-config = {{ field = "hash", target_samples_per_step = 2048, field_config = {{ grid = {{ log2_hashmap_size = 12, n_levels = 4 }} }} }}
+config = {{ field = "hash", target_samples_per_step = 2048, field_config = {{ grid = {{ log2_hashmap_size = 12, n_levels = 4 }} }}, camera_optimizer = {{}} }}
 [grid]
 train_background = ["white", "black"]
 "#
@@ -89,6 +89,16 @@ fn tiny_ablation_end_to_end_and_skip_on_rerun() {
         assert_eq!(m["field"], r.plan.config.field.as_str());
         assert_eq!(m["config"]["train_background"], r.plan.grid[0].1);
         assert!(m["n_params"].as_u64().unwrap() > 0);
+        // The hash runs refine the cameras: their corrections' sizes, and every view's in a file.
+        let pose = r.plan.config.camera_optimizer.is_some();
+        assert_eq!(pose, r.plan.config.field == "hash");
+        assert_eq!(m.get("camera_corrections").is_some(), pose, "{}", r.plan.id);
+        assert_eq!(dir.join("camera_corrections.json").exists(), pose, "{}", r.plan.id);
+        if pose {
+            assert!(m["camera_corrections"]["mean_rotation_degrees"].as_f64().unwrap() > 0.0);
+            let c: serde_json::Value = serde_json::from_str(&read(&dir.join("camera_corrections.json"))).unwrap();
+            assert_eq!(c["views"].as_array().unwrap().len(), 3);
+        }
         let curve = read(&dir.join("curve.csv"));
         let lines: Vec<&str> = curve.lines().collect();
         assert_eq!(lines[0], "iter,seconds,psnr,ssim");

@@ -80,6 +80,14 @@ pub struct RunMetrics {
     /// Per-kernel GPU timings of the steps `config.gpu_profile` asked for (GPU runs only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub gpu_profile: Option<nerf_train::GpuProfile>,
+    /// With `camera_optimizer`: the learnt corrections' mean sizes (`mean_translation`,
+    /// `mean_rotation_degrees`); every view's goes to `runs/<id>/camera_corrections.json`
+    /// (`nerf_train::pose::corrections_json`, as `nerf train` writes it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera_corrections: Option<serde_json::Value>,
+    /// The whole `camera_corrections.json` (not part of metrics.json).
+    #[serde(skip)]
+    pub camera_corrections_file: Option<serde_json::Value>,
 }
 
 /// The outcome of one run of an ablation.
@@ -227,6 +235,7 @@ pub fn train_run(
         eval_point(&trainer, elapsed, &mut curve)?;
     }
     let last = *curve.last().expect("at least the final evaluation");
+    let corrections = trainer.pose_params().map(|p| nerf_train::pose::corrections_json(p, &train.cameras));
     let iters = trainer.step_count();
     let samples = trainer.samples_seen().map_err(terr)?;
     Ok(RunMetrics {
@@ -257,6 +266,10 @@ pub fn train_run(
         config: cfg.clone(),
         device_note: trainer.device_note().map(str::to_string),
         gpu_profile: profile,
+        camera_corrections: corrections
+            .as_ref()
+            .map(|c| serde_json::json!({ "mean_translation": c["mean_translation"], "mean_rotation_degrees": c["mean_rotation_degrees"] })),
+        camera_corrections_file: corrections,
     })
 }
 
@@ -317,6 +330,10 @@ pub fn run_ablation(
             csv.push_str(&format!("{},{},{},{}\n", p.iter, p.seconds, p.psnr, p.ssim));
         }
         write_atomic(&dir.join("curve.csv"), csv.as_bytes())?;
+        if let Some(c) = &m.camera_corrections_file {
+            let text = serde_json::to_string_pretty(c).expect("a JSON value serialises");
+            write_atomic(&dir.join("camera_corrections.json"), text.as_bytes())?;
+        }
         let text = serde_json::to_string_pretty(&m).expect("metrics serialise");
         write_atomic(&mpath, text.as_bytes())?;
         // Summaries are built from the metrics as read back (serde_json's float parsing need not
