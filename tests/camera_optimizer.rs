@@ -66,7 +66,7 @@ fn rotation_correlation(params: &[f32], noise: &[[f32; 6]]) -> f64 {
 }
 
 #[test]
-fn moved_cameras_are_corrected_and_novel_views_render_better() {
+fn moved_cameras_are_corrected_and_novel_views_render_better_and_accurate_ones_stay() {
     let (data, noise) = perturbed(ViewSelection::All);
     let truth = load(Split::Train, ViewSelection::All);
     let test = load(Split::Test, ViewSelection::Every(5));
@@ -79,10 +79,17 @@ fn moved_cameras_are_corrected_and_novel_views_render_better() {
     let r = rotation_correlation(params, &noise);
     println!("test PSNR without refinement {p_off:.2} dB, with {p_on:.2} dB; ray error {before:.4} → {after:.4}; rotations r = {r:.3}");
     assert!(off.pose_params().is_none());
-    // Measured on 2 cores: 18.51 dB without, 20.90 dB with; ray error 0.096 → 0.045; r = 0.74.
-    assert!(after < 0.65 * before, "the corrections bring the rays back: {before} → {after}");
+    // Measured: 18.51 dB without, 21.95 dB with; ray error 0.096 → 0.030; r = 0.78.
+    assert!(after < 0.5 * before, "the corrections bring the rays back: {before} → {after}");
     assert!(r > 0.5, "learnt rotations follow the opposite of the noise: r = {r}");
-    assert!(p_on > p_off + 1.0, "{p_on} vs {p_off}");
+    assert!(p_on > p_off + 2.0, "{p_on} vs {p_off}");
+    // On accurate poses the corrections' wandering (noisy per-view gradients) costs little at
+    // the default rate (measured: 24.95 dB without, 24.06 dB with; at nerfacto's 10⁻³: 20.83 dB).
+    let on_truth = train(&config(iters, true), &truth);
+    let p_truth = sparse_psnr(&on_truth, &test, 3);
+    let p_truth_off = sparse_psnr(&train(&config(iters, false), &truth), &test, 3);
+    println!("accurate poses: {p_truth_off:.2} dB without, {p_truth:.2} dB with");
+    assert!(p_truth > p_truth_off - 1.5, "{p_truth} vs {p_truth_off}");
 }
 
 /// The corrections go into checkpoints (`camera/…` entries of the sampler state) and come back:

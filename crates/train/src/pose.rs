@@ -156,9 +156,13 @@ mod tests {
 
     #[test]
     fn the_rate_decays_from_lr_to_lr_final_then_stays() {
-        let c = CameraOptimizerConfig::default();
+        let c = CameraOptimizerConfig { lr: 1e-3, lr_final: 1e-4, ..Default::default() };
         assert!((c.lr_at(0) - 1e-3).abs() < 1e-9);
         assert!((c.lr_at(2500) - 1e-3 * 0.1f32.sqrt()).abs() < 1e-8);
         assert!((c.lr_at(5000) - 1e-4).abs() < 1e-9 && c.lr_at(9000) == c.lr_at(5000));
+        // With a warm-up the corrections stay put until it ends, then follow the same schedule.
+        let w = CameraOptimizerConfig { warmup_steps: 300, ..c.clone() };
+        assert_eq!((w.lr_at(0), w.lr_at(299)), (0.0, 0.0));
+        assert_eq!((w.lr_at(300), w.lr_at(2500)), (c.lr_at(300), c.lr_at(2500)));
     }
 }
