@@ -31,14 +31,8 @@ pub type Mat3x3<T> = [[T; 3]; 3];
 
 /// `R = exp([ω]×)` (Rodrigues' formula; its Taylor series near `ω = 0`).
 pub fn so3_exp<T: Real>(w: [T; 3]) -> Mat3x3<T> {
-    let th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
     // R = I + a [ω]× + b [ω]×²,  a = sin θ / θ,  b = (1 − cos θ) / θ².
-    let (a, b) = if th2 < T::c(1e-8) {
-        (T::one() - th2 / T::c(6.0), T::c(0.5) - th2 / T::c(24.0))
-    } else {
-        let th = th2.sqrt();
-        (th.sin() / th, (T::one() - th.cos()) / th2)
-    };
+    let (a, b) = rodrigues_ab(w);
     let k = skew(w);
     let k2 = matmul(&k, &k);
     let mut r = [[T::zero(); 3]; 3];
@@ -49,6 +43,19 @@ pub fn so3_exp<T: Real>(w: [T; 3]) -> Mat3x3<T> {
         }
     }
     r
+}
+
+/// `(a, b)` of `R = I + a [ω]× + b [ω]×²`: `a = sin θ / θ`, `b = (1 − cos θ) / θ²`, the latter
+/// as `2 sin²(θ/2) / θ²` (no cancellation in f32); their Taylor series near `θ = 0`.
+fn rodrigues_ab<T: Real>(w: [T; 3]) -> (T, T) {
+    let th2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+    if th2 < T::c(1e-8) {
+        (T::one() - th2 / T::c(6.0), T::c(0.5) - th2 / T::c(24.0))
+    } else {
+        let th = th2.sqrt();
+        let s = (T::c(0.5) * th).sin();
+        (th.sin() / th, T::c(2.0) * s * s / th2)
+    }
 }
 
 /// `∂R/∂ω_i` for `i = 0, 1, 2` at `ω` (Gallego & Yezzi 2015, "A compact formula for the
@@ -75,9 +82,14 @@ pub fn so3_exp_derivatives<T: Real>(w: [T; 3]) -> [Mat3x3<T>; 3] {
     }
     let r = so3_exp(w);
     let k = skew(w);
+    let (a, b) = rodrigues_ab(w);
     for (i, d) in out.iter_mut().enumerate() {
-        // (I − R) e_i is column i of I − R.
-        let col = [0, 1, 2].map(|row| (if row == i { T::one() } else { T::zero() }) - r[row][i]);
+        // (I − R) e_i = −(a [ω]× e_i + b [ω]×² e_i), without the cancellation of I − R in f32.
+        let mut e = [T::zero(); 3];
+        e[i] = T::one();
+        let ke = cross(w, e);
+        let kke = cross(w, ke);
+        let col = [0, 1, 2].map(|c| -(a * ke[c] + b * kke[c]));
         let v = cross(w, col);
         let s = skew(v);
         let mut m = [[T::zero(); 3]; 3];
@@ -210,6 +222,26 @@ pub fn pose_correct_backward<T: Real>(
     }
 }
 
+/// nerfstudio's `camera_opt_regularizer`: `trans_penalty · mean_v ‖τ_v‖ + rot_penalty ·
+/// mean_v ‖ω_v‖` over the views' corrections `params` ([`POSE_PARAMS_PER_VIEW`] per view); adds
+/// its gradient to `grads` (0 where a vector is 0) and returns its value.
+pub fn pose_regulariser(trans_penalty: f32, rot_penalty: f32, params: &[f32], grads: &mut [f32]) -> f32 {
+    let n_views = (params.len() / POSE_PARAMS_PER_VIEW).max(1) as f32;
+    let mut total = 0.0;
+    for (p, g) in params.chunks_exact(POSE_PARAMS_PER_VIEW).zip(grads.chunks_exact_mut(POSE_PARAMS_PER_VIEW)) {
+        for (part, weight) in [(0..3, trans_penalty), (3..6, rot_penalty)] {
+            let norm = p[part.clone()].iter().map(|x| x * x).sum::<f32>().sqrt();
+            total += weight * norm / n_views;
+            if norm > 0.0 {
+                for i in part {
+                    g[i] += weight * p[i] / (norm * n_views);
+                }
+            }
+        }
+    }
+    total
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -257,6 +289,28 @@ mod tests {
                     for c in 0..3 {
                         let fd = (rp[r][c] - rm[r][c]) / (2.0 * h);
                         assert!((fd - d[i][r][c]).abs() < 1e-8, "scale {scale} ∂R/∂ω{i}[{r}][{c}]: {} vs fd {fd}", d[i][r][c]);
+                    }
+                }
+            }
+        }
+    }
+
+    /// In f32 the derivatives stay as accurate at the small angles refinement works with (a few
+    /// hundredths of a degree) as at large ones: no `I − R` cancellation.
+    #[test]
+    fn exp_derivatives_in_f32_are_accurate_at_small_angles() {
+        let mut rng = nerf_core::rng(10, 0);
+        for scale in [3e-6f64, 1e-5, 1e-4, 1e-3, 1e-2, 0.5] {
+            for _ in 0..20 {
+                let w = rand_w(&mut rng, scale);
+                let w32 = w.map(|x| x as f32);
+                let (d64, d32) = (so3_exp_derivatives(w32.map(|x| x as f64)), so3_exp_derivatives(w32));
+                for i in 0..3 {
+                    for r in 0..3 {
+                        for c in 0..3 {
+                            let err = (d32[i][r][c] as f64 - d64[i][r][c]).abs();
+                            assert!(err < 2e-6, "scale {scale} ∂R/∂ω{i}[{r}][{c}]: f32 {} vs f64 {}", d32[i][r][c], d64[i][r][c]);
+                        }
                     }
                 }
             }

@@ -6,7 +6,7 @@
 use crate::config::CameraOptimizerConfig;
 use crate::views::{CpuViews, ViewKind, ViewState};
 use nerf_optim::AdamConfig;
-use nerf_rays::pose::{pose_correct_backward, pose_correct_rays, Mat3x3, POSE_PARAMS_PER_VIEW};
+use nerf_rays::pose::{pose_correct_backward, pose_correct_rays, pose_regulariser, Mat3x3, POSE_PARAMS_PER_VIEW};
 
 /// The pose corrections' entries in checkpoints (`camera/params`: per training view a
 /// translation then a rotation vector, `camera/m`, `camera/v`, `camera/step`) and their Adam
@@ -112,23 +112,10 @@ pub fn corrections_json(params: &[f32], cameras: &[nerf_rays::Camera]) -> serde_
     })
 }
 
-/// nerfstudio's `camera_opt_regularizer`: `trans_penalty · mean_v ‖τ_v‖ + rot_penalty ·
-/// mean_v ‖ω_v‖`; adds its gradient to `grads` (0 where a vector is 0) and returns its value.
+/// nerfstudio's `camera_opt_regularizer` with `config`'s weights
+/// ([`nerf_rays::pose::pose_regulariser`]): adds its gradient to `grads`, returns its value.
 pub fn regulariser(config: &CameraOptimizerConfig, params: &[f32], grads: &mut [f32]) -> f32 {
-    let n_views = (params.len() / POSE_PARAMS_PER_VIEW).max(1) as f32;
-    let mut total = 0.0;
-    for (p, g) in params.chunks_exact(POSE_PARAMS_PER_VIEW).zip(grads.chunks_exact_mut(POSE_PARAMS_PER_VIEW)) {
-        for (part, weight) in [(0..3, config.trans_penalty), (3..6, config.rot_penalty)] {
-            let norm = p[part.clone()].iter().map(|x| x * x).sum::<f32>().sqrt();
-            total += weight * norm / n_views;
-            if norm > 0.0 {
-                for i in part {
-                    g[i] += weight * p[i] / (norm * n_views);
-                }
-            }
-        }
-    }
-    total
+    pose_regulariser(config.trans_penalty, config.rot_penalty, params, grads)
 }
 
 #[cfg(test)]
