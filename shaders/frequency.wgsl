@@ -1,4 +1,5 @@
-// NeRF's frequency (positional) encoding, forward only.
+// NeRF's frequency (positional) encoding: forward, and the gradient in its input (camera pose
+// refinement).
 // CPU twin: nerf_encoding::FrequencyEncoding (crates/encoding/src/lib.rs), nerf-pytorch's order:
 // [x, sin(2^0 x), cos(2^0 x), sin(2^1 x), cos(2^1 x), …], each block holding all D coordinates,
 // no π factor; the raw input block only when include_input (SKIP = D).
@@ -51,4 +52,43 @@ fn frequency_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
     let freq = bitcast<f32>((127u + band) << 23u);
     let a = reduce_two_pi(freq * x[s * D + j]);
     out[id] = select(sin(a), cos(a), is_cos);
+}
+
+// ∂L/∂x from ∂L/∂out (CPU twin: FrequencyEncoding::backward with d_input): one invocation per
+// input element (sample s, coordinate j), d_x = [d_raw] + Σ_k 2^k (cos(2^k x) d_sin − sin(2^k x) d_cos).
+// ∂L/∂out of sample s starts at d_out[s·grad.stride + grad.offset] (the encoding may be a slice of
+// a wider row, e.g. a colour network's input gradient). Written over d_x; rows past n untouched.
+struct GradLayout {
+    stride: u32,
+    offset: u32,
+    _pad0: u32,
+    _pad1: u32,
+}
+
+@group(0) @binding(3) var<uniform> grad: GradLayout;
+@group(0) @binding(4) var<storage, read> d_out: array<f32>;
+@group(0) @binding(5) var<storage, read_write> d_x: array<f32>;
+
+@compute @workgroup_size(WG)
+fn frequency_input_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let id = linear_id(gid, nwg, WG);
+    let n = min(counters[1], min(arrayLength(&x), arrayLength(&d_x)) / D);
+    let s = id / D;
+    if (s >= n) {
+        return;
+    }
+    let j = id - s * D;
+    let row = s * grad.stride + grad.offset;
+    var acc = 0.0;
+    if (SKIP > 0u) {
+        acc = d_out[row + j];
+    }
+    let xj = x[s * D + j];
+    for (var band = 0u; band < N_FREQ; band = band + 1u) {
+        let freq = bitcast<f32>((127u + band) << 23u);
+        let a = reduce_two_pi(freq * xj);
+        let base = row + SKIP + band * 2u * D;
+        acc = acc + freq * (cos(a) * d_out[base + j] - sin(a) * d_out[base + D + j]);
+    }
+    d_x[id] = acc;
 }

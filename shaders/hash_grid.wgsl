@@ -1,4 +1,5 @@
-// Multiresolution hash encoding (Instant-NGP), forward and parameter backward.
+// Multiresolution hash encoding (Instant-NGP), forward, parameter backward and the gradient
+// w.r.t. the input positions (hash_input_grad).
 // CPU twin: nerf_encoding::HashGrid (crates/encoding/src/hash_grid.rs); host side:
 // nerf_gpu::encoding::GpuHashGrid. Same level resolutions, dense/hashed levels, spatial hash
 // (x·1 ⊕ y·2654435761 ⊕ z·805459861) & (T−1), corner order (bit 0 = +x, bit 1 = +y, bit 2 = +z),
@@ -51,10 +52,12 @@ struct Params {
 @group(0) @binding(5) var<storage, read> d_features: array<f32>;
 @group(0) @binding(6) var<storage, read_write> grads_cas: array<atomic<u32>>;
 
-// The 8 corners of a sample's cell at one level: slot indices within the level and weights.
+// The 8 corners of a sample's cell at one level: slot indices within the level, weights, and the
+// position within the cell (the weights' factors; the input gradient differentiates them).
 struct Cell {
     slot: array<u32, 8>,
     w: array<f32, 8>,
+    frac: vec3<f32>,
 }
 
 fn is_nan(v: f32) -> bool {
@@ -104,6 +107,7 @@ fn cell(x: vec3<f32>, lv: vec4<u32>) -> Cell {
     for (var k = 0u; k < 8u; k++) {
         c.w[k] = ax[k & 1u] * ay[(k >> 1u) & 1u] * az[k >> 2u];
     }
+    c.frac = f;
     return c;
 }
 
@@ -182,6 +186,68 @@ fn hash_backward_cas(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
                 add_cas(o + j, d);
             }
         }
+    }
+}
+
+// ---- Gradient w.r.t. the WORLD positions (camera pose refinement) ----
+// CPU twin: HashGrid::backward(xn, d_features, _, Some(d_input)) (input_grad_chunk) followed by
+// the chain rule through nerf-field-hash's normalisation (backward_inputs_t):
+//   per level l (in order), skipped when d_features of (i, l) are all zero:
+//     s_k   = Σ_j g_j · table[corner k][j]                 (j in order, from 0)
+//     dw[a] = Σ_k s_k · ∂w_k/∂frac[a] (the other two axes' factors; k in order)
+//     acc[a] += dw[a] · res_l
+//   d_positions[3i + a] = acc[a] · inv_extent[a] where 0 < xn[a] < 1, else 0 (a coordinate on or
+//   outside the box's faces, or NaN, is taken as clamped).
+// Reads the f32 table (params, as array<f32> at binding 10), never the f16 mirror. One invocation
+// per sample (levels looped, no atomics); OVERWRITES the 3 floats of samples i < n, leaves the
+// rows past n untouched. Launch: groups_1d(capacity, WG), z = 1.
+@group(0) @binding(10) var<storage, read> table_f32: array<f32>;
+@group(0) @binding(11) var<storage, read_write> d_positions: array<f32>;
+
+@compute @workgroup_size(WG)
+fn hash_input_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let nl = P.n_levels;
+    let n = min(n_samples(arrayLength(&d_positions), 3u), arrayLength(&d_features) / (nl * FEATS));
+    if (i >= n) {
+        return;
+    }
+    let x = unit_position(i);
+    var acc = vec3<f32>(0.0);
+    for (var l = 0u; l < nl; l++) {
+        let g = load_grad(i, l);
+        if (!g.any) {
+            continue;
+        }
+        let lv = P.levels[l];
+        let c = cell(x, lv);
+        var s: array<f32, 8>;
+        for (var k = 0u; k < 8u; k++) {
+            let o = lv.y + c.slot[k] * FEATS;
+            var sk = 0.0;
+            for (var j = 0u; j < FEATS; j++) {
+                sk += g.g[j] * table_f32[o + j];
+            }
+            s[k] = sk;
+        }
+        let ax = array<f32, 2>(1.0 - c.frac.x, c.frac.x);
+        let ay = array<f32, 2>(1.0 - c.frac.y, c.frac.y);
+        let az = array<f32, 2>(1.0 - c.frac.z, c.frac.z);
+        let sg = array<f32, 2>(-1.0, 1.0);
+        var dw = vec3<f32>(0.0);
+        for (var k = 0u; k < 8u; k++) {
+            let bx = k & 1u;
+            let by = (k >> 1u) & 1u;
+            let bz = k >> 2u;
+            dw.x += s[k] * sg[bx] * ay[by] * az[bz];
+            dw.y += s[k] * ax[bx] * sg[by] * az[bz];
+            dw.z += s[k] * ax[bx] * ay[by] * sg[bz];
+        }
+        acc += dw * f32(lv.x);
+    }
+    for (var a = 0u; a < 3u; a++) {
+        let inside = x[a] > 0.0 && x[a] < 1.0;
+        d_positions[3u * i + a] = select(0.0, acc[a] * P.inv_extent[a], inside);
     }
 }
 

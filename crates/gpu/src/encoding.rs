@@ -1,5 +1,6 @@
-//! Input encodings on the GPU: Instant-NGP's multiresolution hash grid (forward and parameter
-//! backward), the spherical-harmonics direction encoding and NeRF's frequency encoding (forward
+//! Input encodings on the GPU: Instant-NGP's multiresolution hash grid (forward, parameter
+//! backward and the gradient w.r.t. the positions), the spherical-harmonics direction encoding
+//! (forward and the gradient w.r.t. the directions) and NeRF's frequency encoding (forward
 //! only). Each matches its CPU twin in `nerf-encoding` (same layouts, formulas and summation
 //! order; the tests compare them on random inputs).
 //!
@@ -64,6 +65,7 @@ pub struct GpuHashGrid {
     uniform: wgpu::Buffer,
     forward: Kernel,
     backward: Kernel,
+    input_grad: Kernel,
     float_atomics: bool,
     subgroup_sums: bool,
     mirror: Option<F16Mirror>,
@@ -199,6 +201,7 @@ impl GpuHashGrid {
             (false, _) => "hash_backward_cas",
         };
         let backward = Kernel::from_module(ctx, &module, backward_entry, &constants);
+        let input_grad = Kernel::from_module(ctx, &module, "hash_input_grad", &constants);
         let mirror = match cfg.storage {
             Precision::F32 => None,
             Precision::F16 if f != 2 => {
@@ -222,6 +225,7 @@ impl GpuHashGrid {
             params,
             forward,
             backward,
+            input_grad,
             float_atomics,
             subgroup_sums,
             mirror,
@@ -361,30 +365,100 @@ impl GpuHashGrid {
         let b = [(0, &self.uniform), (1, counters), (2, positions), (5, d_features), (slot, grads)];
         launch.record(&self.backward, ctx, enc, &b, 1, HASH_WG, self.n_levels() as u32);
     }
+
+    /// Records the gradient w.r.t. the positions (camera pose refinement): for the
+    /// `n = counters[1]` samples of `positions` (`[n][3]`, world units), OVERWRITES
+    /// `d_positions[3i..3i + 3]` with dL/d(world position) given `d_enc` (`[n][L·F]`, dL/d(encoding),
+    /// the layout [`GpuHashGrid::record_backward`] reads), reading the table from the f32
+    /// `params` (`n_params()` floats; never the f16 mirror). Rows past `n` are left untouched; no
+    /// parameter gradient is added.
+    ///
+    /// Twin of `HashGrid::backward(xn, d_enc, _, Some(d_input))` followed by the chain rule
+    /// through `nerf-field-hash`'s normalisation `xn = clamp((p − aabb_min)·inv_extent, 0, 1)`:
+    /// the interpolation's derivative summed over the levels (each times its resolution),
+    /// multiplied by `inv_extent[a]`, and 0 on an axis where `xn[a]` is not strictly inside
+    /// `(0, 1)` (on or outside the box's faces). One invocation per sample (no atomics, so the
+    /// result does not depend on the launch); buffers hold at least `launch.capacity()` samples.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_input_gradient(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        d_enc: &wgpu::Buffer,
+        d_positions: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        let capacity = launch.capacity();
+        assert!(positions.size() >= 12 * capacity as u64, "GpuHashGrid: positions hold fewer than {capacity} samples");
+        assert!(d_positions.size() >= 12 * capacity as u64, "GpuHashGrid: d_positions hold fewer than {capacity} samples");
+        assert!(
+            d_enc.size() >= 4 * (capacity * self.output_dim()) as u64,
+            "GpuHashGrid: d_enc holds fewer than {capacity}·{} floats",
+            self.output_dim()
+        );
+        assert!(params.size() >= 4 * self.n_params() as u64, "GpuHashGrid: params hold fewer than {} floats", self.n_params());
+        let b = [(0, &self.uniform), (1, counters), (2, positions), (5, d_enc), (10, params), (11, d_positions)];
+        launch.record(&self.input_grad, ctx, enc, &b, 1, HASH_WG, 1);
+    }
 }
 
 /// Workgroup size of the SH and frequency kernels.
 const ENC_WG: u32 = 256;
 
 /// The spherical-harmonics direction encoding on the GPU (`shaders/sh.wgsl`), twin of
-/// [`nerf_encoding::SphericalHarmonics`]: `degree²` outputs per sample, forward only. One
-/// invocation per sample.
+/// [`nerf_encoding::SphericalHarmonics`]: `degree²` outputs per sample, and the gradient w.r.t.
+/// the directions. One invocation per sample.
 pub struct GpuSphericalHarmonics {
     degree: u32,
     kernel: Kernel,
+    input_grad: Kernel,
+    grad_layouts: GradLayouts,
+}
+
+/// Uniforms `[stride, offset, 0, 0]` saying where an input-gradient kernel finds a sample's
+/// ∂L/∂(encoding) in a wider row, one per layout asked for (each written once, so launches with
+/// different layouts can share a submission).
+#[derive(Default)]
+struct GradLayouts(std::sync::Mutex<Vec<([u32; 2], wgpu::Buffer)>>);
+
+impl GradLayouts {
+    /// The uniform of rows of `stride` floats whose encoding's gradient starts at column
+    /// `offset`, checked to hold `width` columns from there for `capacity` rows in `d_out`.
+    #[allow(clippy::too_many_arguments)]
+    fn get(&self, ctx: &GpuContext, what: &str, d_out: &wgpu::Buffer, stride: usize, offset: usize, width: usize, capacity: usize) -> wgpu::Buffer {
+        assert!(stride >= offset + width, "{what}: rows of {stride} floats cannot hold {width} gradients from column {offset}");
+        let end = capacity.max(1) * stride;
+        assert!(end <= u32::MAX as usize, "{what}: {capacity} rows of {stride} floats overflow u32");
+        let need = if capacity == 0 { 0 } else { (capacity - 1) * stride + offset + width };
+        assert!(d_out.size() >= 4 * need as u64, "{what}: the gradient rows hold fewer than {need} floats");
+        let key = [stride as u32, offset as u32];
+        let mut layouts = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        match layouts.iter().find(|(k, _)| *k == key) {
+            Some((_, b)) => b.clone(),
+            None => {
+                let b = ctx.uniform("input gradient layout", &[key[0], key[1], 0u32, 0u32]);
+                layouts.push((key, b.clone()));
+                b
+            }
+        }
+    }
 }
 
 impl GpuSphericalHarmonics {
     /// Builds the pipeline for `cfg.degree` bands (1..=4).
     pub fn new(ctx: &GpuContext, cfg: &ShConfig) -> Result<Self, GpuError> {
         cfg.validate().map_err(|e| GpuError::Unsupported(e.to_string()))?;
-        let kernel = Kernel::new(
-            ctx,
-            &shaders::with_common(shaders::SH),
-            "sh_forward",
-            &[("DEGREE", cfg.degree as f64), ("WG", ENC_WG as f64)],
-        );
-        Ok(Self { degree: cfg.degree, kernel })
+        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("sh.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::SH).into()),
+        });
+        let constants = [("DEGREE", cfg.degree as f64), ("WG", ENC_WG as f64)];
+        let kernel = Kernel::from_module(ctx, &module, "sh_forward", &constants);
+        let input_grad = Kernel::from_module(ctx, &module, "sh_input_grad", &constants);
+        Ok(Self { degree: cfg.degree, kernel, input_grad, grad_layouts: Default::default() })
     }
 
     /// Floats per encoded sample (`degree²`).
@@ -412,16 +486,53 @@ impl GpuSphericalHarmonics {
         );
         launch.record(&self.kernel, ctx, enc, &[(0, counters), (1, dirs), (2, out)], 1, ENC_WG, 1);
     }
+
+    /// Records the gradient w.r.t. the directions (camera pose refinement): for the
+    /// `n = counters[1]` directions of `dirs` (`[n][3]`, used as-is, as the forward does),
+    /// OVERWRITES `d_dirs[3k..3k + 3]` with dL/d(direction) given dL/d(encoding), read for sample
+    /// `k` at `d_sh[k·d_sh_stride + d_sh_offset + j]`, `j < degree²` — the SH columns of a wider
+    /// row, e.g. the hash field's colour-net input gradient `[density features | SH]` (stride
+    /// `FieldGlue::color_in_dim`, offset the density outputs); stride `degree²` and offset 0 for
+    /// plain `[n][degree²]` rows. Twin of `SphericalHarmonics::backward(dirs, d_sh, &mut [],
+    /// Some(d_dirs))` (the polynomials differentiated as written; zeros for degree 1). Rows past
+    /// `n` are left untouched; buffers hold at least `launch.capacity()` samples.
+    ///
+    /// # Panics
+    /// If `d_sh_stride < d_sh_offset + degree²`, a buffer is too small for the capacity, or the
+    /// last row's index overflows `u32`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_input_gradient(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        dirs: &wgpu::Buffer,
+        d_sh: &wgpu::Buffer,
+        d_sh_stride: usize,
+        d_sh_offset: usize,
+        d_dirs: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        let capacity = launch.capacity();
+        assert!(dirs.size() >= 12 * capacity as u64, "GpuSphericalHarmonics: dirs hold fewer than {capacity} samples");
+        assert!(d_dirs.size() >= 12 * capacity as u64, "GpuSphericalHarmonics: d_dirs hold fewer than {capacity} samples");
+        let layout = self.grad_layouts.get(ctx, "GpuSphericalHarmonics", d_sh, d_sh_stride, d_sh_offset, self.output_dim(), capacity);
+        let b = [(0, counters), (1, dirs), (3, &layout), (4, d_sh), (5, d_dirs)];
+        launch.record(&self.input_grad, ctx, enc, &b, 1, ENC_WG, 1);
+    }
 }
 
 /// NeRF's frequency encoding on the GPU (`shaders/frequency.wgsl`), twin of
 /// [`nerf_encoding::FrequencyEncoding`]: `[x, sin(2⁰x), cos(2⁰x), …, sin(2^(L−1)x), cos(2^(L−1)x)]`,
-/// blocks of `input_dim`, no π, forward only. One invocation per output element; `sin`/`cos`
-/// arguments are reduced to `[−π, π]` first (see the WGSL header).
+/// blocks of `input_dim`, no π; forward, and the gradient in its input. One invocation per
+/// output element (per input element for the gradient); `sin`/`cos` arguments are reduced to
+/// `[−π, π]` first (see the WGSL header).
 pub struct GpuFrequencyEncoding {
     input_dim: usize,
     output_dim: usize,
     kernel: Kernel,
+    input_grad: Kernel,
+    grad_layouts: GradLayouts,
 }
 
 impl GpuFrequencyEncoding {
@@ -443,18 +554,15 @@ impl GpuFrequencyEncoding {
                 "frequency encoding: no frequencies and include_input = false give an empty encoding".into(),
             ));
         }
-        let kernel = Kernel::new(
-            ctx,
-            &shaders::with_common(shaders::FREQUENCY),
-            "frequency_forward",
-            &[
-                ("D", input_dim as f64),
-                ("N_FREQ", cfg.n_frequencies as f64),
-                ("SKIP", skip as f64),
-                ("WG", ENC_WG as f64),
-            ],
-        );
-        Ok(Self { input_dim, output_dim, kernel })
+        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("frequency.wgsl"),
+            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::FREQUENCY).into()),
+        });
+        let constants =
+            [("D", input_dim as f64), ("N_FREQ", cfg.n_frequencies as f64), ("SKIP", skip as f64), ("WG", ENC_WG as f64)];
+        let kernel = Kernel::from_module(ctx, &module, "frequency_forward", &constants);
+        let input_grad = Kernel::from_module(ctx, &module, "frequency_input_grad", &constants);
+        Ok(Self { input_dim, output_dim, kernel, input_grad, grad_layouts: Default::default() })
     }
 
     /// Floats per input sample.
@@ -487,5 +595,35 @@ impl GpuFrequencyEncoding {
         );
         assert!(out.size() >= 4 * total as u64, "GpuFrequencyEncoding: out holds fewer than {capacity}·{} floats", self.output_dim);
         self.kernel.record(ctx, enc, &[(0, counters), (1, x), (2, out)], groups_1d(total, ENC_WG));
+    }
+
+    /// Records ∂L/∂x (`[n][input_dim]`, written; rows past `n = counters[1]` untouched) of the
+    /// samples `x` from ∂L/∂out, which for sample `k` starts at `d_out[k·d_out_stride +
+    /// d_out_offset]` (the encoding may be a slice of a wider row, as a network's input
+    /// gradient): the twin of `FrequencyEncoding::backward` with `d_input`. Buffers hold at least
+    /// `capacity` samples.
+    ///
+    /// # Panics
+    /// If `d_out_stride < d_out_offset + output_dim`, a buffer is too small for the capacity, or
+    /// the last row's index overflows `u32`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_input_gradient(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        x: &wgpu::Buffer,
+        d_out: &wgpu::Buffer,
+        d_out_stride: usize,
+        d_out_offset: usize,
+        d_x: &wgpu::Buffer,
+        capacity: usize,
+    ) {
+        let d = self.input_dim;
+        assert!(x.size() >= 4 * (capacity * d) as u64, "GpuFrequencyEncoding: x holds fewer than {capacity}·{d} floats");
+        assert!(d_x.size() >= 4 * (capacity * d) as u64, "GpuFrequencyEncoding: d_x holds fewer than {capacity}·{d} floats");
+        let layout = self.grad_layouts.get(ctx, "GpuFrequencyEncoding", d_out, d_out_stride, d_out_offset, self.output_dim, capacity);
+        let b = [(0, counters), (1, x), (3, &layout), (4, d_out), (5, d_x)];
+        self.input_grad.record(ctx, enc, &b, groups_1d(capacity * d, ENC_WG));
     }
 }

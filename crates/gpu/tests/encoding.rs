@@ -379,3 +379,228 @@ fn frequency_encoding_matches_its_cpu_twin() {
         check(&format!("frequency case {ci}"), &got, &cpu, |_| 2e-6);
     }
 }
+
+/// The frequency encoding's input gradient (camera pose refinement) against
+/// `FrequencyEncoding::backward` with `d_input`, with ∂L/∂out read from a slice of wider rows (as
+/// the paper field's view net hands it over) and from plain rows; poisoned outputs, rows past
+/// the count untouched, two layouts in one submission.
+#[test]
+fn frequency_encoding_input_gradient_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let mut r = nerf_core::rng(701, 0);
+    let cases = [
+        (3usize, FrequencyEncodingConfig::nerf_position()),
+        (3, FrequencyEncodingConfig::nerf_direction()),
+        (3, FrequencyEncodingConfig { n_frequencies: 6, include_input: false }),
+        (2, FrequencyEncodingConfig { n_frequencies: 12, include_input: true }),
+    ];
+    for (ci, (d, cfg)) in cases.into_iter().enumerate() {
+        let (n, cap) = (600usize, 650usize);
+        let x: Vec<f32> = (0..cap * d).map(|_| r.gen_range(-4.0f32..4.0)).collect();
+        let cpu_enc = FrequencyEncoding::new(d, &cfg);
+        let gpu = GpuFrequencyEncoding::new(&ctx, d, &cfg).unwrap();
+        let od = gpu.output_dim();
+        // Layouts: (stride, offset) of a wider row, and plain rows.
+        let layouts = [(od + 37, 29), (od, 0)];
+        let g: Vec<f32> = (0..cap * od).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+        let mut want = vec![0.0f32; n * d];
+        cpu_enc.backward(&x[..n * d], &g[..n * od], &mut [], Some(&mut want));
+        // Each term: 2^k (cos·g_s − sin·g_c), the GPU's sin/cos within ~4e-7 of the CPU's.
+        let tol: Vec<f32> = (0..n * d)
+            .map(|i| {
+                let (k, j) = (i / d, i % d);
+                let skip = if cfg.include_input { d } else { 0 };
+                let sum: f32 = (0..cfg.n_frequencies)
+                    .map(|b| (1u32 << b) as f32 * (g[k * od + skip + 2 * b * d + j].abs() + g[k * od + skip + 2 * b * d + d + j].abs()))
+                    .sum();
+                1e-6 + 2e-6 * sum
+            })
+            .collect();
+        let (cnt, x_b) = (counters(&ctx, n), ctx.upload("x", &x));
+        let outs: Vec<wgpu::Buffer> = layouts.iter().map(|_| poisoned(&ctx, cap * d)).collect();
+        let rows: Vec<wgpu::Buffer> = layouts
+            .iter()
+            .map(|&(stride, offset)| {
+                let mut wide = vec![1e30f32; cap * stride];
+                for k in 0..cap {
+                    wide[k * stride + offset..k * stride + offset + od].copy_from_slice(&g[k * od..(k + 1) * od]);
+                }
+                ctx.upload("d_out rows", &wide)
+            })
+            .collect();
+        let mut enc = ctx.encoder("frequency input gradient");
+        for ((&(stride, offset), rows), out) in layouts.iter().zip(&rows).zip(&outs) {
+            gpu.record_input_gradient(&ctx, &mut enc, &cnt, &x_b, rows, stride, offset, out, cap);
+        }
+        ctx.queue.submit([enc.finish()]);
+        for ((stride, offset), out) in layouts.iter().zip(&outs) {
+            let got = ctx.read_f32(out, cap * d).unwrap();
+            check(&format!("frequency input gradient case {ci} layout ({stride}, {offset})"), &got, &want, |i| tol[i]);
+        }
+    }
+}
+
+/// dL/d(world position) as the hash field's CPU path computes it (`backward_inputs_t` of
+/// `nerf-field-hash`): `HashGrid::backward(xn, d_enc, _, Some(d_pos))`, then the chain rule
+/// through `xn = clamp((p − min)·inv_extent, 0, 1)`: times `inv_extent[a]` where `xn[a]` is
+/// strictly inside (0, 1), else 0.
+fn cpu_position_gradient(grid: &HashGrid<f32>, xn: &[f32], d_enc: &[f32]) -> Vec<f32> {
+    let inv: [f32; 3] = std::array::from_fn(|a| 1.0 / (AABB_MAX[a] - AABB_MIN[a]));
+    let mut scratch = vec![0.0f32; grid.n_params()];
+    let mut d_pos = vec![f32::NAN; xn.len()];
+    grid.backward(xn, d_enc, &mut scratch, Some(&mut d_pos));
+    for (g, x) in d_pos.chunks_exact_mut(3).zip(xn.chunks_exact(3)) {
+        for a in 0..3 {
+            g[a] = if x[a] > 0.0 && x[a] < 1.0 { g[a] * inv[a] } else { 0.0 };
+        }
+    }
+    d_pos
+}
+
+/// `GpuHashGrid::record_input_gradient` against the CPU field's position gradient on every grid
+/// config (dense and hashed levels; F = 1, 2, 4, 8), at scattered positions that include cell
+/// boundaries, the box's faces, points outside it and non-finite ones (the clamp rule), with
+/// upstream gradients that are zero for whole samples and for single levels (skipped as on the
+/// CPU). The output is poisoned with NaN (so an accumulating or skipping kernel fails) and launched
+/// for a capacity above the device's count (the rows past it must keep their poison), from the
+/// device's count and for the capacity.
+#[test]
+fn hash_grid_input_gradient_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let inv: [f32; 3] = std::array::from_fn(|a| 1.0 / (AABB_MAX[a] - AABB_MIN[a]));
+    let mut dense_levels = 0;
+    for (ci, cfg) in grid_configs().into_iter().enumerate() {
+        let grid = HashGrid::<f32>::new(&cfg, &mut nerf_core::rng(800 + ci as u64, 0));
+        let nl = grid.n_levels();
+        assert!((0..nl).any(|l| !grid.is_dense(l)), "config {ci} has no hashed level");
+        dense_levels += (0..nl).filter(|l| grid.is_dense(*l)).count();
+        let f = cfg.n_features_per_level;
+        let od = nl * f;
+        let pmax = grid.params().iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let gpu = GpuHashGrid::new(&ctx, &cfg, AABB_MIN, AABB_MAX).unwrap();
+        let params = ctx.upload("params", grid.params());
+        for (n, extra, indirect) in [(1200usize, 91usize, true), (1000, 33, false), (1, 4, true), (0, 6, true)] {
+            let cap = n + extra;
+            let seed = 810 + 10 * ci as u64 + n as u64;
+            let pos = positions(seed, cap, grid.resolutions());
+            let mut r = nerf_core::rng(seed, 1);
+            // Upstream gradients: every 7th sample all zero, every 5th (sample, level) zero.
+            let d: Vec<f32> = (0..cap * od)
+                .map(|k| if (k / od) % 7 == 3 || (k / f) % 5 == 2 { 0.0 } else { r.gen_range(-1.0f32..1.0) })
+                .collect();
+            let xn = normalise(&pos[..3 * n]);
+            let cpu = cpu_position_gradient(&grid, &xn, &d[..n * od]);
+            // Σ |terms| per output: per level, Σ_k |∂w_k/∂x_a| = 2 times |s_k| ≤ pmax·Σ_j |g_j|,
+            // times the resolution, times inv_extent.
+            let mag: Vec<f32> = (0..3 * n)
+                .map(|e| {
+                    let (i, a) = (e / 3, e % 3);
+                    let per_level = (0..nl).map(|l| {
+                        let g: f32 = d[i * od + l * f..i * od + l * f + f].iter().map(|v| v.abs()).sum();
+                        2.0 * pmax * g * grid.resolutions()[l] as f32
+                    });
+                    inv[a] * per_level.sum::<f32>()
+                })
+                .collect();
+            if n > 100 {
+                let zeros = cpu.iter().filter(|v| **v == 0.0).count();
+                let clamped = xn.iter().filter(|v| **v == 0.0 || **v == 1.0).count();
+                assert!(clamped > n / 10, "config {ci}: only {clamped} coordinates on or outside the faces");
+                assert!(zeros < 3 * n / 2, "config {ci}: {zeros} of {} gradients are zero", 3 * n);
+                assert!(cpu.iter().any(|v| v.abs() > 1.0), "config {ci}: gradients suspiciously small");
+            }
+            let (cnt, pos_b, d_b, out) =
+                (counters(&ctx, n), ctx.upload("positions", &pos), ctx.upload("d_enc", &d), poisoned(&ctx, 3 * cap));
+            let args = DispatchArgs::new(&ctx, cap);
+            let got = run_and_read(&ctx, &out, 3 * cap, |enc| {
+                let l = launch(&ctx, enc, &args, &cnt, cap, indirect);
+                gpu.record_input_gradient(&ctx, enc, &cnt, &pos_b, &params, &d_b, &out, l)
+            });
+            // The same f32 operations in the same order; only FMA contraction may differ: a few
+            // ulp of the sum of the terms' magnitudes (≈ 40 terms per level).
+            check(&format!("config {ci} n {n} d_positions"), &got, &cpu, |e| 1e-30 + 4e-6 * mag[e]);
+        }
+    }
+    assert!(dense_levels > 0, "no config has a dense level");
+}
+
+/// `GpuSphericalHarmonics::record_input_gradient` against `SphericalHarmonics::backward` for
+/// degrees 1..=4, with the SH gradient read from wider rows (the hash field's colour-net input
+/// gradient `[16 density features | SH]`, a padded row with the SH block in the middle, and the
+/// plain layout), the other columns filled with values the kernel must not read. The output is
+/// poisoned with NaN and launched for a capacity above the device's count.
+#[test]
+fn spherical_harmonics_input_gradient_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let (n, cap) = (1700usize, 1789usize);
+    for degree in 1..=4u32 {
+        let cfg = ShConfig { degree };
+        let cpu_enc = SphericalHarmonics::new(&cfg);
+        let gpu = GpuSphericalHarmonics::new(&ctx, &cfg).unwrap();
+        let od = gpu.output_dim();
+        for (li, (stride, offset)) in [(16 + od, 16usize), (od + 7, 3), (od, 0)].into_iter().enumerate() {
+            let seed = 900 + 10 * degree as u64 + li as u64;
+            let mut r = nerf_core::rng(seed, 0);
+            // Unit directions (the field's input), plus non-unit ones for the polynomials as written.
+            let dirs: Vec<f32> = (0..cap)
+                .flat_map(|i| {
+                    let v: [f32; 3] = std::array::from_fn(|_| r.gen_range(-1.5f32..1.5));
+                    let s = if i % 3 == 0 { 1.0 } else { 1.0 / (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-3) };
+                    v.map(|c| c * s)
+                })
+                .collect();
+            let rows: Vec<f32> = (0..cap * stride).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+            let d_sh: Vec<f32> = (0..n).flat_map(|k| rows[k * stride + offset..k * stride + offset + od].to_vec()).collect();
+            let mut cpu = vec![f32::NAN; 3 * n];
+            cpu_enc.backward(&dirs[..3 * n], &d_sh, &mut [], Some(&mut cpu));
+            if degree > 1 {
+                assert!(cpu.iter().any(|v| v.abs() > 0.1), "degree {degree}: gradients suspiciously small");
+            }
+            // Σ |terms| per sample: each SH gradient times at most ≈ 5·max(|x|, |y|, |z|, 1)².
+            let mag: Vec<f32> = (0..n)
+                .map(|k| {
+                    let m = dirs[3 * k..3 * k + 3].iter().fold(1.0f32, |m, v| m.max(v.abs()));
+                    8.0 * m * m * d_sh[k * od..(k + 1) * od].iter().map(|v| v.abs()).sum::<f32>()
+                })
+                .collect();
+            let (cnt, dirs_b, rows_b, out) =
+                (counters(&ctx, n), ctx.upload("dirs", &dirs), ctx.upload("d_color_in", &rows), poisoned(&ctx, 3 * cap));
+            let args = DispatchArgs::new(&ctx, cap);
+            let got = run_and_read(&ctx, &out, 3 * cap, |enc| {
+                let l = launch(&ctx, enc, &args, &cnt, cap, li != 1);
+                gpu.record_input_gradient(&ctx, enc, &cnt, &dirs_b, &rows_b, stride, offset, &out, l)
+            });
+            // The same products and sums in the same order; FMA contraction: a few ulp of Σ |terms|.
+            check(&format!("sh degree {degree} stride {stride} offset {offset} d_dirs"), &got, &cpu, |e| 1e-30 + 1e-6 * mag[e / 3]);
+        }
+    }
+}
+
+/// Two SH layouts recorded into one submission each read their own stride and offset (the
+/// layout uniform is per layout, not rewritten per call).
+#[test]
+fn spherical_harmonics_input_gradient_layouts_share_a_submission() {
+    let Some(ctx) = context() else { return };
+    let cfg = ShConfig { degree: 4 };
+    let (cpu_enc, gpu) = (SphericalHarmonics::new(&cfg), GpuSphericalHarmonics::new(&ctx, &cfg).unwrap());
+    let (n, od) = (300usize, 16usize);
+    let mut r = nerf_core::rng(950, 0);
+    let dirs: Vec<f32> = (0..3 * n).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+    let layouts = [(od + 16, 16usize), (od + 2, 1)];
+    let rows: Vec<Vec<f32>> = layouts.iter().map(|(s, _)| (0..n * s).map(|_| r.gen_range(-1.0f32..1.0)).collect()).collect();
+    let (cnt, dirs_b) = (counters(&ctx, n), ctx.upload("dirs", &dirs));
+    let rows_b: Vec<wgpu::Buffer> = rows.iter().map(|v| ctx.upload("rows", v)).collect();
+    let outs: Vec<wgpu::Buffer> = (0..2).map(|_| poisoned(&ctx, 3 * n)).collect();
+    let mut enc = ctx.encoder("two layouts");
+    for (li, (s, o)) in layouts.iter().enumerate() {
+        gpu.record_input_gradient(&ctx, &mut enc, &cnt, &dirs_b, &rows_b[li], *s, *o, &outs[li], Launch::direct(n));
+    }
+    ctx.queue.submit([enc.finish()]);
+    for (li, (s, o)) in layouts.iter().enumerate() {
+        let d_sh: Vec<f32> = (0..n).flat_map(|k| rows[li][k * s + o..k * s + o + od].to_vec()).collect();
+        let mut cpu = vec![0.0f32; 3 * n];
+        cpu_enc.backward(&dirs, &d_sh, &mut [], Some(&mut cpu));
+        let got = ctx.read_f32(&outs[li], 3 * n).unwrap();
+        check(&format!("layout {li} d_dirs"), &got, &cpu, |_| 1e-4);
+    }
+}
