@@ -284,6 +284,17 @@ pub(crate) struct ColorParams {
     pub(crate) _pad: [u32; 2],
 }
 
+// ---- pose.rs ----
+/// `PoseParams` of `shaders/pose.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct PoseParams {
+    pub(crate) n_views: u32,
+    pub(crate) capacity_rays: u32,
+    pub(crate) trans_penalty: f32,
+    pub(crate) rot_penalty: f32,
+}
+
 // ---- sampling.rs ----
 /// One view's camera as `shaders/rays.wgsl` reads it (80 bytes).
 #[repr(C)]

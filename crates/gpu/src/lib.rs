@@ -19,6 +19,7 @@ pub mod mlp;
 pub mod mlp_coop;
 pub mod occupancy;
 pub mod pdf;
+pub mod pose;
 pub mod optim;
 pub mod profile;
 pub mod rng;

@@ -46,6 +46,8 @@ pub const ADAM: &str = wgsl!("adam.wgsl");
 pub const PDF: &str = wgsl!("pdf.wgsl");
 /// Per-view affine colour correction of composited pixels; CPU twins in `nerf-render`.
 pub const COLOR: &str = wgsl!("color.wgsl");
+/// Camera pose refinement: ray correction, its backward, per-view gradients; CPU twins in `nerf-rays`.
+pub const POSE: &str = wgsl!("pose.wgsl");
 /// Indirect-dispatch arguments from a device-side count ([`crate::dispatch`]).
 pub const DISPATCH: &str = wgsl!("dispatch.wgsl");
 
@@ -70,6 +72,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("pdf.wgsl", PDF),
     ("dispatch.wgsl", DISPATCH),
     ("color.wgsl", COLOR),
+    ("pose.wgsl", POSE),
 ];
 
 /// `source` with `common.wgsl` inserted after its leading `enable …;` directives (which WGSL
