@@ -29,6 +29,11 @@ pub struct GpuFreqNerf {
     color_tape: wgpu::Buffer,
     d_color_in: wgpu::Buffer,
     d_head: wgpu::Buffer,
+    /// ∂L/∂γ(x), the trunk's input gradient, once
+    /// [`GpuRadianceField::enable_input_gradients`] asked for input gradients.
+    d_pos: Option<wgpu::Buffer>,
+    /// Width of the trunk's feature (the colour input's direction columns start there).
+    width: usize,
 }
 
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
@@ -98,6 +103,8 @@ impl GpuFreqNerf {
             color_tape,
             d_color_in,
             d_head,
+            d_pos: None,
+            width: w,
             glue,
             pos_enc,
             dir_enc,
@@ -165,6 +172,23 @@ impl GpuRadianceField for GpuFreqNerf {
         ctx.profile_part("glue");
         self.glue.record_backward(ctx, enc, s.counters, &self.head, &self.d_color_in, d_sigma, &self.d_head, Launch::direct(cap));
         ctx.profile_part("trunk MLP");
-        self.trunk.record_backward(ctx, enc, s.counters, &self.pos, &g[0].params, &self.trunk_tape, &self.d_head, &g[0].grads, None, cap);
+        self.trunk.record_backward(ctx, enc, s.counters, &self.pos, &g[0].params, &self.trunk_tape, &self.d_head, &g[0].grads, self.d_pos.as_ref(), cap);
+    }
+
+    fn enable_input_gradients(&mut self, ctx: &GpuContext) -> Result<(), FieldError> {
+        // The trunk's backward also writes its input gradient (the skip's columns included); the
+        // view net's already covers the direction encoding's columns.
+        let [d_pos] = ctx.zeros_per_sample(self.capacity, [("d pos enc", self.pos_enc.output_dim())]).map_err(gpu_err)?;
+        self.d_pos = Some(d_pos);
+        Ok(())
+    }
+
+    fn record_input_gradients(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_positions: &wgpu::Buffer, d_dirs: &wgpu::Buffer) {
+        let d_pos = self.d_pos.as_ref().expect("record_input_gradients before enable_input_gradients");
+        let cap = s.launch(self.capacity);
+        ctx.profile_part("frequency encoding (input gradient)");
+        let pd = self.pos_enc.output_dim();
+        self.pos_enc.record_input_gradient(ctx, enc, s.counters, s.positions, d_pos, pd, 0, d_positions, cap);
+        self.dir_enc.record_input_gradient(ctx, enc, s.counters, s.dirs, &self.d_color_in, self.glue.color_in_dim, self.width, d_dirs, cap);
     }
 }

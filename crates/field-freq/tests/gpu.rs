@@ -3,7 +3,7 @@
 //! cooperative matrices where the adapter has them (the H100; f16 tolerances). Prints a notice
 //! and returns where no adapter exists.
 
-use nerf_field::gpu::check_gpu_twin;
+use nerf_field::gpu::{check_gpu_input_gradients, check_gpu_twin};
 use nerf_field::GpuContext;
 use nerf_field::RadianceField;
 use nerf_field_freq::{FreqNerf, FreqNerfConfig, GpuLinear};
@@ -22,6 +22,19 @@ fn gpu_paper_field_matches_the_cpu_field() {
     } else {
         check_gpu_twin(&mut cpu, &ctx, aabb, 500, 4, 1e-4, 2e-3);
     }
+}
+
+/// Camera pose refinement's input gradients on the GPU (∂L/∂x through the trunk, skip included,
+/// and the position's frequency encoding; ∂L/∂dir through the view net and the direction's)
+/// against the CPU field's `backward_with_inputs`, with the plain-WGSL networks.
+#[test]
+fn gpu_paper_field_input_gradients_match_the_cpu_field() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let cfg = FreqNerfConfig { width: 64, depth: 4, skips: vec![2], view_width: 32, gpu_linear: GpuLinear::Plain, ..Default::default() };
+    let mut cpu = FreqNerf::<f32>::new(cfg, 6).unwrap();
+    let aabb = ([-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]);
+    // Position gradients sum 2^9-scaled terms of both signs: relative to the largest value.
+    check_gpu_input_gradients(&mut cpu, &ctx, aabb, 300, 6, 2e-4, 2e-3);
 }
 
 /// `gpu_linear` picks the GEMM kernels: the workgroup-tiled cooperative-matrix path where the

@@ -39,6 +39,11 @@ pub struct GpuHashNerf {
     kept: Option<KeptPass>,
     /// [`crate::HashNerfConfig::gpu_keep_density_activations`].
     keep_activations: bool,
+    /// Outputs of the density net (`dd`) and of the colour net.
+    dims: (usize, usize),
+    /// Whether the colour net's backward writes its input gradient for the SH inputs too
+    /// ([`GpuRadianceField::enable_input_gradients`]).
+    input_gradients: bool,
 }
 
 /// The density pass's encodings (`rows` rows of the encoding's width) and, with the plain density
@@ -128,6 +133,8 @@ impl GpuHashNerf {
             d_enc,
             kept: None,
             keep_activations: cfg.gpu_keep_density_activations,
+            dims: (dd, field.color.config.output_dim),
+            input_gradients: false,
             args: DispatchArgs::new(ctx, capacity),
             glue,
             grid,
@@ -266,6 +273,25 @@ impl GpuRadianceField for GpuHashNerf {
             }
             _ => self.record_forward_from_encodings(ctx, enc, s, sigma, rgb, l),
         }
+    }
+
+    fn enable_input_gradients(&mut self, ctx: &GpuContext) -> Result<(), FieldError> {
+        // The colour net's input gradient for the SH inputs too (the direction's gradient).
+        let (dd, out) = self.dims;
+        self.color.set_partial(ctx, out, self.glue.color_in_dim);
+        debug_assert_eq!(self.glue.color_in_dim, dd + self.sh.output_dim());
+        self.input_gradients = true;
+        Ok(())
+    }
+
+    fn record_input_gradients(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, d_positions: &wgpu::Buffer, d_dirs: &wgpu::Buffer) {
+        assert!(self.input_gradients, "record_input_gradients before enable_input_gradients");
+        let l = self.launch(ctx, enc, &s);
+        ctx.profile_part("hash encoding (input gradient)");
+        self.grid.record_input_gradient(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.d_enc, d_positions, l);
+        ctx.profile_part("SH (input gradient)");
+        let (dd, _) = self.dims;
+        self.sh.record_input_gradient(ctx, enc, s.counters, s.dirs, &self.d_color_in, self.glue.color_in_dim, dd, d_dirs, l);
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {

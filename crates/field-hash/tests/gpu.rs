@@ -2,7 +2,7 @@
 //! training forward, parameter gradients, export/import): lavapipe in CI; prints a notice and
 //! returns where no adapter exists.
 
-use nerf_field::gpu::check_gpu_twin;
+use nerf_field::gpu::{check_gpu_input_gradients, check_gpu_twin};
 use nerf_field::{FieldContext, GpuContext};
 use nerf_field_hash::{HashNerf, HashNerfConfig};
 
@@ -45,6 +45,27 @@ fn gpu_hash_field_with_an_f16_table_matches_the_cpu_field() {
 #[test]
 fn gpu_hash_field_with_subgroup_sums_matches_the_cpu_field() {
     check_small_field_with(nerf_encoding::Precision::F32, 9, true);
+}
+
+/// Camera pose refinement's input gradients (∂L/∂x through the hash encoding and the box's
+/// normalisation, ∂L/∂dir through the SH encoding and the colour net's input gradient) against
+/// the CPU field's `backward_with_inputs`, and the parameter gradients with them on.
+#[test]
+fn gpu_hash_field_input_gradients_match_the_cpu_field() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    for (seed, sh_degree) in [(11, 4), (12, 2)] {
+        let mut cfg = HashNerfConfig::default();
+        cfg.grid.n_levels = 6;
+        cfg.grid.log2_hashmap_size = 12;
+        cfg.grid.base_resolution = 4;
+        cfg.grid.max_resolution = 64;
+        cfg.sh_degree = sh_degree;
+        let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
+        let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed, scene_scale: 1.0 };
+        let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+        // Sums of products in another order (8 corners × 6 levels, 64-wide dot products).
+        check_gpu_input_gradients(&mut cpu, &ctx, aabb, 500, seed, 1e-4, 2e-3);
+    }
 }
 
 #[test]

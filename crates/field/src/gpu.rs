@@ -144,6 +144,33 @@ pub trait GpuRadianceField: Send {
         d_rgb: &wgpu::Buffer,
     );
 
+    /// Prepares the twin to give its gradients in its inputs
+    /// ([`record_input_gradients`](Self::record_input_gradients)): camera pose refinement
+    /// (`nerf_rays::pose`), the GPU side of
+    /// [`RadianceField::backward_with_inputs`](crate::RadianceField::backward_with_inputs). Called
+    /// once, before any step is recorded; the default returns [`FieldError::Unsupported`].
+    fn enable_input_gradients(&mut self, ctx: &GpuContext) -> Result<(), crate::FieldError> {
+        let _ = ctx;
+        Err(crate::FieldError::Unsupported { field: self.kind().into(), what: "input gradients on the GPU (camera pose refinement)".into() })
+    }
+
+    /// Records, after [`record_backward`](Self::record_backward) of the same samples, dL/d(position)
+    /// into `d_positions` and dL/d(direction) into `d_dirs` (`3·n` each, *written*) for every
+    /// sample, as [`RadianceField::backward_with_inputs`](crate::RadianceField::backward_with_inputs)
+    /// does on the CPU. Only valid once [`enable_input_gradients`](Self::enable_input_gradients)
+    /// succeeded; the default panics (no field offers it without that).
+    fn record_input_gradients(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        s: GpuSamples<'_>,
+        d_positions: &wgpu::Buffer,
+        d_dirs: &wgpu::Buffer,
+    ) {
+        let _ = (ctx, enc, s, d_positions, d_dirs);
+        panic!("field `{}` has no input gradients on the GPU (enable_input_gradients refuses)", self.kind())
+    }
+
     /// Reads the parameters back, as [`RadianceField::export_params`](crate::RadianceField::export_params).
     fn export_params(&self, ctx: &GpuContext) -> Result<Vec<(String, Vec<f32>)>, nerf_gpu::GpuError> {
         self.groups().iter().map(|g| Ok((g.name.clone(), ctx.read_f32(&g.params, g.len)?))).collect()
@@ -362,4 +389,84 @@ pub fn check_gpu_twin(
     let mut bad = exported.clone();
     bad[0].1.pop();
     assert!(gpu.import_params(ctx, &bad).is_err());
+}
+
+/// Conformance check of a GPU twin's input gradients (camera pose refinement) against its CPU
+/// field's [`backward_with_inputs`](crate::RadianceField::backward_with_inputs), used by the
+/// fields' tests: on `n` random samples in the box, after the twin's
+/// [`enable_input_gradients`](GpuRadianceField::enable_input_gradients), a training forward and
+/// backward with random upstream gradients and
+/// [`record_input_gradients`](GpuRadianceField::record_input_gradients), ∂L/∂x and ∂L/∂dir must
+/// match within `tol` (relative to the largest value), the parameter gradients within
+/// `grad_tol`, and the rows past the batch's count stay as they were. Panics with the first
+/// mismatch.
+#[allow(clippy::too_many_arguments)]
+pub fn check_gpu_input_gradients(
+    cpu: &mut dyn crate::RadianceField,
+    ctx: &GpuContext,
+    aabb: ([f32; 3], [f32; 3]),
+    n: usize,
+    seed: u64,
+    tol: f32,
+    grad_tol: f32,
+) {
+    use rand::Rng as _;
+    let capacity = n + 37;
+    let mut gpu = cpu.to_gpu(ctx, capacity).expect("the field has a GPU twin").expect("the twin builds");
+    gpu.enable_input_gradients(ctx).expect("the twin gives input gradients");
+    let mut rng = nerf_core::rng(seed, 1);
+    let (lo, hi) = aabb;
+    let pos: Vec<f32> = (0..3 * n).map(|i| rng.gen_range(lo[i % 3]..hi[i % 3])).collect();
+    let dirs: Vec<f32> = (0..n)
+        .flat_map(|_| {
+            let d = [rng.gen_range(-1.0f32..1.0), rng.gen_range(-1.0f32..1.0), rng.gen_range(-1.0f32..1.0)];
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
+            d.map(|x| x / l)
+        })
+        .collect();
+    let pad = |v: &[f32], len: usize| {
+        let mut p = v.to_vec();
+        p.resize(len, f32::NAN);
+        p
+    };
+    let counters = ctx.upload("counters", &[0u32, n as u32]);
+    let positions = ctx.upload("positions", &pad(&pos, 3 * capacity));
+    let d = ctx.upload("dirs", &pad(&dirs, 3 * capacity));
+    let s = GpuSamples { counters: &counters, positions: &positions, dirs: &d, capacity };
+    let sigma = ctx.upload("sigma", &vec![f32::NAN; capacity]);
+    let rgb = ctx.upload("rgb", &vec![f32::NAN; 3 * capacity]);
+    let d_sigma: Vec<f32> = (0..n).map(|_| rng.gen_range(-0.1f32..0.1)).collect();
+    let d_rgb: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.0f32..1.0)).collect();
+    let dsb = ctx.upload("d_sigma", &pad(&d_sigma, capacity));
+    let drb = ctx.upload("d_rgb", &pad(&d_rgb, 3 * capacity));
+    let poison = 1.0e30f32;
+    let d_pos = ctx.upload("d_positions", &vec![poison; 3 * capacity]);
+    let d_dir = ctx.upload("d_dirs", &vec![poison; 3 * capacity]);
+    let mut enc = ctx.encoder("twin input gradients");
+    gpu.record_forward(ctx, &mut enc, s, &sigma, &rgb);
+    gpu.record_backward(ctx, &mut enc, s, &dsb, &drb);
+    gpu.record_input_gradients(ctx, &mut enc, s, &d_pos, &d_dir);
+    ctx.queue.submit([enc.finish()]);
+
+    cpu.zero_grad();
+    let (mut cs, mut cc) = (vec![0.0; n], vec![0.0; 3 * n]);
+    cpu.forward(&pos, &dirs, &mut cs, &mut cc);
+    let (mut want_pos, mut want_dir) = (vec![f32::NAN; 3 * n], vec![f32::NAN; 3 * n]);
+    cpu.backward_with_inputs(&d_sigma, &d_rgb, &mut want_pos, &mut want_dir).expect("the CPU field gives input gradients");
+    let close = |what: &str, gpu: &[f32], cpu: &[f32], tol: f32| {
+        let scale = cpu.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-6);
+        assert!(cpu.iter().any(|x| *x != 0.0), "{what}: the CPU gradient is all zero, the check would prove nothing");
+        for (i, (a, b)) in gpu.iter().zip(cpu).enumerate() {
+            assert!((a - b).abs() <= tol * scale, "{what}[{i}]: gpu {a} vs cpu {b} (scale {scale})");
+        }
+    };
+    let got_pos = ctx.read_f32(&d_pos, 3 * capacity).unwrap();
+    let got_dir = ctx.read_f32(&d_dir, 3 * capacity).unwrap();
+    close("d_positions", &got_pos[..3 * n], &want_pos, tol);
+    close("d_dirs", &got_dir[..3 * n], &want_dir, tol);
+    assert!(got_pos[3 * n..].iter().chain(&got_dir[3 * n..]).all(|&x| x == poison), "rows past the count were written");
+    let groups = cpu.param_groups();
+    for (g, cg) in gpu.groups().iter().zip(groups) {
+        close(&format!("grad {} (with input gradients)", g.name), &ctx.read_f32(&g.grads, g.len).unwrap(), cg.grads, grad_tol);
+    }
 }
