@@ -235,7 +235,7 @@ pub fn train_run(
         eval_point(&trainer, elapsed, &mut curve)?;
     }
     let last = *curve.last().expect("at least the final evaluation");
-    let corrections = trainer.pose_params().map(|p| nerf_train::pose::corrections_json(p, &train.cameras));
+    let corrections = trainer.pose_params().map_err(terr)?.map(|p| nerf_train::pose::corrections_json(&p, &train.cameras));
     let iters = trainer.step_count();
     let samples = trainer.samples_seen().map_err(terr)?;
     Ok(RunMetrics {

@@ -132,8 +132,8 @@ pub struct TrainConfig {
     /// mode, `nerf_rays::pose`): a translation and a rotation per training view, applied to the
     /// view's rays and learnt with the field through its input gradients, for captures whose
     /// poses (from structure from motion) are a little off. Test views and novel views keep
-    /// their poses. Needs a field with input gradients (`freq`, `hash`), Euclidean rays
-    /// (an LLFF scene with `ndc = false`) and, for now, the CPU. `None` (the default) = off.
+    /// their poses. Needs a field with input gradients (`freq`, `hash`) and Euclidean
+    /// rays (an LLFF scene with `ndc = false`). `None` (the default) = off.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera_optimizer: Option<CameraOptimizerConfig>,
     /// Background composited behind training rays (paper on Blender: white).
@@ -286,8 +286,8 @@ fn is_true(b: &bool) -> bool {
 
 impl TrainConfig {
     /// The config a trainer that only renders a run needs: without the parts that act on the
-    /// training photos alone and that the GPU path cannot take yet (`camera_optimizer`: the
-    /// corrections belong to the training views and renders use the cameras as given). Its
+    /// training photos alone (`camera_optimizer`: the corrections belong to the training views
+    /// and renders use the cameras as given, and its per-step buffers are not needed). Its
     /// checkpoint restores into such a trainer (the `camera/…` entries are skipped).
     pub fn for_rendering(&self) -> TrainConfig {
         TrainConfig { camera_optimizer: None, ..self.clone() }

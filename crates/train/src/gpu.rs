@@ -20,6 +20,8 @@ use nerf_gpu::optim::{GpuAdam, GpuParamGroup};
 use nerf_gpu::pdf::{GpuHierarchical, GpuStratified, PackedOut};
 use crate::color::{ColorState, COLOR_GROUP, COLOR_VIEWS};
 use nerf_gpu::color::{ColorInputs, GpuColorCorrection};
+use crate::pose::{PoseState, POSE_VIEWS};
+use nerf_gpu::pose::{GpuPoseCorrection, PoseRays, PoseSampleGrads};
 use nerf_gpu::sampling::{GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples as PackedSamples, MarchConfig};
 use nerf_gpu::{wgpu, Compositor, GpuContext, TrainGlue};
 use nerf_optim::{AdamState, EmaState};
@@ -241,6 +243,21 @@ pub(crate) struct GpuEngine {
     profile_done: Option<GpuProfile>,
     /// The per-view colour correction (`color_correction`).
     color: Option<GpuColor>,
+    /// Camera pose refinement (`camera_optimizer`).
+    pose: Option<GpuPose>,
+}
+
+/// Camera pose refinement on the device: the corrections and their kernels, their Adam, and the
+/// fields' input gradients of one stage (reused by the stages, which run one after the other).
+struct GpuPose {
+    pc: GpuPoseCorrection,
+    adam: GpuAdam,
+    adam_config: nerf_optim::AdamConfig,
+    config: crate::config::CameraOptimizerConfig,
+    /// ∂L/∂x per sample of a stage, `3·capacity` of the largest stage.
+    d_positions: wgpu::Buffer,
+    /// ∂L/∂(view direction) per sample of a stage.
+    d_dirs: wgpu::Buffer,
 }
 
 /// The colour correction on the device: corrections, their Adam, and the per-ray buffers
@@ -402,6 +419,26 @@ impl GpuEngine {
             }
             None => None,
         };
+        let pose = match &config.camera_optimizer {
+            Some(c) => {
+                for (f, cpu) in fields.iter_mut().zip(cpu_fields) {
+                    f.enable_input_gradients(&ctx).map_err(field_err(cpu.kind()))?;
+                }
+                let pc = GpuPoseCorrection::new(&ctx, bounds.n_views.max(1), capacity_rays, c.trans_penalty, c.rot_penalty).map_err(gerr)?;
+                let adam_config = nerf_optim::AdamConfig { sparse_groups: Vec::new(), ..config.adam.clone() };
+                let adam = GpuAdam::new(&ctx, &adam_config, &[GpuParamGroup::new(POSE_VIEWS.group, 0, pc.len(), 0.0)]).map_err(gerr)?;
+                let most = (0..n_stages).map(stage_samples).max().unwrap_or(1).max(1);
+                Some(GpuPose {
+                    d_positions: ctx.zeros_checked("d positions", 12 * most).map_err(gerr)?,
+                    d_dirs: ctx.zeros_checked("d sample dirs", 12 * most).map_err(gerr)?,
+                    pc,
+                    adam,
+                    adam_config,
+                    config: c.clone(),
+                })
+            }
+            None => None,
+        };
         if let Some(lambda) = config.distortion_loss {
             let range = bounds.far - bounds.near;
             compositor.set_distortion(&ctx, if range > 0.0 { 1.0 / range } else { 1.0 }, lambda);
@@ -432,6 +469,7 @@ impl GpuEngine {
             profile: Default::default(),
             profile_done: None,
             color,
+            pose,
             ctx,
         })
     }
@@ -479,6 +517,12 @@ impl GpuEngine {
         self.raygen.set_seed(ctx, seed(2));
         ctx.profile_stage("rays");
         self.raygen.record(ctx, &mut enc, &s0.counters, images, &self.rays);
+        if let Some(p) = &self.pose {
+            // Each ray moved by its view's pose correction before anything samples it.
+            ctx.profile_part("pose correction");
+            let r = &self.rays;
+            p.pc.record_correct(ctx, &mut enc, &PoseRays { counters: &s0.counters, views: &r.views, origins: &r.origins, dirs: &r.dirs });
+        }
         let perturb = cfg.perturb;
         match (&self.sampler, &self.compaction) {
             (Sampler::Occupancy(o), Some(c)) => self.record_compacted(ctx, &mut enc, o, c, perturb.then(|| seed(3))),
@@ -520,8 +564,22 @@ impl GpuEngine {
             }
             ctx.profile_stage(if i == 0 { "field backward" } else { "fine field backward" });
             self.fields[i].record_backward(ctx, &mut enc, st.samples(), &st.d_sigma, &st.d_rgb);
+            if let Some(p) = &self.pose {
+                // Camera pose refinement: the field's input gradients, gathered per ray.
+                ctx.profile_stage("pose backward");
+                self.fields[i].record_input_gradients(ctx, &mut enc, st.samples(), &p.d_positions, &p.d_dirs);
+                let g = PoseSampleGrads { offsets: &st.packed.offsets, t: &st.packed.t, d_positions: &p.d_positions, d_dirs: &p.d_dirs };
+                p.pc.record_rays_backward(ctx, &mut enc, &st.counters, &g);
+            }
+        }
+        if let Some(p) = &self.pose {
+            ctx.profile_stage("pose backward");
+            p.pc.record_reduce(ctx, &mut enc, &self.stages[0].counters, &self.rays.views);
         }
         ctx.profile_stage("adam");
+        if let Some(p) = &self.pose {
+            p.adam.record_step(ctx, &mut enc, &p.pc.params, &p.pc.grads, p.config.lr_at(step));
+        }
         if let Some(c) = &self.color {
             c.adam.record_step(ctx, &mut enc, &c.cc.params, &c.cc.grads, c.lr);
         }
@@ -589,6 +647,9 @@ impl GpuEngine {
                 if i == last {
                     mse = m as f32;
                 }
+            }
+            if let Some(p) = &self.pose {
+                l += p.pc.read_regulariser(ctx).map_err(gerr)? as f64;
             }
             loss = l as f32;
             if !loss.is_finite() {
@@ -1040,6 +1101,36 @@ impl GpuEngine {
         }
         c.cc.set_params(&ctx, &s.params).map_err(gerr)?;
         c.adam.load_state(&ctx, &s.adam).map_err(gerr)
+    }
+
+    /// The pose corrections and their Adam state (`None` without `camera_optimizer`).
+    pub(crate) fn pose_state(&self) -> Result<Option<PoseState>, TrainError> {
+        let Some(p) = &self.pose else { return Ok(None) };
+        Ok(Some(PoseState { params: p.pc.read_params(&self.ctx).map_err(gerr)?, adam: p.adam.state(&self.ctx).map_err(gerr)? }))
+    }
+
+    /// The pose corrections only.
+    pub(crate) fn pose_params(&self) -> Result<Option<Vec<f32>>, TrainError> {
+        self.pose.as_ref().map(|p| p.pc.read_params(&self.ctx).map_err(gerr)).transpose()
+    }
+
+    /// Views the pose corrections are for (`None` without `camera_optimizer`).
+    pub(crate) fn pose_views(&self) -> Option<usize> {
+        self.pose.as_ref().map(|p| p.pc.n_views())
+    }
+
+    /// Loads checkpointed pose corrections, for however many views they are (the buffers are
+    /// made anew for another count).
+    pub(crate) fn restore_pose(&mut self, s: PoseState) -> Result<(), TrainError> {
+        let ctx = self.ctx.clone();
+        let Some(p) = self.pose.as_mut() else { return Ok(()) };
+        if s.n_views(&POSE_VIEWS) != p.pc.n_views() {
+            let c = &p.config;
+            p.pc = GpuPoseCorrection::new(&ctx, s.n_views(&POSE_VIEWS), self.capacity_rays, c.trans_penalty, c.rot_penalty).map_err(gerr)?;
+            p.adam = GpuAdam::new(&ctx, &p.adam_config, &[GpuParamGroup::new(POSE_VIEWS.group, 0, p.pc.len(), 0.0)]).map_err(gerr)?;
+        }
+        p.pc.set_params(&ctx, &s.params).map_err(gerr)?;
+        p.adam.load_state(&ctx, &s.adam).map_err(gerr)
     }
 
     pub(crate) fn sampler_state(&self) -> Result<Vec<(String, Vec<f32>)>, TrainError> {

@@ -179,7 +179,7 @@ pub struct Trainer {
     color: Option<CpuColor>,
     /// The training view whose colour correction renders use (`None`: the mean).
     render_appearance: Option<usize>,
-    /// Camera pose refinement (`config.camera_optimizer`; CPU only).
+    /// Camera pose refinement of the CPU path (`config.camera_optimizer`).
     pose: Option<CpuPose>,
 }
 
@@ -292,9 +292,6 @@ impl Trainer {
     ) -> Result<Self, TrainError> {
         let mut t = Self::new(config, registry, bounds)?;
         if let Some(ctx) = device {
-            if t.config.camera_optimizer.is_some() {
-                return Err(TrainError::Gpu("camera_optimizer runs on the CPU only for now (use --device cpu)".into()));
-            }
             // Each fit scales the step by the overshoot of the buffer that failed; a few tries
             // cover buffers that do not scale exactly linearly (ray-sized ones, clamps) and the
             // fine stage of a hierarchical sampler (built after the coarse one).
@@ -326,8 +323,9 @@ impl Trainer {
             // The device keeps (and renders with) its own average.
             t.ema = None;
             t.ema_fields = None;
-            // … and its own colour corrections.
+            // … and its own colour and pose corrections.
             t.color = None;
+            t.pose = None;
         }
         Ok(t)
     }
@@ -412,8 +410,12 @@ impl Trainer {
         if let Some(n) = corrections {
             check_views(&COLOR_VIEWS, n, data.n_views())?;
         }
-        if let Some(p) = &self.pose {
-            check_views(&POSE_VIEWS, p.views.n_views(), data.n_views())?;
+        let poses = match (&self.gpu, &self.pose) {
+            (Some(g), _) => g.pose_views(),
+            (None, p) => p.as_ref().map(|p| p.views.n_views()),
+        };
+        if let Some(n) = poses {
+            check_views(&POSE_VIEWS, n, data.n_views())?;
             if data.ndc.is_some() {
                 return Err(TrainError::Config(
                     "camera_optimizer needs Euclidean rays: train this LLFF scene with ndc = false (--no-ndc)".into(),
@@ -862,7 +864,7 @@ impl Trainer {
         if let Some(s) = self.color_state()? {
             v.extend(s.to_entries(&COLOR_VIEWS));
         }
-        if let Some(s) = self.pose_state() {
+        if let Some(s) = self.pose_state()? {
             v.extend(s.to_entries(&POSE_VIEWS));
         }
         Ok(v)
@@ -913,15 +915,22 @@ impl Trainer {
     }
 
     /// The camera pose corrections with their optimiser state (`None` without
-    /// `camera_optimizer`). Checkpoints carry it in [`Trainer::sampler_state`].
-    pub fn pose_state(&self) -> Option<PoseState> {
-        self.pose.as_ref().map(|p| p.views.state())
+    /// `camera_optimizer`; read back from the device on the GPU). Checkpoints carry it in
+    /// [`Trainer::sampler_state`].
+    pub fn pose_state(&self) -> Result<Option<PoseState>, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.pose_state();
+        }
+        Ok(self.pose.as_ref().map(|p| p.views.state()))
     }
 
     /// The camera pose corrections only: per training view a translation then a rotation vector
     /// (`nerf_rays::pose`; `None` without `camera_optimizer`).
-    pub fn pose_params(&self) -> Option<&[f32]> {
-        self.pose.as_ref().map(|p| &p.views.params[..])
+    pub fn pose_params(&self) -> Result<Option<Vec<f32>>, TrainError> {
+        if let Some(g) = &self.gpu {
+            return g.pose_params();
+        }
+        Ok(self.pose.as_ref().map(|p| p.views.params.clone()))
     }
 
     /// Optimiser state (for checkpoints; read back from the device on the GPU).
@@ -953,8 +962,9 @@ impl Trainer {
         // A checkpoint without corrections leaves them at the identity; corrections in the
         // checkpoint of a run without them are ignored.
         let color = color.filter(|_| self.config.color_correction.is_some());
-        if let (Some(p), Some(s)) = (pose, self.pose.as_mut()) {
-            s.views.load(p)?;
+        let pose = pose.filter(|_| self.config.camera_optimizer.is_some());
+        if let (Some(p), Some(s)) = (&pose, self.pose.as_mut()) {
+            s.views.load(p.clone())?;
         }
         if let (Some(s), Some(_)) = (&ema, self.config.ema_decay) {
             check_ema_groups(s, &self.group_names, fields)?;
@@ -969,6 +979,9 @@ impl Trainer {
             g.restore(fields, &adam, &sampler_state, seen.as_deref(), ema)?;
             if let Some(c) = color {
                 g.restore_color(c)?;
+            }
+            if let Some(p) = pose {
+                g.restore_pose(p)?;
             }
             self.step = step;
             return Ok(());
