@@ -148,7 +148,7 @@ pub trait GpuRadianceField: Send {
     /// ([`record_input_gradients`](Self::record_input_gradients)): camera pose refinement
     /// (`nerf_rays::pose`), the GPU side of
     /// [`RadianceField::backward_with_inputs`](crate::RadianceField::backward_with_inputs). Called
-    /// once, before any step is recorded; the default returns [`FieldError::Unsupported`].
+    /// once, before any step is recorded; the default returns [`FieldError::Unsupported`](crate::FieldError::Unsupported).
     fn enable_input_gradients(&mut self, ctx: &GpuContext) -> Result<(), crate::FieldError> {
         let _ = ctx;
         Err(crate::FieldError::Unsupported { field: self.kind().into(), what: "input gradients on the GPU (camera pose refinement)".into() })

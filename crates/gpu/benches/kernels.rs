@@ -4,7 +4,9 @@
 //! MLPs forward, forward + backward and the density pass's σ-only inference (plain WGSL, and on
 //! cooperative matrices where the adapter has them); the paper's 8×256 trunk forward + backward
 //! (plain WGSL, and cooperative matrices where the adapter has them: subgroup-tiled and, with
-//! subgroups of 32, workgroup-tiled); Adam over the hash field's 12 M parameters. Each iteration
+//! subgroups of 32, workgroup-tiled); Adam over the hash field's 12 M parameters; camera pose
+//! refinement's kernels (the hash grid's and the SH encoding's input gradients, and the per-ray
+//! and per-view sums of a batch of rays of 32 samples over 100 views). Each iteration
 //! records one launch sequence, submits it and waits, so the time is the device's. Sizes: 2^18
 //! samples (2^12 with `NERF_BENCH_SMALL=1`), halved where a buffer would pass the adapter's
 //! storage-binding limit (lavapipe's 128 MiB: 2^16 samples, the trunk's 2^13), so the bench runs
@@ -12,7 +14,8 @@
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
 use nerf_encoding::HashGridConfig;
-use nerf_gpu::encoding::{AtomicMode, GpuHashGrid};
+use nerf_gpu::encoding::{AtomicMode, GpuHashGrid, GpuSphericalHarmonics};
+use nerf_gpu::pose::{GpuPoseCorrection, PoseRays, PoseSampleGrads};
 use nerf_gpu::linear::{GpuMlp, LinearPath};
 use nerf_gpu::mlp::FusedMlp;
 use nerf_gpu::mlp_coop::FusedMlpCoop;
@@ -119,6 +122,40 @@ fn kernels(c: &mut Criterion) {
     let grid16 = GpuHashGrid::new(&ctx, &cfg16, [-1.5; 3], [1.5; 3]).unwrap();
     g.bench_function(BenchmarkId::new("hash_grid_forward_f16_table", n), |b| {
         b.iter(|| run(&ctx, |e| grid16.record_forward(&ctx, e, &counters, &pos, &params, &feat, n.into())))
+    });
+
+    // Camera pose refinement: the field's input gradients (hash grid through its f32 table; SH of
+    // degree 4 from the colour net's 32-wide input-gradient rows), then the pose kernels on rays
+    // of 32 samples from 100 views (correction, per-ray sums, one workgroup per view).
+    let d_pos = ctx.zeros("d positions", 12 * n);
+    g.bench_function(BenchmarkId::new("hash_grid_input_gradient", n), |b| {
+        b.iter(|| run(&ctx, |e| grid.record_input_gradient(&ctx, e, &counters, &rays, &params, &d_feat, &d_pos, n.into())))
+    });
+    let sh = GpuSphericalHarmonics::new(&ctx, &nerf_encoding::ShConfig { degree: 4 }).unwrap();
+    let dirs = ctx.upload("dirs", &random(3 * n, -0.577, 0.577, 12));
+    let d_rows = ctx.upload("d colour input", &random(32 * n, -1.0, 1.0, 13));
+    let d_dirs = ctx.zeros("d dirs", 12 * n);
+    g.bench_function(BenchmarkId::new("sh_input_gradient", n), |b| {
+        b.iter(|| run(&ctx, |e| sh.record_input_gradient(&ctx, e, &counters, &dirs, &d_rows, 32, 16, &d_dirs, n.into())))
+    });
+    let n_rays = n / 32;
+    let pose = GpuPoseCorrection::new(&ctx, 100, n_rays, 1e-2, 1e-3).unwrap();
+    pose.set_params(&ctx, &random(6 * 100, -0.01, 0.01, 14)).unwrap();
+    let ray_counters = ctx.upload("ray counters", &[n_rays as u32, n as u32]);
+    let views = ctx.upload("views", &(0..n_rays as u32).map(|r| r % 100).collect::<Vec<u32>>());
+    let (origins, ray_dirs) = (ctx.upload("origins", &random(3 * n_rays, -3.0, 3.0, 15)), ctx.upload("ray dirs", &random(3 * n_rays, -0.577, 0.577, 16)));
+    let offsets = ctx.upload("offsets", &(0..=n_rays as u32).map(|r| 32 * r).collect::<Vec<u32>>());
+    let t = ctx.upload("t", &random(n, 2.0, 6.0, 17));
+    let rays_in = PoseRays { counters: &ray_counters, views: &views, origins: &origins, dirs: &ray_dirs };
+    let grads_in = PoseSampleGrads { offsets: &offsets, t: &t, d_positions: &d_pos, d_dirs: &d_dirs };
+    g.bench_function(BenchmarkId::new("pose_correct_backward_reduce", n), |b| {
+        b.iter(|| {
+            run(&ctx, |e| {
+                pose.record_correct(&ctx, e, &rays_in);
+                pose.record_rays_backward(&ctx, e, &ray_counters, &grads_in);
+                pose.record_reduce(&ctx, e, &ray_counters, &views);
+            })
+        })
     });
 
     // The hash field's fused MLPs.
