@@ -5,7 +5,7 @@
 //   out = A fg + α·b + (1 − α)·bg
 //
 // Backward, g = ∂L/∂out: ∂L/∂rgb = Aᵀ g (written over g), ∂L/∂α = g·(A bg + b − bg), and the
-// ray's parameter gradient (g fgᵀ, α g) into ray_grads; color_reduce adds those per view to grads
+// ray's parameter gradient (g fgᵀ, α g) into ray_grads; views.wgsl adds those per view to grads
 // (one workgroup per view: deterministic, no atomics).
 
 struct ColorParams {
@@ -26,7 +26,6 @@ struct ColorParams {
 @group(0) @binding(8) var<storage, read_write> d_ray: array<f32>;     // 3·n_rays: ∂L/∂out in, ∂L/∂rgb out
 @group(0) @binding(9) var<storage, read_write> d_opacity: array<f32>; // n_rays
 @group(0) @binding(10) var<storage, read_write> ray_grads: array<f32>; // 12·n_rays
-@group(0) @binding(11) var<storage, read_write> grads: array<f32>;    // 12·n_views, added to
 
 fn n_rays() -> u32 {
     return min(counters[0], cp.capacity_rays);
@@ -82,45 +81,5 @@ fn color_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
             ray_grads[12u * r + 3u * i + j] = g[i] * fg[j];
         }
         ray_grads[12u * r + 9u + i] = a * g[i];
-    }
-}
-
-const RWG: u32 = 256u;
-var<workgroup> partial: array<array<f32, 12>, RWG>;
-
-@compute @workgroup_size(RWG)
-fn color_reduce(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    // Uniform across the workgroup (barriers below).
-    let v = wid.x + wid.y * nwg.x;
-    let n = n_rays();
-    var acc: array<f32, 12>;
-    for (var k = 0u; k < 12u; k = k + 1u) {
-        acc[k] = 0.0;
-    }
-    if (v < cp.n_views) {
-        for (var r = lid; r < n; r = r + RWG) {
-            if (views[r] == v) {
-                for (var k = 0u; k < 12u; k = k + 1u) {
-                    acc[k] = acc[k] + ray_grads[12u * r + k];
-                }
-            }
-        }
-    }
-    partial[lid] = acc;
-    workgroupBarrier();
-    for (var s = RWG / 2u; s > 0u; s = s / 2u) {
-        if (lid < s) {
-            for (var k = 0u; k < 12u; k = k + 1u) {
-                partial[lid][k] = partial[lid][k] + partial[lid + s][k];
-            }
-        }
-        workgroupBarrier();
-    }
-    if (v < cp.n_views && lid < 12u) {
-        grads[12u * v + lid] = grads[12u * v + lid] + partial[0][lid];
     }
 }

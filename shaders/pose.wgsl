@@ -10,9 +10,10 @@
 // pose_correct        per ray: moves the ray, keeps d (base_dirs) and zeroes the ray's gradient sums.
 // pose_rays_backward  per ray, once per stage: adds Σ_samples ∂L/∂x (→ ∂L/∂o') and
 //                     Σ_samples t ∂L/∂x + ∂L/∂dir (→ ∂L/∂d'), kept as [∂L/∂o' (3), ∂L/∂d' dᵀ (9)].
-// pose_reduce         one workgroup per view (deterministic, no atomics): sums its rays' 12 values,
-//                     turns them into ∂L/∂τ and ∂L/∂ω (Gallego & Yezzi's ∂R/∂ω_i), adds the
-//                     regulariser's gradient and writes its value for the view.
+// (views.wgsl)        one workgroup per view sums its rays' 12 values into view_acc (deterministic,
+//                     no atomics).
+// pose_view_grads     per view: turns the sums into ∂L/∂τ and ∂L/∂ω (Gallego & Yezzi's ∂R/∂ω_i),
+//                     adds the regulariser's gradient and writes its value for the view.
 
 struct PoseParams {
     n_views: u32,
@@ -35,6 +36,7 @@ struct PoseParams {
 @group(0) @binding(11) var<storage, read_write> ray_grads: array<f32>;  // 12·n_rays
 @group(0) @binding(12) var<storage, read_write> grads: array<f32>;      // 6·n_views, added to
 @group(0) @binding(13) var<storage, read_write> reg_terms: array<f32>;  // n_views, written
+@group(0) @binding(14) var<storage, read> view_acc: array<f32>;         // 12·n_views, the views' sums
 
 fn n_rays() -> u32 {
     return min(counters[0], pp.capacity_rays);
@@ -115,45 +117,16 @@ fn pose_rays_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(nu
     }
 }
 
-const RWG: u32 = 256u;
-var<workgroup> partial: array<array<f32, 12>, RWG>;
-
-@compute @workgroup_size(RWG)
-fn pose_reduce(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(num_workgroups) nwg: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    // Uniform across the workgroup (barriers below).
-    let v = wid.x + wid.y * nwg.x;
-    let n = n_rays();
-    var acc: array<f32, 12>;
-    for (var k = 0u; k < 12u; k = k + 1u) {
-        acc[k] = 0.0;
-    }
-    if (v < pp.n_views) {
-        for (var r = lid; r < n; r = r + RWG) {
-            if (views[r] == v) {
-                for (var k = 0u; k < 12u; k = k + 1u) {
-                    acc[k] = acc[k] + ray_grads[12u * r + k];
-                }
-            }
-        }
-    }
-    partial[lid] = acc;
-    workgroupBarrier();
-    for (var s = RWG / 2u; s > 0u; s = s / 2u) {
-        if (lid < s) {
-            for (var k = 0u; k < 12u; k = k + 1u) {
-                partial[lid][k] = partial[lid][k] + partial[lid + s][k];
-            }
-        }
-        workgroupBarrier();
-    }
-    if (v >= pp.n_views || lid != 0u) {
+@compute @workgroup_size(64)
+fn pose_view_grads(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let v = linear_id(gid, nwg, 64u);
+    if (v >= pp.n_views) {
         return;
     }
-    let a = partial[0];
+    var a: array<f32, 12>;
+    for (var k = 0u; k < 12u; k = k + 1u) {
+        a[k] = view_acc[12u * v + k];
+    }
     var g: array<f32, 6>;
     for (var i = 0u; i < 3u; i = i + 1u) {
         g[i] = a[i];

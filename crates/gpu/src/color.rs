@@ -4,13 +4,13 @@
 //! them with a [`GpuAdam`](crate::optim::GpuAdam).
 
 use crate::kernel::{groups_1d, Kernel};
+use crate::views::ViewSums;
 use crate::layout::ColorParams;
 use crate::{shaders, GpuContext, GpuError};
 
 /// Values per view (a row-major 3×3 matrix, then an offset).
 pub const PARAMS_PER_VIEW: usize = 12;
 const WG: u32 = 64;
-const REDUCE_WG: u32 = 256;
 
 /// Device buffers of one batch's pixels as the correction reads them.
 pub struct ColorInputs<'a> {
@@ -30,7 +30,7 @@ pub struct ColorInputs<'a> {
 pub struct GpuColorCorrection {
     forward: Kernel,
     backward: Kernel,
-    reduce: Kernel,
+    reduce: ViewSums,
     uniform: wgpu::Buffer,
     /// The corrections, `12·n_views` f32 (identity at creation).
     pub params: wgpu::Buffer,
@@ -57,7 +57,7 @@ impl GpuColorCorrection {
         Ok(Self {
             forward: Kernel::from_module(ctx, &module, "color_forward", &[]),
             backward: Kernel::from_module(ctx, &module, "color_backward", &[]),
-            reduce: Kernel::from_module(ctx, &module, "color_reduce", &[]),
+            reduce: ViewSums::new(ctx, n_views, capacity_rays),
             uniform: ctx.uniform("color params", &params),
             params: ctx.upload("color corrections", &identity),
             grads: ctx.zeros("color correction grads", 4 * PARAMS_PER_VIEW * n_views),
@@ -120,12 +120,7 @@ impl GpuColorCorrection {
             ],
             groups_1d(self.capacity_rays, WG),
         );
-        self.reduce.record(
-            ctx,
-            enc,
-            &[(0, &self.uniform), (1, x.counters), (2, x.views), (10, &self.ray_grads), (11, &self.grads)],
-            groups_1d(self.n_views * REDUCE_WG as usize, REDUCE_WG),
-        );
+        self.reduce.record(ctx, enc, x.counters, x.views, &self.ray_grads, &self.grads);
     }
 
     /// Sets the corrections (`12·n_views` values).

@@ -284,6 +284,16 @@ pub(crate) struct ColorParams {
     pub(crate) _pad: [u32; 2],
 }
 
+// ---- views.rs ----
+/// `ViewParams` of `shaders/views.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct ViewParams {
+    pub(crate) n_views: u32,
+    pub(crate) capacity_rays: u32,
+    pub(crate) _pad: [u32; 2],
+}
+
 // ---- pose.rs ----
 /// `PoseParams` of `shaders/pose.wgsl`.
 #[repr(C)]

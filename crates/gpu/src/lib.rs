@@ -25,6 +25,7 @@ pub mod profile;
 pub mod rng;
 pub mod sampling;
 pub mod shaders;
+pub mod views;
 
 pub use composite::{CompositeGrads, CompositeOutputs, Compositor, TrainGlue};
 pub use dispatch::{DispatchArgs, Launch};

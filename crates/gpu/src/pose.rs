@@ -8,16 +8,17 @@
 //! A step records [`record_correct`](GpuPoseCorrection::record_correct) right after ray
 //! generation (rays moved in place), [`record_rays_backward`](GpuPoseCorrection::record_rays_backward)
 //! after each stage's field backward (the field's input gradients gathered per ray), and
-//! [`record_reduce`](GpuPoseCorrection::record_reduce) before the optimiser.
+//! [`record_reduce`](GpuPoseCorrection::record_reduce) before the optimiser (the views' sums
+//! through [`ViewSums`], shared with the colour correction, then one invocation per view).
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::layout::PoseParams;
+use crate::views::ViewSums;
 use crate::{shaders, GpuContext, GpuError};
 
 /// Values per view (a translation, then a rotation vector).
 pub const PARAMS_PER_VIEW: usize = 6;
 const WG: u32 = 64;
-const REDUCE_WG: u32 = 256;
 
 /// The rays of a batch as the correction reads and moves them.
 #[derive(Clone, Copy)]
@@ -49,7 +50,8 @@ pub struct PoseSampleGrads<'a> {
 pub struct GpuPoseCorrection {
     correct: Kernel,
     rays_backward: Kernel,
-    reduce: Kernel,
+    sums: ViewSums,
+    view_grads: Kernel,
     uniform: wgpu::Buffer,
     /// The corrections, `6·n_views` f32 (zero at creation).
     pub params: wgpu::Buffer,
@@ -61,6 +63,8 @@ pub struct GpuPoseCorrection {
     pub reg_terms: wgpu::Buffer,
     base_dirs: wgpu::Buffer,
     ray_grads: wgpu::Buffer,
+    /// The views' sums of their rays' `ray_grads` (`12·n_views`).
+    view_acc: wgpu::Buffer,
     n_views: usize,
     capacity_rays: usize,
 }
@@ -81,13 +85,15 @@ impl GpuPoseCorrection {
         Ok(Self {
             correct: Kernel::from_module(ctx, &module, "pose_correct", &[]),
             rays_backward: Kernel::from_module(ctx, &module, "pose_rays_backward", &[]),
-            reduce: Kernel::from_module(ctx, &module, "pose_reduce", &[]),
+            sums: ViewSums::new(ctx, n_views, capacity_rays),
+            view_grads: Kernel::from_module(ctx, &module, "pose_view_grads", &[]),
             uniform: ctx.uniform("pose params", &params),
             params: ctx.zeros("pose corrections", 4 * PARAMS_PER_VIEW * n_views),
             grads: ctx.zeros("pose correction grads", 4 * PARAMS_PER_VIEW * n_views),
             reg_terms: ctx.zeros("pose regulariser terms", 4 * n_views),
             base_dirs: ctx.zeros_checked("pose base dirs", 12 * cap)?,
             ray_grads: ctx.zeros_checked("pose ray grads", 48 * cap)?,
+            view_acc: ctx.zeros("pose view sums", 48 * n_views),
             n_views,
             capacity_rays,
         })
@@ -143,11 +149,13 @@ impl GpuPoseCorrection {
     /// Records each view's gradient from its rays' sums plus the regulariser's, **added** to
     /// [`grads`](Self::grads), and the regulariser's terms into [`reg_terms`](Self::reg_terms).
     pub fn record_reduce(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, counters: &wgpu::Buffer, views: &wgpu::Buffer) {
-        self.reduce.record(
+        enc.clear_buffer(&self.view_acc, 0, None);
+        self.sums.record(ctx, enc, counters, views, &self.ray_grads, &self.view_acc);
+        self.view_grads.record(
             ctx,
             enc,
-            &[(0, &self.uniform), (1, counters), (2, views), (3, &self.params), (11, &self.ray_grads), (12, &self.grads), (13, &self.reg_terms)],
-            groups_1d(self.n_views * REDUCE_WG as usize, REDUCE_WG),
+            &[(0, &self.uniform), (3, &self.params), (12, &self.grads), (13, &self.reg_terms), (14, &self.view_acc)],
+            groups_1d(self.n_views, WG),
         );
     }
 

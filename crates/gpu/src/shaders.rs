@@ -48,6 +48,8 @@ pub const PDF: &str = wgsl!("pdf.wgsl");
 pub const COLOR: &str = wgsl!("color.wgsl");
 /// Camera pose refinement: ray correction, its backward, per-view gradients; CPU twins in `nerf-rays`.
 pub const POSE: &str = wgsl!("pose.wgsl");
+/// Per-view sums of per-ray values (the per-view parameters' gradients, [`crate::views`]).
+pub const VIEWS: &str = wgsl!("views.wgsl");
 /// Indirect-dispatch arguments from a device-side count ([`crate::dispatch`]).
 pub const DISPATCH: &str = wgsl!("dispatch.wgsl");
 
@@ -73,6 +75,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("dispatch.wgsl", DISPATCH),
     ("color.wgsl", COLOR),
     ("pose.wgsl", POSE),
+    ("views.wgsl", VIEWS),
 ];
 
 /// `source` with `common.wgsl` inserted after its leading `enable …;` directives (which WGSL
