@@ -48,20 +48,36 @@ fn activation_grad(x: f32) -> f32 {
     return select(0.0, 1.0, x > 0.0);
 }
 
+// Each workgroup owns 64 consecutive samples, whose rows are contiguous in every buffer: its 64
+// invocations walk the block's colour-input elements (and, in the backward, its d_dout elements)
+// one after another, so neighbouring invocations touch neighbouring addresses. One invocation
+// per sample looping over its own row (as before) made each load and store of a subgroup touch
+// 32 rows a row apart: 3.3 ms for the paper field's 196k × 283 colour inputs on the H100.
 @compute @workgroup_size(64)
-fn assemble(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn assemble(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+            @builtin(local_invocation_index) lid: u32) {
     let k = linear_id(gid, nwg, 64u);
-    if (k >= n_samples()) {
+    let n = n_samples();
+    let k0 = k - lid;
+    if (k0 >= n) {
         return;
+    }
+    if (k < n) {
+        sigma[k] = activate(dout[k * gp.dd]);
     }
     let nf = gp.dd - gp.feat_start;
     let w = nf + gp.dir_dim;
-    sigma[k] = activate(dout[k * gp.dd]);
-    for (var j = 0u; j < nf; j = j + 1u) {
-        color_in[k * w + j] = dout[k * gp.dd + gp.feat_start + j];
-    }
-    for (var j = 0u; j < gp.dir_dim; j = j + 1u) {
-        color_in[k * w + nf + j] = dir_enc[k * gp.dir_dim + j];
+    let total = min(64u, n - k0) * w;
+    for (var e = lid; e < total; e = e + 64u) {
+        let kk = k0 + e / w;
+        let j = e % w;
+        var v: f32;
+        if (j < nf) {
+            v = dout[kk * gp.dd + gp.feat_start + j];
+        } else {
+            v = dir_enc[kk * gp.dir_dim + (j - nf)];
+        }
+        color_in[k0 * w + e] = v;
     }
 }
 
@@ -74,20 +90,28 @@ fn density_only(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     sigma[k] = activate(dout[k * gp.dd]);
 }
 
+// Coalesced as `assemble`: the workgroup's invocations walk its 64 samples' d_dout elements.
 @compute @workgroup_size(64)
-fn backward_glue(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+fn backward_glue(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                 @builtin(local_invocation_index) lid: u32) {
     let k = linear_id(gid, nwg, 64u);
-    if (k >= n_samples()) {
+    let n = n_samples();
+    let k0 = k - lid;
+    if (k0 >= n) {
         return;
     }
-    let nf = gp.dd - gp.feat_start;
-    let w = nf + gp.dir_dim;
-    for (var j = 0u; j < gp.dd; j = j + 1u) {
+    let w = gp.dd - gp.feat_start + gp.dir_dim;
+    let total = min(64u, n - k0) * gp.dd;
+    for (var e = lid; e < total; e = e + 64u) {
+        let kk = k0 + e / gp.dd;
+        let j = e % gp.dd;
         var g = 0.0;
         if (j >= gp.feat_start) {
-            g = d_color_in[k * w + j - gp.feat_start];
+            g = d_color_in[kk * w + (j - gp.feat_start)];
         }
-        d_dout[k * gp.dd + j] = g;
+        if (j == 0u) {
+            g = g + d_sigma[kk] * activation_grad(dout[kk * gp.dd]);
+        }
+        d_dout[k0 * gp.dd + e] = g;
     }
-    d_dout[k * gp.dd] = d_dout[k * gp.dd] + d_sigma[k] * activation_grad(dout[k * gp.dd]);
 }

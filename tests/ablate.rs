@@ -214,6 +214,14 @@ fn the_example_ablations_parse_and_plan() {
     assert!(prof.iter().any(|p| p.config.adam.is_sparse("field/hash_grid")));
     assert!(prof.iter().any(|p| p.config.compact_samples && p.config.validate().is_ok()));
     assert!(prof.iter().any(|p| p.config.field == "hash" && !p.config.compact_samples));
+    // The one-lease device checks: both fields, each GEMM / fused-MLP path, pose refinement.
+    let quick = Ablation::load(&dir.join("device_quick.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(quick.len(), 6);
+    assert!(quick.iter().all(|p| p.config.gpu_profile.is_some() && p.config.validate().is_ok()));
+    assert_eq!(quick.iter().filter(|p| p.config.camera_optimizer.is_some()).count(), 1);
+    let check = Ablation::load(&dir.join("device_check.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(check.iter().map(|p| p.config.field.as_str()).collect::<Vec<_>>(), ["hash", "freq"]);
+    assert!(check.iter().all(|p| p.config.gpu_profile == quick[0].config.gpu_profile && p.config.iters == quick[0].config.iters));
     let sparse = Ablation::load(&dir.join("sparse_adam.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert_eq!(sparse.iter().filter(|p| p.config.adam.is_sparse("field/hash_grid")).count(), 2);
     assert_eq!(sparse.len(), 4);

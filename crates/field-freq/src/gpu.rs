@@ -43,13 +43,19 @@ fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
 impl GpuFreqNerf {
     /// The GPU twin of `field` with buffers for `capacity` samples per launch. The networks run on
     /// the kernels `gpu_linear` names; `auto` uses cooperative matrices (f16 in, f32 accumulate)
-    /// when the adapter has them, unless `NERF_NO_COOP` is set.
+    /// when the adapter has them, unless `NERF_NO_COOP` is set: the workgroup-tiled kernels where
+    /// subgroups are exactly 32 wide, else the subgroup-tiled ones.
     pub fn new(field: &FreqNerf<f32>, ctx: &GpuContext, capacity: usize) -> Result<Self, FieldError> {
         let capacity = capacity.max(1);
         let coop = ctx.features.cooperative_matrix && ctx.features.shader_f16;
         let pos_enc = GpuFrequencyEncoding::new(ctx, 3, field.pos_enc.config()).map_err(gpu_err)?;
         let dir_enc = GpuFrequencyEncoding::new(ctx, 3, field.dir_enc.config()).map_err(gpu_err)?;
+        // Auto: the workgroup-tiled kernels where subgroups are exactly 32 wide (1.09× the
+        // subgroup-tiled ones in the paper field's step on the H100, docs/results.md), else the
+        // subgroup-tiled ones, else plain WGSL.
+        let sg32 = ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32;
         let path = match field.config.gpu_linear {
+            GpuLinear::Auto if coop && sg32 => LinearPath::CoopTiled,
             GpuLinear::Auto if coop => LinearPath::Coop,
             GpuLinear::Auto | GpuLinear::Plain => LinearPath::Plain,
             GpuLinear::Coop => LinearPath::Coop,

@@ -49,7 +49,8 @@ pub struct FreqNerfConfig {
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum GpuLinear {
-    /// Cooperative matrices where the adapter has them (and `NERF_NO_COOP` is unset), else plain.
+    /// Cooperative matrices where the adapter has them (and `NERF_NO_COOP` is unset), else plain:
+    /// `coop_tiled` where subgroups are exactly 32 wide (NVIDIA), else `coop`.
     #[default]
     Auto,
     /// Plain WGSL, f32, 64×64 tiles (`shaders/linear.wgsl`).

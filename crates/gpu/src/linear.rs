@@ -728,7 +728,9 @@ mod coop {
             for r in 0..16 {
                 ones[r * 16] = half::f16::ONE;
             }
-            let f16b = |n: usize| 2 * n;
+            // At least 16 bytes: the tiled kernels view some of these buffers as vec4<f16> (a
+            // binding of at least 8 bytes), and a net without hidden layers has an empty h16.
+            let f16b = |n: usize| (2 * n).max(16);
             let tiled = |e: &str| match tiling {
                 CoopTiling::Subgroup => k(e),
                 CoopTiling::Workgroup => k(&format!("{e}_tiled")),

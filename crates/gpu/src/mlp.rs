@@ -499,7 +499,7 @@ impl FusedMlp {
             ctx,
             enc,
             &[(0, &self.u_plain), (2, counters), (9, grads), (13, partials)],
-            [self.n_params.div_ceil(64).max(1) as u32, 1, 1],
+            [self.n_params.div_ceil(32).max(1) as u32, 1, 1],
         );
     }
 }

@@ -138,8 +138,9 @@ fn fused_mlp_matches_the_cpu_mlp() {
         let net = FusedMlp::new(&ctx, &config).unwrap();
         // (2100, 300): 3 workgroups of 22 tiles; (8000, 192) then (100, 8092): 8 workgroups,
         // first all with tiles, then 4 tiles for the 8, whose other 4 rows of sums still hold the
-        // run before's (the sum must read only the 4 written).
-        for (n, extra) in [(0usize, 5usize), (1, 0), (33, 7), (517, 0), (2100, 300), (8000, 192), (100, 8092)] {
+        // run before's (the sum must read only the 4 written); (20000, 500): 21 rows of sums, more
+        // than the 8 lanes of mlp_wgrad_sum.
+        for (n, extra) in [(0usize, 5usize), (1, 0), (33, 7), (517, 0), (2100, 300), (8000, 192), (100, 8092), (20000, 500)] {
             seed += 1;
             let mut rng = nerf_core::rng(seed, 0);
             let mut cpu = Mlp::<f32>::new(config.clone(), &mut rng);
@@ -175,7 +176,7 @@ fn fused_mlp_matches_the_cpu_mlp() {
             cpu.grads_mut().copy_from_slice(&grads0);
             let mut d_in = vec![0.0f32; n * config.input_dim];
             cpu.backward(n, &input, &mut tape, &d_output, Some(&mut d_in));
-            // Gradients are sums over up to 8000 samples in a different order (tiles, sample
+            // Gradients are sums over up to 20000 samples in a different order (tiles, sample
             // splits, workgroups): relative 1e-3 plus 1e-4 of the largest entry.
             assert_close(&format!("{what}: grads"), &gpu.grads, cpu.grads(), 1e-3, 1e-4);
             if let Some(d) = &gpu.d_input {
