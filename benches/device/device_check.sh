@@ -3,7 +3,7 @@
 # on hardware (linear), the hash and paper fields on the in-repo scene
 # (examples/ablations/device_check.toml, the before/after of device_quick.toml's runs), a pass-by-
 # pass profile of the paper field on the plain-WGSL GEMMs (a few steps), 60 s of the hash field on
-# lego 800x800 (samples/s, test PSNR, rendering frames/s) and the fused-MLP rows of the kernel bench.
+# lego 800x800 (samples/s, test PSNR, rendering frames/s) and the fused-MLP and trunk rows of the kernel bench.
 # Build and pack here first: `bash benches/device/prepare.sh --rebuild`; carry .gl .bin .bint .data.
 set -u
 t0=$(date +%s); left() { echo $(( ${BUDGET:-250} - ($(date +%s) - t0) )); }
@@ -28,6 +28,6 @@ timeout $(( $(left) - 30 )) .bin/nerf train .data/lego --device gpu --config con
 cp /tmp/l/metrics.json "$OUT/lego60_metrics.json" 2>/dev/null; tail -2 "$OUT/lego60.log"
 python3 -c "import json;m=json.load(open('$OUT/lego60_metrics.json'));print({k:m.get(k) for k in ['iterations','ms_per_iter','samples_per_sec','test_psnr','render_fps']})"
 echo "== bench ($(left) s left)"
-timeout $(( $(left) - 3 )) .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 fused_mlp > "$OUT/bench.log" 2>&1
+timeout $(( $(left) - 3 )) .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "fused_mlp_(density|color)|trunk" > "$OUT/bench.log" 2>&1
 grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 echo "== done ($(left) s left)"
