@@ -2,9 +2,9 @@
 # A short device check (~3 min) of a session's GPU changes: the tiled cooperative-matrix GEMM tests
 # on hardware (linear), the hash and paper fields on the in-repo scene
 # (examples/ablations/device_check.toml, the before/after of device_quick.toml's runs), a pass-by-
-# pass profile of the paper field on the plain-WGSL GEMMs (a few steps), 60 s of the hash field on
-# lego 800x800 (samples/s, test PSNR, rendering frames/s) and the fused-MLP and trunk rows of the kernel bench.
-# Build and pack here first: `bash benches/device/prepare.sh --rebuild`; carry .gl .bin .bint .data.
+# pass profile of the paper field on the plain-WGSL GEMMs (a few steps) and the fused-MLP and
+# trunk rows of the kernel bench. Build and pack here first: `bash benches/device/prepare.sh
+# --rebuild`; carry .gl .bin .bint (the bench and `linear` alone are enough in .bint).
 set -u
 t0=$(date +%s); left() { echo $(( ${BUDGET:-250} - ($(date +%s) - t0) )); }
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
@@ -16,18 +16,13 @@ grep -E "test result|panicked|NOTICE|Caused|Binding|FAILED" "$OUT/tests.log" | h
 echo "== fields ($(left) s left)"
 timeout 70 .bin/nerf ablate examples/ablations/device_check.toml --device gpu --out /tmp/q > "$OUT/check.log" 2>&1
 cat /tmp/q/results.md 2>/dev/null
+echo "== bench ($(left) s left)"
+timeout 60 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "fused_mlp_(density|color)|trunk" > "$OUT/bench.log" 2>&1
+grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 echo "== freq plain ($(left) s left)"
 printf 'field = "freq"\ngpu_profile = { start = 2, steps = 2 }\n[field_config]\ngpu_linear = "plain"\n' > /tmp/fp.toml
-timeout 40 .bin/nerf train scenes/lego_100 --config /tmp/fp.toml --iters 5 --device gpu --quiet --no-renders \
+timeout $(( $(left) - 3 )) .bin/nerf train scenes/lego_100 --config /tmp/fp.toml --iters 5 --device gpu --quiet --no-renders \
   --test-views first:1 --out /tmp/fp > "$OUT/freq_plain.log" 2>&1
 cp /tmp/fp/gpu_profile.json "$OUT/freq_plain_profile.json" 2>/dev/null
 grep -E "GPU profile|^\| [a-z]" "$OUT/freq_plain.log" | head -32; tail -2 "$OUT/freq_plain.log"
-echo "== lego 60 s ($(left) s left)"
-timeout $(( $(left) - 30 )) .bin/nerf train .data/lego --device gpu --config configs/gpu_hash.toml --time-budget 60 \
-  --test-views every:8 --no-renders --quiet --out /tmp/l > "$OUT/lego60.log" 2>&1
-cp /tmp/l/metrics.json "$OUT/lego60_metrics.json" 2>/dev/null; tail -2 "$OUT/lego60.log"
-python3 -c "import json;m=json.load(open('$OUT/lego60_metrics.json'));print({k:m.get(k) for k in ['iterations','ms_per_iter','samples_per_sec','test_psnr','render_fps']})"
-echo "== bench ($(left) s left)"
-timeout $(( $(left) - 3 )) .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "fused_mlp_(density|color)|trunk" > "$OUT/bench.log" 2>&1
-grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 echo "== done ($(left) s left)"
