@@ -50,6 +50,8 @@ pub struct HashNerfConfig {
     /// the density net again. The same bits either way; this trades the density net's forward
     /// over the kept samples (and the density pass's head-only shortcut) for 4·Σ widths bytes
     /// per marched sample written and gathered. Off where that buffer would not fit a binding.
+    /// Off by default: on the H100 running the density net again was faster (7.85 against
+    /// 8.30 ms per step at 2^18 samples, docs/results.md); on lavapipe keeping them was.
     pub gpu_keep_density_activations: bool,
     /// GPU twin (ignored on the CPU): the hash table's backward sums the additions of its dense
     /// (coarse) levels over each subgroup before the atomics, on adapters with subgroups and
@@ -82,7 +84,7 @@ impl Default for HashNerfConfig {
             mlp_bias: false,
             mlp_weight_decay: 1e-6,
             gpu_mlp: GpuMlp::Plain,
-            gpu_keep_density_activations: true,
+            gpu_keep_density_activations: false,
             gpu_hash_subgroup_sums: false,
         }
     }
