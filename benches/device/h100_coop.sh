@@ -4,7 +4,9 @@
 # rendering in rounds that lavapipe cannot make, the hash backward's subgroup sums with 32-wide
 # subgroups (encoding) and the fused MLP's activation rows (mlp), then the plain-vs-coop ablation
 # (examples/ablations/h100_coop.toml). Build and pack here first: `bash benches/device/prepare.sh`
-# (the binaries of a commit; .bin/COMMIT says which); carry .gl, .bin, .bint, .data (~61 MB).
+# (the binaries of a commit; .bin/COMMIT says which; its default .bint holds mlp_coop, linear and
+# the bench, which fit beside .data: DEVICE_TESTS=all packs every GPU test executable, too many
+# to carry with .data); carry .gl, .bin, .bint, .data (~60 MB with the working tree).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf) && tar xJf .bint/tests3.tar.xz -C .bin

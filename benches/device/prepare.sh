@@ -3,7 +3,10 @@
 # packs everything they expect into the git-ignored folders the device tool carries.
 #   .gl/    the Vulkan loader and GLVND packages the device image lacks (../shared/docs/gpu-device.md)
 #   .bin/   nerf.xz: the stripped release binary; COMMIT: the commit it was built from
-#   .bint/  tests3.tar.xz: the stripped GPU test executables and the kernel bench (h100_coop.sh)
+#   .bint/  tests3.tar.xz: the stripped GPU test executables named in $DEVICE_TESTS (default
+#           "mlp_coop linear kernels-bench": what device_all.sh and device_check.sh run; the
+#           tool's 64 MiB do not hold all eleven beside .data) and the kernel bench
+#           (DEVICE_TESTS=all packs every one, for h100_coop.sh without .data)
 #   .data/  lego: ../shared's lego scene, all train views and every 8th test view (h100_lego.sh,
 #           h100_final.sh, h100_render.sh, h100_coop.sh)
 # Then run e.g.:  run(command="bash benches/device/h100_profile.sh", carry=[".gl", ".bin"])
@@ -56,8 +59,9 @@ for line in sys.stdin:
       *hash*:gpu) out=hash_gpu ;;
       *) out=$name ;;
     esac
-    strip -o "/tmp/t3/t3/$out" "$exe"
-    echo "   $out <- $exe"
+    case " ${DEVICE_TESTS:-mlp_coop linear kernels-bench} " in
+      *" all "*|*" $out "*) strip -o "/tmp/t3/t3/$out" "$exe"; echo "   $out <- $exe" ;;
+    esac
   done
   tar cJf .bint/tests3.tar.xz -C /tmp/t3 t3
 fi
