@@ -305,7 +305,7 @@ pub fn run_ablation(
         let key = (plan.scene.clone(), plan.config.ndc);
         if !cache.contains_key(&key) {
             let load = |split, views| {
-                load_scene(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ndc: plan.config.ndc })
+                load_scene(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ndc: plan.config.ndc, cameras_only: false })
                     .map_err(|e| AblateError::Scene { path: plan.scene.clone(), message: e.to_string() })
             };
             let train = load(Split::Train, s.train_views.clone())?;

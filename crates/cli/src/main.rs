@@ -428,7 +428,7 @@ fn large_box_note(config: &nerf::train::TrainConfig, bounds: &SceneBounds) -> St
 fn cmd_train(a: TrainArgs) -> Result<()> {
     let config = build_config(&a)?;
     let load = |split, views: &ViewSelection| {
-        load_scene(&a.scene, split, &LoadOptions { downscale: config.downscale, views: views.clone(), ndc: config.ndc })
+        load_scene(&a.scene, split, &LoadOptions { downscale: config.downscale, views: views.clone(), ndc: config.ndc, cameras_only: false })
     };
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
@@ -482,7 +482,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let ck_path = a.run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
-    let test = load_scene(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc })?;
+    let test = load_scene(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc, cameras_only: false })?;
     let mut trainer = make_trainer(&ck.config.for_rendering(), &nerf::registry(), SceneBounds::of(&test), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
@@ -547,10 +547,13 @@ struct LoadedRun {
 }
 
 /// Loads a run's checkpoint and its scene's training split into a trainer on `device`. With
-/// `euclidean_for`, an NDC run is refused, naming what needs the scene's own space.
-fn load_run(run: &Path, scene: &Path, device: nerf::gpu::DevicePreference, euclidean_for: Option<&str>) -> Result<LoadedRun> {
+/// `euclidean_for`, an NDC run is refused, naming what needs the scene's own space. Without
+/// `pixels` the split's photos are not decoded (its cameras and box are all that rendering and
+/// mesh export need; [`LoadOptions::cameras_only`]).
+fn load_run(run: &Path, scene: &Path, device: nerf::gpu::DevicePreference, euclidean_for: Option<&str>, pixels: bool) -> Result<LoadedRun> {
     let Checkpoint { step, config, fields, adam, sampler, .. } = Checkpoint::load(&run.join("checkpoint.bin"))?;
-    let train = load_scene(scene, Split::Train, &LoadOptions { downscale: config.downscale, views: ViewSelection::All, ndc: config.ndc })?;
+    let opts = LoadOptions { downscale: config.downscale, views: ViewSelection::All, ndc: config.ndc, cameras_only: !pixels };
+    let train = load_scene(scene, Split::Train, &opts)?;
     if let (Some(what), Some(_)) = (euclidean_for, &train.ndc) {
         bail!("{}: the run was trained in NDC space, not the scene's: {what} needs a run trained with --no-ndc", run.display());
     }
@@ -565,7 +568,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     }
     // A user's path is read before the checkpoint, so a typo there fails fast.
     let user_path = a.camera_path.as_deref().map(nerf::data::load_camera_path).transpose()?;
-    let LoadedRun { config, step, train, mut trainer } = load_run(&a.run, &a.scene, a.device, None)?;
+    let LoadedRun { config, step, train, mut trainer } = load_run(&a.run, &a.scene, a.device, None, false)?;
     trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
     // --width scales the intrinsics; the height keeps the aspect.
     let sized = |k: nerf::rays::Intrinsics| -> Result<nerf::rays::Intrinsics> {
@@ -621,7 +624,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
                 })?,
                 PathKind::Interpolate => {
                     // The run's test views (what `nerf eval` loads), in the scene's order.
-                    let opts = LoadOptions { downscale: config.downscale, views: config.test_views.clone(), ndc: config.ndc };
+                    let opts = LoadOptions { downscale: config.downscale, views: config.test_views.clone(), ndc: config.ndc, cameras_only: true };
                     let test = load_scene(&a.scene, Split::Test, &opts)?;
                     nerf::rays::interpolate(&test.cameras, k, frames).with_context(|| {
                         format!("{}: --path interpolate needs at least 2 test cameras and 2 frames", a.scene.display())
@@ -711,7 +714,7 @@ fn cmd_export_points(a: PointsArgs) -> Result<()> {
     if a.points == 0 || !(0.0..=1.0).contains(&a.min_opacity) {
         bail!("--points must be at least 1 and --min-opacity in [0, 1]");
     }
-    let LoadedRun { config, train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"))?;
+    let LoadedRun { config, train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"), true)?;
     let out = a.out.unwrap_or_else(|| a.run.join("points.ply"));
     let batch = 1 << 16;
     let max_rays = 20 * a.points.max(batch);
@@ -750,7 +753,7 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
         Some("obj") => true,
         _ => bail!("{}: the mesh is written as .ply or .obj, by the file's extension", out.display()),
     };
-    let LoadedRun { train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a mesh"))?;
+    let LoadedRun { train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a mesh"), false)?;
     let scene_box = (train.aabb.min, train.aabb.max);
     // σ per scene unit from σ per instant-ngp unit (σ is an inverse length): an instant-ngp unit
     // is 1/scale scene units, or the box's longest side where the scene has no instant-ngp box.
@@ -851,7 +854,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
     };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false };
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false };
         let mut ds = load_scene(&a.src, split, &opts)?;
         if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
             let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));

@@ -968,3 +968,30 @@ fn export_scene_moves_cameras_and_camera_optimizer_trains_on_it() {
         .args(["--quiet", "--iters", "1", "--device", "cpu"]).output().unwrap();
     assert_clean_failure(&o, &["camera_optimizer", "voxel"]);
 }
+
+#[test]
+fn render_and_export_mesh_read_only_the_cameras_of_the_training_photos() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mesh = || nerf().arg("export-mesh").arg(&run).arg(&s).args(["--resolution", "16", "--threshold", "0.001", "--device", "cpu"]).output().unwrap();
+    let before = mesh();
+    // Cut every training photo inside its pixel data: the header (size) still reads, the pixels
+    // no longer decode.
+    for e in std::fs::read_dir(s.join("train")).unwrap() {
+        let p = e.unwrap().path();
+        let bytes = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &bytes[..bytes.len() / 2]).unwrap();
+    }
+    let out = d.path().join("frames");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "2", "--width", "16", "--device", "cpu", "--out"]).arg(&out).output().unwrap();
+    assert!(o.status.success(), "render decodes no training photo: {}", stderr(&o));
+    assert!(out.join("frame_0001.png").exists());
+    let after = mesh();
+    assert_eq!((after.status.code(), &after.stdout), (before.status.code(), &before.stdout), "export-mesh decodes no training photo: {}", stderr(&after));
+    // Exporting points casts training rays through the photos: a clear error naming one.
+    let o = nerf().arg("export-points").arg(&run).arg(&s).args(["--points", "10", "--device", "cpu"]).output().unwrap();
+    assert_clean_failure(&o, &["train", ".png"]);
+}

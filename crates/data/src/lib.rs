@@ -317,6 +317,14 @@ pub struct LoadOptions {
     /// them ([`Dataset::ndc`]); `false` gives Euclidean rays (nerf-pytorch's `--no_ndc`). Blender
     /// scenes ignore it.
     pub ndc: bool,
+    /// Read only each image's size from its header, and leave every view's entry of
+    /// [`Dataset::images`] empty: for what needs the cameras alone (rendering a trained run,
+    /// exporting its mesh), which then neither decodes nor holds the photos (a nerfstudio capture
+    /// of a few hundred 4K photos is tens of GB as f32). Sizes are checked as in a full load
+    /// (the same errors, naming the file); lens undistortion, which only resamples pixels, is
+    /// skipped. Methods that read pixels panic on such a dataset
+    /// ([`Dataset::has_images`] says which it is).
+    pub cameras_only: bool,
 }
 
 impl Default for LoadOptions {
@@ -326,6 +334,7 @@ impl Default for LoadOptions {
             downscale: 1,
             views: ViewSelection::All,
             ndc: true,
+            cameras_only: false,
         }
     }
 }
@@ -455,6 +464,16 @@ impl Dataset {
         self.cameras.len()
     }
 
+    /// Whether the views' pixels were loaded (false after [`LoadOptions::cameras_only`]).
+    pub fn has_images(&self) -> bool {
+        self.images.first().is_some_and(|img| !img.is_empty())
+    }
+
+    /// Panics with what was asked of a dataset loaded without its pixels (a caller's bug).
+    fn expect_pixels(&self, what: &str) {
+        assert!(self.has_images(), "{what} reads pixels, but {} was loaded with cameras_only", self.root.display());
+    }
+
     /// Multiplies view `v`'s colours by `gains[v]` (per channel; alpha and the cameras kept): a
     /// change of exposure and white balance between photographs, for experiments with
     /// per-view colour correction. Values may exceed 1 (written to 8-bit images they clip).
@@ -462,6 +481,7 @@ impl Dataset {
     /// # Panics
     /// Unless there is one gain triple per view.
     pub fn scale_colors(&mut self, gains: &[[f32; 3]]) {
+        self.expect_pixels("scale_colors");
         assert_eq!(gains.len(), self.n_views(), "one gain triple per view");
         for (img, g) in self.images.iter_mut().zip(gains) {
             for px in img.chunks_exact_mut(4) {
@@ -524,7 +544,8 @@ impl Dataset {
     /// function of `rng`'s state; runs in parallel over chunks.
     ///
     /// # Panics
-    /// If the dataset has no views.
+    /// If the dataset has no views or was loaded without its pixels
+    /// ([`LoadOptions::cameras_only`]).
     pub fn sample_rays(
         &self,
         n: usize,
@@ -535,6 +556,7 @@ impl Dataset {
         out: &mut RayBatch,
     ) {
         assert!(self.n_views() > 0, "sample_rays on a dataset without views");
+        self.expect_pixels("sample_rays");
         out.resize(n);
         let seed: u64 = rng.gen();
         let (w, h) = (self.width, self.height);
@@ -589,7 +611,7 @@ impl Dataset {
     /// rows.
     ///
     /// # Panics
-    /// If `i >= n_views()`.
+    /// If `i >= n_views()`, or if the dataset was loaded without its pixels.
     pub fn view_rays(
         &self,
         i: usize,
@@ -598,6 +620,7 @@ impl Dataset {
         out: &mut RayBatch,
     ) {
         assert!(i < self.n_views(), "view index {i} out of range");
+        self.expect_pixels("view_rays");
         let (w, h) = (self.width as usize, self.height as usize);
         out.resize(w * h);
         let bg = background.fixed_rgb();
@@ -631,8 +654,9 @@ impl Dataset {
     /// The view's RGB image composited on `background` (Random → White), `3·W·H` long.
     ///
     /// # Panics
-    /// If `i >= n_views()`.
+    /// If `i >= n_views()`, or if the dataset was loaded without its pixels.
     pub fn view_rgb(&self, i: usize, background: Background) -> Vec<f32> {
+        self.expect_pixels("view_rgb");
         let bg = background.fixed_rgb();
         let img = &self.images[i];
         let mut out = vec![0.0f32; img.len() / 4 * 3];
@@ -806,21 +830,39 @@ fn downscale_rgba(px: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
 /// Decodes `paths` in parallel and downscales each by `k` (a k×k box average); all must have the
 /// size of the first, and `k` must divide it. Returns that size (before downscaling) and the
 /// images; an error names the first failing image in order.
-fn decode_views(paths: &[&Path], k: u32) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
-    decode_views_with(paths, k, &|_, _, _, _, px| Ok(px))
+fn decode_views(paths: &[&Path], k: u32, cameras_only: bool) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
+    decode_views_with(paths, k, &|_, _, _, _, px| Ok(px), cameras_only)
 }
 
 /// A step between decoding an image and downscaling it: `(index, path, width, height, pixels)` →
 /// pixels of the same size (e.g. [`ngp::undistort_rgba`]).
 type ImageFix<'a> = dyn Fn(usize, &Path, u32, u32, Vec<f32>) -> Result<Vec<f32>, DataError> + Sync + 'a;
 
-/// [`decode_views`] with `fix` applied to each decoded image before it is downscaled.
-fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
+/// Width and height from an image's header, without decoding its pixels.
+fn image_size(path: &Path) -> Result<(u32, u32), DataError> {
+    let io = |source| DataError::Io { path: path.to_path_buf(), source };
+    image::ImageReader::open(path)
+        .map_err(io)?
+        .with_guessed_format()
+        .map_err(io)?
+        .into_dimensions()
+        .map_err(|source| DataError::Decode { path: path.to_path_buf(), source })
+}
+
+/// [`decode_views`] with `fix` applied to each decoded image before it is downscaled. With
+/// `cameras_only` ([`LoadOptions::cameras_only`]) each image's size comes from its header, the
+/// same checks run, and every view's pixels are left empty (`fix` is not called).
+fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
     let decoded: Vec<Result<Decoded, DataError>> = paths
         .par_iter()
         .enumerate()
         .map(|(i, &path)| {
-            let (w, h, px) = decode_rgba(path)?;
+            let (w, h, px) = if cameras_only {
+                let (w, h) = image_size(path)?;
+                (w, h, Vec::new())
+            } else {
+                decode_rgba(path)?
+            };
             if w % k != 0 || h % k != 0 {
                 return Err(DataError::BadDownscale {
                     path: path.to_path_buf(),
@@ -830,6 +872,9 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix) -> Result<(u32, u3
             }
             if w == 0 || h == 0 {
                 return Err(DataError::BadDownscale { path: path.to_path_buf(), k, reason: "the image is empty".into() });
+            }
+            if cameras_only {
+                return Ok((w, h, px));
             }
             let px = fix(i, path, w, h, px)?;
             Ok((w, h, downscale_rgba(&px, w as usize, h as usize, k as usize)))
@@ -1031,7 +1076,7 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
         let intr = lens.intrinsics(&tpath, path, w, h)?;
         Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
     };
-    let (w0, h0, images) = decode_views_with(&paths, k, &undistort)?;
+    let (w0, h0, images) = decode_views_with(&paths, k, &undistort, opts.cameras_only)?;
     let cameras = frames
         .iter()
         .map(|f| {
@@ -1396,6 +1441,13 @@ pub fn write_blender(
     out_root: &Path,
     attribution: Option<&str>,
 ) -> Result<(), DataError> {
+    if !ds.has_images() {
+        return Err(DataError::InvalidValue {
+            path: ds.root.clone(),
+            key: "images".into(),
+            reason: "the scene was loaded without its pixels (cameras_only): there are no images to write".into(),
+        });
+    }
     let split = ds.split.as_str();
     let tpath = out_root.join(ds.split.transforms_file());
     if ds.ndc.is_some() {

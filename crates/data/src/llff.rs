@@ -242,7 +242,7 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
 
     let sub = k / j;
     let paths: Vec<&Path> = selected.iter().map(|&i| files[i].as_path()).collect();
-    let (w, h, images) = crate::decode_views(&paths, sub)?;
+    let (w, h, images) = crate::decode_views(&paths, sub, opts.cameras_only)?;
     let first = files[selected[0]].clone();
 
     // Intrinsics: the poses hold the full-resolution (h, w, focal); the folder's images are that

@@ -701,3 +701,44 @@ fn lego_train_downscaled() {
     let e = load_blender(&lego, Split::Val, &LoadOptions::default()).unwrap_err();
     assert!(matches!(e, DataError::MissingTransforms { .. }));
 }
+
+#[test]
+fn cameras_only_gives_the_full_loads_cameras_without_decoding() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = synthetic(4, 8, 6, 5);
+    write_blender(&ds, dir.path(), None).unwrap();
+    for (k, views) in [(1, ViewSelection::All), (2, ViewSelection::Every(2))] {
+        let full = load_blender(dir.path(), Split::Train, &opts(k, views.clone())).unwrap();
+        let cams = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..opts(k, views) }).unwrap();
+        assert!(full.has_images() && !cams.has_images());
+        assert_eq!(cams.images.len(), cams.n_views());
+        assert_eq!((cams.width, cams.height, cams.n_views()), (full.width, full.height, full.n_views()));
+        assert_eq!(cams.file_paths, full.file_paths);
+        for (a, b) in cams.cameras.iter().zip(&full.cameras) {
+            assert_eq!((a.rotation, a.position, a.intrinsics), (b.rotation, b.position, b.intrinsics));
+        }
+        assert_eq!((cams.near, cams.far, cams.aabb), (full.near, full.far, full.aabb));
+    }
+    // The same size checks as a full load, naming the file; writing it back is refused.
+    let cams = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
+    let e = write_blender(&cams, &dir.path().join("copy"), None).unwrap_err().to_string();
+    assert!(e.contains("cameras_only"), "{e}");
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..opts(3, ViewSelection::All) }).unwrap_err().to_string();
+    assert!(e.contains("r_0.png") && e.contains("8x6"), "{e}");
+    save_png(&dir.path().join("train/r_2.png"), 4, 6, &vec![0.5; 3 * 24]).unwrap();
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap_err().to_string();
+    assert!(e.contains("r_2.png") && e.contains("r_0.png"), "{e}");
+    std::fs::write(dir.path().join("train/r_1.png"), b"not a png").unwrap();
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap_err().to_string();
+    assert!(e.contains("r_1.png"), "{e}");
+}
+
+#[test]
+#[should_panic(expected = "cameras_only")]
+fn reading_pixels_of_a_cameras_only_load_is_a_clear_panic() {
+    let dir = tempfile::tempdir().unwrap();
+    write_blender(&synthetic(2, 8, 6, 7), dir.path(), None).unwrap();
+    let cams = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
+    let mut rng = nerf_core::rng(1, 0);
+    cams.sample_rays(4, Background::White, PixelConvention::Center, false, &mut rng, &mut RayBatch::default());
+}

@@ -71,12 +71,12 @@ fn scene(dir: &Path, rows: &[[f64; 17]], factors: &[u32]) {
 
 /// Euclidean rays (`--no-ndc`): the loader's geometry checked in world units.
 fn opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false }
 }
 
 /// The default: NDC rays.
 fn ndc_opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false }
 }
 
 fn poses(ds: &Dataset) -> Vec<(glam::Mat3, Vec3)> {
@@ -316,4 +316,28 @@ fn fern_loads_as_nerf_pytorch_splits_it() {
     let ndc = load_scene(&fern, Split::Train, &ndc_opts(8)).unwrap();
     assert!(ndc.ndc.is_some() && ndc.near == 0.0);
     assert!(ndc.aabb.min[..2].iter().all(|&v| v > -1.6 && v < -0.9) && ndc.aabb.max[..2].iter().all(|&v| v < 1.6 && v > 0.9), "{:?}", ndc.aabb);
+}
+
+#[test]
+fn cameras_only_gives_the_full_loads_cameras_without_decoding() {
+    let dir = tempfile::tempdir().unwrap();
+    scene(dir.path(), &rig(9, DMat3::IDENTITY, DVec3::ZERO, 1.0), &[2, 4]);
+    for (k, ndc) in [(4, false), (8, true)] {
+        let full = load_llff(dir.path(), Split::Train, &LoadOptions { ndc, ..opts(k) }).unwrap();
+        let cams = load_llff(dir.path(), Split::Train, &LoadOptions { ndc, cameras_only: true, ..opts(k) }).unwrap();
+        assert!(full.has_images() && !cams.has_images());
+        assert_eq!(cams.images.len(), cams.n_views());
+        assert_eq!((cams.width, cams.height, cams.file_paths.clone()), (full.width, full.height, full.file_paths.clone()));
+        assert_eq!(poses(&cams), poses(&full));
+        assert_eq!(cams.cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>(), full.cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>());
+        assert_eq!((cams.near, cams.far, cams.aabb, cams.depth_bounds, cams.ndc.is_some()), (full.near, full.far, full.aabb, full.depth_bounds, ndc));
+    }
+    // A folder whose images are not those of the poses' aspect is still refused without decoding.
+    let bad = tempfile::tempdir().unwrap();
+    scene(bad.path(), &rig(9, DMat3::IDENTITY, DVec3::ZERO, 1.0), &[]);
+    for i in 0..9 {
+        save_png(&bad.path().join(format!("images_4/IMG_{i:03}.png")), 16, 16, &vec![0.5; 3 * 256]).unwrap();
+    }
+    let e = load_llff(bad.path(), Split::Train, &LoadOptions { cameras_only: true, ..opts(4) }).unwrap_err().to_string();
+    assert!(e.contains("aspect ratio") && e.contains("IMG_"), "{e}");
 }
