@@ -162,12 +162,11 @@ fn uniform_layout_and_plan_match_the_shader_and_the_cpu_twin() {
 // A plain-WGSL emulation of the cooperative-matrix ops, so that the kernels' indexing, layouts,
 // staging, reduction and the host side run on any adapter with f16 (lavapipe in CI).
 
-/// `mlp_coop::source()` with every coop op replaced by a plain function on `array<f32, 256>`
-/// (row-major 16×16): loads / stores read and write the same elements with the same strides and
-/// layouts as the real ops, the multiply-add is C + A·B in f32 (like the tensor cores' f32
-/// accumulation). Only lane 0 of the workgroup (= subgroup) computes and stores; the other lanes
-/// carry zeros. Relies on the shader naming every coop pointer index and stride with a plain
-/// identifier (the "runtime zero" lets).
+/// `mlp_coop::source()` with every coop op replaced by plain WGSL (`common/coop_emu.rs`): each
+/// 16×16 matrix spread over the subgroup's 32 lanes, 8 entries per lane; loads / stores read and
+/// write the same elements with the same strides and layouts as the real ops, the multiply-add is
+/// C + A·B in f32 (like the tensor cores' f32 accumulation). Relies on the shader naming every
+/// coop pointer index and stride with a plain identifier (the "runtime zero" lets).
 #[path = "common/coop_emu.rs"]
 mod coop_emu;
 #[path = "common/spirv.rs"]

@@ -1,15 +1,28 @@
 //! A plain-WGSL emulation of wgpu's cooperative-matrix operations, so kernels written for tensor
 //! cores run (slowly) on any adapter with f16, e.g. lavapipe. Semantics (those under which
-//! `linear_coop.wgsl` was checked on an H100, and which `tests/linear.rs` re-checks through this
-//! emulation): a 16×16 matrix is `m[r·16 + c]`; `coopLoadT(&a[i], st)` reads row-major
-//! (`a[i + r·st + c]`), `coopLoad(&a[i], st)` column-major (`a[i + c·st + r]`), `coopStoreT` writes
-//! row-major, `coopMultiplyAdd(a, b, c) = a·b + c`. Every entry point with cooperative-matrix
-//! operations must start with `let n = load_n(lid);` and take its subgroups as consecutive runs
-//! of 32 invocations (`lid / 32`, as on the H100): lane `lid % 32 == 0` of each subgroup does each
-//! whole operation of its subgroup (the other lanes hold zero matrices), so workgroups of one or
-//! several subgroups of 32 are emulated alike whatever the adapter's real subgroup size.
+//! `linear_coop.wgsl` and `mlp_fused_coop.wgsl` were checked on an H100, and which
+//! `tests/linear.rs` and `tests/mlp_coop.rs` re-check through this emulation): a 16×16 matrix is
+//! `m[r·16 + c]`; `coopLoadT(&a[i], st)` reads row-major (`a[i + r·st + c]`), `coopLoad(&a[i], st)`
+//! column-major (`a[i + c·st + r]`), `coopStoreT` writes row-major, `coopMultiplyAdd(a, b, c) =
+//! a·b + c` with each entry summed over k = 0..16 in order, in f32.
+//!
+//! Each matrix is spread over its subgroup's 32 lanes as on the hardware: lane `l` holds entries
+//! `8l .. 8l + 8` of `m[r·16 + c]` (row `l / 2`, columns `8·(l % 2) ..`) in an `array<f32, 8>`, so
+//! loads and stores move 8 entries per lane. A multiply-add passes A, then B, through 256 f16 of
+//! workgroup memory per subgroup (`emu_ab`: 2 KiB, enough for workgroups of 4 subgroups; the
+//! operands are f16 values, so the round trip is exact) between workgroup barriers, and each lane
+//! sums its 8 entries. An earlier form did every whole operation on lane 0 of the subgroup
+//! (`array<f32, 256>` per matrix): lavapipe compiled it so slowly that one test of the 64×64 tiled
+//! GEMMs took 10 minutes, against 18 s in this form.
+//!
+//! Requirements on the shader: every entry point with cooperative-matrix operations starts with
+//! `let n = load_n(lid);`, takes its subgroups as consecutive runs of 32 invocations (`lid / 32`,
+//! as on the H100), keeps every cooperative-matrix operation in workgroup-uniform control flow (the
+//! hardware needs subgroup-uniform; the emulated multiply-add has barriers), has `enable f16;`,
+//! leaves 2 KiB of workgroup memory free, and names each coop pointer as `&ARRAY[INDEX]`.
 
 pub fn emulate(source: &str) -> String {
+    const MAT: &str = "array<f32, 8>";
     // Without comments (they name the coop ops too).
     let src: String = source
         .lines()
@@ -17,27 +30,30 @@ pub fn emulate(source: &str) -> String {
         .collect();
     let src = src.replace("enable wgpu_cooperative_matrix;\n", "");
     assert!(!src.contains("wgpu_cooperative_matrix"));
+    assert!(src.contains("enable f16;"), "the emulated multiply-add stages f16 tiles");
     let src = src
-        .replace("coop_mat16x16<f32, C>()", "array<f32, 256>()")
-        .replace("coop_mat16x16<f16, A>()", "array<f32, 256>()")
-        .replace("coop_mat16x16<f16, B>()", "array<f32, 256>()").replace("coopMultiplyAdd(", "emu_mma(");
+        .replace("coop_mat16x16<f32, C>()", &format!("{MAT}()"))
+        .replace("coop_mat16x16<f16, A>()", &format!("{MAT}()"))
+        .replace("coop_mat16x16<f16, B>()", &format!("{MAT}()"))
+        .replace("coopMultiplyAdd(", "emu_mma(");
     // Each entry point with coop ops starts with `let n = load_n(lid);`: record the lane within
-    // its subgroup of 32 (`lid` itself in workgroups of one subgroup: lavapipe takes minutes to
-    // compile the backward kernels of linear_coop.wgsl when the lane is written `lid % 32u`).
+    // its subgroup of 32 and the subgroup within the workgroup.
     let src = {
         let marker = "let n = load_n(lid);";
         let (mut out, mut last) = (String::new(), 0);
         for (at, _) in src.match_indices(marker) {
             let size_at = src[..at].rfind("@workgroup_size(").expect("an entry point with coop ops has a @workgroup_size") + 16;
             let size = src[size_at..].split(')').next().unwrap_or("").trim();
-            let lane = if size == "32" || size == "32u" { "lid" } else { "lid % 32u" };
+            let (lane, sg) = if size == "32" || size == "32u" { ("lid", "0u") } else { ("lid % 32u", "lid / 32u") };
             out.push_str(&src[last..at]);
-            out.push_str(&format!("emu_lane = {lane};\n    {marker}"));
+            out.push_str(&format!("emu_lane = {lane};\n    emu_sg = {sg};\n    {marker}"));
             last = at + marker.len();
         }
         out.push_str(&src[last..]);
         out
     };
+    // This lane's 8 entries: j = 0..8 is row r = lane / 2, column c = 8·(lane % 2) + j.
+    let lane_entries = "for (var j = 0u; j < 8u; j++) {\n        let r = emu_lane / 2u;\n        let c = 8u * (emu_lane % 2u) + j;\n        ";
     let mut out = String::new();
     let mut funcs = std::collections::BTreeMap::new();
     let mut rest = src.as_str();
@@ -55,9 +71,7 @@ pub fn emulate(source: &str) -> String {
         let name = format!("emu_load_{}_{array}", if row_major { "rm" } else { "cm" });
         let elem = if row_major { "i + r * st + c" } else { "i + c * st + r" };
         funcs.entry(name.clone()).or_insert(format!(
-            "fn {name}(i: u32, st: u32) -> array<f32, 256> {{\n    var m = array<f32, 256>();\n    if emu_lane != 0u {{ return m; }}\n    \
-             for (var r = 0u; r < 16u; r++) {{\n        for (var c = 0u; c < 16u; c++) {{\n            \
-             m[r * 16u + c] = f32({array}[{elem}]);\n        }}\n    }}\n    return m;\n}}\n"
+            "fn {name}(i: u32, st: u32) -> {MAT} {{\n    var m = {MAT}();\n    {lane_entries}m[j] = f32({array}[{elem}]);\n    }}\n    return m;\n}}\n"
         ));
         out.push_str(&format!("{name}({index}, {stride})"));
         rest = &tail[close + 1..];
@@ -76,9 +90,7 @@ pub fn emulate(source: &str) -> String {
         let (array, index) = ptr.strip_suffix(']').and_then(|p| p.split_once('[')).expect("coop store: &array[index]");
         let name = format!("emu_store_{array}");
         funcs.entry(name.clone()).or_insert(format!(
-            "fn {name}(m_in: array<f32, 256>, i: u32, st: u32) {{\n    if emu_lane != 0u {{ return; }}\n    var m = m_in;\n    \
-             for (var r = 0u; r < 16u; r++) {{\n        for (var c = 0u; c < 16u; c++) {{\n            \
-             {array}[i + r * st + c] = m[r * 16u + c];\n        }}\n    }}\n}}\n"
+            "fn {name}(m: {MAT}, i: u32, st: u32) {{\n    {lane_entries}{array}[i + r * st + c] = m[j];\n    }}\n}}\n"
         ));
         out.push_str(&format!("{name}({}, {index}, {})", parts[0], parts[2]));
         rest = &tail[close + 1..];
@@ -87,20 +99,27 @@ pub fn emulate(source: &str) -> String {
     for op in ["coopLoad", "coopStore", "coopMultiplyAdd", "coop_mat"] {
         assert!(!out.contains(op), "an unemulated {op} is left");
     }
+    // The multiply-add: row emu_lane / 2 of A (its 16 k) from emu_ab, then column
+    // 8·(lane % 2) + j of B, each lane summing its 8 entries of C over k in order.
     out.push_str(
         "\nvar<private> emu_lane: u32;\n\
-         fn emu_mma(a_in: array<f32, 256>, b_in: array<f32, 256>, c_in: array<f32, 256>) -> array<f32, 256> {\n\
-         \x20   var d = c_in;\n    if emu_lane != 0u { return d; }\n    var a = a_in;\n    var b = b_in;\n\
-         \x20   for (var r = 0u; r < 16u; r++) {\n        for (var c = 0u; c < 16u; c++) {\n\
-         \x20           var s = d[r * 16u + c];\n            for (var k = 0u; k < 16u; k++) { s += a[r * 16u + k] * b[k * 16u + c]; }\n\
-         \x20           d[r * 16u + c] = s;\n        }\n    }\n    return d;\n}\n",
+         var<private> emu_sg: u32;\n\
+         var<workgroup> emu_ab: array<f16, 1024>;\n\
+         fn emu_mma(a: array<f32, 8>, b: array<f32, 8>, c_in: array<f32, 8>) -> array<f32, 8> {\n\
+         \x20   let o = emu_sg * 256u;\n    let r = emu_lane / 2u;\n    let c0 = 8u * (emu_lane % 2u);\n\
+         \x20   for (var j = 0u; j < 8u; j++) { emu_ab[o + 8u * emu_lane + j] = f16(a[j]); }\n    workgroupBarrier();\n\
+         \x20   var ar = array<f32, 16>();\n    for (var k = 0u; k < 16u; k++) { ar[k] = f32(emu_ab[o + r * 16u + k]); }\n    workgroupBarrier();\n\
+         \x20   for (var j = 0u; j < 8u; j++) { emu_ab[o + 8u * emu_lane + j] = f16(b[j]); }\n    workgroupBarrier();\n\
+         \x20   var d = c_in;\n\
+         \x20   for (var j = 0u; j < 8u; j++) {\n        var s = d[j];\n\
+         \x20       for (var k = 0u; k < 16u; k++) { s += ar[k] * f32(emu_ab[o + k * 16u + c0 + j]); }\n        d[j] = s;\n    }\n\
+         \x20   workgroupBarrier();\n    return d;\n}\n",
     );
     for f in funcs.values() {
         out.push_str(f);
     }
     out
 }
-
 
 /// The arguments of a call whose argument list starts at `tail[start..]` (just after its `(`):
 /// (index of the closing `)`, the top-level comma-separated arguments, trimmed).
