@@ -16,9 +16,12 @@ enable wgpu_cooperative_matrix;
 // Entry points: convert_input, convert_weights, forward, output_grad, backward_data,
 // backward_weight, reduce_grads (same roles as in linear.wgsl), and the workgroup-tiled
 // forward_tiled, backward_data_tiled, backward_weight_tiled (4 subgroups share a 64×64 block and
-// stage K chunks in workgroup memory; see the section at the end), which replace forward,
+// stage K chunks in workgroup memory; see the section near the end), which replace forward,
 // backward_data, backward_weight when the host selects LinearPath::CoopTiled. In that mode the
 // f16 buffers have round64(capacity) rows (rows in [n, round64(n)) are zeros where written).
+// LinearPath::CoopTiledWide adds forward_wide, backward_data_wide, backward_weight_wide (128×128
+// blocks, 4×4 accumulators per subgroup; the last section) for the products whose block width is
+// a multiple of 128, with round128(capacity) rows.
 
 struct CP {
     n_out: u32, k_in: u32, ka: u32, act: u32,
@@ -440,23 +443,26 @@ fn ft_w(j: u32, c: u32) -> vec4<f16> {
     return v;
 }
 
+// forward's epilogue for one entry of C (the product `acc` at row, col): bias, activation, the
+// f32 tape / output and the f16 copy (zeros in the padding rows).
+fn ft_put(n: u32, row: u32, col: u32, acc: f32) {
+    var y = 0.0;
+    if row < n && col < P.n_out {
+        var z = acc;
+        if (P.flags & 4u) != 0u { z += f_params[P.bias_off + col]; }
+        y = act_apply(P.act, z);
+        if (P.flags & 1u) != 0u { f_dst[row * P.t_stride + P.t_off + col] = y; }
+        if (P.flags & 2u) != 0u { f_out[row * P.out_dim + col] = y; }
+    }
+    if (P.flags & 16u) != 0u && col < P.hp {
+        f_h16[P.h_dst + row * P.hp + col] = f16(y);
+    }
+}
+
 // forward's epilogue for the 16×16 accumulator staged at Cs[cs..], rows r0.., columns c0...
 fn ft_epilogue(n: u32, r0: u32, c0: u32, cs: u32, lane: u32) {
     for (var e = lane; e < 256u; e += 32u) {
-        let row = r0 + e / 16u;
-        let col = c0 + e % 16u;
-        var y = 0.0;
-        let valid = row < n && col < P.n_out;
-        if valid {
-            var z = Cs[cs + e];
-            if (P.flags & 4u) != 0u { z += f_params[P.bias_off + col]; }
-            y = act_apply(P.act, z);
-            if (P.flags & 1u) != 0u { f_dst[row * P.t_stride + P.t_off + col] = y; }
-            if (P.flags & 2u) != 0u { f_out[row * P.out_dim + col] = y; }
-        }
-        if (P.flags & 16u) != 0u && col < P.hp {
-            f_h16[P.h_dst + row * P.hp + col] = f16(y);
-        }
+        ft_put(n, r0 + e / 16u, c0 + e % 16u, Cs[cs + e]);
     }
 }
 
@@ -570,27 +576,29 @@ fn bt_w(k: u32, c: u32) -> vec4<f16> {
     return v;
 }
 
+// backward_data's epilogue for one entry (row, col) of dA: the input gradient (x16 block) or the
+// f16 pre-activation gradient of the previous layer (h16 block; zeros in the padding rows).
+fn bt_put(n: u32, row: u32, col: u32, v: f32) {
+    if col >= P.kp { return; }
+    if col < P.xp {
+        if (P.flags & 8u) != 0u && row < n && col < P.ka {
+            let o = row * P.in_dim + col;
+            d_input[o] = d_input[o] + v * (1.0 / GRAD_SCALE);
+        }
+    } else {
+        let h = col - P.xp;
+        var g = 0.0;
+        if row < n && h < P.k_in - P.ka {
+            g = v * act_grad(P.prev_act, d_tape[row * P.t_stride + P.t_prev_off + h]);
+        }
+        d_dh16[row * P.hp + h] = f16(g);
+    }
+}
+
 // backward_data's epilogue for the 16×16 accumulator staged at Cs[cs..].
 fn bt_epilogue(n: u32, r0: u32, c0: u32, cs: u32, lane: u32) {
-    let hidden = P.k_in - P.ka;
     for (var e = lane; e < 256u; e += 32u) {
-        let row = r0 + e / 16u;
-        let col = c0 + e % 16u;
-        if col >= P.kp { continue; }
-        let v = Cs[cs + e];
-        if col < P.xp {
-            if (P.flags & 8u) != 0u && row < n && col < P.ka {
-                let o = row * P.in_dim + col;
-                d_input[o] = d_input[o] + v * (1.0 / GRAD_SCALE);
-            }
-        } else {
-            let h = col - P.xp;
-            var g = 0.0;
-            if row < n && h < hidden {
-                g = v * act_grad(P.prev_act, d_tape[row * P.t_stride + P.t_prev_off + h]);
-            }
-            d_dh16[row * P.hp + h] = f16(g);
-        }
+        bt_put(n, r0 + e / 16u, c0 + e % 16u, Cs[cs + e]);
     }
 }
 
@@ -714,14 +722,17 @@ fn wt_b(row: u32, lim: u32, c: u32) -> vec4<f16> {
     return v;
 }
 
+// Entry (j, c) of a split's dW to the partials (inside np × kp only).
+fn wt_put(base: u32, j: u32, c: u32, v: f32) {
+    if j < P.np && c < P.kp {
+        w_partial[base + j * P.kcp + c] = v;
+    }
+}
+
 // Writes the 16×16 accumulator staged at Cs[cs..] (dW rows j0.., columns c0..) to the partials.
 fn wt_epilogue(base: u32, j0: u32, c0: u32, cs: u32, lane: u32) {
     for (var e = lane; e < 256u; e += 32u) {
-        let j = j0 + e / 16u;
-        let c = c0 + e % 16u;
-        if j < P.np && c < P.kp {
-            w_partial[base + j * P.kcp + c] = Cs[cs + e];
-        }
+        wt_put(base, j0 + e / 16u, c0 + e % 16u, Cs[cs + e]);
     }
 }
 
@@ -831,5 +842,584 @@ fn backward_weight_tiled(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_i
         if lid < 64u && j0 + lid < P.np {
             w_partial[base + (j0 + lid) * P.kcp + P.kp] = Cs[lid] + Cs[lid + 64u];
         }
+    }
+}
+
+// =============================================================================================
+// Wide variants: forward_wide, backward_data_wide, backward_weight_wide (LinearPath::CoopTiledWide).
+// As the *_tiled kernels (same bindings, staging helpers and per-element epilogues, same results up
+// to the f32 summation order) with 128×128 blocks: a workgroup is 4 subgroups of 32 and owns a
+// 128×128 block of C; subgroup sg owns its 64×64 quarter (rows (sg / 2)·64, columns (sg % 2)·64)
+// as 4×4 accumulators, so each K step of 16 loads 4 A + 4 B tiles for 16 products (the 64×64
+// blocks: 2 + 2 for 4), and each staged chunk feeds 4× the products for 2× the bytes. K runs in
+// chunks of 32, staged as in the tiled kernels: each lane moves 8 + 8 vec4<f16> per chunk,
+// prefetched into registers one chunk ahead. Epilogue: two accumulators at a time through the
+// subgroup's [16][32] slice of `Cw`. The host launches these only for blocks whose width is a
+// whole number of 128s (other layers keep the 64×64 kernels) and pads the f16 scratch to 128 rows.
+// Workgroup memory: ua 10 240 B + ub 10 240 B + Cw 8 192 B + wg_n 4 B = 28 676 B.
+
+const TW2: u32 = 128u;
+const SB2: u32 = 136u;  // f16 row stride of [32][128] chunks (128 + 8)
+
+var<workgroup> ua: array<f16, 5120>;  // A chunk [128][SA], or a [32][SB2] chunk (4352)
+var<workgroup> ub: array<f16, 5120>;  // B chunk [128][SA] or [32][SB2]
+var<workgroup> Cw: array<f32, 2048>;  // 4 subgroups × [16][32] epilogue staging
+
+fn put_ua(o: u32, v: vec4<f16>) {
+    ua[o] = v.x;
+    ua[o + 1u] = v.y;
+    ua[o + 2u] = v.z;
+    ua[o + 3u] = v.w;
+}
+
+fn put_ub(o: u32, v: vec4<f16>) {
+    ub[o] = v.x;
+    ub[o + 1u] = v.y;
+    ub[o + 2u] = v.z;
+    ub[o + 3u] = v.w;
+}
+
+// The [16][32] block staged at Cw[cs..] (rows r0.., columns c0..) through ft_put.
+fn fw_epilogue(n: u32, r0: u32, c0: u32, cs: u32, lane: u32) {
+    for (var e = lane; e < 512u; e += 32u) {
+        ft_put(n, r0 + e / 32u, c0 + e % 32u, Cw[cs + e]);
+    }
+}
+
+@compute @workgroup_size(128)
+fn forward_wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                @builtin(local_invocation_index) lid: u32) {
+    let n = load_n(lid);
+    let row0 = (wid.x + wid.y * nwg.x) * TW2;
+    let col0 = wid.z * TW2;
+    if row0 >= n { return; }
+    let sg = lid / 32u;
+    let lane = lid % 32u;
+    // Staging: chunk entry lid + 128·t (t < 8) is row lid / 8 + 16·t, columns 4·(lid % 8) + 0..3.
+    let sr = lid / 8u;
+    let sq = (lid % 8u) * 4u;
+    var a0 = ft_a(n, row0 + sr, sq);
+    var a1 = ft_a(n, row0 + sr + 16u, sq);
+    var a2 = ft_a(n, row0 + sr + 32u, sq);
+    var a3 = ft_a(n, row0 + sr + 48u, sq);
+    var a4 = ft_a(n, row0 + sr + 64u, sq);
+    var a5 = ft_a(n, row0 + sr + 80u, sq);
+    var a6 = ft_a(n, row0 + sr + 96u, sq);
+    var a7 = ft_a(n, row0 + sr + 112u, sq);
+    var w0 = ft_w(col0 + sr, sq);
+    var w1 = ft_w(col0 + sr + 16u, sq);
+    var w2 = ft_w(col0 + sr + 32u, sq);
+    var w3 = ft_w(col0 + sr + 48u, sq);
+    var w4 = ft_w(col0 + sr + 64u, sq);
+    var w5 = ft_w(col0 + sr + 80u, sq);
+    var w6 = ft_w(col0 + sr + 96u, sq);
+    var w7 = ft_w(col0 + sr + 112u, sq);
+    // Runtime zero: every coop index / stride is a `let` (naga 30 SPIR-V quirk, see forward).
+    let z = P.flags & 0u;
+    let sa = z + SA;
+    let ia = z + (sg / 2u) * 64u * SA;   // this subgroup's A rows in ua
+    let ib = z + (sg % 2u) * 64u * SA;   // this subgroup's W rows (= C columns) in ub
+    var c00 = coop_mat16x16<f32, C>();
+    var c01 = coop_mat16x16<f32, C>();
+    var c02 = coop_mat16x16<f32, C>();
+    var c03 = coop_mat16x16<f32, C>();
+    var c10 = coop_mat16x16<f32, C>();
+    var c11 = coop_mat16x16<f32, C>();
+    var c12 = coop_mat16x16<f32, C>();
+    var c13 = coop_mat16x16<f32, C>();
+    var c20 = coop_mat16x16<f32, C>();
+    var c21 = coop_mat16x16<f32, C>();
+    var c22 = coop_mat16x16<f32, C>();
+    var c23 = coop_mat16x16<f32, C>();
+    var c30 = coop_mat16x16<f32, C>();
+    var c31 = coop_mat16x16<f32, C>();
+    var c32 = coop_mat16x16<f32, C>();
+    var c33 = coop_mat16x16<f32, C>();
+    for (var kb = 0u; kb < P.kp; kb += 32u) {
+        workgroupBarrier(); // the previous chunk's products are done
+        put_ua(sr * SA + sq, a0);
+        put_ua((sr + 16u) * SA + sq, a1);
+        put_ua((sr + 32u) * SA + sq, a2);
+        put_ua((sr + 48u) * SA + sq, a3);
+        put_ua((sr + 64u) * SA + sq, a4);
+        put_ua((sr + 80u) * SA + sq, a5);
+        put_ua((sr + 96u) * SA + sq, a6);
+        put_ua((sr + 112u) * SA + sq, a7);
+        put_ub(sr * SA + sq, w0);
+        put_ub((sr + 16u) * SA + sq, w1);
+        put_ub((sr + 32u) * SA + sq, w2);
+        put_ub((sr + 48u) * SA + sq, w3);
+        put_ub((sr + 64u) * SA + sq, w4);
+        put_ub((sr + 80u) * SA + sq, w5);
+        put_ub((sr + 96u) * SA + sq, w6);
+        put_ub((sr + 112u) * SA + sq, w7);
+        workgroupBarrier();
+        // Prefetch the next chunk (zeros past kp) while this one is multiplied.
+        let kn = kb + 32u + sq;
+        a0 = ft_a(n, row0 + sr, kn);
+        a1 = ft_a(n, row0 + sr + 16u, kn);
+        a2 = ft_a(n, row0 + sr + 32u, kn);
+        a3 = ft_a(n, row0 + sr + 48u, kn);
+        a4 = ft_a(n, row0 + sr + 64u, kn);
+        a5 = ft_a(n, row0 + sr + 80u, kn);
+        a6 = ft_a(n, row0 + sr + 96u, kn);
+        a7 = ft_a(n, row0 + sr + 112u, kn);
+        w0 = ft_w(col0 + sr, kn);
+        w1 = ft_w(col0 + sr + 16u, kn);
+        w2 = ft_w(col0 + sr + 32u, kn);
+        w3 = ft_w(col0 + sr + 48u, kn);
+        w4 = ft_w(col0 + sr + 64u, kn);
+        w5 = ft_w(col0 + sr + 80u, kn);
+        w6 = ft_w(col0 + sr + 96u, kn);
+        w7 = ft_w(col0 + sr + 112u, kn);
+        for (var ks = 0u; ks < 32u; ks += 16u) {
+            // Wᵀ blocks: ub holds W rows [128][SA], so Wᵀ is column-major with stride SA.
+            let pa0 = ia + ks;
+            let pa1 = pa0 + 16u * SA;
+            let pa2 = pa0 + 32u * SA;
+            let pa3 = pa0 + 48u * SA;
+            let pb0 = ib + ks;
+            let pb1 = pb0 + 16u * SA;
+            let pb2 = pb0 + 32u * SA;
+            let pb3 = pb0 + 48u * SA;
+            let ma0 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa0], sa);
+            let ma1 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa1], sa);
+            let ma2 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa2], sa);
+            let ma3 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa3], sa);
+            let mb0 = coopLoad<coop_mat16x16<f16, B>>(&ub[pb0], sa);
+            let mb1 = coopLoad<coop_mat16x16<f16, B>>(&ub[pb1], sa);
+            let mb2 = coopLoad<coop_mat16x16<f16, B>>(&ub[pb2], sa);
+            let mb3 = coopLoad<coop_mat16x16<f16, B>>(&ub[pb3], sa);
+            c00 = coopMultiplyAdd(ma0, mb0, c00);
+            c01 = coopMultiplyAdd(ma0, mb1, c01);
+            c02 = coopMultiplyAdd(ma0, mb2, c02);
+            c03 = coopMultiplyAdd(ma0, mb3, c03);
+            c10 = coopMultiplyAdd(ma1, mb0, c10);
+            c11 = coopMultiplyAdd(ma1, mb1, c11);
+            c12 = coopMultiplyAdd(ma1, mb2, c12);
+            c13 = coopMultiplyAdd(ma1, mb3, c13);
+            c20 = coopMultiplyAdd(ma2, mb0, c20);
+            c21 = coopMultiplyAdd(ma2, mb1, c21);
+            c22 = coopMultiplyAdd(ma2, mb2, c22);
+            c23 = coopMultiplyAdd(ma2, mb3, c23);
+            c30 = coopMultiplyAdd(ma3, mb0, c30);
+            c31 = coopMultiplyAdd(ma3, mb1, c31);
+            c32 = coopMultiplyAdd(ma3, mb2, c32);
+            c33 = coopMultiplyAdd(ma3, mb3, c33);
+        }
+    }
+    let st = z + 32u;
+    let cs = z + sg * 512u;
+    let cs16 = cs + 16u;
+    let r0 = row0 + (sg / 2u) * 64u;
+    let c0 = col0 + (sg % 2u) * 64u;
+    workgroupBarrier();
+    coopStoreT(c00, &Cw[cs], st);
+    coopStoreT(c01, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 0u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c02, &Cw[cs], st);
+    coopStoreT(c03, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 0u, c0 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c10, &Cw[cs], st);
+    coopStoreT(c11, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 16u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c12, &Cw[cs], st);
+    coopStoreT(c13, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 16u, c0 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c20, &Cw[cs], st);
+    coopStoreT(c21, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 32u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c22, &Cw[cs], st);
+    coopStoreT(c23, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 32u, c0 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c30, &Cw[cs], st);
+    coopStoreT(c31, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 48u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c32, &Cw[cs], st);
+    coopStoreT(c33, &Cw[cs16], st);
+    workgroupBarrier();
+    fw_epilogue(n, r0 + 48u, c0 + 32u, cs, lane);
+}
+
+// The [16][32] block staged at Cw[cs..] through bt_put.
+fn bw_epilogue(n: u32, r0: u32, c0: u32, cs: u32, lane: u32) {
+    for (var e = lane; e < 512u; e += 32u) {
+        bt_put(n, r0 + e / 32u, c0 + e % 32u, Cw[cs + e]);
+    }
+}
+
+@compute @workgroup_size(128)
+fn backward_data_wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                      @builtin(local_invocation_index) lid: u32) {
+    let n = load_n(lid);
+    let row0 = (wid.x + wid.y * nwg.x) * TW2;
+    let col0 = P.c_lo + wid.z * TW2;
+    if row0 >= n { return; }
+    let sg = lid / 32u;
+    let lane = lid % 32u;
+    // A chunk [128][32] as in forward_wide; B chunk [32][128]: entry lid + 128·t is row
+    // lid / 32 + 4·t, columns 4·(lid % 32) + 0..3.
+    let sr = lid / 8u;
+    let sq = (lid % 8u) * 4u;
+    let bk = lid / 32u;
+    let bq = (lid % 32u) * 4u;
+    var a0 = bt_a(n, row0 + sr, sq);
+    var a1 = bt_a(n, row0 + sr + 16u, sq);
+    var a2 = bt_a(n, row0 + sr + 32u, sq);
+    var a3 = bt_a(n, row0 + sr + 48u, sq);
+    var a4 = bt_a(n, row0 + sr + 64u, sq);
+    var a5 = bt_a(n, row0 + sr + 80u, sq);
+    var a6 = bt_a(n, row0 + sr + 96u, sq);
+    var a7 = bt_a(n, row0 + sr + 112u, sq);
+    var w0 = bt_w(bk, col0 + bq);
+    var w1 = bt_w(bk + 4u, col0 + bq);
+    var w2 = bt_w(bk + 8u, col0 + bq);
+    var w3 = bt_w(bk + 12u, col0 + bq);
+    var w4 = bt_w(bk + 16u, col0 + bq);
+    var w5 = bt_w(bk + 20u, col0 + bq);
+    var w6 = bt_w(bk + 24u, col0 + bq);
+    var w7 = bt_w(bk + 28u, col0 + bq);
+    let z = P.flags & 0u;
+    let sa = z + SA;
+    let sb = z + SB2;
+    let ia = z + (sg / 2u) * 64u * SA;
+    let ib = z + (sg % 2u) * 64u;
+    var c00 = coop_mat16x16<f32, C>();
+    var c01 = coop_mat16x16<f32, C>();
+    var c02 = coop_mat16x16<f32, C>();
+    var c03 = coop_mat16x16<f32, C>();
+    var c10 = coop_mat16x16<f32, C>();
+    var c11 = coop_mat16x16<f32, C>();
+    var c12 = coop_mat16x16<f32, C>();
+    var c13 = coop_mat16x16<f32, C>();
+    var c20 = coop_mat16x16<f32, C>();
+    var c21 = coop_mat16x16<f32, C>();
+    var c22 = coop_mat16x16<f32, C>();
+    var c23 = coop_mat16x16<f32, C>();
+    var c30 = coop_mat16x16<f32, C>();
+    var c31 = coop_mat16x16<f32, C>();
+    var c32 = coop_mat16x16<f32, C>();
+    var c33 = coop_mat16x16<f32, C>();
+    for (var kb = 0u; kb < P.np; kb += 32u) {
+        workgroupBarrier();
+        put_ua(sr * SA + sq, a0);
+        put_ua((sr + 16u) * SA + sq, a1);
+        put_ua((sr + 32u) * SA + sq, a2);
+        put_ua((sr + 48u) * SA + sq, a3);
+        put_ua((sr + 64u) * SA + sq, a4);
+        put_ua((sr + 80u) * SA + sq, a5);
+        put_ua((sr + 96u) * SA + sq, a6);
+        put_ua((sr + 112u) * SA + sq, a7);
+        put_ub(bk * SB2 + bq, w0);
+        put_ub((bk + 4u) * SB2 + bq, w1);
+        put_ub((bk + 8u) * SB2 + bq, w2);
+        put_ub((bk + 12u) * SB2 + bq, w3);
+        put_ub((bk + 16u) * SB2 + bq, w4);
+        put_ub((bk + 20u) * SB2 + bq, w5);
+        put_ub((bk + 24u) * SB2 + bq, w6);
+        put_ub((bk + 28u) * SB2 + bq, w7);
+        workgroupBarrier();
+        let kn = kb + 32u;
+        a0 = bt_a(n, row0 + sr, kn + sq);
+        a1 = bt_a(n, row0 + sr + 16u, kn + sq);
+        a2 = bt_a(n, row0 + sr + 32u, kn + sq);
+        a3 = bt_a(n, row0 + sr + 48u, kn + sq);
+        a4 = bt_a(n, row0 + sr + 64u, kn + sq);
+        a5 = bt_a(n, row0 + sr + 80u, kn + sq);
+        a6 = bt_a(n, row0 + sr + 96u, kn + sq);
+        a7 = bt_a(n, row0 + sr + 112u, kn + sq);
+        w0 = bt_w(kn + bk, col0 + bq);
+        w1 = bt_w(kn + bk + 4u, col0 + bq);
+        w2 = bt_w(kn + bk + 8u, col0 + bq);
+        w3 = bt_w(kn + bk + 12u, col0 + bq);
+        w4 = bt_w(kn + bk + 16u, col0 + bq);
+        w5 = bt_w(kn + bk + 20u, col0 + bq);
+        w6 = bt_w(kn + bk + 24u, col0 + bq);
+        w7 = bt_w(kn + bk + 28u, col0 + bq);
+        for (var ks = 0u; ks < 32u; ks += 16u) {
+            let pa0 = ia + ks;
+            let pa1 = pa0 + 16u * SA;
+            let pa2 = pa0 + 32u * SA;
+            let pa3 = pa0 + 48u * SA;
+            let pb0 = ib + ks * SB2;
+            let pb1 = pb0 + 16u;
+            let pb2 = pb0 + 32u;
+            let pb3 = pb0 + 48u;
+            let ma0 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa0], sa);
+            let ma1 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa1], sa);
+            let ma2 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa2], sa);
+            let ma3 = coopLoadT<coop_mat16x16<f16, A>>(&ua[pa3], sa);
+            let mb0 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb0], sb);
+            let mb1 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb1], sb);
+            let mb2 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb2], sb);
+            let mb3 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb3], sb);
+            c00 = coopMultiplyAdd(ma0, mb0, c00);
+            c01 = coopMultiplyAdd(ma0, mb1, c01);
+            c02 = coopMultiplyAdd(ma0, mb2, c02);
+            c03 = coopMultiplyAdd(ma0, mb3, c03);
+            c10 = coopMultiplyAdd(ma1, mb0, c10);
+            c11 = coopMultiplyAdd(ma1, mb1, c11);
+            c12 = coopMultiplyAdd(ma1, mb2, c12);
+            c13 = coopMultiplyAdd(ma1, mb3, c13);
+            c20 = coopMultiplyAdd(ma2, mb0, c20);
+            c21 = coopMultiplyAdd(ma2, mb1, c21);
+            c22 = coopMultiplyAdd(ma2, mb2, c22);
+            c23 = coopMultiplyAdd(ma2, mb3, c23);
+            c30 = coopMultiplyAdd(ma3, mb0, c30);
+            c31 = coopMultiplyAdd(ma3, mb1, c31);
+            c32 = coopMultiplyAdd(ma3, mb2, c32);
+            c33 = coopMultiplyAdd(ma3, mb3, c33);
+        }
+    }
+    let st = z + 32u;
+    let cs = z + sg * 512u;
+    let cs16 = cs + 16u;
+    let r0 = row0 + (sg / 2u) * 64u;
+    let c0 = col0 + (sg % 2u) * 64u;
+    workgroupBarrier();
+    coopStoreT(c00, &Cw[cs], st);
+    coopStoreT(c01, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 0u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c02, &Cw[cs], st);
+    coopStoreT(c03, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 0u, c0 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c10, &Cw[cs], st);
+    coopStoreT(c11, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 16u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c12, &Cw[cs], st);
+    coopStoreT(c13, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 16u, c0 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c20, &Cw[cs], st);
+    coopStoreT(c21, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 32u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c22, &Cw[cs], st);
+    coopStoreT(c23, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 32u, c0 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c30, &Cw[cs], st);
+    coopStoreT(c31, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 48u, c0 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c32, &Cw[cs], st);
+    coopStoreT(c33, &Cw[cs16], st);
+    workgroupBarrier();
+    bw_epilogue(n, r0 + 48u, c0 + 32u, cs, lane);
+}
+
+// The [16][32] block staged at Cw[cs..] (dW rows j0.., columns c0..) through wt_put.
+fn ww_epilogue(base: u32, j0: u32, c0: u32, cs: u32, lane: u32) {
+    for (var e = lane; e < 512u; e += 32u) {
+        wt_put(base, j0 + e / 32u, c0 + e % 32u, Cw[cs + e]);
+    }
+}
+
+// As backward_weight_tiled, launched over [kp / 128, np / 128, splits]; the bias column is summed
+// by the workgroups of column block 0, one lane per dZ column (128 lanes, 128 columns).
+@compute @workgroup_size(128)
+fn backward_weight_wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
+    let n = load_n(lid);
+    let c0 = wid.x * TW2;
+    let j0 = wid.y * TW2;
+    let s = wid.z;
+    let r_begin = s * P.chunk;
+    let n16 = (n + 15u) & ~15u;
+    if r_begin >= n16 { return; }
+    let r_end = min(r_begin + P.chunk, n16);
+    let lim = min(r_end, n);
+    let sg = lid / 32u;
+    let lane = lid % 32u;
+    // Both chunks are [32 rows][128 columns]: entry lid + 128·t is row lid / 32 + 4·t, columns
+    // 4·(lid % 32) + 0..3.
+    let bk = lid / 32u;
+    let bq = (lid % 32u) * 4u;
+    var d0 = wt_d(r_begin + bk, lim, j0 + bq);
+    var d1 = wt_d(r_begin + bk + 4u, lim, j0 + bq);
+    var d2 = wt_d(r_begin + bk + 8u, lim, j0 + bq);
+    var d3 = wt_d(r_begin + bk + 12u, lim, j0 + bq);
+    var d4 = wt_d(r_begin + bk + 16u, lim, j0 + bq);
+    var d5 = wt_d(r_begin + bk + 20u, lim, j0 + bq);
+    var d6 = wt_d(r_begin + bk + 24u, lim, j0 + bq);
+    var d7 = wt_d(r_begin + bk + 28u, lim, j0 + bq);
+    var b0 = wt_b(r_begin + bk, lim, c0 + bq);
+    var b1 = wt_b(r_begin + bk + 4u, lim, c0 + bq);
+    var b2 = wt_b(r_begin + bk + 8u, lim, c0 + bq);
+    var b3 = wt_b(r_begin + bk + 12u, lim, c0 + bq);
+    var b4 = wt_b(r_begin + bk + 16u, lim, c0 + bq);
+    var b5 = wt_b(r_begin + bk + 20u, lim, c0 + bq);
+    var b6 = wt_b(r_begin + bk + 24u, lim, c0 + bq);
+    var b7 = wt_b(r_begin + bk + 28u, lim, c0 + bq);
+    let with_bias = c0 == 0u && (P.flags & 4u) != 0u;
+    var bsum = 0.0;
+    let z = P.flags & 0u;
+    let sb = z + SB2;
+    let ia = z + (sg / 2u) * 64u;   // this subgroup's dW rows (dZ columns) in ua
+    let ib = z + (sg % 2u) * 64u;   // this subgroup's dW columns in ub
+    var c00 = coop_mat16x16<f32, C>();
+    var c01 = coop_mat16x16<f32, C>();
+    var c02 = coop_mat16x16<f32, C>();
+    var c03 = coop_mat16x16<f32, C>();
+    var c10 = coop_mat16x16<f32, C>();
+    var c11 = coop_mat16x16<f32, C>();
+    var c12 = coop_mat16x16<f32, C>();
+    var c13 = coop_mat16x16<f32, C>();
+    var c20 = coop_mat16x16<f32, C>();
+    var c21 = coop_mat16x16<f32, C>();
+    var c22 = coop_mat16x16<f32, C>();
+    var c23 = coop_mat16x16<f32, C>();
+    var c30 = coop_mat16x16<f32, C>();
+    var c31 = coop_mat16x16<f32, C>();
+    var c32 = coop_mat16x16<f32, C>();
+    var c33 = coop_mat16x16<f32, C>();
+    for (var r = r_begin; r < r_end; r += 32u) {
+        workgroupBarrier();
+        put_ua(bk * SB2 + bq, d0);
+        put_ua((bk + 4u) * SB2 + bq, d1);
+        put_ua((bk + 8u) * SB2 + bq, d2);
+        put_ua((bk + 12u) * SB2 + bq, d3);
+        put_ua((bk + 16u) * SB2 + bq, d4);
+        put_ua((bk + 20u) * SB2 + bq, d5);
+        put_ua((bk + 24u) * SB2 + bq, d6);
+        put_ua((bk + 28u) * SB2 + bq, d7);
+        put_ub(bk * SB2 + bq, b0);
+        put_ub((bk + 4u) * SB2 + bq, b1);
+        put_ub((bk + 8u) * SB2 + bq, b2);
+        put_ub((bk + 12u) * SB2 + bq, b3);
+        put_ub((bk + 16u) * SB2 + bq, b4);
+        put_ub((bk + 20u) * SB2 + bq, b5);
+        put_ub((bk + 24u) * SB2 + bq, b6);
+        put_ub((bk + 28u) * SB2 + bq, b7);
+        workgroupBarrier();
+        let rn = r + 32u + bk;
+        d0 = wt_d(rn, lim, j0 + bq);
+        d1 = wt_d(rn + 4u, lim, j0 + bq);
+        d2 = wt_d(rn + 8u, lim, j0 + bq);
+        d3 = wt_d(rn + 12u, lim, j0 + bq);
+        d4 = wt_d(rn + 16u, lim, j0 + bq);
+        d5 = wt_d(rn + 20u, lim, j0 + bq);
+        d6 = wt_d(rn + 24u, lim, j0 + bq);
+        d7 = wt_d(rn + 28u, lim, j0 + bq);
+        b0 = wt_b(rn, lim, c0 + bq);
+        b1 = wt_b(rn + 4u, lim, c0 + bq);
+        b2 = wt_b(rn + 8u, lim, c0 + bq);
+        b3 = wt_b(rn + 12u, lim, c0 + bq);
+        b4 = wt_b(rn + 16u, lim, c0 + bq);
+        b5 = wt_b(rn + 20u, lim, c0 + bq);
+        b6 = wt_b(rn + 24u, lim, c0 + bq);
+        b7 = wt_b(rn + 28u, lim, c0 + bq);
+        for (var ks = 0u; ks < 32u; ks += 16u) {
+            // dZᵀ blocks: ua holds dZ rows [32][SB2], so dZᵀ is column-major with stride SB2.
+            let pa0 = ia + ks * SB2;
+            let pa1 = pa0 + 16u;
+            let pa2 = pa0 + 32u;
+            let pa3 = pa0 + 48u;
+            let pb0 = ib + ks * SB2;
+            let pb1 = pb0 + 16u;
+            let pb2 = pb0 + 32u;
+            let pb3 = pb0 + 48u;
+            let ma0 = coopLoad<coop_mat16x16<f16, A>>(&ua[pa0], sb);
+            let ma1 = coopLoad<coop_mat16x16<f16, A>>(&ua[pa1], sb);
+            let ma2 = coopLoad<coop_mat16x16<f16, A>>(&ua[pa2], sb);
+            let ma3 = coopLoad<coop_mat16x16<f16, A>>(&ua[pa3], sb);
+            let mb0 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb0], sb);
+            let mb1 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb1], sb);
+            let mb2 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb2], sb);
+            let mb3 = coopLoadT<coop_mat16x16<f16, B>>(&ub[pb3], sb);
+            c00 = coopMultiplyAdd(ma0, mb0, c00);
+            c01 = coopMultiplyAdd(ma0, mb1, c01);
+            c02 = coopMultiplyAdd(ma0, mb2, c02);
+            c03 = coopMultiplyAdd(ma0, mb3, c03);
+            c10 = coopMultiplyAdd(ma1, mb0, c10);
+            c11 = coopMultiplyAdd(ma1, mb1, c11);
+            c12 = coopMultiplyAdd(ma1, mb2, c12);
+            c13 = coopMultiplyAdd(ma1, mb3, c13);
+            c20 = coopMultiplyAdd(ma2, mb0, c20);
+            c21 = coopMultiplyAdd(ma2, mb1, c21);
+            c22 = coopMultiplyAdd(ma2, mb2, c22);
+            c23 = coopMultiplyAdd(ma2, mb3, c23);
+            c30 = coopMultiplyAdd(ma3, mb0, c30);
+            c31 = coopMultiplyAdd(ma3, mb1, c31);
+            c32 = coopMultiplyAdd(ma3, mb2, c32);
+            c33 = coopMultiplyAdd(ma3, mb3, c33);
+        }
+        if with_bias {
+            for (var k = 0u; k < 32u; k++) {
+                bsum += f32(ua[k * SB2 + lid]);
+            }
+        }
+    }
+    let base = s * P.np * P.kcp;
+    let st = z + 32u;
+    let cs = z + sg * 512u;
+    let cs16 = cs + 16u;
+    let j1 = j0 + (sg / 2u) * 64u;
+    let c1 = c0 + (sg % 2u) * 64u;
+    workgroupBarrier();
+    coopStoreT(c00, &Cw[cs], st);
+    coopStoreT(c01, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 0u, c1 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c02, &Cw[cs], st);
+    coopStoreT(c03, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 0u, c1 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c10, &Cw[cs], st);
+    coopStoreT(c11, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 16u, c1 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c12, &Cw[cs], st);
+    coopStoreT(c13, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 16u, c1 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c20, &Cw[cs], st);
+    coopStoreT(c21, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 32u, c1 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c22, &Cw[cs], st);
+    coopStoreT(c23, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 32u, c1 + 32u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c30, &Cw[cs], st);
+    coopStoreT(c31, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 48u, c1 + 0u, cs, lane);
+    workgroupBarrier();
+    coopStoreT(c32, &Cw[cs], st);
+    coopStoreT(c33, &Cw[cs16], st);
+    workgroupBarrier();
+    ww_epilogue(base, j1 + 48u, c1 + 32u, cs, lane);
+    if with_bias && j0 + lid < P.np {
+        w_partial[base + (j0 + lid) * P.kcp + P.kp] = bsum;
     }
 }

@@ -17,7 +17,7 @@ for d in /tmp/abl/runs/*/; do cp "$d/metrics.json" "$OUT/lego_metrics.json"; cp 
 tail -3 "$OUT/lego.log"; cat "$OUT/lego_curve.csv" 2>/dev/null
 echo "== coop tests ($(left) s left)"
 for t in mlp_coop linear; do
-  echo "== $t"; timeout 45 ".bin/t3/$t" --test-threads=1 --nocapture 2>&1 | grep -vE "^\s+[0-9]+:|^\s+at " | tail -40
+  echo "== $t"; timeout 45 ".bin/t3/$t" --test-threads=1 --nocapture --skip emulated 2>&1 | grep -vE "^\s+[0-9]+:|^\s+at " | tail -40
 done > "$OUT/tests.log" 2>&1
 grep -E "test result|panicked|NOTICE|GPU tests on|ooperative|FAILED|^test " "$OUT/tests.log" | head -40
 echo "== quick ablation ($(left) s left)"

@@ -14,7 +14,7 @@ echo "== linear ($(left) s left)"
 timeout 40 .bin/t3/linear --test-threads=1 --skip emulated 2>&1 | grep -vE "^\s+[0-9]+:|^\s+at " > "$OUT/tests.log"
 grep -E "test result|panicked|NOTICE|Caused|Binding|FAILED" "$OUT/tests.log" | head -20
 echo "== fields ($(left) s left)"
-timeout 70 .bin/nerf ablate examples/ablations/device_check.toml --device gpu --out /tmp/q > "$OUT/check.log" 2>&1
+timeout 90 .bin/nerf ablate examples/ablations/device_check.toml --device gpu --out /tmp/q > "$OUT/check.log" 2>&1
 cat /tmp/q/results.md 2>/dev/null
 echo "== bench ($(left) s left)"
 timeout 60 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "fused_mlp_(density|color)|trunk" > "$OUT/bench.log" 2>&1

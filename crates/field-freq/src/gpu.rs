@@ -60,6 +60,7 @@ impl GpuFreqNerf {
             GpuLinear::Auto | GpuLinear::Plain => LinearPath::Plain,
             GpuLinear::Coop => LinearPath::Coop,
             GpuLinear::CoopTiled => LinearPath::CoopTiled,
+            GpuLinear::CoopTiledWide => LinearPath::CoopTiledWide,
         };
         let linear_err = |e: nerf_gpu::GpuError| FieldError::InvalidConfig {
             field: "freq".into(),

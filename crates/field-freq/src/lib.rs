@@ -62,6 +62,10 @@ pub enum GpuLinear {
     /// workgroup memory (`*_tiled` entry points of `shaders/linear_coop.wgsl`); needs 32-wide
     /// subgroups.
     CoopTiled,
+    /// As `coop_tiled`, with 128×128 output blocks for the trunk's 256-wide products
+    /// (`*_wide` entry points, 4×4 accumulators per subgroup); needs 32-wide subgroups and
+    /// 28 676 bytes of workgroup memory. Opt-in until measured on a device.
+    CoopTiledWide,
 }
 
 impl Default for FreqNerfConfig {

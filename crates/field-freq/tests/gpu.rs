@@ -37,17 +37,22 @@ fn gpu_paper_field_input_gradients_match_the_cpu_field() {
     check_gpu_input_gradients(&mut cpu, &ctx, aabb, 300, 6, 2e-4, 2e-3);
 }
 
-/// `gpu_linear` picks the GEMM kernels: the workgroup-tiled cooperative-matrix path where the
+/// `gpu_linear` picks the GEMM kernels: the workgroup-tiled cooperative-matrix paths where the
 /// adapter has cooperative matrices (and 32-wide subgroups; f16 tolerances as above), and a clear
 /// refusal naming the setting elsewhere (lavapipe); `plain` runs everywhere.
 #[test]
 fn gpu_linear_selects_the_kernels() {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    let cfg = |gpu_linear| FreqNerfConfig { width: 64, depth: 4, skips: vec![2], view_width: 32, gpu_linear, ..Default::default() };
+    // Width 128 for `coop_tiled_wide`, so that its 128×128 kernels run (they take only widths
+    // that are whole numbers of 128s).
+    let cfg = |gpu_linear| {
+        let width = if gpu_linear == GpuLinear::CoopTiledWide { 128 } else { 64 };
+        FreqNerfConfig { width, depth: 4, skips: vec![2], view_width: 32, gpu_linear, ..Default::default() }
+    };
     let aabb = ([-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]);
     let mut plain = FreqNerf::<f32>::new(cfg(GpuLinear::Plain), 6).unwrap();
     check_gpu_twin(&mut plain, &ctx, aabb, 300, 4, 1e-4, 2e-3);
-    for path in [GpuLinear::Coop, GpuLinear::CoopTiled] {
+    for path in [GpuLinear::Coop, GpuLinear::CoopTiled, GpuLinear::CoopTiledWide] {
         let mut f = FreqNerf::<f32>::new(cfg(path), 7).unwrap();
         match f.to_gpu(&ctx, 300).expect("the paper field has a GPU twin") {
             Ok(_) => {
@@ -56,7 +61,7 @@ fn gpu_linear_selects_the_kernels() {
             }
             Err(e) => {
                 eprintln!("NOTICE: gpu_linear = {path:?} is not available on {}: {e}", ctx.describe());
-                assert!(!ctx.features.cooperative_matrix || path == GpuLinear::CoopTiled, "{e}");
+                assert!(!ctx.features.cooperative_matrix || path != GpuLinear::Coop, "{e}");
                 assert!(e.to_string().contains("gpu_linear") && e.to_string().contains("plain"), "{e}");
             }
         }

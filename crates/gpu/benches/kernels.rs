@@ -237,6 +237,7 @@ fn kernels(c: &mut Criterion) {
         // The workgroup-tiled kernels need subgroups of exactly 32 (GpuMlp::new_with says so).
         if ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32 {
             modes.push(LinearPath::CoopTiled);
+            modes.push(LinearPath::CoopTiledWide);
         }
     }
     for path in modes {
@@ -248,6 +249,7 @@ fn kernels(c: &mut Criterion) {
             LinearPath::Plain => "trunk_8x256_plain_forward_backward",
             LinearPath::Coop => "trunk_8x256_coop_forward_backward",
             LinearPath::CoopTiled => "trunk_8x256_coop_tiled_forward_backward",
+            LinearPath::CoopTiledWide => "trunk_8x256_coop_tiled_wide_forward_backward",
         };
         g.throughput(Throughput::Elements(m as u64));
         g.bench_function(BenchmarkId::new(name, m), |b| {

@@ -64,6 +64,10 @@ pub enum LinearPath {
     /// K staged through workgroup memory ([`CoopTiling::Workgroup`]). Needs a subgroup size of
     /// exactly 32 (NVIDIA); the f16 scratch gets 64-row padding.
     CoopTiled,
+    /// As [`LinearPath::CoopTiled`], with 128×128 output blocks (4×4 accumulators per subgroup)
+    /// for the products whose block width is a multiple of 128 ([`CoopTiling::WorkgroupWide`]).
+    /// Needs 32-wide subgroups and 28 676 bytes of workgroup memory; 128-row padding.
+    CoopTiledWide,
 }
 
 impl LinearPath {
@@ -73,6 +77,7 @@ impl LinearPath {
             LinearPath::Plain => None,
             LinearPath::Coop => Some(CoopTiling::Subgroup),
             LinearPath::CoopTiled => Some(CoopTiling::Workgroup),
+            LinearPath::CoopTiledWide => Some(CoopTiling::WorkgroupWide),
         }
     }
 }
@@ -90,7 +95,16 @@ pub enum CoopTiling {
     /// chunk prefetched into registers) and the subgroups load their tiles from there. 14 340
     /// bytes of workgroup memory per entry point.
     Workgroup,
+    /// The `*_wide` entry points where a product's block width is a whole number of 128s (the
+    /// 8×256 trunk's hidden layers), the `*_tiled` ones elsewhere: 4 subgroups per workgroup, a
+    /// 128×128 block of C, each subgroup a 64×64 quarter as 4×4 accumulators (4 + 4 tile loads
+    /// from workgroup memory per 16 products, against 2 + 2 per 4), K chunks of 32 staged as in
+    /// [`CoopTiling::Workgroup`]. 28 676 bytes of workgroup memory.
+    WorkgroupWide,
 }
+
+/// Workgroup memory of the `*_wide` entry points (ua, ub, Cw, wg_n of `linear_coop.wgsl`).
+const WIDE_WORKGROUP_BYTES: u32 = 2 * 5120 * 2 + 2048 * 4 + 4;
 
 impl CoopTiling {
     /// Rows of an output block, and the row padding of the f16 scratch.
@@ -98,6 +112,7 @@ impl CoopTiling {
         match self {
             CoopTiling::Subgroup => 32,
             CoopTiling::Workgroup => 64,
+            CoopTiling::WorkgroupWide => 128,
         }
     }
 }
@@ -182,12 +197,19 @@ impl GpuMlp {
                 ctx.describe()
             )));
         }
-        if tiling == CoopTiling::Workgroup && !(ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32) {
+        if tiling != CoopTiling::Subgroup && !(ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32) {
             return Err(GpuError::Unsupported(format!(
                 "workgroup-tiled cooperative-matrix MLP needs a subgroup size of 32, but the adapter {} has {}..={}",
                 ctx.describe(),
                 ctx.info.subgroup_min_size,
                 ctx.info.subgroup_max_size
+            )));
+        }
+        let limit = ctx.device.limits().max_compute_workgroup_storage_size;
+        if tiling == CoopTiling::WorkgroupWide && limit < WIDE_WORKGROUP_BYTES {
+            return Err(GpuError::Unsupported(format!(
+                "wide cooperative-matrix MLP needs {WIDE_WORKGROUP_BYTES} bytes of workgroup memory, the adapter {} offers {limit}",
+                ctx.describe()
             )));
         }
         let src = shaders::with_common(shaders::LINEAR_COOP);
@@ -368,7 +390,15 @@ impl GpuMlp {
             None => LinearPath::Plain,
             Some(CoopTiling::Subgroup) => LinearPath::Coop,
             Some(CoopTiling::Workgroup) => LinearPath::CoopTiled,
+            Some(CoopTiling::WorkgroupWide) => LinearPath::CoopTiledWide,
         }
+    }
+
+    /// For tests: how many layers run their forward, backward_data (with or without `d_input`)
+    /// and backward_weight products on the `*_wide` kernels ([`LinearPath::CoopTiledWide`]).
+    #[doc(hidden)]
+    pub fn wide_products(&self, with_d_input: bool) -> [usize; 3] {
+        self.coop.as_ref().map_or([0; 3], |c| c.wide_products(with_d_input))
     }
 
     fn check_capacity(&self, capacity: usize) {
@@ -562,6 +592,8 @@ mod coop {
 
     /// Writes the f16 copy of the hidden activations.
     const FLAG_H16: u32 = 16;
+    /// Block edge of the `*_wide` entry points.
+    const WIDE: usize = 128;
 
     /// Uniform `CP` of `shaders/linear_coop.wgsl`.
     #[repr(C)]
@@ -617,6 +649,9 @@ mod coop {
         backward_data: Kernel,
         backward_weight: Kernel,
         reduce: Kernel,
+        /// The `*_wide` entry points ([`CoopTiling::WorkgroupWide`] only): forward, backward_data,
+        /// backward_weight.
+        wide: Option<[Kernel; 3]>,
         layers: Vec<CoopLayer>,
         xp: usize,
         in_u: wgpu::Buffer,
@@ -634,8 +669,9 @@ mod coop {
     impl Coop {
         /// Memory (f16 scratch, bytes): x16 and its inference copy `2·rows·xp` each, h16
         /// `hidden_layers·rows·hp` (+ `2·rows·hp` for inference), dz16 `2·rows·max_np`, with
-        /// `rows = capacity` rounded up to 32 ([`CoopTiling::Subgroup`]) or 64
-        /// ([`CoopTiling::Workgroup`], whose epilogues write whole 64-row blocks); w16 and the f32
+        /// `rows = capacity` rounded up to 32 ([`CoopTiling::Subgroup`]), 64
+        /// ([`CoopTiling::Workgroup`], whose epilogues write whole 64-row blocks) or 128
+        /// ([`CoopTiling::WorkgroupWide`]); w16 and the f32
         /// partials do not depend on the tiling.
         pub(super) fn new(ctx: &GpuContext, m: &GpuMlp, src: &str, tiling: CoopTiling) -> Result<Self, GpuError> {
             let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
@@ -733,8 +769,10 @@ mod coop {
             let f16b = |n: usize| (2 * n).max(16);
             let tiled = |e: &str| match tiling {
                 CoopTiling::Subgroup => k(e),
-                CoopTiling::Workgroup => k(&format!("{e}_tiled")),
+                CoopTiling::Workgroup | CoopTiling::WorkgroupWide => k(&format!("{e}_tiled")),
             };
+            let wide = (tiling == CoopTiling::WorkgroupWide)
+                .then(|| ["forward", "backward_data", "backward_weight"].map(|e| k(&format!("{e}_wide"))));
             Ok(Self {
                 tiling,
                 convert_input: k("convert_input"),
@@ -744,6 +782,7 @@ mod coop {
                 backward_data: tiled("backward_data"),
                 backward_weight: tiled("backward_weight"),
                 reduce: k("reduce_grads"),
+                wide,
                 layers,
                 xp,
                 in_u: ctx.uniform("coop input", &inp),
@@ -757,6 +796,24 @@ mod coop {
                 partial: ctx.zeros("coop dW partial", 4 * m.n_splits * max_partial),
                 ones: ctx.upload("coop ones", &ones),
             })
+        }
+
+        /// The wide kernels, where this instance has them and a product's block width `cols` is a
+        /// whole number of [`WIDE`] blocks.
+        fn wide(&self, cols: usize) -> Option<&[Kernel; 3]> {
+            self.wide.as_ref().filter(|_| cols > 0 && cols % WIDE == 0)
+        }
+
+        /// See [`GpuMlp::wide_products`]; the same predicates as the record functions.
+        pub(super) fn wide_products(&self, with_d_input: bool) -> [usize; 3] {
+            let mut n = [0; 3];
+            for l in &self.layers {
+                let c_lo = if with_d_input { 0 } else { l.xp };
+                n[0] += self.wide(l.np).is_some() as usize;
+                n[1] += (c_lo < l.kp && self.wide(l.kp - c_lo).is_some()) as usize;
+                n[2] += self.wide(l.np).and(self.wide(l.kp)).is_some() as usize;
+            }
+            n
         }
 
         fn record_weights(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, params: &wgpu::Buffer) {
@@ -786,12 +843,12 @@ mod coop {
             let t = self.tiling.rows();
             for l in &self.layers {
                 let u = if tape.is_some() { &l.fwd } else { &l.inf };
-                let groups = GpuMlp::row_groups(capacity, t, l.np.div_ceil(t));
                 let b = [(0, u), (1, counters), (2, x16), (3, h16), (4, &self.w16), (5, params), (6, dst), (7, output), (8, h16)];
-                match self.tiling {
-                    CoopTiling::Subgroup => self.forward.record(ctx, enc, &b[..8], groups),
+                match (self.tiling, self.wide(l.np)) {
+                    (_, Some([forward, ..])) => forward.record(ctx, enc, &b, GpuMlp::row_groups(capacity, WIDE, l.np / WIDE)),
+                    (CoopTiling::Subgroup, _) => self.forward.record(ctx, enc, &b[..8], GpuMlp::row_groups(capacity, t, l.np.div_ceil(t))),
                     // Binding 8: h16 again, as vec4s for the staging loads.
-                    CoopTiling::Workgroup => self.forward.record(ctx, enc, &b, groups),
+                    _ => self.forward.record(ctx, enc, &b, GpuMlp::row_groups(capacity, 64, l.np.div_ceil(64))),
                 }
             }
         }
@@ -827,7 +884,14 @@ mod coop {
                 let ml = &m.layers[i];
                 let u = &l.bwd[d_input.is_some() as usize];
                 let splits = capacity.div_ceil(m.chunk).max(1) as u32;
+                let wide_w = self.wide(l.np).and(self.wide(l.kp));
                 match self.tiling {
+                    _ if wide_w.is_some() => wide_w.expect("checked")[2].record(
+                        ctx,
+                        enc,
+                        &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.x16), (4, &self.h16), (6, &self.partial)],
+                        [(l.kp / WIDE) as u32, (l.np / WIDE) as u32, splits],
+                    ),
                     CoopTiling::Subgroup => self.backward_weight.record(
                         ctx,
                         enc,
@@ -835,7 +899,7 @@ mod coop {
                         [l.kcp.div_ceil(32) as u32, l.np.div_ceil(32) as u32, splits],
                     ),
                     // Blocks over the kp columns only: the bias column is summed without the ones.
-                    CoopTiling::Workgroup => self.backward_weight.record(
+                    CoopTiling::Workgroup | CoopTiling::WorkgroupWide => self.backward_weight.record(
                         ctx,
                         enc,
                         &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.x16), (4, &self.h16), (6, &self.partial)],
@@ -847,12 +911,12 @@ mod coop {
                 let c_lo = if d_input.is_some() { 0 } else { l.xp };
                 if c_lo < l.kp {
                     let dx = d_input.unwrap_or(&m.dummy);
-                    self.backward_data.record(
-                        ctx,
-                        enc,
-                        &[(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.w16), (4, &self.dz16[1 - cur]), (5, tape), (6, dx)],
-                        GpuMlp::row_groups(capacity, t, (l.kp - c_lo).div_ceil(t)),
-                    );
+                    let b = [(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.w16), (4, &self.dz16[1 - cur]), (5, tape), (6, dx)];
+                    let cols = l.kp - c_lo;
+                    match self.wide(cols) {
+                        Some([_, backward_data, _]) => backward_data.record(ctx, enc, &b, GpuMlp::row_groups(capacity, WIDE, cols / WIDE)),
+                        None => self.backward_data.record(ctx, enc, &b, GpuMlp::row_groups(capacity, t.min(64), cols.div_ceil(t.min(64)))),
+                    }
                 }
                 cur = 1 - cur;
             }

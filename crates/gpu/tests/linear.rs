@@ -207,11 +207,9 @@ fn emulated_coop_mlp_matches_its_cpu_twin() {
         return;
     }
     let src = coop_emu::emulate(&shaders::with_common(shaders::LINEAR_COOP));
-    // The same f16 tolerances as the hardware comparison (coop_mlp_matches_its_cpu_twin). One
-    // config (input and hidden blocks, a skip, biases: every kernel and operand layout) and two
-    // sizes: lavapipe compiles and runs the emulation slowly.
-    let cfgs = vec![configs().swap_remove(1)];
-    compare_with(&ctx, cfgs, &[1, 77], true, 1e-2, 5e-2, &|cfg, capacity| {
+    // The same f16 tolerances, configs and sizes as the hardware comparison
+    // (coop_mlp_matches_its_cpu_twin).
+    compare_with(&ctx, configs(), &[0, 1, 77, 130, 300], true, 1e-2, 5e-2, &|cfg, capacity| {
         GpuMlp::with_coop_source(&ctx, cfg, capacity, &src, CoopTiling::Subgroup).unwrap()
     });
 }
@@ -242,17 +240,17 @@ const TILED_ENTRY_POINTS: [&str; 3] = ["forward_tiled", "backward_data_tiled", "
 /// SPIR-V opcodes of the KHR cooperative-matrix load, store and multiply-add.
 const SPIRV_COOP_OPS: [u32; 3] = [4457, 4458, 4459];
 
-/// Parses and validates `src`, then translates each tiled entry point to SPIR-V the way
+/// Parses and validates `src`, then translates each of `entry_points` to SPIR-V the way
 /// wgpu-hal 30's Vulkan backend does (process_overrides, spv::write_vec with the entry point's
 /// pipeline options, SPIR-V 1.6, both buffer bounds-check policies; as in tests/mlp_coop.rs).
 /// Returns per entry point (coop loads, stores, multiply-adds, bytes of workgroup memory used).
-fn translate_tiled(src: &str) -> Vec<(&'static str, [usize; 3], u32)> {
+fn translate(src: &str, entry_points: [&'static str; 3]) -> Vec<(&'static str, [usize; 3], u32)> {
     use naga::back::spv;
     let module = naga::front::wgsl::parse_str(src).unwrap_or_else(|e| panic!("{}", e.emit_to_string(src)));
     let mut v = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all());
     let info = v.validate(&module).unwrap_or_else(|e| panic!("naga validation: {e:?}"));
     let mut out = Vec::new();
-    for ep_name in TILED_ENTRY_POINTS {
+    for ep_name in entry_points {
         let idx = module.entry_points.iter().position(|e| e.name == ep_name).unwrap_or_else(|| panic!("entry point {ep_name} missing"));
         let ep = &module.entry_points[idx];
         assert_eq!(ep.workgroup_size, [128, 1, 1], "{ep_name}: 4 subgroups of 32");
@@ -289,7 +287,7 @@ fn translate_tiled(src: &str) -> Vec<(&'static str, [usize; 3], u32)> {
 
 #[test]
 fn tiled_coop_kernels_translate_to_spirv_within_16k_of_workgroup_memory() {
-    for (ep, [loads, stores, muladds], wg_bytes) in translate_tiled(&shaders::with_common(shaders::LINEAR_COOP)) {
+    for (ep, [loads, stores, muladds], wg_bytes) in translate(&shaders::with_common(shaders::LINEAR_COOP), TILED_ENTRY_POINTS) {
         eprintln!("linear_coop.wgsl {ep}: {loads} coop loads, {stores} coop stores, {muladds} multiply-adds, {wg_bytes} B workgroup memory");
         // Per K step 2 A + 2 B tiles and 2×2 products; 4 accumulators stored for the epilogue.
         assert!(loads >= 4 && muladds >= 4 && stores >= 4, "{ep}: coop ops missing from the SPIR-V");
@@ -310,12 +308,15 @@ fn emulated_tiled_coop_mlp_matches_its_cpu_twin_and_the_untiled_kernels() {
     }
     let src = coop_emu::emulate(&shaders::with_common(shaders::LINEAR_COOP));
     let t0 = std::time::Instant::now();
-    let tiled = compare_with(&ctx, vec![tiled_config()], &[1, 130], true, 1e-2, 5e-2, &|cfg, capacity| {
+    let mut cfgs = configs();
+    cfgs.push(tiled_config());
+    let tiled = compare_with(&ctx, cfgs, &[0, 1, 77, 130, 300], true, 1e-2, 5e-2, &|cfg, capacity| {
         let g = GpuMlp::with_coop_source(&ctx, cfg, capacity, &src, CoopTiling::Workgroup).unwrap();
         assert_eq!(g.path(), LinearPath::CoopTiled);
         g
     })
-    .remove(0);
+    .pop()
+    .expect("the tiled config");
     eprintln!("emulated tiled kernels vs the CPU twin: {:.1} s", t0.elapsed().as_secs_f64());
 
     // Tiled vs untiled on one input. Both round the same f32 values to f16 at the same places;
@@ -369,12 +370,131 @@ fn coop_tiled_mlp_matches_its_cpu_twin() {
     });
 }
 
+// ---------------------------------------------------------------------------------------------
+// The 128×128 kernels (LinearPath::CoopTiledWide).
+
+/// Every wide product and a 64×64 one beside it: input 39 (xp 48), hidden 128 (one 128 block),
+/// a skip into layer 1 (K = 48 + 128 = 176, so its weight gradient stays on the 64×64 kernel and
+/// its data gradient is wide without `d_input`, columns [48, 176), and tiled with it), layer 2
+/// 128 → 128 (wide forward, data and weight gradients), output 4 (np 16: a 64×64 forward and
+/// weight gradient, a wide data gradient), biases, softplus hidden, sigmoid output.
+fn wide_config() -> MlpConfig {
+    MlpConfig {
+        input_dim: 39,
+        output_dim: 4,
+        hidden_dim: 128,
+        hidden_layers: 3,
+        hidden_activation: Activation::Softplus,
+        output_activation: Activation::Sigmoid,
+        skips: vec![1],
+        bias: true,
+    }
+}
+
+const WIDE_ENTRY_POINTS: [&str; 3] = ["forward_wide", "backward_data_wide", "backward_weight_wide"];
+
+#[test]
+fn wide_coop_kernels_translate_to_spirv_within_28k_of_workgroup_memory() {
+    for (ep, [loads, stores, muladds], wg_bytes) in translate(&shaders::with_common(shaders::LINEAR_COOP), WIDE_ENTRY_POINTS) {
+        eprintln!("linear_coop.wgsl {ep}: {loads} coop loads, {stores} coop stores, {muladds} multiply-adds, {wg_bytes} B workgroup memory");
+        // Per K step 4 A + 4 B tiles and 4×4 products; 16 accumulators stored for the epilogue.
+        assert!(loads >= 8 && muladds >= 16 && stores >= 16, "{ep}: coop ops missing from the SPIR-V");
+        assert_eq!(wg_bytes, 2 * 5120 * 2 + 2048 * 4 + 4, "{ep}: workgroup memory (GpuMlp checks the adapter for this many bytes)");
+    }
+}
+
+/// Emulated wide kernels against the CPU twin with the f16 tolerances of the hardware test (the
+/// paper's trunk and `wide_config`; sizes with partial 128-row blocks and two weight-gradient
+/// splits), and against the emulated 64×64
+/// kernels (the same f16 operands; only the f32 summation order differs).
+#[test]
+fn emulated_wide_coop_mlp_matches_its_cpu_twin_and_the_tiled_kernels() {
+    let Some(ctx) = context() else { return };
+    if !ctx.features.shader_f16 {
+        eprintln!("NOTICE: adapter {} has no SHADER_F16; the emulated kernels cannot run", ctx.describe());
+        return;
+    }
+    let src = coop_emu::emulate(&shaders::with_common(shaders::LINEAR_COOP));
+    let t0 = std::time::Instant::now();
+    // The paper's trunk too (63 → 8×256 with its skip → 257): the shapes the path is for.
+    let cfgs = vec![MlpConfig::nerf_trunk(63, 257), wide_config()];
+    let wide = compare_with(&ctx, cfgs, &[1, 130, 300], true, 1e-2, 5e-2, &|cfg, capacity| {
+        let g = GpuMlp::with_coop_source(&ctx, cfg, capacity, &src, CoopTiling::WorkgroupWide).unwrap();
+        assert_eq!(g.path(), LinearPath::CoopTiledWide);
+        if cfg.hidden_dim == 256 {
+            // forward: the 8 hidden layers (the 257-wide output is not a whole block); data
+            // gradient: layers 1-8 (the skip layer's hidden columns without d_input); weight
+            // gradient: layers 1-4, 6 and 7 (layer 0 has K = 64, the skip layer 5 K = 64 + 256,
+            // the output 272 rows).
+            assert_eq!(g.wide_products(false), [8, 8, 6]);
+        } else {
+            // forward: layers 0-2; data gradient: layers 1 (without d_input), 2 and 3; weight
+            // gradient: layer 2.
+            assert_eq!(g.wide_products(false), [3, 3, 1]);
+            assert_eq!(g.wide_products(true), [3, 2, 1]);
+        }
+        g
+    })
+    .pop()
+    .expect("wide_config");
+    eprintln!("emulated wide kernels vs the CPU twin: {:.1} s", t0.elapsed().as_secs_f64());
+
+    let cfg = wide_config();
+    let tiled = GpuMlp::with_coop_source(&ctx, &cfg, wide.capacity(), &src, CoopTiling::Workgroup).unwrap();
+    assert_eq!(tiled.wide_products(true), [0; 3]);
+    let n = 200;
+    let mut r = nerf_core::rng(78, 3);
+    let mlp = Mlp::<f32>::new(cfg.clone(), &mut r);
+    let input: Vec<f32> = (0..n * cfg.input_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+    let d_out: Vec<f32> = (0..n * cfg.output_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+    let run = |g: &GpuMlp, want_dx: bool| {
+        let (out, tape) = g.run_forward(&ctx, &input, mlp.params(), n, true).unwrap();
+        let mut grads = vec![0.0f32; g.n_params()];
+        let dx = g.run_backward(&ctx, &input, mlp.params(), &d_out, &mut grads, n, want_dx).unwrap();
+        (out, tape, grads, dx)
+    };
+    for want_dx in [true, false] {
+        let (a, b) = (run(&tiled, want_dx), run(&wide, want_dx));
+        // As in the tiled-vs-untiled comparison: an f16 rounding may move by one ulp.
+        check("wide vs tiled: output", &b.0, &a.0, 2e-3);
+        check("wide vs tiled: tape", &b.1, &a.1, 2e-3);
+        check(&format!("wide vs tiled: grads (d_input {want_dx})"), &b.2, &a.2, 2e-3);
+        assert!(a.2.iter().any(|v| v.abs() > 1e-3), "gradients all ~0: the comparison would be vacuous");
+        if want_dx {
+            check("wide vs tiled: d_input", &b.3.unwrap(), &a.3.unwrap(), 2e-3);
+        }
+    }
+    eprintln!("emulated wide kernels, CPU twin and tiled kernels: {:.1} s", t0.elapsed().as_secs_f64());
+}
+
+/// The wide kernels on hardware (the H100, through the device tool) against the CPU twin, with
+/// the tolerances of the other cooperative-matrix paths; elsewhere the path is refused.
+#[test]
+fn coop_tiled_wide_mlp_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    let sg32 = ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32;
+    if !(ctx.features.cooperative_matrix && ctx.features.shader_f16 && sg32) {
+        eprintln!("NOTICE: adapter {} cannot run the wide cooperative-matrix path; not compared", ctx.describe());
+        assert!(GpuMlp::new_with(&ctx, &wide_config(), 16, LinearPath::CoopTiledWide).is_err());
+        return;
+    }
+    let mut cfgs = configs();
+    cfgs.push(wide_config());
+    cfgs.push(MlpConfig::nerf_trunk(63, 257));
+    compare_with(&ctx, cfgs, &[0, 1, 77, 130, 300], true, 1e-2, 5e-2, &|cfg, capacity| {
+        let g = GpuMlp::new_with(&ctx, cfg, capacity, LinearPath::CoopTiledWide).unwrap();
+        assert_eq!(g.path(), LinearPath::CoopTiledWide);
+        g
+    });
+}
+
 #[test]
 fn linear_paths_map_to_tilings() {
     assert_eq!(LinearPath::default(), LinearPath::Plain);
     assert_eq!(LinearPath::Plain.coop_tiling(), None);
     assert_eq!(LinearPath::Coop.coop_tiling(), Some(CoopTiling::Subgroup));
     assert_eq!(LinearPath::CoopTiled.coop_tiling(), Some(CoopTiling::Workgroup));
+    assert_eq!(LinearPath::CoopTiledWide.coop_tiling(), Some(CoopTiling::WorkgroupWide));
     let Some(ctx) = context() else { return };
     let g = GpuMlp::new_with(&ctx, &small_trunk(Activation::None, 4), 16, LinearPath::Plain).unwrap();
     assert_eq!((g.path(), g.uses_coop()), (LinearPath::Plain, false));
