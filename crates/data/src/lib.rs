@@ -749,19 +749,7 @@ type Decoded = (u32, u32, Vec<f32>);
 
 /// Decodes an image to straight RGBA f32 in `[0, 1]`.
 fn decode_rgba(path: &Path) -> Result<Decoded, DataError> {
-    let io = |source| DataError::Io {
-        path: path.to_path_buf(),
-        source,
-    };
-    let img = image::ImageReader::open(path)
-        .map_err(io)?
-        .with_guessed_format()
-        .map_err(io)?
-        .decode()
-        .map_err(|source| DataError::Decode {
-            path: path.to_path_buf(),
-            source,
-        })?;
+    let img = open_image(path)?.decode().map_err(|source| DataError::Decode { path: path.to_path_buf(), source })?;
     let (w, h) = (img.width(), img.height());
     let lut8: [f32; 256] = std::array::from_fn(|i| i as f32 / 255.0);
     let px = match img {
@@ -838,15 +826,15 @@ fn decode_views(paths: &[&Path], k: u32, cameras_only: bool) -> Result<(u32, u32
 /// pixels of the same size (e.g. [`ngp::undistort_rgba`]).
 type ImageFix<'a> = dyn Fn(usize, &Path, u32, u32, Vec<f32>) -> Result<Vec<f32>, DataError> + Sync + 'a;
 
+/// A reader for the image at `path`: the format its first bytes show, else its extension's.
+fn open_image(path: &Path) -> Result<image::ImageReader<std::io::BufReader<std::fs::File>>, DataError> {
+    let io = |source| DataError::Io { path: path.to_path_buf(), source };
+    image::ImageReader::open(path).map_err(io)?.with_guessed_format().map_err(io)
+}
+
 /// Width and height from an image's header, without decoding its pixels.
 fn image_size(path: &Path) -> Result<(u32, u32), DataError> {
-    let io = |source| DataError::Io { path: path.to_path_buf(), source };
-    image::ImageReader::open(path)
-        .map_err(io)?
-        .with_guessed_format()
-        .map_err(io)?
-        .into_dimensions()
-        .map_err(|source| DataError::Decode { path: path.to_path_buf(), source })
+    open_image(path)?.into_dimensions().map_err(|source| DataError::Decode { path: path.to_path_buf(), source })
 }
 
 /// [`decode_views`] with `fix` applied to each decoded image before it is downscaled. With
