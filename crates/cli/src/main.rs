@@ -707,14 +707,15 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     Ok(())
 }
 
-/// Random training rays, rendered in batches, until `--points` of them stop inside the scene
+/// Random training rays (from the training cameras; no photo is decoded), rendered in batches,
+/// until `--points` of them stop inside the scene
 /// box with enough opacity (or 20 times as many rays as points were cast); their expected
 /// termination points and colours (`nerf::render::surface_points`) as PLY.
 fn cmd_export_points(a: PointsArgs) -> Result<()> {
     if a.points == 0 || !(0.0..=1.0).contains(&a.min_opacity) {
         bail!("--points must be at least 1 and --min-opacity in [0, 1]");
     }
-    let LoadedRun { config, train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"), true)?;
+    let LoadedRun { config, train, trainer, .. } = load_run(&a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"), false)?;
     let out = a.out.unwrap_or_else(|| a.run.join("points.ply"));
     let batch = 1 << 16;
     let max_rays = 20 * a.points.max(batch);
@@ -725,7 +726,7 @@ fn cmd_export_points(a: PointsArgs) -> Result<()> {
     let pb = progress(a.quiet, a.points, "points {bar:30} {pos}/{len}");
     let mut cast = 0;
     while points.len() < a.points && cast < max_rays {
-        train.sample_rays(batch, config.eval_background, config.pixel_convention, false, &mut rng, &mut rays);
+        train.sample_camera_rays(batch, config.eval_background, config.pixel_convention, false, &mut rng, &mut rays);
         trainer.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut opacity, &mut depth)?;
         let bounds = (train.aabb.min, train.aabb.max);
         nerf::render::surface_points(&rays.origins, &rays.dirs, &rgb, &opacity, &depth, &rays.background, a.min_opacity, bounds, &mut points);

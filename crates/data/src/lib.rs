@@ -555,8 +555,42 @@ impl Dataset {
         rng: &mut nerf_core::Rng,
         out: &mut RayBatch,
     ) {
-        assert!(self.n_views() > 0, "sample_rays on a dataset without views");
         self.expect_pixels("sample_rays");
+        self.draw_rays(n, background, conv, jitter, rng, out, true);
+    }
+
+    /// As [`Dataset::sample_rays`] without the photos: the same rays, backgrounds, view and pixel
+    /// ids for the same `rng` state, with every `target` NaN (no pixel is read). Works on a
+    /// dataset loaded with [`LoadOptions::cameras_only`] (e.g. to cast rays through a trained
+    /// field from the training cameras).
+    ///
+    /// # Panics
+    /// If the dataset has no views.
+    pub fn sample_camera_rays(
+        &self,
+        n: usize,
+        background: Background,
+        conv: PixelConvention,
+        jitter: bool,
+        rng: &mut nerf_core::Rng,
+        out: &mut RayBatch,
+    ) {
+        self.draw_rays(n, background, conv, jitter, rng, out, false);
+    }
+
+    /// The body of [`Dataset::sample_rays`] (`with_targets`) and [`Dataset::sample_camera_rays`].
+    #[allow(clippy::too_many_arguments)]
+    fn draw_rays(
+        &self,
+        n: usize,
+        background: Background,
+        conv: PixelConvention,
+        jitter: bool,
+        rng: &mut nerf_core::Rng,
+        out: &mut RayBatch,
+        with_targets: bool,
+    ) {
+        assert!(self.n_views() > 0, "sampling rays from a dataset without views");
         out.resize(n);
         let seed: u64 = rng.gen();
         let (w, h) = (self.width, self.height);
@@ -594,12 +628,15 @@ impl Dataset {
                     let cam = &self.cameras[view as usize];
                     let ray = self.warp(cam.ray_at(u, v));
                     let pix = row * w + col;
-                    let px = &self.images[view as usize][4 * pix as usize..4 * pix as usize + 4];
                     let s = 3 * k..3 * k + 3;
                     o[s.clone()].copy_from_slice(&ray.origin.to_array());
                     d[s.clone()].copy_from_slice(&ray.dir.to_array());
                     b[s.clone()].copy_from_slice(&bg);
-                    composite(px, bg, &mut t[s]);
+                    if with_targets {
+                        composite(&self.images[view as usize][4 * pix as usize..4 * pix as usize + 4], bg, &mut t[s]);
+                    } else {
+                        t[s].fill(f32::NAN);
+                    }
                     vi[k] = view;
                     pi[k] = pix;
                 }

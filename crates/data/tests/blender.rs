@@ -733,6 +733,27 @@ fn cameras_only_gives_the_full_loads_cameras_without_decoding() {
     assert!(e.contains("r_1.png"), "{e}");
 }
 
+/// `sample_camera_rays` on a cameras-only load draws the rays `sample_rays` draws on the full load
+/// from the same generator state (random backgrounds, jitter), with NaN targets.
+#[test]
+fn camera_rays_of_a_cameras_only_load_are_the_full_loads_rays() {
+    let dir = tempfile::tempdir().unwrap();
+    write_blender(&synthetic(3, 8, 6, 9), dir.path(), None).unwrap();
+    let full = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    let cams = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
+    for (background, jitter) in [(Background::Random, true), (Background::White, false)] {
+        let (mut a, mut b) = (RayBatch::default(), RayBatch::default());
+        let (mut ra, mut rb) = (nerf_core::rng(5, 1), nerf_core::rng(5, 1));
+        full.sample_rays(3000, background, PixelConvention::Center, jitter, &mut ra, &mut a);
+        cams.sample_camera_rays(3000, background, PixelConvention::Center, jitter, &mut rb, &mut b);
+        assert_eq!((a.origins, a.dirs, a.background), (b.origins, b.dirs, b.background));
+        assert_eq!((a.view_ids, a.pixel_ids), (b.view_ids, b.pixel_ids));
+        assert!(a.target.iter().all(|t| t.is_finite()) && b.target.iter().all(|t| t.is_nan()) && b.target.len() == 9000);
+        // The generators advanced alike.
+        assert_eq!(ra.gen::<u64>(), rb.gen::<u64>());
+    }
+}
+
 #[test]
 #[should_panic(expected = "cameras_only")]
 fn reading_pixels_of_a_cameras_only_load_is_a_clear_panic() {
