@@ -708,9 +708,9 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
 }
 
 /// Random training rays (from the training cameras; no photo is decoded), rendered in batches,
-/// until `--points` of them stop inside the scene
-/// box with enough opacity (or 20 times as many rays as points were cast); their expected
-/// termination points and colours (`nerf::render::surface_points`) as PLY.
+/// until `--points` of them stop inside the scene box with enough opacity (or 20 times as many
+/// rays as points were cast); their expected termination points and colours
+/// (`nerf::render::surface_points`) as PLY.
 fn cmd_export_points(a: PointsArgs) -> Result<()> {
     if a.points == 0 || !(0.0..=1.0).contains(&a.min_opacity) {
         bail!("--points must be at least 1 and --min-opacity in [0, 1]");
