@@ -55,8 +55,12 @@ struct Params {
 // The 8 corners of a sample's cell at one level: slot indices within the level, weights, and the
 // position within the cell (the weights' factors; the input gradient differentiates them).
 struct Cell {
-    slot: array<u32, 8>,
-    w: array<f32, 8>,
+    // Slots of corners 0..3 (z = 0) and 4..7 (z = 1).
+    s0: vec4<u32>,
+    s1: vec4<u32>,
+    // Their trilinear weights.
+    w0: vec4<f32>,
+    w1: vec4<f32>,
     frac: vec3<f32>,
 }
 
@@ -75,38 +79,35 @@ fn unit_position(i: u32) -> vec3<f32> {
     return x;
 }
 
+// Written without arrays or loops over the corners: naga emits WGSL loops as `loop { if !cond
+// { break } }`, which drivers may leave rolled, and then an array indexed by the loop counter
+// (here the corners' slots and weights, and naga's copies of value arrays) lives in local memory,
+// and the corners' table reads wait on each other (on the H100 the plain GEMM's accumulators, an
+// array indexed in loops, ran 22x slower than the same sums in named registers). The same
+// integers and the same products, in the same order, as the CPU.
 fn cell(x: vec3<f32>, lv: vec4<u32>) -> Cell {
     let res = lv.x;
-    let res_f = f32(res);
-    var v: vec3<u32>;
-    var f: vec3<f32>;
-    for (var a = 0u; a < 3u; a++) {
-        let p = x[a] * res_f;
-        let vi = min(u32(p), res - 1u);
-        v[a] = vi;
-        f[a] = p - f32(vi);
-    }
+    let p = x * f32(res);
+    let v = min(vec3<u32>(p), vec3<u32>(res - 1u));
+    let f = p - vec3<f32>(v);
     var c: Cell;
     if (lv.z != 0u) {
         let s = res + 1u;
         let base = v.x + s * (v.y + s * v.z);
-        for (var k = 0u; k < 8u; k++) {
-            c.slot[k] = base + (k & 1u) + ((k >> 1u) & 1u) * s + (k >> 2u) * s * s;
-        }
+        c.s0 = vec4<u32>(base, base + 1u, base + s, base + 1u + s);
+        c.s1 = c.s0 + vec4<u32>(s * s);
     } else {
-        let hx = array<u32, 2>(v.x, v.x + 1u);
-        let hy = array<u32, 2>(v.y * 2654435761u, (v.y + 1u) * 2654435761u);
-        let hz = array<u32, 2>(v.z * 805459861u, (v.z + 1u) * 805459861u);
-        for (var k = 0u; k < 8u; k++) {
-            c.slot[k] = (hx[k & 1u] ^ hy[(k >> 1u) & 1u] ^ hz[k >> 2u]) & lv.w;
-        }
+        let hy0 = v.y * 2654435761u;
+        let hy1 = (v.y + 1u) * 2654435761u;
+        let xy = vec4<u32>(v.x ^ hy0, (v.x + 1u) ^ hy0, v.x ^ hy1, (v.x + 1u) ^ hy1);
+        c.s0 = (xy ^ vec4<u32>(v.z * 805459861u)) & vec4<u32>(lv.w);
+        c.s1 = (xy ^ vec4<u32>((v.z + 1u) * 805459861u)) & vec4<u32>(lv.w);
     }
-    let ax = array<f32, 2>(1.0 - f.x, f.x);
-    let ay = array<f32, 2>(1.0 - f.y, f.y);
-    let az = array<f32, 2>(1.0 - f.z, f.z);
-    for (var k = 0u; k < 8u; k++) {
-        c.w[k] = ax[k & 1u] * ay[(k >> 1u) & 1u] * az[k >> 2u];
-    }
+    let ax0 = 1.0 - f.x;
+    let ay0 = 1.0 - f.y;
+    let wxy = vec4<f32>(ax0 * ay0, f.x * ay0, ax0 * f.y, f.x * f.y);
+    c.w0 = wxy * (1.0 - f.z);
+    c.w1 = wxy * f.z;
     c.frac = f;
     return c;
 }
@@ -129,29 +130,69 @@ fn hash_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     let base = lv.y / (FEATS / VEC_PER_SLOT);
     let out = (i * nl + l) * VEC_PER_SLOT;
     for (var v = 0u; v < VEC_PER_SLOT; v++) {
+        // The 8 reads first (independent, all in flight at once), then the sum in corner order.
+        let t0 = table[base + c.s0.x * VEC_PER_SLOT + v];
+        let t1 = table[base + c.s0.y * VEC_PER_SLOT + v];
+        let t2 = table[base + c.s0.z * VEC_PER_SLOT + v];
+        let t3 = table[base + c.s0.w * VEC_PER_SLOT + v];
+        let t4 = table[base + c.s1.x * VEC_PER_SLOT + v];
+        let t5 = table[base + c.s1.y * VEC_PER_SLOT + v];
+        let t6 = table[base + c.s1.z * VEC_PER_SLOT + v];
+        let t7 = table[base + c.s1.w * VEC_PER_SLOT + v];
         var acc = Feat(0.0);
-        for (var k = 0u; k < 8u; k++) {
-            acc += c.w[k] * table[base + c.slot[k] * VEC_PER_SLOT + v];
-        }
+        acc += c.w0.x * t0;
+        acc += c.w0.y * t1;
+        acc += c.w0.z * t2;
+        acc += c.w0.w * t3;
+        acc += c.w1.x * t4;
+        acc += c.w1.y * t5;
+        acc += c.w1.z * t6;
+        acc += c.w1.w * t7;
         features[out + v] = acc;
     }
 }
 
 // d_features of (sample i, level l), or false when they are all zero (nothing to add).
+// Features 0..3 in g0, 4..7 in g1 (F ≤ 8), zeros past F; FEATS is a pipeline constant, so the
+// branches on it fold away.
 struct Grad {
-    g: array<f32, 8>,
+    g0: vec4<f32>,
+    g1: vec4<f32>,
     any: bool,
 }
 
 fn load_grad(i: u32, l: u32) -> Grad {
     var r: Grad;
-    r.any = false;
+    r.g0 = vec4<f32>(0.0);
+    r.g1 = vec4<f32>(0.0);
     let o = (i * P.n_levels + l) * FEATS;
-    for (var j = 0u; j < FEATS; j++) {
-        r.g[j] = d_features[o + j];
-        r.any = r.any || r.g[j] != 0.0;
+    r.g0.x = d_features[o];
+    if (FEATS > 1u) {
+        r.g0.y = d_features[o + 1u];
     }
+    if (FEATS > 2u) {
+        r.g0.z = d_features[o + 2u];
+        r.g0.w = d_features[o + 3u];
+    }
+    if (FEATS > 4u) {
+        r.g1 = vec4<f32>(d_features[o + 4u], d_features[o + 5u], d_features[o + 6u], d_features[o + 7u]);
+    }
+    r.any = any(r.g0 != vec4<f32>(0.0)) || any(r.g1 != vec4<f32>(0.0));
     return r;
+}
+
+// Feature j of g (the opt-in subgroup path, which loops over j).
+fn grad_at(g: Grad, j: u32) -> f32 {
+    return select(g.g0, g.g1, j >= 4u)[j & 3u];
+}
+
+// Slot and weight of corner k (the opt-in subgroup path, which loops over the corners).
+fn corner_slot(c: Cell, k: u32) -> u32 {
+    return select(c.s0, c.s1, k >= 4u)[k & 3u];
+}
+
+fn corner_weight(c: Cell, k: u32) -> f32 {
+    return select(c.w0, c.w1, k >= 4u)[k & 3u];
 }
 
 fn add_cas(idx: u32, v: f32) {
@@ -178,14 +219,37 @@ fn hash_backward_cas(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
     }
     let lv = P.levels[l];
     let c = cell(unit_position(i), lv);
-    for (var k = 0u; k < 8u; k++) {
-        let o = lv.y + c.slot[k] * FEATS;
-        for (var j = 0u; j < FEATS; j++) {
-            let d = c.w[k] * g.g[j];
-            if (d != 0.0) {
-                add_cas(o + j, d);
-            }
-        }
+    add_corner_cas(lv.y + c.s0.x * FEATS, c.w0.x, g);
+    add_corner_cas(lv.y + c.s0.y * FEATS, c.w0.y, g);
+    add_corner_cas(lv.y + c.s0.z * FEATS, c.w0.z, g);
+    add_corner_cas(lv.y + c.s0.w * FEATS, c.w0.w, g);
+    add_corner_cas(lv.y + c.s1.x * FEATS, c.w1.x, g);
+    add_corner_cas(lv.y + c.s1.y * FEATS, c.w1.y, g);
+    add_corner_cas(lv.y + c.s1.z * FEATS, c.w1.z, g);
+    add_corner_cas(lv.y + c.s1.w * FEATS, c.w1.w, g);
+}
+
+fn add_cas_nonzero(idx: u32, d: f32) {
+    if (d != 0.0) {
+        add_cas(idx, d);
+    }
+}
+
+// w·g added to the F features at `o` with compare-and-swap (none for zeros).
+fn add_corner_cas(o: u32, w: f32, g: Grad) {
+    add_cas_nonzero(o, w * g.g0.x);
+    if (FEATS > 1u) {
+        add_cas_nonzero(o + 1u, w * g.g0.y);
+    }
+    if (FEATS > 2u) {
+        add_cas_nonzero(o + 2u, w * g.g0.z);
+        add_cas_nonzero(o + 3u, w * g.g0.w);
+    }
+    if (FEATS > 4u) {
+        add_cas_nonzero(o + 4u, w * g.g1.x);
+        add_cas_nonzero(o + 5u, w * g.g1.y);
+        add_cas_nonzero(o + 6u, w * g.g1.z);
+        add_cas_nonzero(o + 7u, w * g.g1.w);
     }
 }
 
@@ -221,34 +285,67 @@ fn hash_input_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         }
         let lv = P.levels[l];
         let c = cell(x, lv);
-        var s: array<f32, 8>;
-        for (var k = 0u; k < 8u; k++) {
-            let o = lv.y + c.slot[k] * FEATS;
-            var sk = 0.0;
-            for (var j = 0u; j < FEATS; j++) {
-                sk += g.g[j] * table_f32[o + j];
-            }
-            s[k] = sk;
-        }
-        let ax = array<f32, 2>(1.0 - c.frac.x, c.frac.x);
-        let ay = array<f32, 2>(1.0 - c.frac.y, c.frac.y);
-        let az = array<f32, 2>(1.0 - c.frac.z, c.frac.z);
-        let sg = array<f32, 2>(-1.0, 1.0);
+        let s0 = vec4<f32>(
+            corner_dot(lv.y + c.s0.x * FEATS, g),
+            corner_dot(lv.y + c.s0.y * FEATS, g),
+            corner_dot(lv.y + c.s0.z * FEATS, g),
+            corner_dot(lv.y + c.s0.w * FEATS, g),
+        );
+        let s1 = vec4<f32>(
+            corner_dot(lv.y + c.s1.x * FEATS, g),
+            corner_dot(lv.y + c.s1.y * FEATS, g),
+            corner_dot(lv.y + c.s1.z * FEATS, g),
+            corner_dot(lv.y + c.s1.w * FEATS, g),
+        );
+        // Corner k = (bx, by, bz): its weight's factors a·[b] = (1 − frac, frac)[b] and their
+        // derivatives (−1, 1)[b], in corner order.
+        let f = c.frac;
+        let x0 = 1.0 - f.x;
+        let y0 = 1.0 - f.y;
+        let z0 = 1.0 - f.z;
         var dw = vec3<f32>(0.0);
-        for (var k = 0u; k < 8u; k++) {
-            let bx = k & 1u;
-            let by = (k >> 1u) & 1u;
-            let bz = k >> 2u;
-            dw.x += s[k] * sg[bx] * ay[by] * az[bz];
-            dw.y += s[k] * ax[bx] * sg[by] * az[bz];
-            dw.z += s[k] * ax[bx] * ay[by] * sg[bz];
-        }
+        dw_add(&dw, s0.x, x0, y0, z0, -1.0, -1.0, -1.0);
+        dw_add(&dw, s0.y, f.x, y0, z0, 1.0, -1.0, -1.0);
+        dw_add(&dw, s0.z, x0, f.y, z0, -1.0, 1.0, -1.0);
+        dw_add(&dw, s0.w, f.x, f.y, z0, 1.0, 1.0, -1.0);
+        dw_add(&dw, s1.x, x0, y0, f.z, -1.0, -1.0, 1.0);
+        dw_add(&dw, s1.y, f.x, y0, f.z, 1.0, -1.0, 1.0);
+        dw_add(&dw, s1.z, x0, f.y, f.z, -1.0, 1.0, 1.0);
+        dw_add(&dw, s1.w, f.x, f.y, f.z, 1.0, 1.0, 1.0);
         acc += dw * f32(lv.x);
     }
     for (var a = 0u; a < 3u; a++) {
         let inside = x[a] > 0.0 && x[a] < 1.0;
         d_positions[3u * i + a] = select(0.0, acc[a] * P.inv_extent[a], inside);
     }
+}
+
+// s_k = Σ_j g_j · table[o + j], j in order from 0.
+fn corner_dot(o: u32, g: Grad) -> f32 {
+    var sk = 0.0;
+    sk += g.g0.x * table_f32[o];
+    if (FEATS > 1u) {
+        sk += g.g0.y * table_f32[o + 1u];
+    }
+    if (FEATS > 2u) {
+        sk += g.g0.z * table_f32[o + 2u];
+        sk += g.g0.w * table_f32[o + 3u];
+    }
+    if (FEATS > 4u) {
+        sk += g.g1.x * table_f32[o + 4u];
+        sk += g.g1.y * table_f32[o + 5u];
+        sk += g.g1.z * table_f32[o + 6u];
+        sk += g.g1.w * table_f32[o + 7u];
+    }
+    return sk;
+}
+
+// Corner k's terms of ∂(Σ_k s_k w_k)/∂frac: its weight's factors (ax, ay, az) with one of them
+// replaced by its derivative (sx, sy, sz = ±1), multiplied in the CPU's order.
+fn dw_add(dw: ptr<function, vec3<f32>>, s: f32, ax: f32, ay: f32, az: f32, sx: f32, sy: f32, sz: f32) {
+    (*dw).x += s * sx * ay * az;
+    (*dw).y += s * ax * sy * az;
+    (*dw).z += s * ax * ay * sz;
 }
 
 //#begin f32-atomics
@@ -271,18 +368,37 @@ fn add_sample_atomic(i: u32, l: u32, lv: vec4<u32>) {
         return;
     }
     let c = cell(unit_position(i), lv);
-    for (var k = 0u; k < 8u; k++) {
-        add_corner_atomic(lv.y + c.slot[k] * FEATS, c.w[k], g);
+    add_corner_atomic(lv.y + c.s0.x * FEATS, c.w0.x, g);
+    add_corner_atomic(lv.y + c.s0.y * FEATS, c.w0.y, g);
+    add_corner_atomic(lv.y + c.s0.z * FEATS, c.w0.z, g);
+    add_corner_atomic(lv.y + c.s0.w * FEATS, c.w0.w, g);
+    add_corner_atomic(lv.y + c.s1.x * FEATS, c.w1.x, g);
+    add_corner_atomic(lv.y + c.s1.y * FEATS, c.w1.y, g);
+    add_corner_atomic(lv.y + c.s1.z * FEATS, c.w1.z, g);
+    add_corner_atomic(lv.y + c.s1.w * FEATS, c.w1.w, g);
+}
+
+fn add_atomic_nonzero(idx: u32, d: f32) {
+    if (d != 0.0) {
+        atomicAdd(&grads_f32[idx], d);
     }
 }
 
 // w·g added to the F features at `o` (none for zeros).
 fn add_corner_atomic(o: u32, w: f32, g: Grad) {
-    for (var j = 0u; j < FEATS; j++) {
-        let d = w * g.g[j];
-        if (d != 0.0) {
-            atomicAdd(&grads_f32[o + j], d);
-        }
+    add_atomic_nonzero(o, w * g.g0.x);
+    if (FEATS > 1u) {
+        add_atomic_nonzero(o + 1u, w * g.g0.y);
+    }
+    if (FEATS > 2u) {
+        add_atomic_nonzero(o + 2u, w * g.g0.z);
+        add_atomic_nonzero(o + 3u, w * g.g0.w);
+    }
+    if (FEATS > 4u) {
+        add_atomic_nonzero(o + 4u, w * g.g1.x);
+        add_atomic_nonzero(o + 5u, w * g.g1.y);
+        add_atomic_nonzero(o + 6u, w * g.g1.z);
+        add_atomic_nonzero(o + 7u, w * g.g1.w);
     }
 }
 
@@ -328,7 +444,8 @@ fn hash_backward_subgroup(
     }
     let has_grad = live && g.any;
     for (var k = 0u; k < 8u; k++) {
-        let slot = c.slot[k];
+        let slot = corner_slot(c, k);
+        let wk = corner_weight(c, k);
         var pending = has_grad;
         for (var r = 0u; r < SG_ROUNDS; r++) {
             let lead = subgroupMin(select(0xffffffffu, slot, pending));
@@ -343,7 +460,7 @@ fn hash_backward_subgroup(
                 break;
             }
             for (var j = 0u; j < FEATS; j++) {
-                let s = subgroupAdd(select(0.0, c.w[k] * g.g[j], mine));
+                let s = subgroupAdd(select(0.0, wk * grad_at(g, j), mine));
                 if (sid == writer && s != 0.0) {
                     atomicAdd(&grads_f32[lv.y + lead * FEATS + j], s);
                 }
@@ -351,7 +468,7 @@ fn hash_backward_subgroup(
             pending = pending && !mine;
         }
         if (pending) {
-            add_corner_atomic(lv.y + slot * FEATS, c.w[k], g);
+            add_corner_atomic(lv.y + slot * FEATS, wk, g);
         }
     }
 }
@@ -387,10 +504,23 @@ fn hash_forward_f16(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
     let lv = P.levels[l];
     let c = cell(unit_position(i), lv);
     let base = lv.y / 2u;
+    let t0 = unpack2x16float(table16[base + c.s0.x]);
+    let t1 = unpack2x16float(table16[base + c.s0.y]);
+    let t2 = unpack2x16float(table16[base + c.s0.z]);
+    let t3 = unpack2x16float(table16[base + c.s0.w]);
+    let t4 = unpack2x16float(table16[base + c.s1.x]);
+    let t5 = unpack2x16float(table16[base + c.s1.y]);
+    let t6 = unpack2x16float(table16[base + c.s1.z]);
+    let t7 = unpack2x16float(table16[base + c.s1.w]);
     var acc = vec2<f32>(0.0);
-    for (var k = 0u; k < 8u; k++) {
-        acc += c.w[k] * unpack2x16float(table16[base + c.slot[k]]);
-    }
+    acc += c.w0.x * t0;
+    acc += c.w0.y * t1;
+    acc += c.w0.z * t2;
+    acc += c.w0.w * t3;
+    acc += c.w1.x * t4;
+    acc += c.w1.y * t5;
+    acc += c.w1.z * t6;
+    acc += c.w1.w * t7;
     features[i * nl + l] = Feat(acc);
 }
 //#end f16-mirror

@@ -661,6 +661,35 @@ fn wg_input(off: u32, len: u32, e: u32) -> f32 {
     return 0.0;
 }
 
+// Elements e, e + 256, e + 512, e + 768 of a block (wg_tape / wg_input four times).
+fn wg_tape4(off: u32, len: u32, e: u32) -> vec4<f32> {
+    return vec4<f32>(wg_tape(off, len, e), wg_tape(off, len, e + 256u), wg_tape(off, len, e + 512u), wg_tape(off, len, e + 768u));
+}
+
+fn wg_input4(off: u32, len: u32, e: u32) -> vec4<f32> {
+    return vec4<f32>(wg_input(off, len, e), wg_input(off, len, e + 256u), wg_input(off, len, e + 512u), wg_input(off, len, e + 768u));
+}
+
+// Element e of a tile's D block (vd, [o][s]: feature e / m, sample e % m) and of its H block
+// (vh: from the tape [k][s] like D, or from the input rows [s][k]: sample e / din, feature
+// e % din) into workgroup memory, transposed to [sample][feature]. dims = (m, out, fan_in, din);
+// sh and pow2: the shifts and power-of-two flags of m and din (div_mod).
+fn wg_put_pair(e: u32, dims: vec4<u32>, sh: vec4<u32>, pow2: vec2<bool>, from_input: bool, vd: f32, vh: f32) {
+    let m = dims.x;
+    let q = div_mod(e, m, sh.x, pow2.x);
+    if (e < dims.y * m) {
+        wg_put_d(q.y, q.x, vd);
+    }
+    if (from_input) {
+        if (e < m * dims.w) {
+            let qi = div_mod(e, dims.w, sh.y, pow2.y);
+            wg_put_h(qi.x, qi.y, vh);
+        }
+    } else if (e < dims.z * m) {
+        wg_put_h(q.y, q.x, vh);
+    }
+}
+
 // Row o of this invocation's 8 × 8 block: dW[o][tk·8 + j] for j < 8 (lo: j < 4, hi: j ≥ 4), into
 // workgroup g's row of `partials`.
 fn wgrad_flush(L: MlpLayer, g: u32, o: u32, tk: u32, lo: vec4<f32>, hi: vec4<f32>) {
@@ -765,22 +794,26 @@ fn mlp_wgrad(
     if (!from_input) {
         h_pre = layers[l - 1u].a_pre;
     }
-    // Register prefetch of the next tile: element tid + 256r of its D block (out·m floats,
-    // [o][s]) and of its H block (tape: fan_in·m floats [k][s]; input: m·din floats [s][k]).
-    var pd: array<f32, 8>;
-    var ph: array<f32, 8>;
+    // Register prefetch of the next tile: element tid + 256r (r = 0..7) of its D block (out·m
+    // floats, [o][s]) in pd0 (r < 4) and pd1, and of its H block (tape: fan_in·m floats [k][s];
+    // input: m·din floats [s][k]) in ph0, ph1. Named vectors, not an array indexed in a loop: naga
+    // emits loops that drivers may leave rolled, and such an array then lives in local memory.
+    var pd0: vec4<f32>;
+    var pd1: vec4<f32>;
+    var ph0: vec4<f32>;
+    var ph1: vec4<f32>;
     {
         let t0 = first * T;
         let m = min(T, n - t0);
         let base = t0 * P.fps;
-        for (var r = 0u; r < 8u; r++) {
-            let e = tid + 256u * r;
-            pd[r] = wg_tape(base + m * L.d_pre, out * m, e);
-            if (from_input) {
-                ph[r] = wg_input(t0 * din, m * din, e);
-            } else {
-                ph[r] = wg_tape(base + m * h_pre, fan_in * m, e);
-            }
+        pd0 = wg_tape4(base + m * L.d_pre, out * m, tid);
+        pd1 = wg_tape4(base + m * L.d_pre, out * m, tid + 1024u);
+        if (from_input) {
+            ph0 = wg_input4(t0 * din, m * din, tid);
+            ph1 = wg_input4(t0 * din, m * din, tid + 1024u);
+        } else {
+            ph0 = wg_tape4(base + m * h_pre, fan_in * m, tid);
+            ph1 = wg_tape4(base + m * h_pre, fan_in * m, tid + 1024u);
         }
     }
     // a{i}{h}: dW[8to + i][8tk + 4h .. 8tk + 4h + 3] (named: registers, not local memory).
@@ -807,37 +840,31 @@ fn mlp_wgrad(
         // Prefetched registers → workgroup memory, transposed to [sample][feature]. Element e of
         // a [feature][m] block is (e % m, e / m): shifts for a full tile (m = T), a division only
         // in the last, partial one (likewise for the input's [m][din] rows when din is 2^k).
-        let m_sh = countTrailingZeros(m);
-        let m_pow2 = (m & (m - 1u)) == 0u;
-        for (var r = 0u; r < 8u; r++) {
-            let e = tid + 256u * r;
-            let q = div_mod(e, m, m_sh, m_pow2);
-            if (e < out * m) {
-                wg_put_d(q.y, q.x, pd[r]);
-            }
-            if (from_input) {
-                if (e < m * din) {
-                    let qi = div_mod(e, din, din_sh, din_pow2);
-                    wg_put_h(qi.x, qi.y, ph[r]);
-                }
-            } else if (e < fan_in * m) {
-                wg_put_h(q.y, q.x, ph[r]);
-            }
-        }
+        let sh = vec4<u32>(countTrailingZeros(m), din_sh, 0u, 0u);
+        let pow2 = vec2<bool>((m & (m - 1u)) == 0u, din_pow2);
+        let dims = vec4<u32>(m, out, fan_in, din);
+        wg_put_pair(tid, dims, sh, pow2, from_input, pd0.x, ph0.x);
+        wg_put_pair(tid + 256u, dims, sh, pow2, from_input, pd0.y, ph0.y);
+        wg_put_pair(tid + 512u, dims, sh, pow2, from_input, pd0.z, ph0.z);
+        wg_put_pair(tid + 768u, dims, sh, pow2, from_input, pd0.w, ph0.w);
+        wg_put_pair(tid + 1024u, dims, sh, pow2, from_input, pd1.x, ph1.x);
+        wg_put_pair(tid + 1280u, dims, sh, pow2, from_input, pd1.y, ph1.y);
+        wg_put_pair(tid + 1536u, dims, sh, pow2, from_input, pd1.z, ph1.z);
+        wg_put_pair(tid + 1792u, dims, sh, pow2, from_input, pd1.w, ph1.w);
         workgroupBarrier();
         // Prefetch tile t + 1 while this one is reduced.
         if (t + 1u < last) {
             let u0 = t0 + T;
             let mu = min(T, n - u0);
             let base = u0 * P.fps;
-            for (var r = 0u; r < 8u; r++) {
-                let e = tid + 256u * r;
-                pd[r] = wg_tape(base + mu * L.d_pre, out * mu, e);
-                if (from_input) {
-                    ph[r] = wg_input(u0 * din, mu * din, e);
-                } else {
-                    ph[r] = wg_tape(base + mu * h_pre, fan_in * mu, e);
-                }
+            pd0 = wg_tape4(base + mu * L.d_pre, out * mu, tid);
+            pd1 = wg_tape4(base + mu * L.d_pre, out * mu, tid + 1024u);
+            if (from_input) {
+                ph0 = wg_input4(u0 * din, mu * din, tid);
+                ph1 = wg_input4(u0 * din, mu * din, tid + 1024u);
+            } else {
+                ph0 = wg_tape4(base + mu * h_pre, fan_in * mu, tid);
+                ph1 = wg_tape4(base + mu * h_pre, fan_in * mu, tid + 1024u);
             }
         }
         // Inside the last block of a row or column, entries past `out` / `fan_in` are computed on

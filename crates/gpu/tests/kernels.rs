@@ -252,3 +252,143 @@ fn kernels_reuse_bind_groups_for_the_same_buffers() {
     assert_eq!(a, b);
     assert!((a[0] - 3.0 * 0.0625).abs() < 1e-7, "{a:?}");
 }
+
+/// What in `function` (and the functions it calls) keeps an array in function memory: local
+/// variables whose type holds an array, and array values indexed at run time (naga's SPIR-V
+/// backend copies those into a function-local variable). Workgroup, uniform and storage arrays are
+/// not counted.
+fn function_memory_arrays(module: &naga::Module, info: &naga::valid::ModuleInfo, ep: usize) -> Vec<String> {
+    fn holds_array(module: &naga::Module, ty: naga::Handle<naga::Type>) -> bool {
+        match &module.types[ty].inner {
+            naga::TypeInner::Array { .. } => true,
+            naga::TypeInner::Struct { members, .. } => members.iter().any(|m| holds_array(module, m.ty)),
+            _ => false,
+        }
+    }
+    fn calls(block: &naga::Block, out: &mut Vec<naga::Handle<naga::Function>>) {
+        for st in block.iter() {
+            match st {
+                naga::Statement::Block(b) => calls(b, out),
+                naga::Statement::If { accept, reject, .. } => {
+                    calls(accept, out);
+                    calls(reject, out);
+                }
+                naga::Statement::Switch { cases, .. } => cases.iter().for_each(|c| calls(&c.body, out)),
+                naga::Statement::Loop { body, continuing, .. } => {
+                    calls(body, out);
+                    calls(continuing, out);
+                }
+                naga::Statement::Call { function, .. } => out.push(*function),
+                _ => {}
+            }
+        }
+    }
+    let mut found = Vec::new();
+    let check = |name: &str, f: &naga::Function, fi: &naga::valid::FunctionInfo, found: &mut Vec<String>| {
+        for (_, var) in f.local_variables.iter() {
+            if holds_array(module, var.ty) {
+                found.push(format!("{name}: local `{}`", var.name.as_deref().unwrap_or("?")));
+            }
+        }
+        for (_, expr) in f.expressions.iter() {
+            if let naga::Expression::Access { base, .. } = expr {
+                if matches!(fi[*base].ty.inner_with(&module.types), naga::TypeInner::Array { .. }) {
+                    found.push(format!("{name}: an array value indexed at run time"));
+                }
+            }
+        }
+    };
+    let entry = &module.entry_points[ep];
+    check(&entry.name, &entry.function, info.get_entry_point(ep), &mut found);
+    let mut todo = Vec::new();
+    calls(&entry.function.body, &mut todo);
+    let mut seen = std::collections::HashSet::new();
+    while let Some(h) = todo.pop() {
+        if seen.insert(h) {
+            let f = &module.functions[h];
+            check(f.name.as_deref().unwrap_or("?"), f, &info[h], &mut found);
+            calls(&f.body, &mut todo);
+        }
+    }
+    found
+}
+
+/// No kernel keeps an array in function memory, except those listed with a reason. naga writes
+/// every WGSL loop as `loop { if !cond { break } }`, which drivers may leave rolled; an array
+/// indexed by the loop counter then lives in local memory (on the H100 the plain GEMM's
+/// accumulators, an array indexed in loops, ran 22× slower than the same sums in named
+/// registers), and naga's SPIR-V backend copies an array *value* indexed at run time into a
+/// function-local variable first. The hash grid's corners and the fused MLP's weight-gradient
+/// prefetch are written out by hand for this reason; this keeps new kernels honest too.
+#[test]
+fn kernels_keep_no_arrays_in_function_memory() {
+    // (file, entry point, why an array there costs nothing that matters)
+    let allowed = [
+        ("linear.wgsl", "forward", "the epilogue reads its 16 sums once per output"),
+        ("linear.wgsl", "backward_data", "the epilogue reads its 16 sums once per output"),
+        ("linear.wgsl", "backward_weight", "the epilogue reads its 16 sums once per output"),
+        ("sh.wgsl", "sh_input_grad", "camera pose refinement only, 16 coefficients per sample"),
+        ("pose.wgsl", "pose_view_grads", "camera pose refinement only, one invocation per view"),
+        ("views.wgsl", "view_sums", "per-view sums of the refinements, once per step"),
+    ];
+    let mut found = Vec::new();
+    let mut checked = 0;
+    for (name, src) in shaders::ALL {
+        let src = &shaders::with_common(src);
+        let module = naga::front::wgsl::parse_str(src).unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(src)));
+        let mut v = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all());
+        let info = v.validate(&module).unwrap_or_else(|e| panic!("{name}: {e:?}"));
+        for (i, ep) in module.entry_points.iter().enumerate() {
+            let arrays = function_memory_arrays(&module, &info, i);
+            let excused = allowed.iter().any(|(f, e, _)| f == name && *e == ep.name);
+            assert!(!excused || !arrays.is_empty(), "{name} {}: allowed an array but holds none; drop it from the list", ep.name);
+            if !excused && !arrays.is_empty() {
+                found.push(format!("{name} {}: {arrays:?}", ep.name));
+            }
+            checked += 1;
+        }
+    }
+    assert!(checked > 60, "only {checked} entry points checked");
+    assert!(found.is_empty(), "arrays in function memory:\n{}", found.join("\n"));
+}
+
+/// The check above finds what it looks for: the old hash-grid corners (an array field of a
+/// struct value indexed in a loop) and a loop-indexed local array.
+#[test]
+fn the_function_memory_check_finds_arrays() {
+    let src = r#"
+struct Cell { slot: array<u32, 8>, w: array<f32, 8> }
+@group(0) @binding(0) var<storage, read_write> out: array<f32>;
+fn cell(x: f32) -> Cell {
+    var c: Cell;
+    for (var k = 0u; k < 8u; k++) { c.slot[k] = k; c.w[k] = x; }
+    return c;
+}
+@compute @workgroup_size(1)
+fn by_value() {
+    let c = cell(out[0]);
+    var acc = 0.0;
+    for (var k = 0u; k < 8u; k++) { acc += c.w[k] * out[c.slot[k]]; }
+    out[1] = acc;
+}
+@compute @workgroup_size(1)
+fn local_array() {
+    var a: array<f32, 4>;
+    for (var k = 0u; k < 4u; k++) { a[k] = out[k]; }
+    out[0] = a[1];
+}
+@compute @workgroup_size(1)
+fn vectors() {
+    let a = vec4<f32>(out[0], out[1], out[2], out[3]);
+    out[0] = a.x + a.w;
+}
+"#;
+    let module = naga::front::wgsl::parse_str(src).unwrap();
+    let mut v = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all());
+    let info = v.validate(&module).unwrap();
+    let found: Vec<Vec<String>> = (0..3).map(|i| function_memory_arrays(&module, &info, i)).collect();
+    assert!(found[0].iter().any(|f| f.starts_with("by_value: an array value")), "{:?}", found[0]);
+    assert!(found[0].iter().any(|f| f == "cell: local `c`"), "{:?}", found[0]);
+    assert_eq!(found[1], vec!["local_array: local `a`".to_string()]);
+    assert!(found[2].is_empty(), "{:?}", found[2]);
+}
