@@ -2,7 +2,7 @@
 # A short device check (~3 min) of a session's GPU changes: the tiled cooperative-matrix GEMM tests
 # on hardware (linear), the hash and paper fields on the in-repo scene
 # (examples/ablations/device_check.toml, the before/after of device_quick.toml's runs), a pass-by-
-# pass profile of the paper field on the plain-WGSL GEMMs (a few steps) and the fused-MLP and
+# pass profile of the paper field on the plain-WGSL GEMMs (a few steps) and the fused-MLP, hash-grid and
 # trunk rows of the kernel bench. Build and pack here first: `bash benches/device/prepare.sh
 # --rebuild`; carry .gl .bin .bint (the bench and `linear` alone are enough in .bint).
 set -u
@@ -17,7 +17,7 @@ echo "== fields ($(left) s left)"
 timeout 90 .bin/nerf ablate examples/ablations/device_check.toml --device gpu --out /tmp/q > "$OUT/check.log" 2>&1
 cat /tmp/q/results.md 2>/dev/null
 echo "== bench ($(left) s left)"
-timeout 60 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "fused_mlp_(density|color)|trunk" > "$OUT/bench.log" 2>&1
+timeout 60 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "fused_mlp_(density|color)|trunk|hash_grid_(forward|backward|input)" > "$OUT/bench.log" 2>&1
 grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 echo "== freq plain ($(left) s left)"
 printf 'field = "freq"\ngpu_profile = { start = 2, steps = 2 }\n[field_config]\ngpu_linear = "plain"\n' > /tmp/fp.toml
