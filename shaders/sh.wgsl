@@ -66,6 +66,14 @@ fn sh_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
 @group(0) @binding(4) var<storage, read> d_sh: array<f32>;
 @group(0) @binding(5) var<storage, read_write> d_dirs: array<f32>;
 
+// Column j of d_sh's row at o, or 0 past the od = DEGREE² columns.
+fn sh_col(o: u32, j: u32, od: u32) -> f32 {
+    if (j < od) {
+        return d_sh[o + j];
+    }
+    return 0.0;
+}
+
 @compute @workgroup_size(WG)
 fn sh_input_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = linear_id(gid, nwg, WG);
@@ -86,71 +94,78 @@ fn sh_input_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wor
     let y = dirs[3u * i + 1u];
     let z = dirs[3u * i + 2u];
     let o = i * stride + off;
-    var gk: array<f32, 16>;
-    let k = array<f32, 16>(
-        0.28209479177387814, -0.4886025119029199, 0.4886025119029199, -0.4886025119029199,
-        1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
-        0.5462742152960396, -0.5900435899266435, 2.890611442640554, -0.4570457994644658,
-        0.3731763325901154, -0.4570457994644658, 1.445305721320277, -0.5900435899266435,
-    );
-    for (var j = 0u; j < od; j++) {
-        gk[j] = d_sh[o + j] * k[j];
-    }
+    // gk = d_sh·constant per SH column (columns past DEGREE² read as 0), named, not an array: see
+    // the no-function-memory-arrays rule in crates/gpu/tests/kernels.rs.
+    let g1 = sh_col(o, 1u, od) * -0.4886025119029199;
+    let g2 = sh_col(o, 2u, od) * 0.4886025119029199;
+    let g3 = sh_col(o, 3u, od) * -0.4886025119029199;
+    let g4 = sh_col(o, 4u, od) * 1.0925484305920792;
+    let g5 = sh_col(o, 5u, od) * -1.0925484305920792;
+    let g6 = sh_col(o, 6u, od) * 0.31539156525252005;
+    let g7 = sh_col(o, 7u, od) * -1.0925484305920792;
+    let g8 = sh_col(o, 8u, od) * 0.5462742152960396;
+    let g9 = sh_col(o, 9u, od) * -0.5900435899266435;
+    let g10 = sh_col(o, 10u, od) * 2.890611442640554;
+    let g11 = sh_col(o, 11u, od) * -0.4570457994644658;
+    let g12 = sh_col(o, 12u, od) * 0.3731763325901154;
+    let g13 = sh_col(o, 13u, od) * -0.4570457994644658;
+    let g14 = sh_col(o, 14u, od) * 1.445305721320277;
+    let g15 = sh_col(o, 15u, od) * -0.5900435899266435;
     var dx = 0.0;
     var dy = 0.0;
     var dz = 0.0;
     if (DEGREE > 1u) {
-        dy += gk[1];
-        dz += gk[2];
-        dx += gk[3];
+        dy += g1;
+        dz += g2;
+        dx += g3;
     }
     if (DEGREE > 2u) {
         let xx = x * x;
         let yy = y * y;
         let zz = z * z;
         // xy
-        dx += gk[4] * y;
-        dy += gk[4] * x;
+        dx += g4 * y;
+        dy += g4 * x;
         // yz
-        dy += gk[5] * z;
-        dz += gk[5] * y;
+        dy += g5 * z;
+        dz += g5 * y;
         // 2zz − xx − yy
-        dx -= gk[6] * 2.0 * x;
-        dy -= gk[6] * 2.0 * y;
-        dz += gk[6] * 4.0 * z;
+        dx -= g6 * 2.0 * x;
+        dy -= g6 * 2.0 * y;
+        dz += g6 * 4.0 * z;
         // xz
-        dx += gk[7] * z;
-        dz += gk[7] * x;
+        dx += g7 * z;
+        dz += g7 * x;
         // xx − yy
-        dx += gk[8] * 2.0 * x;
-        dy -= gk[8] * 2.0 * y;
+        dx += g8 * 2.0 * x;
+        dy -= g8 * 2.0 * y;
         if (DEGREE > 3u) {
             // y(3xx − yy)
-            dx += gk[9] * 6.0 * x * y;
-            dy += gk[9] * 3.0 * (xx - yy);
+            dx += g9 * 6.0 * x * y;
+            dy += g9 * 3.0 * (xx - yy);
             // xyz
-            dx += gk[10] * y * z;
-            dy += gk[10] * x * z;
-            dz += gk[10] * x * y;
+            dx += g10 * y * z;
+            dy += g10 * x * z;
+            dz += g10 * x * y;
             // y(4zz − xx − yy)
-            dx -= gk[11] * 2.0 * x * y;
-            dy += gk[11] * (4.0 * zz - xx - 3.0 * yy);
-            dz += gk[11] * 8.0 * y * z;
+            dx -= g11 * 2.0 * x * y;
+            dy += g11 * (4.0 * zz - xx - 3.0 * yy);
+            dz += g11 * 8.0 * y * z;
             // z(2zz − 3xx − 3yy)
-            dx -= gk[12] * 6.0 * x * z;
-            dy -= gk[12] * 6.0 * y * z;
-            dz += gk[12] * (6.0 * zz - 3.0 * xx - 3.0 * yy);
+            dx -= g12 * 6.0 * x * z;
+            dy -= g12 * 6.0 * y * z;
+            dz += g12 * (6.0 * zz - 3.0 * xx - 3.0 * yy);
             // x(4zz − xx − yy)
-            dx += gk[13] * (4.0 * zz - 3.0 * xx - yy);
-            dy -= gk[13] * 2.0 * x * y;
-            dz += gk[13] * 8.0 * x * z;
+            dx += g13 * (4.0 * zz - 3.0 * xx - yy);
+            dy -= g13 * 2.0 * x * y;
+            dz += g13 * 8.0 * x * z;
             // z(xx − yy)
-            dx += gk[14] * 2.0 * x * z;
-            dy -= gk[14] * 2.0 * y * z;
-            dz += gk[14] * (xx - yy);
+            dx += g14 * 2.0 * x * z;
+            dy -= g14 * 2.0 * y * z;
+            dz += g14 * (xx - yy);
             // x(xx − 3yy)
-            dx += gk[15] * 3.0 * (xx - yy);
-            dy -= gk[15] * 6.0 * x * y;
+            dx += g15 * 3.0 * (xx - yy);
+            dy -= g15 * 6.0 * x * y;
         }
     }
     d_dirs[3u * i] = dx;

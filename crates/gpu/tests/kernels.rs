@@ -327,7 +327,6 @@ fn kernels_keep_no_arrays_in_function_memory() {
         ("linear.wgsl", "forward", "the epilogue reads its 16 sums once per output"),
         ("linear.wgsl", "backward_data", "the epilogue reads its 16 sums once per output"),
         ("linear.wgsl", "backward_weight", "the epilogue reads its 16 sums once per output"),
-        ("sh.wgsl", "sh_input_grad", "camera pose refinement only, 16 coefficients per sample"),
         ("pose.wgsl", "pose_view_grads", "camera pose refinement only, one invocation per view"),
         ("views.wgsl", "view_sums", "per-view sums of the refinements, once per step"),
     ];
