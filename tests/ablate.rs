@@ -224,8 +224,9 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!(check[2].config.field_config["gpu_linear"], "coop_tiled_wide");
     assert!(check.iter().all(|p| p.config.gpu_profile == quick[0].config.gpu_profile && p.config.iters == quick[0].config.iters));
     let variants = Ablation::load(&dir.join("device_variants.toml")).unwrap().plan(&nerf::registry()).unwrap();
-    assert_eq!(variants.len(), 6);
+    assert_eq!(variants.len(), 7);
     assert_eq!(variants[5].config.field_config["grid"]["n_levels"], 8);
+    assert_eq!(variants[6].config.field_config["grid"]["n_features_per_level"], 8);
     assert!(variants.iter().all(|p| p.config.field == "hash" && p.config.validate().is_ok()));
     assert!(variants.iter().any(|p| !p.config.compact_samples) && variants.iter().any(|p| p.config.adam.is_sparse("field/hash_grid")));
     let sparse = Ablation::load(&dir.join("sparse_adam.toml")).unwrap().plan(&nerf::registry()).unwrap();
