@@ -194,3 +194,68 @@ fn the_distortion_loss_is_counted_and_gathers_the_weights() {
     println!("cpu: mean distortion per ray {measured:.5} (λ 1e-4) vs {trained:.5} (λ 10)");
     assert!(trained < 0.5 * measured, "{trained} vs {measured}");
 }
+
+/// A `progress` learning-rate schedule follows the fraction of the run done: by default the
+/// fraction of `iters`, or what the caller sets (`run` sets the time budget's fraction when that
+/// is larger). The rate reaches the optimiser on both devices: a step at progress 0.6 of a
+/// schedule that drops ×0.1 at 0.5 leaves the same parameters as a step at a constant 10⁻³.
+#[test]
+fn a_progress_schedule_follows_the_run_on_both_devices() {
+    use nerf::optim::LrSchedule;
+    let _device = take_device();
+    let train = load();
+    let progress = TrainConfig {
+        lr: LrSchedule::Progress { lr0: 1e-2, gamma: 0.1, at: vec![0.5], warmup_steps: 0 },
+        iters: 4,
+        ..config()
+    };
+    let constant = |lr| TrainConfig { lr: LrSchedule::Constant { lr }, ..progress.clone() };
+    let gpu = GpuContext::for_tests().map(Arc::new);
+    for dev in std::iter::once(None).chain(gpu.map(Some)) {
+        let name = if dev.is_some() { "gpu" } else { "cpu" };
+        let mut t = Trainer::new_on(progress.clone(), &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
+        // Steps 0 and 1 are before half of the 4 iterations, 2 and 3 after.
+        let lrs: Vec<f32> = (0..4).map(|_| t.step(&train).unwrap().lr).collect();
+        assert_eq!(lrs, [1e-2, 1e-2, 1e-3, 1e-3], "{name}");
+
+        let mut late = Trainer::new_on(progress.clone(), &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
+        late.set_progress(0.6);
+        assert_eq!(late.learning_rate(), 1e-3);
+        late.step(&train).unwrap();
+        let p_late: Vec<f32> = late.export_fields().unwrap().into_iter().flatten().flat_map(|(_, v)| v).collect();
+        assert_eq!(p_late, params_after(&constant(1e-3), &train, dev.clone(), 1), "{name}: the rate reached the step");
+        assert_ne!(p_late, params_after(&constant(1e-2), &train, dev.clone(), 1), "{name}");
+    }
+}
+
+/// `run` with a time budget anneals a `progress` schedule by the clock: a run of 10⁹ iterations
+/// (its step fraction stays ~0) cut by a 3-second budget logs lr0 first and the dropped rate last.
+#[test]
+fn a_time_budget_drives_a_progress_schedule() {
+    let _device = take_device();
+    let train = load();
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    let test = load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1), ..Default::default() }).unwrap();
+    let c = TrainConfig {
+        lr: nerf::optim::LrSchedule::Progress { lr0: 1e-2, gamma: 0.1, at: vec![0.5], warmup_steps: 0 },
+        iters: 1_000_000_000,
+        time_budget_secs: Some(3.0),
+        log_every: 1,
+        checkpoint_every: 0,
+        ..config()
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let opts = nerf::train::RunOptions {
+        progress: false,
+        write_renders: false,
+        device: nerf::gpu::DevicePreference::Cpu,
+        ..nerf::train::RunOptions::new(dir.path())
+    };
+    nerf::train::run(c, &nerf::registry(), &train, &test, &opts).unwrap();
+    let history = std::fs::read_to_string(dir.path().join("history.jsonl")).unwrap();
+    let lrs: Vec<f64> = history.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["lr"].as_f64().unwrap()).collect();
+    assert!(lrs.len() >= 4, "only {} steps in 3 s", lrs.len());
+    assert!((lrs[0] - 1e-2).abs() < 1e-9, "first step at lr0: {}", lrs[0]);
+    assert!((lrs[lrs.len() - 1] - 1e-3).abs() < 1e-9, "last step after half the budget: {}", lrs[lrs.len() - 1]);
+    assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "the rate never rises again");
+}

@@ -488,11 +488,28 @@ pub enum LrSchedule {
         /// Steps at which the rate is multiplied by `gamma` (any order).
         milestones: Vec<u64>,
     },
+    /// nerfacc's schedule for Instant-NGP, over the run's progress rather than its step count:
+    /// lr0 · gamma^(number of fractions in `at` ≤ progress), where progress is the fraction of
+    /// the run done (of its steps, or of its time budget when that ends it first). A
+    /// time-budgeted run thus anneals before its end whatever its step rate.
+    Progress {
+        /// Rate before the first fraction.
+        lr0: f32,
+        /// Factor applied at each fraction.
+        gamma: f32,
+        /// Fractions of the run, in `(0, 1)`, at which the rate is multiplied by `gamma`
+        /// (nerfacc: `[0.5, 0.75, 0.9]`).
+        at: Vec<f64>,
+        /// Steps of linear warm-up from `lr0 / 100` (nerfacc: 100); 0 (the default) for none.
+        #[serde(default)]
+        warmup_steps: u64,
+    },
 }
 
 impl LrSchedule {
-    /// The learning rate at (0-based) `step`.
-    pub fn lr(&self, step: u64) -> f32 {
+    /// The learning rate at (0-based) `step`, with `progress` the fraction of the run done
+    /// (in `[0, 1]`; only [`LrSchedule::Progress`] reads it).
+    pub fn lr(&self, step: u64, progress: f64) -> f32 {
         match self {
             LrSchedule::Constant { lr } => *lr,
             LrSchedule::Exponential { lr0, lr1, steps } => {
@@ -509,6 +526,36 @@ impl LrSchedule {
             } => {
                 let k = milestones.iter().filter(|&&m| m <= step).count();
                 (*lr0 as f64 * (*gamma as f64).powi(k as i32)) as f32
+            }
+            LrSchedule::Progress { lr0, gamma, at, warmup_steps } => {
+                let k = at.iter().filter(|&&f| f <= progress).count();
+                let warm = if step < *warmup_steps { 0.01 + 0.99 * step as f64 / *warmup_steps as f64 } else { 1.0 };
+                (*lr0 as f64 * (*gamma as f64).powi(k as i32) * warm) as f32
+            }
+        }
+    }
+
+    /// Checks the numbers: rates positive and finite, factors positive, progress fractions
+    /// inside `(0, 1)`. The message names the field at fault.
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = |name: &str, x: f32| {
+            if x.is_finite() && x > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("lr.{name} must be a positive number, got {x}"))
+            }
+        };
+        match self {
+            LrSchedule::Constant { lr } => positive("lr", *lr),
+            LrSchedule::Exponential { lr0, lr1, .. } => positive("lr0", *lr0).and(positive("lr1", *lr1)),
+            LrSchedule::Step { lr0, gamma, .. } => positive("lr0", *lr0).and(positive("gamma", *gamma)),
+            LrSchedule::Progress { lr0, gamma, at, .. } => {
+                positive("lr0", *lr0)?;
+                positive("gamma", *gamma)?;
+                match at.iter().find(|f| !(**f > 0.0 && **f < 1.0)) {
+                    Some(f) => Err(format!("lr.at holds fractions of the run, each strictly between 0 and 1, got {f}")),
+                    None => Ok(()),
+                }
             }
         }
     }
@@ -716,7 +763,7 @@ mod tests {
                     group("big", &mut p, &mut g, 0.0),
                     group("small", &mut q, &mut gq, 0.0),
                 ],
-                sched.lr(step),
+                sched.lr(step, 0.0),
             );
         }
         let err = p
@@ -975,32 +1022,59 @@ mod tests {
     #[test]
     fn schedules_at_endpoints() {
         let c = LrSchedule::Constant { lr: 3e-3 };
-        assert_eq!(c.lr(0), 3e-3);
-        assert_eq!(c.lr(1_000_000), 3e-3);
+        assert_eq!(c.lr(0, 0.0), 3e-3);
+        assert_eq!(c.lr(1_000_000, 0.0), 3e-3);
         let e = LrSchedule::Exponential {
             lr0: 5e-4,
             lr1: 5e-5,
             steps: 250_000,
         };
-        assert!((e.lr(0) - 5e-4).abs() < 1e-10);
-        assert!((e.lr(250_000) - 5e-5).abs() < 1e-10);
-        assert!((e.lr(125_000) - (5e-4f64 * 5e-5).sqrt() as f32).abs() < 1e-9);
-        assert!(e.lr(500_000) < e.lr(250_000));
+        assert!((e.lr(0, 0.0) - 5e-4).abs() < 1e-10);
+        assert!((e.lr(250_000, 0.0) - 5e-5).abs() < 1e-10);
+        assert!((e.lr(125_000, 0.0) - (5e-4f64 * 5e-5).sqrt() as f32).abs() < 1e-9);
+        assert!(e.lr(500_000, 0.0) < e.lr(250_000, 0.0));
         let s = LrSchedule::Step {
             lr0: 1e-2,
             gamma: 0.33,
             milestones: vec![15_000, 10_000, 20_000],
         };
-        assert_eq!(s.lr(0), 1e-2);
-        assert_eq!(s.lr(9_999), 1e-2);
-        assert!((s.lr(10_000) - 3.3e-3).abs() < 1e-9);
-        assert!((s.lr(15_000) - 1e-2 * 0.33 * 0.33).abs() < 1e-9);
-        assert!((s.lr(1 << 40) - 1e-2 * 0.33f32.powi(3)).abs() < 1e-9);
+        assert_eq!(s.lr(0, 0.0), 1e-2);
+        assert_eq!(s.lr(9_999, 0.0), 1e-2);
+        assert!((s.lr(10_000, 0.0) - 3.3e-3).abs() < 1e-9);
+        assert!((s.lr(15_000, 0.0) - 1e-2 * 0.33 * 0.33).abs() < 1e-9);
+        assert!((s.lr(1 << 40, 0.0) - 1e-2 * 0.33f32.powi(3)).abs() < 1e-9);
         // Serde form used in config files.
         let parsed: LrSchedule = serde_json::from_str(
             r#"{"kind":"exponential","lr0":0.0005,"lr1":0.00005,"steps":250000}"#,
         )
         .unwrap();
         assert_eq!(parsed, e);
+    }
+
+    #[test]
+    fn progress_schedule_follows_the_run_not_the_step() {
+        let p = LrSchedule::Progress { lr0: 1e-2, gamma: 0.33, at: vec![0.75, 0.5, 0.9], warmup_steps: 0 };
+        // The step count does not matter, the fraction of the run does.
+        assert_eq!(p.lr(0, 0.0), 1e-2);
+        assert_eq!(p.lr(1 << 40, 0.4999), 1e-2);
+        assert!((p.lr(7, 0.5) - 3.3e-3).abs() < 1e-9);
+        assert!((p.lr(7, 0.8) - 1e-2 * 0.33 * 0.33).abs() < 1e-9);
+        assert!((p.lr(7, 1.0) - 1e-2 * 0.33f32.powi(3)).abs() < 1e-9);
+        // nerfacc's warm-up: from lr0/100, linear, lr0 at `warmup_steps`.
+        let w = LrSchedule::Progress { lr0: 1e-2, gamma: 0.33, at: vec![0.5], warmup_steps: 100 };
+        assert!((w.lr(0, 0.0) - 1e-4).abs() < 1e-10);
+        assert!((w.lr(50, 0.0) - 1e-2 * 0.505).abs() < 1e-9);
+        assert_eq!(w.lr(100, 0.0), 1e-2);
+        // TOML form; the warm-up may be left out.
+        let parsed: LrSchedule = toml::from_str("kind = \"progress\"\nlr0 = 0.01\ngamma = 0.33\nat = [0.75, 0.5, 0.9]\n").unwrap();
+        assert_eq!(parsed, p);
+        assert_eq!(p.validate(), Ok(()));
+        // Bad numbers name the field.
+        let bad = LrSchedule::Progress { lr0: 1e-2, gamma: 0.33, at: vec![0.5, 1.0], warmup_steps: 0 };
+        assert!(bad.validate().unwrap_err().contains("lr.at"));
+        let bad = LrSchedule::Progress { lr0: 1e-2, gamma: f32::NAN, at: vec![], warmup_steps: 0 };
+        assert!(bad.validate().unwrap_err().contains("lr.gamma"));
+        assert!(LrSchedule::Constant { lr: 0.0 }.validate().unwrap_err().contains("lr.lr"));
+        assert!(LrSchedule::Exponential { lr0: 5e-4, lr1: -1.0, steps: 10 }.validate().unwrap_err().contains("lr.lr1"));
     }
 }

@@ -295,6 +295,7 @@ impl TrainConfig {
 
     /// Checks values that would make a run meaningless.
     pub fn validate(&self) -> Result<(), String> {
+        self.lr.validate()?;
         if self.batch_rays == 0 {
             return Err("batch_rays must be positive".into());
         }
@@ -421,6 +422,19 @@ mod tests {
             assert!(c.validate().unwrap_err().contains("loss.delta"));
         }
         assert!(toml::from_str::<TrainConfig>("[loss]\nkind = \"l1\"\n").is_err());
+    }
+
+    #[test]
+    fn progress_schedule_round_trips_and_is_validated() {
+        let c: TrainConfig = toml::from_str("[lr]\nkind = \"progress\"\nlr0 = 1e-2\ngamma = 0.33\nat = [0.5, 0.75, 0.9]\nwarmup_steps = 100\n").unwrap();
+        assert!(c.validate().is_ok());
+        let back: TrainConfig = toml::from_str(&toml::to_string(&c).unwrap()).unwrap();
+        assert_eq!(back.lr, c.lr);
+        let bad: TrainConfig = toml::from_str("[lr]\nkind = \"progress\"\nlr0 = 1e-2\ngamma = 0.33\nat = [0.5, 2.0]\n").unwrap();
+        let e = bad.validate().unwrap_err();
+        assert!(e.contains("lr.at") && e.contains('2'), "{e}");
+        let e = TrainConfig { lr: LrSchedule::Constant { lr: f32::NAN }, ..TrainConfig::default() }.validate().unwrap_err();
+        assert!(e.contains("lr.lr"), "{e}");
     }
 
     #[test]

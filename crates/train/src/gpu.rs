@@ -481,7 +481,7 @@ impl GpuEngine {
     /// Records and submits one training step; reads the loss back when `step + 1` is a logging
     /// step or the last one.
     #[allow(clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
-    pub(crate) fn step(&mut self, data: &Dataset, cfg: &TrainConfig, step: u64) -> Result<StepStats, TrainError> {
+    pub(crate) fn step(&mut self, data: &Dataset, cfg: &TrainConfig, step: u64, lr: f32) -> Result<StepStats, TrainError> {
         // The training images go to the device once (again only if another dataset is passed).
         let key = (data as *const Dataset as usize, data.n_views(), data.width, data.height);
         if self.images.as_ref().map(|(k, _)| *k) != Some(key) {
@@ -494,7 +494,6 @@ impl GpuEngine {
             let x = cfg.seed.wrapping_mul(SEED_MIX) ^ (step.wrapping_add(1)).wrapping_mul(0xD1B5_4A32_D192_ED03) ^ stream;
             (x ^ (x >> 32)) as u32
         };
-        let lr = cfg.lr.lr(step);
         let profiled = cfg.gpu_profile.is_some_and(|w| w.contains(step));
         if profiled {
             ctx.profile_start().map_err(gerr)?;

@@ -197,6 +197,9 @@ pub fn run(
             pb.abandon_with_message("interrupted");
             return Err(TrainError::Interrupted { step: trainer.step_count(), checkpoint: ck_path });
         }
+        // The fraction of the run done: of its steps, or of its time budget if that ends it first.
+        let by_time = if budget.is_finite() { elapsed / budget } else { 0.0 };
+        trainer.set_progress((trainer.step_count() as f64 / config.iters.max(1) as f64).max(by_time));
         let s = trainer.step(train)?;
         if let Some(p) = trainer.take_gpu_profile(false) {
             write_profile(&p)?;

@@ -181,6 +181,8 @@ pub struct Trainer {
     render_appearance: Option<usize>,
     /// Camera pose refinement of the CPU path (`config.camera_optimizer`).
     pose: Option<CpuPose>,
+    /// The fraction of the run done, as the caller last set it ([`Trainer::set_progress`]).
+    progress: Option<f64>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -258,6 +260,7 @@ impl Trainer {
             seen_marked: false,
             color,
             render_appearance: None,
+            progress: None,
             pose,
             stages: (0..n).map(|_| Stage::default()).collect(),
             marched: RaySamples::default(),
@@ -383,6 +386,20 @@ impl Trainer {
         self.step
     }
 
+    /// Tells the trainer how much of its run is done, in `[0, 1]` (values outside are clamped):
+    /// what a [`LrSchedule::Progress`](nerf_optim::LrSchedule::Progress) learning rate follows.
+    /// A run with a time budget sets the larger of its step and time fractions before each step.
+    /// Until this is called the progress is `step / config.iters`.
+    pub fn set_progress(&mut self, progress: f64) {
+        self.progress = Some(if progress.is_nan() { 0.0 } else { progress.clamp(0.0, 1.0) });
+    }
+
+    /// The learning rate of the next step.
+    pub fn learning_rate(&self) -> f32 {
+        let progress = self.progress.unwrap_or(self.step as f64 / self.config.iters.max(1) as f64).min(1.0);
+        self.config.lr.lr(self.step, progress)
+    }
+
     /// The CPU fields (coarse first when hierarchical; the last one renders the image). On the GPU
     /// path these hold the initial parameters; use [`Trainer::export_fields`] for the trained ones.
     pub fn fields(&self) -> &[Box<dyn RadianceField>] {
@@ -426,10 +443,11 @@ impl Trainer {
             self.mark_seen(data)?;
             self.seen_marked = true;
         }
+        let lr = self.learning_rate();
         match self.gpu.as_mut() {
             Some(g) => {
                 // The GPU path returns `Diverged` itself (a NaN loss there also means "not read").
-                let r = g.step(data, &self.config, self.step);
+                let r = g.step(data, &self.config, self.step, lr);
                 if matches!(r, Ok(_) | Err(TrainError::Diverged { .. })) {
                     self.step += 1; // submitted
                 }
@@ -614,7 +632,7 @@ impl Trainer {
                 }
             }
         }
-        let lr = cfg.lr.lr(self.step);
+        let lr = self.learning_rate();
         let Self { fields, group_names, adam, ema, .. } = self;
         let mut groups: Vec<ParamGroupMut<'_>> = Vec::new();
         for (f, names) in fields.iter_mut().zip(group_names.iter()) {
