@@ -203,6 +203,7 @@ pub fn train_run(
     let mut seg = Instant::now();
     let mut profile = None;
     while trainer.step_count() < cfg.iters && elapsed < budget {
+        trainer.set_progress(nerf_train::run_progress(trainer.step_count(), cfg.iters, elapsed, budget));
         trainer.step(train).map_err(terr)?;
         if let Some(p) = trainer.take_gpu_profile(false) {
             eprintln!("[{}] {}", plan.id, p.table(25));

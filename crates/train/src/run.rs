@@ -197,9 +197,7 @@ pub fn run(
             pb.abandon_with_message("interrupted");
             return Err(TrainError::Interrupted { step: trainer.step_count(), checkpoint: ck_path });
         }
-        // The fraction of the run done: of its steps, or of its time budget if that ends it first.
-        let by_time = if budget.is_finite() { elapsed / budget } else { 0.0 };
-        trainer.set_progress((trainer.step_count() as f64 / config.iters.max(1) as f64).max(by_time));
+        trainer.set_progress(run_progress(trainer.step_count(), config.iters, elapsed, budget));
         let s = trainer.step(train)?;
         if let Some(p) = trainer.take_gpu_profile(false) {
             write_profile(&p)?;
@@ -296,6 +294,14 @@ pub fn run(
     Ok(RunSummary { metrics, eval: report, iterations: iters })
 }
 
+/// The fraction of a run done after `step` of `iters` steps and `elapsed` of `budget` seconds
+/// (infinite: no budget): the larger of the two, since whichever comes first ends the run. What
+/// a runner passes to [`Trainer::set_progress`] before each step.
+pub fn run_progress(step: u64, iters: u64, elapsed: f64, budget: f64) -> f64 {
+    let by_time = if budget.is_finite() && budget > 0.0 { elapsed / budget } else { 0.0 };
+    (step as f64 / iters.max(1) as f64).max(by_time).clamp(0.0, 1.0)
+}
+
 /// A trainer on the device `pref` asks for: `cpu`; `gpu` (any adapter; an error without one, or
 /// when the field has no GPU twin or the GPU path cannot take the config); `auto`: a hardware GPU
 /// when one exists and the GPU path can take the run, else the CPU (with a notice on stderr).
@@ -322,5 +328,21 @@ pub fn make_trainer(
             }
             other => other,
         },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::run_progress;
+
+    #[test]
+    fn progress_is_the_larger_fraction_of_steps_and_time() {
+        assert_eq!(run_progress(0, 100, 0.0, f64::INFINITY), 0.0);
+        assert_eq!(run_progress(25, 100, 1e9, f64::INFINITY), 0.25);
+        assert_eq!(run_progress(25, 100, 30.0, 60.0), 0.5);
+        assert_eq!(run_progress(90, 100, 30.0, 60.0), 0.9);
+        // Past either end (a resumed run with a shorter budget): clamped.
+        assert_eq!(run_progress(5, 100, 90.0, 60.0), 1.0);
+        assert_eq!(run_progress(7, 0, 0.0, f64::INFINITY), 1.0);
     }
 }
