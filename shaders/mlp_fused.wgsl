@@ -670,6 +670,34 @@ fn wg_input4(off: u32, len: u32, e: u32) -> vec4<f32> {
     return vec4<f32>(wg_input(off, len, e), wg_input(off, len, e + 256u), wg_input(off, len, e + 512u), wg_input(off, len, e + 768u));
 }
 
+// One tile's prefetch for mlp_wgrad: elements tid + 256r (r = 0..7) of its D block (out·m floats,
+// [o][s]) in d0 (r < 4) and d1, and of its H block (tape: fan_in·m floats [k][s]; input: m·din
+// floats [s][k]) in h0, h1. Named vectors, not an array indexed in a loop: naga emits loops that
+// drivers may leave rolled, and such an array then lives in local memory.
+struct WgTile {
+    d0: vec4<f32>,
+    d1: vec4<f32>,
+    h0: vec4<f32>,
+    h1: vec4<f32>,
+}
+
+// The tile of m samples from sample t0; dims = (out, fan_in, din), pre = (the layer's d_pre, the
+// previous layer's a_pre).
+fn wg_fetch(t0: u32, m: u32, dims: vec3<u32>, pre: vec2<u32>, from_input: bool, tid: u32) -> WgTile {
+    let base = t0 * P.fps;
+    var f: WgTile;
+    f.d0 = wg_tape4(base + m * pre.x, dims.x * m, tid);
+    f.d1 = wg_tape4(base + m * pre.x, dims.x * m, tid + 1024u);
+    if (from_input) {
+        f.h0 = wg_input4(t0 * dims.z, m * dims.z, tid);
+        f.h1 = wg_input4(t0 * dims.z, m * dims.z, tid + 1024u);
+    } else {
+        f.h0 = wg_tape4(base + m * pre.y, dims.y * m, tid);
+        f.h1 = wg_tape4(base + m * pre.y, dims.y * m, tid + 1024u);
+    }
+    return f;
+}
+
 // Element e of a tile's D block (vd, [o][s]: feature e / m, sample e % m) and of its H block
 // (vh: from the tape [k][s] like D, or from the input rows [s][k]: sample e / din, feature
 // e % din) into workgroup memory, transposed to [sample][feature]. dims = (m, out, fan_in, din);
@@ -794,28 +822,10 @@ fn mlp_wgrad(
     if (!from_input) {
         h_pre = layers[l - 1u].a_pre;
     }
-    // Register prefetch of the next tile: element tid + 256r (r = 0..7) of its D block (out·m
-    // floats, [o][s]) in pd0 (r < 4) and pd1, and of its H block (tape: fan_in·m floats [k][s];
-    // input: m·din floats [s][k]) in ph0, ph1. Named vectors, not an array indexed in a loop: naga
-    // emits loops that drivers may leave rolled, and such an array then lives in local memory.
-    var pd0: vec4<f32>;
-    var pd1: vec4<f32>;
-    var ph0: vec4<f32>;
-    var ph1: vec4<f32>;
-    {
-        let t0 = first * T;
-        let m = min(T, n - t0);
-        let base = t0 * P.fps;
-        pd0 = wg_tape4(base + m * L.d_pre, out * m, tid);
-        pd1 = wg_tape4(base + m * L.d_pre, out * m, tid + 1024u);
-        if (from_input) {
-            ph0 = wg_input4(t0 * din, m * din, tid);
-            ph1 = wg_input4(t0 * din, m * din, tid + 1024u);
-        } else {
-            ph0 = wg_tape4(base + m * h_pre, fan_in * m, tid);
-            ph1 = wg_tape4(base + m * h_pre, fan_in * m, tid + 1024u);
-        }
-    }
+    // Register prefetch of the next tile (wg_fetch).
+    let fetch_dims = vec3<u32>(out, fan_in, din);
+    let fetch_pre = vec2<u32>(L.d_pre, h_pre);
+    var pf = wg_fetch(first * T, min(T, n - first * T), fetch_dims, fetch_pre, from_input, tid);
     // a{i}{h}: dW[8to + i][8tk + 4h .. 8tk + 4h + 3] (named: registers, not local memory).
     var a00 = vec4<f32>(0.0);
     var a01 = vec4<f32>(0.0);
@@ -843,29 +853,18 @@ fn mlp_wgrad(
         let sh = vec4<u32>(countTrailingZeros(m), din_sh, 0u, 0u);
         let pow2 = vec2<bool>((m & (m - 1u)) == 0u, din_pow2);
         let dims = vec4<u32>(m, out, fan_in, din);
-        wg_put_pair(tid, dims, sh, pow2, from_input, pd0.x, ph0.x);
-        wg_put_pair(tid + 256u, dims, sh, pow2, from_input, pd0.y, ph0.y);
-        wg_put_pair(tid + 512u, dims, sh, pow2, from_input, pd0.z, ph0.z);
-        wg_put_pair(tid + 768u, dims, sh, pow2, from_input, pd0.w, ph0.w);
-        wg_put_pair(tid + 1024u, dims, sh, pow2, from_input, pd1.x, ph1.x);
-        wg_put_pair(tid + 1280u, dims, sh, pow2, from_input, pd1.y, ph1.y);
-        wg_put_pair(tid + 1536u, dims, sh, pow2, from_input, pd1.z, ph1.z);
-        wg_put_pair(tid + 1792u, dims, sh, pow2, from_input, pd1.w, ph1.w);
+        wg_put_pair(tid, dims, sh, pow2, from_input, pf.d0.x, pf.h0.x);
+        wg_put_pair(tid + 256u, dims, sh, pow2, from_input, pf.d0.y, pf.h0.y);
+        wg_put_pair(tid + 512u, dims, sh, pow2, from_input, pf.d0.z, pf.h0.z);
+        wg_put_pair(tid + 768u, dims, sh, pow2, from_input, pf.d0.w, pf.h0.w);
+        wg_put_pair(tid + 1024u, dims, sh, pow2, from_input, pf.d1.x, pf.h1.x);
+        wg_put_pair(tid + 1280u, dims, sh, pow2, from_input, pf.d1.y, pf.h1.y);
+        wg_put_pair(tid + 1536u, dims, sh, pow2, from_input, pf.d1.z, pf.h1.z);
+        wg_put_pair(tid + 1792u, dims, sh, pow2, from_input, pf.d1.w, pf.h1.w);
         workgroupBarrier();
         // Prefetch tile t + 1 while this one is reduced.
         if (t + 1u < last) {
-            let u0 = t0 + T;
-            let mu = min(T, n - u0);
-            let base = u0 * P.fps;
-            pd0 = wg_tape4(base + mu * L.d_pre, out * mu, tid);
-            pd1 = wg_tape4(base + mu * L.d_pre, out * mu, tid + 1024u);
-            if (from_input) {
-                ph0 = wg_input4(u0 * din, mu * din, tid);
-                ph1 = wg_input4(u0 * din, mu * din, tid + 1024u);
-            } else {
-                ph0 = wg_tape4(base + mu * h_pre, fan_in * mu, tid);
-                ph1 = wg_tape4(base + mu * h_pre, fan_in * mu, tid + 1024u);
-            }
+            pf = wg_fetch(t0 + T, min(T, n - t0 - T), fetch_dims, fetch_pre, from_input, tid);
         }
         // Inside the last block of a row or column, entries past `out` / `fan_in` are computed on
         // stale workgroup memory and dropped at the flush.
