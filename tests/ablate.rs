@@ -207,6 +207,11 @@ fn the_example_ablations_parse_and_plan() {
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(plans.len(), n_runs, "{name}");
         assert!(plans.iter().all(|p| p.config.field == "hash" && p.config.target_samples_per_step == Some(1 << 18)), "{name}");
+        if name == "h100_lego.toml" {
+            // configs/gpu_hash.toml's schedule: annealed over the 5 minutes, whatever the step rate.
+            assert!(matches!(&plans[0].config.lr, nerf::optim::LrSchedule::Progress { at, warmup_steps: 100, .. } if at.len() == 3));
+            assert!(plans[0].config.validate().is_ok());
+        }
     }
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
