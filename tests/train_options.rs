@@ -42,6 +42,17 @@ fn config() -> TrainConfig {
     }
 }
 
+/// The in-repo scene's first test view (what `nerf::train::run` evaluates at its end).
+fn load_test_view() -> Dataset {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1), ..Default::default() }).unwrap()
+}
+
+/// Options of a `nerf::train::run` into `out` on `device`, without progress bar or renders.
+fn quiet_run(out: &Path, device: nerf::gpu::DevicePreference) -> nerf::train::RunOptions {
+    nerf::train::RunOptions { progress: false, write_renders: false, device, ..nerf::train::RunOptions::new(out) }
+}
+
 /// The parameters after `steps` steps of `c` on `dev`.
 fn params_after(c: &TrainConfig, train: &Dataset, dev: Option<Arc<GpuContext>>, steps: usize) -> Vec<f32> {
     let mut t = Trainer::new_on(c.clone(), &nerf::registry(), SceneBounds::of(train), dev).unwrap();
@@ -127,8 +138,7 @@ fn a_gpu_run_never_checkpoints_non_finite_parameters() {
     let Some(gpu) = GpuContext::for_tests() else { return };
     drop(gpu);
     let train = load();
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    let test = load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1), ..Default::default() }).unwrap();
+    let test = load_test_view();
     let c = TrainConfig {
         lr: nerf::optim::LrSchedule::Constant { lr: 1e30 },
         iters: 6,
@@ -137,12 +147,7 @@ fn a_gpu_run_never_checkpoints_non_finite_parameters() {
         ..config()
     };
     let dir = tempfile::tempdir().unwrap();
-    let opts = nerf::train::RunOptions {
-        progress: false,
-        write_renders: false,
-        device: nerf::gpu::DevicePreference::Gpu,
-        ..nerf::train::RunOptions::new(dir.path())
-    };
+    let opts = quiet_run(dir.path(), nerf::gpu::DevicePreference::Gpu);
     match nerf::train::run(c, &nerf::registry(), &train, &test, &opts) {
         Err(TrainError::Diverged { step, .. }) => assert!(step < 6, "caught by the read-back at step {step}, not by the save"),
         Err(e) => panic!("expected a divergence, got {e}"),
@@ -234,8 +239,7 @@ fn a_progress_schedule_follows_the_run_on_both_devices() {
 fn a_time_budget_drives_a_progress_schedule() {
     let _device = take_device();
     let train = load();
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    let test = load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1), ..Default::default() }).unwrap();
+    let test = load_test_view();
     let c = TrainConfig {
         lr: nerf::optim::LrSchedule::Progress { lr0: 1e-2, gamma: 0.1, at: vec![0.5], warmup_steps: 0 },
         iters: 1_000_000_000,
@@ -245,12 +249,7 @@ fn a_time_budget_drives_a_progress_schedule() {
         ..config()
     };
     let dir = tempfile::tempdir().unwrap();
-    let opts = nerf::train::RunOptions {
-        progress: false,
-        write_renders: false,
-        device: nerf::gpu::DevicePreference::Cpu,
-        ..nerf::train::RunOptions::new(dir.path())
-    };
+    let opts = quiet_run(dir.path(), nerf::gpu::DevicePreference::Cpu);
     nerf::train::run(c, &nerf::registry(), &train, &test, &opts).unwrap();
     let history = std::fs::read_to_string(dir.path().join("history.jsonl")).unwrap();
     let lrs: Vec<f64> = history.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()["lr"].as_f64().unwrap()).collect();

@@ -396,7 +396,7 @@ impl Trainer {
 
     /// The learning rate of the next step.
     pub fn learning_rate(&self) -> f32 {
-        let progress = self.progress.unwrap_or(self.step as f64 / self.config.iters.max(1) as f64).min(1.0);
+        let progress = self.progress.unwrap_or_else(|| crate::run_progress(self.step, self.config.iters, 0.0, f64::INFINITY));
         self.config.lr.lr(self.step, progress)
     }
 
