@@ -64,7 +64,8 @@ pub enum GpuLinear {
     CoopTiled,
     /// As `coop_tiled`, with 128×128 output blocks for the trunk's 256-wide products
     /// (`*_wide` entry points, 4×4 accumulators per subgroup); needs 32-wide subgroups and
-    /// 28 676 bytes of workgroup memory. Opt-in until measured on a device.
+    /// 28 676 bytes of workgroup memory. Opt-in: slower than `coop_tiled` on the H100 (57 against
+    /// 39 ms per step, docs/results.md).
     CoopTiledWide,
 }
 

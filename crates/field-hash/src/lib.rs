@@ -56,7 +56,8 @@ pub struct HashNerfConfig {
     /// GPU twin (ignored on the CPU): the hash table's backward sums the additions of its dense
     /// (coarse) levels over each subgroup before the atomics, on adapters with subgroups and
     /// float atomics ([`nerf_gpu::encoding::AtomicMode::SubgroupSums`]). Off by default: slower
-    /// on lavapipe, not yet timed where atomics contend (a GPU).
+    /// on lavapipe; on the H100, slower in a training run of an older build, faster in the kernel
+    /// bench on samples in ray order (docs/results.md).
     pub gpu_hash_subgroup_sums: bool,
 }
 
