@@ -30,7 +30,7 @@ iters = {iters}
 [eval]
 every_iters = 2
 [base]
-log_every = 1000
+log_every = 3
 [[runs]]
 name = "freq"
 config = {{ field = "freq", batch_rays = 64, field_config = {{ width = 16, depth = 2, skips = [], view_width = 8 }}, sampler = {{ kind = "hierarchical", n_coarse = 8, n_fine = 8 }} }}
@@ -109,6 +109,15 @@ fn tiny_ablation_end_to_end_and_skip_on_rerun() {
         assert!(pts.windows(2).all(|w| w[1][1] >= w[0][1]), "training time is monotone");
         assert!(pts.iter().all(|p| p[2].is_finite() && p[2] > 0.0 && p[3].is_finite()));
         assert!((r.metrics.test_psnr - pts.last().unwrap()[2]).abs() < 1e-9);
+        // The training log: every `log_every` (3) steps and the last step, with `nerf train`'s keys.
+        let log = m["train_log"].as_array().unwrap();
+        assert_eq!(log.iter().map(|p| p["step"].as_u64().unwrap()).collect::<Vec<_>>(), [3, 4], "{}", r.plan.id);
+        for p in log {
+            for key in ["elapsed_secs", "loss", "train_psnr", "lr", "samples", "marched_samples"] {
+                assert!(p[key].as_f64().is_some_and(|x| x.is_finite() && x > 0.0), "{}: train_log {key}: {p}", r.plan.id);
+            }
+        }
+        assert!(log[0]["elapsed_secs"].as_f64() <= log[1]["elapsed_secs"].as_f64());
     }
     // The hash runs honour their field_config and preset (occupancy sampler), the freq runs theirs.
     assert_ne!(report.runs[0].metrics.n_params, report.runs[2].metrics.n_params);

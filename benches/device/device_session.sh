@@ -5,7 +5,10 @@
 # 5-minute run (examples/ablations/h100_lego.toml: test PSNR every minute, samples/s, render fps)
 # and, with what is left, the grid_8x4 / grid_6x8 / all_marched runs of
 # examples/ablations/device_variants.toml. Quick checks first, so a failure shows before the long
-# run. Brings back 8 files (the tool's limit).
+# run. Brings back 8 files (the tool's limit); the lego run's metrics.json holds its training log
+# (`train_log`: loss, training PSNR, trained and marched samples every log_every steps).
+# LEGO=FILE runs another lego ablation in place of h100_lego.toml (its scene path must be
+# ../../.data/lego, as there).
 # Build and pack here first: `bash benches/device/prepare.sh --rebuild`; carry .gl .bin .bint .data.
 set -u
 t0=$(date +%s); left() { echo $(( ${BUDGET:-570} - ($(date +%s) - t0) )); }
@@ -13,8 +16,8 @@ for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/t
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf) && tar xJf .bint/tests3.tar.xz -C .bin
 { nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm --format=csv; cat .bin/COMMIT; } | tee "$OUT/gpu.txt"
 echo "== linear ($(left) s left)"
-timeout 40 .bin/t3/linear --test-threads=1 --skip emulated 2>&1 | grep -vE "^\s+[0-9]+:|^\s+at " > "$OUT/tests.log"
-grep -E "test result|panicked|NOTICE|Caused|Binding|FAILED" "$OUT/tests.log" | head -20
+timeout 40 .bin/t3/linear --test-threads=1 --skip emulated 2>&1 | grep -vE "^\s+[0-9]+:|^\s+at " >> "$OUT/gpu.txt"
+grep -E "test result|panicked|NOTICE|Caused|Binding|FAILED" "$OUT/gpu.txt" | head -20
 echo "== fields ($(left) s left)"
 timeout 90 .bin/nerf ablate examples/ablations/device_check.toml --device gpu --out /tmp/q > "$OUT/check.log" 2>&1
 cat /tmp/q/results.md >> "$OUT/check.log" 2>/dev/null; cat /tmp/q/results.md 2>/dev/null
@@ -22,7 +25,7 @@ echo "== bench ($(left) s left)"
 timeout 45 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "trunk|hash_grid_(forward|backward|input)" > "$OUT/bench.log" 2>&1
 grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 echo "== lego ($(left) s left)"
-timeout 380 .bin/nerf ablate examples/ablations/h100_lego.toml --device gpu --out /tmp/abl > "$OUT/lego.log" 2>&1
+timeout 380 .bin/nerf ablate "${LEGO:-examples/ablations/h100_lego.toml}" --device gpu --out /tmp/abl > "$OUT/lego.log" 2>&1
 cat /tmp/abl/results.md >> "$OUT/lego.log" 2>/dev/null
 for d in /tmp/abl/runs/*/; do cp "$d/metrics.json" "$OUT/lego_metrics.json"; cp "$d/curve.csv" "$OUT/lego_curve.csv"; done 2>/dev/null
 tail -3 "$OUT/lego.log"; cat "$OUT/lego_curve.csv" 2>/dev/null

@@ -24,6 +24,27 @@ pub struct CurvePoint {
     pub ssim: f64,
 }
 
+/// One line of a run's training log (`nerf train`'s `history.jsonl` keys), every `log_every` steps
+/// and at the last step, where the step's loss was read back (on a GPU, only at those steps).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainLogPoint {
+    /// Steps taken.
+    pub step: u64,
+    /// Training seconds so far (evaluation excluded).
+    pub elapsed_secs: f64,
+    /// The step's loss.
+    pub loss: f32,
+    /// PSNR of the step's photometric MSE on its training rays (their random backgrounds
+    /// included), dB.
+    pub train_psnr: f64,
+    /// Learning rate of the step.
+    pub lr: f32,
+    /// Samples trained on in the step (after compaction, with `compact_samples`).
+    pub samples: usize,
+    /// Samples marched in the step (before compaction).
+    pub marched_samples: usize,
+}
+
 /// What a finished run wrote to `runs/<id>/metrics.json` (stable keys, shared with `nerf train`
 /// where they apply).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -70,6 +91,9 @@ pub struct RunMetrics {
     pub render_fps: f64,
     /// Evaluation points.
     pub curve: Vec<CurvePoint>,
+    /// The training log: loss, training PSNR and samples every `log_every` steps.
+    #[serde(default)]
+    pub train_log: Vec<TrainLogPoint>,
     /// See [`crate::config_hash`].
     pub config_hash: String,
     /// The resolved training config (as asked: see `device_note` for what the device changed).
@@ -165,6 +189,18 @@ fn peak_rss_mib() -> Option<f64> {
     Some(kib / 1024.0)
 }
 
+fn log_point(s: &nerf_train::StepStats, step: u64, elapsed_secs: f64) -> TrainLogPoint {
+    TrainLogPoint {
+        step,
+        elapsed_secs,
+        loss: s.loss,
+        train_psnr: nerf_metrics::mse_to_psnr(s.mse as f64),
+        lr: s.lr,
+        samples: s.n_samples,
+        marched_samples: s.n_marched,
+    }
+}
+
 /// Trains one planned run to its budget, evaluating at the schedule's points and at the end.
 pub fn train_run(
     ablation: &Ablation,
@@ -202,15 +238,24 @@ pub fn train_run(
     let mut seg_base = 0.0f64;
     let mut seg = Instant::now();
     let mut profile = None;
+    let mut train_log: Vec<TrainLogPoint> = Vec::new();
+    let mut last_stats = None;
     while trainer.step_count() < cfg.iters && elapsed < budget {
         trainer.set_progress(nerf_train::run_progress(trainer.step_count(), cfg.iters, elapsed, budget));
-        trainer.step(train).map_err(terr)?;
+        let stats = trainer.step(train).map_err(terr)?;
         if let Some(p) = trainer.take_gpu_profile(false) {
             eprintln!("[{}] {}", plan.id, p.table(25));
             profile = Some(p);
         }
         elapsed = seg_base + seg.elapsed().as_secs_f64();
         let done = trainer.step_count();
+        if stats.loss.is_finite() {
+            let point = log_point(&stats, done, elapsed);
+            if done % cfg.log_every.max(1) == 0 {
+                train_log.push(point);
+            }
+            last_stats = Some(point);
+        }
         let by_iter = sched.every_iters.is_some_and(|k| done % k == 0);
         let by_time = elapsed >= next_secs;
         if by_time {
@@ -234,6 +279,9 @@ pub fn train_run(
     if curve.last().map(|p| p.iter) != Some(trainer.step_count()) {
         elapsed = elapsed.max(seg_base + seg.elapsed().as_secs_f64());
         eval_point(&trainer, elapsed, &mut curve)?;
+    }
+    if let Some(p) = last_stats.filter(|p| train_log.last().map(|q| q.step) != Some(p.step)) {
+        train_log.push(p);
     }
     let last = *curve.last().expect("at least the final evaluation");
     let corrections = trainer.pose_params().map_err(terr)?.map(|p| nerf_train::pose::corrections_json(&p, &train.cameras));
@@ -263,6 +311,7 @@ pub fn train_run(
         peak_memory_mib: peak_rss_mib(),
         render_fps: render_fps.get(),
         curve,
+        train_log,
         config_hash: plan.config_hash.clone(),
         config: cfg.clone(),
         device_note: trainer.device_note().map(str::to_string),

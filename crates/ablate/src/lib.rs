@@ -41,7 +41,8 @@
 //! # Outputs (under the output folder)
 //! - `runs/<id>/curve.csv` (`iter,seconds,psnr,ssim`) and `runs/<id>/metrics.json`
 //!   ([`RunMetrics`]: the keys of `nerf train`'s metrics.json where they apply, plus `n_params`,
-//!   `peak_memory_mib`, `curve`, `config_hash`);
+//!   `peak_memory_mib`, `curve`, `config_hash`, and `train_log`: the lines of `nerf train`'s
+//!   `history.jsonl` every `log_every` steps);
 //! - `results.csv`, `results.md`, `psnr_vs_time.png`, `psnr_vs_iter.png`, rebuilt from all runs on
 //!   every invocation.
 //!
@@ -54,7 +55,7 @@ mod exec;
 mod report;
 mod spec;
 
-pub use exec::{run_ablation, train_run, AblateOptions, AblationReport, CurvePoint, RunMetrics, RunOutcome};
+pub use exec::{run_ablation, train_run, AblateOptions, AblationReport, CurvePoint, RunMetrics, RunOutcome, TrainLogPoint};
 pub use report::{ensure_font, plot_curves, read_png_rgb, results_csv, results_md, FONT_CANDIDATES};
 pub use spec::{
     canonical_json, config_hash, fnv1a64, safe_name, value_label, Ablation, AblationSpec, Budget, EvalSchedule,
