@@ -239,7 +239,7 @@ pub fn train_run(
     let mut seg = Instant::now();
     let mut profile = None;
     let mut train_log: Vec<TrainLogPoint> = Vec::new();
-    let mut last_stats = None;
+    let mut last_point = None;
     while trainer.step_count() < cfg.iters && elapsed < budget {
         trainer.set_progress(nerf_train::run_progress(trainer.step_count(), cfg.iters, elapsed, budget));
         let stats = trainer.step(train).map_err(terr)?;
@@ -254,7 +254,7 @@ pub fn train_run(
             if done % cfg.log_every.max(1) == 0 {
                 train_log.push(point);
             }
-            last_stats = Some(point);
+            last_point = Some(point);
         }
         let by_iter = sched.every_iters.is_some_and(|k| done % k == 0);
         let by_time = elapsed >= next_secs;
@@ -280,7 +280,7 @@ pub fn train_run(
         elapsed = elapsed.max(seg_base + seg.elapsed().as_secs_f64());
         eval_point(&trainer, elapsed, &mut curve)?;
     }
-    if let Some(p) = last_stats.filter(|p| train_log.last().map(|q| q.step) != Some(p.step)) {
+    if let Some(p) = last_point.filter(|p| train_log.last().map(|q| q.step) != Some(p.step)) {
         train_log.push(p);
     }
     let last = *curve.last().expect("at least the final evaluation");
