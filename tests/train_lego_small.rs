@@ -83,6 +83,17 @@ fn hash_field_learns_the_small_lego_scene() {
     // background-only image and above what the paper's field reaches in 200 steps (18 dB).
     assert!(report.psnr > 20.0, "PSNR {:.2}", report.psnr);
     assert!(report.ssim > 0.7, "SSIM {:.3}", report.ssim);
+    // The error split by ground-truth alpha adds up to each view's PSNR: the two parts' MSEs
+    // weighted by their pixel shares give the view's MSE, and the empty part's share of it.
+    for v in &report.views {
+        let a = v.alpha_split.expect("the lego views have empty pixels");
+        let mse = a.empty_fraction * a.mse_empty + (1.0 - a.empty_fraction) * a.mse_object;
+        assert!((nerf::metrics::mse_to_psnr(mse) - v.psnr).abs() < 1e-6, "{a:?} against {:.4} dB", v.psnr);
+        assert!((a.empty_fraction * a.mse_empty / mse - a.empty_error_share).abs() < 1e-9, "{a:?}");
+        assert!((0.0..=1.0).contains(&a.empty_opacity), "{a:?}");
+    }
+    let split = report.alpha_split.expect("a mean split");
+    println!("hash: by ground-truth alpha: {}", split.summary());
     // Past warm-up the grid must have carved out empty space (the lego fills a few % of the box).
     assert!(occupied < 0.5, "occupied fraction {occupied}");
 }

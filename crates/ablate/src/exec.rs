@@ -5,7 +5,7 @@ use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
 use nerf_data::{load_scene, Dataset, LoadOptions, Split};
 use nerf_field::Registry;
-use nerf_train::{evaluate, make_trainer, SceneBounds, TrainConfig, TrainError, Trainer};
+use nerf_train::{evaluate, make_trainer, AlphaSplit, EvalReport, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -91,6 +91,12 @@ pub struct RunMetrics {
     pub render_fps: f64,
     /// Evaluation points.
     pub curve: Vec<CurvePoint>,
+    /// The last evaluation's error split by ground-truth alpha (scenes with empty pixels).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha_split: Option<AlphaSplit>,
+    /// The last evaluation's metrics per test view.
+    #[serde(default)]
+    pub per_view: Vec<ViewMetrics>,
     /// The training log: loss, training PSNR and samples every `log_every` steps.
     #[serde(default)]
     pub train_log: Vec<TrainLogPoint>,
@@ -221,6 +227,7 @@ pub fn train_run(
     let mut next_secs = sched.every_seconds.unwrap_or(f64::INFINITY);
     let mut curve: Vec<CurvePoint> = Vec::new();
     let render_fps = std::cell::Cell::new(0.0f64);
+    let last_report = std::cell::RefCell::new(None::<EvalReport>);
     let eval_point = |t: &Trainer, elapsed: f64, curve: &mut Vec<CurvePoint>| {
         let r = evaluate(t, test, None, |_, _| {}).map_err(terr)?;
         if r.psnr.is_nan() {
@@ -231,6 +238,7 @@ pub fn train_run(
         if r.render_seconds > 0.0 {
             render_fps.set(r.views.len() as f64 / r.render_seconds);
         }
+        *last_report.borrow_mut() = Some(r);
         Ok::<_, AblateError>(())
     };
     // The clock runs over segments between evaluations (excluded). GPU steps are queued, so a
@@ -287,6 +295,7 @@ pub fn train_run(
     let corrections = trainer.pose_params().map_err(terr)?.map(|p| nerf_train::pose::corrections_json(&p, &train.cameras));
     let iters = trainer.step_count();
     let samples = trainer.samples_seen().map_err(terr)?;
+    let report = last_report.into_inner().expect("at least the final evaluation");
     Ok(RunMetrics {
         id: plan.id.clone(),
         name: plan.name.clone(),
@@ -311,6 +320,8 @@ pub fn train_run(
         peak_memory_mib: peak_rss_mib(),
         render_fps: render_fps.get(),
         curve,
+        alpha_split: report.alpha_split,
+        per_view: report.views,
         train_log,
         config_hash: plan.config_hash.clone(),
         config: cfg.clone(),

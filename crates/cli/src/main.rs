@@ -475,6 +475,9 @@ fn cmd_train(a: TrainArgs) -> Result<()> {
         s.eval.views.len(),
         a.out.join("metrics.json").display()
     );
+    if let Some(split) = &s.eval.alpha_split {
+        println!("  by ground-truth alpha: {}", split.summary());
+    }
     Ok(())
 }
 
@@ -491,10 +494,13 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "test_psnr": report.psnr, "test_ssim": report.ssim,
-        "n_test_views": report.views.len(), "width": test.width, "height": test.height, "per_view": report.views,
+        "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
     println!("test PSNR {:.2} dB, SSIM {:.4} on {} views -> {}", report.psnr, report.ssim, report.views.len(), out.display());
+    if let Some(split) = &report.alpha_split {
+        println!("  by ground-truth alpha: {}", split.summary());
+    }
     Ok(())
 }
 

@@ -56,6 +56,32 @@ pub fn mse_to_psnr(mse: f64) -> f64 {
     -10.0 * mse.log10()
 }
 
+/// Squared error of two images split by a per-pixel mask: where the error sits. `a` and `b` hold
+/// `channels` values per pixel and `mask` one flag per pixel. Returns `(sse, count)`: index 0
+/// sums the squared differences of the unmasked pixels' values, index 1 of the masked ones', in
+/// `f64`; `count` holds the number of values in each. `sse[k] / count[k]` is that part's MSE and
+/// `sse[1] / (sse[0] + sse[1])` the masked pixels' share of the image's squared error.
+/// Evaluation splits a view by its ground truth's alpha this way, which tells floaters and haze in
+/// empty space (masked: alpha = 0) apart from errors on the object.
+///
+/// # Panics
+/// If the lengths differ or are not `channels·mask.len()`.
+pub fn sse_split(a: &[f32], b: &[f32], channels: usize, mask: &[bool]) -> ([f64; 2], [usize; 2]) {
+    assert_eq!(a.len(), b.len(), "sse_split: images of different lengths");
+    assert_eq!(a.len(), channels * mask.len(), "sse_split: mask is not one flag per pixel");
+    let mut sse = [0.0f64; 2];
+    let mut count = [0usize; 2];
+    for ((pa, pb), &m) in a.chunks_exact(channels).zip(b.chunks_exact(channels)).zip(mask) {
+        let k = m as usize;
+        for (&x, &y) in pa.iter().zip(pb) {
+            let d = x as f64 - y as f64;
+            sse[k] += d * d;
+        }
+        count[k] += channels;
+    }
+    (sse, count)
+}
+
 /// SSIM stabilising constant `K1`.
 pub const SSIM_K1: f64 = 0.01;
 /// SSIM stabilising constant `K2`.
@@ -188,6 +214,19 @@ mod tests {
             assert_eq!(w[i], w[10 - i]);
             assert!(w[i] < w[i + 1]);
         }
+    }
+
+    #[test]
+    fn sse_split_adds_up_to_the_mse() {
+        let a = [0.0, 0.5, 1.0, 0.2, 0.2, 0.2, 1.0, 1.0, 1.0];
+        let b = [0.0, 0.0, 1.0, 0.2, 0.7, 0.2, 0.0, 1.0, 1.0];
+        let (sse, count) = sse_split(&a, &b, 3, &[false, true, true]);
+        assert_eq!(count, [3, 6]);
+        assert!((sse[0] - 0.25).abs() < 1e-6);
+        assert!((sse[1] - 1.25).abs() < 1e-6);
+        assert!(((sse[0] + sse[1]) / 9.0 - mse(&a, &b)).abs() < 1e-12);
+        let (sse, count) = sse_split(&a, &b, 3, &[false; 3]);
+        assert_eq!((sse[1], count), (0.0, [9, 0]));
     }
 
     #[test]

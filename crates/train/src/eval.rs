@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// Metrics of one rendered view.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ViewMetrics {
     /// View index within the evaluated dataset.
     pub index: usize,
@@ -17,6 +17,79 @@ pub struct ViewMetrics {
     pub psnr: f64,
     /// SSIM (Gaussian 11×11, σ = 1.5).
     pub ssim: f64,
+    /// Where the view's error sits, split by its ground truth's alpha; `None` unless the view has
+    /// both empty (alpha = 0) and object pixels (Blender scenes have; LLFF's photos do not).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha_split: Option<AlphaSplit>,
+}
+
+/// A view's error split by its ground truth's alpha ([`nerf_metrics::sse_split`]): pixels of
+/// empty space (alpha = 0), where any error is a floater or haze the field put in front of the
+/// background, against pixels on the object (alpha > 0, its anti-aliased edge included). For a
+/// set of views, each value is the mean of the views' values.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AlphaSplit {
+    /// Share of the pixels that are empty.
+    pub empty_fraction: f64,
+    /// MSE over the empty pixels.
+    pub mse_empty: f64,
+    /// MSE over the object's pixels.
+    pub mse_object: f64,
+    /// Share of the view's squared error in the empty pixels.
+    pub empty_error_share: f64,
+    /// Mean rendered opacity over the empty pixels (0 when the field leaves empty space empty).
+    pub empty_opacity: f64,
+}
+
+impl AlphaSplit {
+    /// The split of one rendered view (`rgb`, `opacity`) against its ground truth (`gt`, RGB)
+    /// and alpha (`alpha`, one value per pixel).
+    pub fn of(rgb: &[f32], opacity: &[f32], gt: &[f32], alpha: impl Iterator<Item = f32>) -> Option<Self> {
+        let empty: Vec<bool> = alpha.map(|a| a == 0.0).collect();
+        let (sse, count) = nerf_metrics::sse_split(rgb, gt, 3, &empty);
+        if count[0] == 0 || count[1] == 0 {
+            return None;
+        }
+        let n_empty = count[1] / 3;
+        let opacity_sum: f64 = opacity.iter().zip(&empty).filter(|(_, &e)| e).map(|(&o, _)| o as f64).sum();
+        let total = sse[0] + sse[1];
+        Some(Self {
+            empty_fraction: n_empty as f64 / empty.len() as f64,
+            mse_empty: sse[1] / count[1] as f64,
+            mse_object: sse[0] / count[0] as f64,
+            empty_error_share: if total > 0.0 { sse[1] / total } else { 0.0 },
+            empty_opacity: opacity_sum / n_empty as f64,
+        })
+    }
+
+    /// The mean of the views' splits; `None` when no view has one.
+    pub fn mean<'a>(splits: impl Iterator<Item = &'a AlphaSplit>) -> Option<Self> {
+        let mut acc = [0.0f64; 5];
+        let mut n = 0usize;
+        for s in splits {
+            for (a, v) in acc.iter_mut().zip([s.empty_fraction, s.mse_empty, s.mse_object, s.empty_error_share, s.empty_opacity]) {
+                *a += v;
+            }
+            n += 1;
+        }
+        (n > 0).then(|| {
+            let m = acc.map(|a| a / n as f64);
+            Self { empty_fraction: m[0], mse_empty: m[1], mse_object: m[2], empty_error_share: m[3], empty_opacity: m[4] }
+        })
+    }
+
+    /// One line for a report: the two parts' PSNRs (of their MSEs), the empty pixels' share of
+    /// the error and their mean opacity.
+    pub fn summary(&self) -> String {
+        format!(
+            "object pixels {:.2} dB, empty pixels ({:.0} % of them) {:.2} dB with {:.1} % of the squared error, mean opacity there {:.4}",
+            nerf_metrics::mse_to_psnr(self.mse_object),
+            100.0 * self.empty_fraction,
+            nerf_metrics::mse_to_psnr(self.mse_empty),
+            100.0 * self.empty_error_share,
+            self.empty_opacity
+        )
+    }
 }
 
 /// Metrics over a set of views. `psnr` and `ssim` are means of the per-view values (the NeRF
@@ -29,6 +102,9 @@ pub struct EvalReport {
     pub psnr: f64,
     /// Mean SSIM.
     pub ssim: f64,
+    /// The mean of the views' error splits by ground-truth alpha ([`AlphaSplit`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha_split: Option<AlphaSplit>,
     /// Seconds spent rendering and scoring.
     pub seconds: f64,
     /// Seconds spent rendering alone (ray generation excluded; on the GPU including the upload of
@@ -72,15 +148,47 @@ pub fn evaluate(
             let path = d.join(format!("{}.png", stem.unwrap_or_else(|| format!("view_{i:03}"))));
             save_png(&path, data.width, data.height, &rgb)?;
         }
-        views.push(ViewMetrics { index: i, file, psnr, ssim });
+        let alpha = data.images[i].chunks_exact(4).map(|p| p[3]);
+        let alpha_split = AlphaSplit::of(&rgb, &opacity, gt, alpha);
+        views.push(ViewMetrics { index: i, file, psnr, ssim, alpha_split });
         on_view(i + 1, data.n_views());
     }
     let n = views.len().max(1) as f64;
     Ok(EvalReport {
         psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
         ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
+        alpha_split: AlphaSplit::mean(views.iter().filter_map(|v| v.alpha_split.as_ref())),
         views,
         seconds: t0.elapsed().as_secs_f64(),
         render_seconds,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::AlphaSplit;
+
+    #[test]
+    fn alpha_split_of_a_small_view() {
+        // Four pixels: two empty (alpha 0) with errors 0.1 and 0 on one channel, two on the
+        // object (alpha 1 and 0.5, its edge) with an error of 0.2 on one channel.
+        let gt = [1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.2, 0.2, 0.2];
+        let rgb = [0.9, 1.0, 1.0, 1.0, 1.0, 1.0, 0.5, 0.7, 0.5, 0.2, 0.2, 0.2];
+        let opacity = [0.3, 0.1, 1.0, 1.0];
+        let alpha = [0.0, 0.0, 1.0, 0.5];
+        let s = AlphaSplit::of(&rgb, &opacity, &gt, alpha.into_iter()).unwrap();
+        assert_eq!(s.empty_fraction, 0.5);
+        assert!((s.mse_empty - 0.01 / 6.0).abs() < 1e-9, "{s:?}");
+        assert!((s.mse_object - 0.04 / 6.0).abs() < 1e-9, "{s:?}");
+        assert!((s.empty_error_share - 0.2).abs() < 1e-6, "{s:?}");
+        assert!((s.empty_opacity - 0.2).abs() < 1e-7, "{s:?}");
+        // No empty pixel (a photo) or no object pixel: no split.
+        assert!(AlphaSplit::of(&rgb, &opacity, &gt, [1.0; 4].into_iter()).is_none());
+        assert!(AlphaSplit::of(&rgb, &opacity, &gt, [0.0; 4].into_iter()).is_none());
+        // The mean of two splits is the mean of each value; of none, none.
+        let t = AlphaSplit { empty_fraction: 1.0, mse_empty: 0.0, mse_object: 0.0, empty_error_share: 0.0, empty_opacity: 0.0 };
+        let m = AlphaSplit::mean([s, t].iter()).unwrap();
+        assert!((m.empty_fraction - 0.75).abs() < 1e-12 && (m.empty_opacity - 0.1).abs() < 1e-7);
+        assert!(AlphaSplit::mean(std::iter::empty()).is_none());
+    }
 }

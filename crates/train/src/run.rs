@@ -281,6 +281,7 @@ pub fn run(
         // As trained: the GPU path may have fitted the samples per step to the adapter.
         "config": trainer.config(),
         "device_note": trainer.device_note(),
+        "alpha_split": report.alpha_split,
         "per_view": report.views,
     });
     if let Some(c) = &corrections {
