@@ -423,3 +423,57 @@ ndc = [true, false]
     let md = read(&tmp.path().join("out/results.md"));
     assert!(md.contains("| `ndc` |") && md.contains("| hash | fern | 0 | false |"), "{md}");
 }
+
+/// `checkpoints = true` keeps each run's trained fields; `nerf eval`'s path (load, a trainer for
+/// rendering, restore, evaluate) scores them as the run's last evaluation did, and a finished run
+/// whose checkpoint is missing trains again.
+#[test]
+fn a_kept_checkpoint_scores_as_the_run_did() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = tiny_scene(tmp.path());
+    let registry = nerf::registry();
+    let file = tmp.path().join("ck.toml");
+    std::fs::write(
+        &file,
+        r#"
+name = "ck"
+scenes = ["lego_tiny"]
+test_views = "all"
+checkpoints = true
+[budget]
+iters = 5
+[base]
+field = "hash"
+target_samples_per_step = 2048
+field_config = { grid = { log2_hashmap_size = 12, n_levels = 4 } }
+[[runs]]
+name = "hash"
+"#,
+    )
+    .unwrap();
+    let opts = AblateOptions { out_dir: tmp.path().join("out"), verbose: false, device: nerf::gpu::DevicePreference::Cpu };
+    let ab = Ablation::load(&file).unwrap();
+    let report = run_ablation(&ab, &registry, &opts).unwrap();
+    let run = &report.runs[0];
+    let ck_path = opts.out_dir.join("runs").join(&run.plan.id).join("checkpoint.bin");
+    let ck = nerf::train::Checkpoint::load(&ck_path).unwrap();
+    assert_eq!(ck.step, 5);
+    assert_eq!(ck.config, run.plan.config);
+
+    let test = load_blender(&scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views: ck.config.test_views.clone(), ..Default::default() }).unwrap();
+    let bounds = nerf::train::SceneBounds::of(&test);
+    let mut t = nerf::train::make_trainer(&ck.config.for_rendering(), &registry, bounds, nerf::gpu::DevicePreference::Cpu).unwrap();
+    t.restore(ck.step, &ck.fields, ck.adam, &ck.sampler).unwrap();
+    let r = nerf::train::evaluate(&t, &test, None, |_, _| {}).unwrap();
+    assert!((r.psnr - run.metrics.test_psnr).abs() < 1e-9, "{} against {}", r.psnr, run.metrics.test_psnr);
+    // The run's metrics keep the last evaluation's per-view scores and error split.
+    assert_eq!(run.metrics.per_view.len(), test.n_views());
+    assert!((run.metrics.per_view[0].psnr - r.views[0].psnr).abs() < 1e-9);
+    assert_eq!(run.metrics.alpha_split.is_some(), r.alpha_split.is_some());
+
+    // Re-running skips the finished run; without its checkpoint it trains again.
+    assert!(run_ablation(&ab, &registry, &opts).unwrap().runs[0].skipped);
+    std::fs::remove_file(&ck_path).unwrap();
+    assert!(!run_ablation(&ab, &registry, &opts).unwrap().runs[0].skipped);
+    assert!(ck_path.is_file());
+}

@@ -8,7 +8,8 @@
 # run. Brings back 8 files (the tool's limit); the lego run's metrics.json holds its training log
 # (`train_log`: loss, training PSNR, trained and marched samples every log_every steps).
 # LEGO=FILE runs another lego ablation in place of h100_lego.toml (its scene path must be
-# ../../.data/lego, as there).
+# ../../.data/lego, as there). The run keeps its checkpoint in runs/device/lego: two calls of
+# eval_half.sh on the same warm machine then score it on all 200 test views (~1 min each).
 # Build and pack here first: `bash benches/device/prepare.sh --rebuild`; carry .gl .bin .bint .data.
 set -u
 t0=$(date +%s); left() { echo $(( ${BUDGET:-570} - ($(date +%s) - t0) )); }
@@ -25,9 +26,12 @@ echo "== bench ($(left) s left)"
 timeout 45 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "trunk|hash_grid_(forward|backward|input)" > "$OUT/bench.log" 2>&1
 grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 echo "== lego ($(left) s left)"
-timeout 380 .bin/nerf ablate "${LEGO:-examples/ablations/h100_lego.toml}" --device gpu --out /tmp/abl > "$OUT/lego.log" 2>&1
-cat /tmp/abl/results.md >> "$OUT/lego.log" 2>/dev/null
-for d in /tmp/abl/runs/*/; do cp "$d/metrics.json" "$OUT/lego_metrics.json"; cp "$d/curve.csv" "$OUT/lego_curve.csv"; done 2>/dev/null
+# Into runs/device/lego (git-ignored, so kept between calls): eval_half.sh scores its checkpoint
+# on all 200 test views afterwards. A run of an earlier call would be skipped as finished.
+rm -rf runs/device/lego
+timeout 380 .bin/nerf ablate "${LEGO:-examples/ablations/h100_lego.toml}" --device gpu --out runs/device/lego > "$OUT/lego.log" 2>&1
+cat runs/device/lego/results.md >> "$OUT/lego.log" 2>/dev/null
+for d in runs/device/lego/runs/*/; do cp "$d/metrics.json" "$OUT/lego_metrics.json"; cp "$d/curve.csv" "$OUT/lego_curve.csv"; done 2>/dev/null
 tail -3 "$OUT/lego.log"; cat "$OUT/lego_curve.csv" 2>/dev/null
 echo "== grids ($(left) s left)"
 # device_variants.toml's grid_8x4, grid_6x8 and all_marched runs (same scene, budget and profile).

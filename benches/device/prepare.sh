@@ -9,6 +9,8 @@
 #           (DEVICE_TESTS=all packs every one, for h100_coop.sh without .data)
 #   .data/  lego: ../shared's lego scene, all train views and every 8th test view (h100_lego.sh,
 #           h100_final.sh, h100_render.sh, h100_coop.sh)
+#   .eval_a/, .eval_b/  lego: test views 0-99 and 100-199 with their own transforms_test.json
+#           (eval_half.sh: all 200 test views in two calls)
 # Then run e.g.:  run(command="bash benches/device/h100_profile.sh", carry=[".gl", ".bin"])
 # (carry what the script's header names; the total must stay under the tool's 64 MiB).
 # Each part is skipped when already there; `--rebuild` redoes .bin and .bint.
@@ -76,6 +78,27 @@ if [ ! -f .data/lego/transforms_train.json ]; then
   for i in $(seq 0 8 199); do cp "$src/test/r_$i.png" .data/lego/test/; done
 fi
 
-du -sh .gl .bin .bint .data 2>/dev/null
+# All 200 test views do not fit one call beside the training views: two halves, one per call of
+# eval_half.sh after device_session.sh (each: its transforms_test.json and its 100 images).
+for half in a b; do
+  if [ ! -f ".eval_$half/lego/transforms_test.json" ]; then
+    src=../shared/data/nerf_synthetic/lego
+    [ -d "$src" ] || { echo "no $src: .eval_$half cannot be made"; exit 1; }
+    echo "== .eval_$half/lego: half of the 200 test views of $src"
+    mkdir -p ".eval_$half/lego/test"
+    python3 - "$src" ".eval_$half/lego" "$half" <<'PY'
+import json, shutil, sys
+src, dst, half = sys.argv[1:4]
+meta = json.load(open(f"{src}/transforms_test.json"))
+frames = meta["frames"][:100] if half == "a" else meta["frames"][100:]
+for f in frames:
+    shutil.copy(f"{src}/{f['file_path']}.png", f"{dst}/{f['file_path']}.png")
+meta["frames"] = frames
+json.dump(meta, open(f"{dst}/transforms_test.json", "w"), indent=1)
+PY
+  fi
+done
+
+du -sh .gl .bin .bint .data .eval_a .eval_b 2>/dev/null
 echo "carry what the script needs (h100_profile: .gl .bin; h100_final/render: .gl .bin .data;"
 echo "h100_coop: .gl .bin .bint .data); the device tool takes 64 MiB in all."

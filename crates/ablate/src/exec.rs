@@ -5,7 +5,7 @@ use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
 use nerf_data::{load_scene, Dataset, LoadOptions, Split};
 use nerf_field::Registry;
-use nerf_train::{evaluate, make_trainer, AlphaSplit, EvalReport, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
+use nerf_train::{evaluate, make_trainer, AlphaSplit, Checkpoint, EvalReport, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -208,6 +208,9 @@ fn log_point(s: &nerf_train::StepStats, step: u64, elapsed_secs: f64) -> TrainLo
 }
 
 /// Trains one planned run to its budget, evaluating at the schedule's points and at the end.
+///
+/// With `checkpoint`, the trained fields are written there (atomically) after the final
+/// evaluation, in `nerf train`'s checkpoint format.
 pub fn train_run(
     ablation: &Ablation,
     plan: &RunPlan,
@@ -215,6 +218,7 @@ pub fn train_run(
     train: &Dataset,
     test: &Dataset,
     device: nerf_gpu::DevicePreference,
+    checkpoint: Option<&Path>,
 ) -> Result<RunMetrics, AblateError> {
     let terr = |source| AblateError::Train { id: plan.id.clone(), error: source };
     let sched = &ablation.spec.eval;
@@ -296,6 +300,21 @@ pub fn train_run(
     let iters = trainer.step_count();
     let samples = trainer.samples_seen().map_err(terr)?;
     let report = last_report.into_inner().expect("at least the final evaluation");
+    if let Some(path) = checkpoint {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+        Checkpoint {
+            step: iters,
+            elapsed_secs: elapsed,
+            samples_seen: samples,
+            config: cfg.clone(),
+            fields: trainer.export_fields().map_err(terr)?,
+            adam: trainer.adam_state().map_err(terr)?,
+            sampler: trainer.sampler_state().map_err(terr)?,
+        }
+        .save(path)
+        .map_err(terr)?;
+    }
     Ok(RunMetrics {
         id: plan.id.clone(),
         name: plan.name.clone(),
@@ -356,7 +375,9 @@ pub fn run_ablation(
             nerf_gpu::DevicePreference::Gpu => m.device.starts_with("gpu"),
             nerf_gpu::DevicePreference::Auto => true,
         };
-        if let Some(m) = load_finished(&mpath, &plan.config_hash).filter(same_device) {
+        // A file that asks for checkpoints trains again a finished run that has none.
+        let has_checkpoint = !s.checkpoints || dir.join("checkpoint.bin").is_file();
+        if let Some(m) = load_finished(&mpath, &plan.config_hash).filter(same_device).filter(|_| has_checkpoint) {
             if opts.verbose {
                 eprintln!("[{}] {} finished before: PSNR {:.2} dB (skipped)", k + 1, plan.id, m.test_psnr);
             }
@@ -377,7 +398,8 @@ pub fn run_ablation(
         if opts.verbose {
             eprintln!("[{}] {} ({}) starting", k + 1, plan.id, plan.config.field);
         }
-        let m = match train_run(ablation, &plan, registry, train, test, opts.device) {
+        let checkpoint = s.checkpoints.then(|| dir.join("checkpoint.bin"));
+        let m = match train_run(ablation, &plan, registry, train, test, opts.device, checkpoint.as_deref()) {
             Err(AblateError::Train { id, error: TrainError::Diverged { step, loss } }) => {
                 eprintln!("[{}] {id} diverged: loss {loss} after step {step}; left out of the results", k + 1);
                 diverged.push((id, step));

@@ -88,6 +88,12 @@ pub struct AblationSpec {
     /// Keys are swept in sorted order, the last key varying fastest.
     #[serde(default)]
     pub grid: BTreeMap<String, Vec<Value>>,
+    /// Keep each run's trained fields: `checkpoint.bin` in the run's folder, as `nerf train`
+    /// writes it, so that `nerf eval RUN_FOLDER SCENE --test-views …` scores the run on other
+    /// views later (e.g. all 200 of lego's on a device that cannot hold them beside the training
+    /// views). Not part of the config hash: it changes what is written, not what is trained.
+    #[serde(default)]
+    pub checkpoints: bool,
 }
 
 /// A parsed ablation file together with where it was read from.

@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# The second and third calls of a lease, right after device_session.sh on the same warm machine:
+# score the lego run's kept checkpoint (h100_lego.toml has `checkpoints = true`; the run's folder
+# is runs/device/lego/runs/*/, ignored by git and so kept between calls) on half of lego's 200
+# test views. One call cannot carry all 200 beside the training views (64 MiB), hence halves:
+#   run(command="bash benches/device/eval_half.sh a", carry=[".gl", ".bin", ".eval_a"])
+#   run(command="bash benches/device/eval_half.sh b", carry=[".gl", ".bin", ".eval_b"])
+# Each brings back eval_<half>.json (per-view PSNR and SSIM, alpha_split). Both halves hold 100
+# views, so the mean over all 200 is the mean of the two halves' means.
+# Build here first: `bash benches/device/prepare.sh` (makes .eval_a and .eval_b).
+set -u
+half=${1:?usage: eval_half.sh a|b}
+for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
+(cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
+run=$(ls -d runs/device/lego/runs/*/ 2>/dev/null | head -1)
+[ -n "$run" ] && [ -f "$run/checkpoint.bin" ] || { echo "no checkpoint under runs/device/lego/runs/: run device_session.sh first, on this warm machine"; exit 1; }
+echo "== $run on .eval_$half/lego"
+.bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --out "/tmp/eval_$half" --quiet
+cp "/tmp/eval_$half/eval.json" "$OUT/eval_$half.json"
