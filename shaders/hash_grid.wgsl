@@ -38,10 +38,17 @@ struct Params {
     aabb_min: vec3<f32>,
     n_levels: u32,
     inv_extent: vec3<f32>,
-    _pad: u32,
-    // Per level: x = resolution, y = offset of the level in params (floats), z = 1 when dense,
-    // w = T − 1 (hash mask).
+    // o of p = x·s_l + o: 0 (corner grids) or ½ (staggered, tiny-cuda-nn's).
+    offset: f32,
+    // Per level: x = resolution (cells per axis), y = offset of the level in params (floats),
+    // z = 1 when dense, w = T − 1 (hash mask).
     levels: array<vec4<u32>, 64>,
+    // Per level l: s_l of p = x·s_l + o, at scales[l / 4][l % 4] (the resolution for corner grids).
+    scales: array<vec4<f32>, 16>,
+}
+
+fn level_scale(l: u32) -> f32 {
+    return P.scales[l / 4u][l % 4u];
 }
 
 @group(0) @binding(0) var<uniform> P: Params;
@@ -85,9 +92,10 @@ fn unit_position(i: u32) -> vec3<f32> {
 // and the corners' table reads wait on each other (on the H100 the plain GEMM's accumulators, an
 // array indexed in loops, ran 22x slower than the same sums in named registers). The same
 // integers and the same products, in the same order, as the CPU.
-fn cell(x: vec3<f32>, lv: vec4<u32>) -> Cell {
+fn cell(x: vec3<f32>, lv: vec4<u32>, l: u32) -> Cell {
     let res = lv.x;
-    let p = x * f32(res);
+    // + 0 (corner grids) leaves every p ≥ 0 as it is.
+    let p = x * level_scale(l) + P.offset;
     let v = min(vec3<u32>(p), vec3<u32>(res - 1u));
     let f = p - vec3<f32>(v);
     var c: Cell;
@@ -126,7 +134,7 @@ fn hash_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
         return;
     }
     let lv = P.levels[l];
-    let c = cell(unit_position(i), lv);
+    let c = cell(unit_position(i), lv, l);
     let base = lv.y / (FEATS / VEC_PER_SLOT);
     let out = (i * nl + l) * VEC_PER_SLOT;
     for (var v = 0u; v < VEC_PER_SLOT; v++) {
@@ -218,7 +226,7 @@ fn hash_backward_cas(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num
         return;
     }
     let lv = P.levels[l];
-    let c = cell(unit_position(i), lv);
+    let c = cell(unit_position(i), lv, l);
     add_corner_cas(lv.y + c.s0.x * FEATS, c.w0.x, g);
     add_corner_cas(lv.y + c.s0.y * FEATS, c.w0.y, g);
     add_corner_cas(lv.y + c.s0.z * FEATS, c.w0.z, g);
@@ -284,7 +292,7 @@ fn hash_input_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
             continue;
         }
         let lv = P.levels[l];
-        let c = cell(x, lv);
+        let c = cell(x, lv, l);
         let s0 = vec4<f32>(
             corner_dot(lv.y + c.s0.x * FEATS, g),
             corner_dot(lv.y + c.s0.y * FEATS, g),
@@ -312,7 +320,7 @@ fn hash_input_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_w
         dw_add(&dw, s1.y, f.x, y0, f.z, 1.0, -1.0, 1.0);
         dw_add(&dw, s1.z, x0, f.y, f.z, -1.0, 1.0, 1.0);
         dw_add(&dw, s1.w, f.x, f.y, f.z, 1.0, 1.0, 1.0);
-        acc += dw * f32(lv.x);
+        acc += dw * level_scale(l);
     }
     for (var a = 0u; a < 3u; a++) {
         let inside = x[a] > 0.0 && x[a] < 1.0;
@@ -367,7 +375,7 @@ fn add_sample_atomic(i: u32, l: u32, lv: vec4<u32>) {
     if (!g.any) {
         return;
     }
-    let c = cell(unit_position(i), lv);
+    let c = cell(unit_position(i), lv, l);
     add_corner_atomic(lv.y + c.s0.x * FEATS, c.w0.x, g);
     add_corner_atomic(lv.y + c.s0.y * FEATS, c.w0.y, g);
     add_corner_atomic(lv.y + c.s0.z * FEATS, c.w0.z, g);
@@ -439,7 +447,7 @@ fn hash_backward_subgroup(
     if (live) {
         g = load_grad(i, l);
         if (g.any) {
-            c = cell(unit_position(i), lv);
+            c = cell(unit_position(i), lv, l);
         }
     }
     let has_grad = live && g.any;
@@ -502,7 +510,7 @@ fn hash_forward_f16(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_
         return;
     }
     let lv = P.levels[l];
-    let c = cell(unit_position(i), lv);
+    let c = cell(unit_position(i), lv, l);
     let base = lv.y / 2u;
     let t0 = unpack2x16float(table16[base + c.s0.x]);
     let t1 = unpack2x16float(table16[base + c.s0.y]);

@@ -10,7 +10,8 @@
 //!
 //! Inputs are positions already normalised to `[0,1]³` (the field normalises with the scene AABB);
 //! they are clamped to `[0,1]`. Vertex `v` of level `l` sits at `v / res_l` (no half-cell offset) and a
-//! point on the far face `x = 1` lands in the last cell.
+//! point on the far face `x = 1` lands in the last cell. [`GridAlign::Staggered`] places the levels
+//! as tiny-cuda-nn does instead (`p = x·(N_min·b^l − 1) + ½`), staggered against each other.
 //!
 //! The parameters live in the encoding ([`HashGrid::params`]); [`Encoding::backward`] scatter-adds
 //! `dL/d(params)` into a caller-owned buffer. The backward pass splits the work **by level** (levels
@@ -90,6 +91,23 @@ pub enum Precision {
     F16,
 }
 
+/// Where a level's grid vertices sit ([`HashGridConfig::align`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum GridAlign {
+    /// HashNeRF's grids: vertex `v` of level `l` at `v / res_l`, `res_l = floor(N_min·b^l)`. Every
+    /// level has vertices on the box's faces, and levels whose resolutions share a factor share
+    /// the planes between: every even level has one through the box's centre.
+    #[default]
+    Corner,
+    /// tiny-cuda-nn's grids (instant-ngp, nerfacc): a point `x ∈ [0,1]` sits at `x·s_l + ½` in
+    /// level `l`'s vertex coordinates, `s_l = N_min·b^l − 1` (not rounded), so the levels are
+    /// staggered against each other and no plane of vertices is shared by design (the
+    /// instant-ngp paper, appendix A). Vertices `0 ..= floor(s_l + ½) + 1` per axis; tiny-cuda-nn
+    /// wraps the last one of a dense level around, this grid stores it.
+    Staggered,
+}
+
 /// Configuration of [`HashGrid`] (Instant-NGP's defaults).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -113,6 +131,9 @@ pub struct HashGridConfig {
     pub storage: Precision,
     /// Parameters are initialised ~ U(−init_scale, init_scale) (1e-4).
     pub init_scale: f32,
+    /// Where the levels' vertices sit: HashNeRF's `corner` (the default) or tiny-cuda-nn's
+    /// `staggered` ([`GridAlign`]).
+    pub align: GridAlign,
 }
 
 impl Default for HashGridConfig {
@@ -126,6 +147,7 @@ impl Default for HashGridConfig {
             dense_levels: true,
             storage: Precision::F32,
             init_scale: 1e-4,
+            align: GridAlign::Corner,
         }
     }
 }
@@ -196,14 +218,49 @@ impl HashGridConfig {
 
     /// The level resolutions `res_l = floor(N_min·b^l)`, with `b^l` and the product in `f32` (HashNeRF;
     /// `[16, 20, 25, 32, …, 512]` for N_min = 16, N_max = 512, L = 16).
+    ///
+    /// With [`GridAlign::Staggered`], the cells per axis a point can fall in:
+    /// `floor(s_l + ½) + 1` ([`HashGridConfig::level_scales`]).
     pub fn level_resolutions(&self) -> Vec<u32> {
-        let b = self.growth_factor();
-        (0..self.n_levels)
-            .map(|l| {
-                let r = ((self.base_resolution as f32) * b.powf(l as f32)).floor() as u32;
-                r.clamp(1, MAX_RESOLUTION)
-            })
-            .collect()
+        match self.align {
+            GridAlign::Corner => {
+                let b = self.growth_factor();
+                (0..self.n_levels)
+                    .map(|l| {
+                        let r = ((self.base_resolution as f32) * b.powf(l as f32)).floor() as u32;
+                        r.clamp(1, MAX_RESOLUTION)
+                    })
+                    .collect()
+            }
+            GridAlign::Staggered => self
+                .level_scales()
+                .iter()
+                .map(|&s| ((s + 0.5).floor() as u32 + 1).clamp(1, MAX_RESOLUTION))
+                .collect(),
+        }
+    }
+
+    /// Per level, the factor `s_l` and the offset `o` of `p = x·s_l + o`, the position of a point
+    /// `x ∈ [0,1]` in the level's vertex coordinates: `(res_l, 0)` ([`GridAlign::Corner`]) or
+    /// `(N_min·b^l − 1, ½)` ([`GridAlign::Staggered`], tiny-cuda-nn's `grid_scale`; at least 1).
+    pub fn level_scales(&self) -> Vec<f32> {
+        match self.align {
+            GridAlign::Corner => self.level_resolutions().iter().map(|&r| r as f32).collect(),
+            GridAlign::Staggered => {
+                let b = self.growth_factor();
+                (0..self.n_levels)
+                    .map(|l| ((self.base_resolution as f32) * b.powf(l as f32) - 1.0).clamp(1.0, (MAX_RESOLUTION - 1) as f32))
+                    .collect()
+            }
+        }
+    }
+
+    /// The offset `o` of [`HashGridConfig::level_scales`] (0 or ½).
+    pub fn level_offset(&self) -> f32 {
+        match self.align {
+            GridAlign::Corner => 0.0,
+            GridAlign::Staggered => 0.5,
+        }
     }
 }
 
@@ -218,6 +275,17 @@ struct Level {
     stride: usize,
     /// `T − 1` for hashed levels (T is a power of two).
     mask: u32,
+    /// `s_l` of `p = x·s_l + offset` ([`HashGridConfig::level_scales`]).
+    scale: f32,
+    /// 0 or ½ ([`HashGridConfig::level_offset`]).
+    offset: f32,
+}
+
+impl Level {
+    /// `[s_l, offset]` in `T`.
+    fn scale_offset<T: Real>(&self) -> [T; 2] {
+        [T::c(self.scale as f64), T::c(self.offset as f64)]
+    }
 }
 
 /// A multiresolution hash grid encoding of 3-D points, generic over the parameter type so that the same
@@ -270,10 +338,11 @@ impl<T: Real> HashGrid<T> {
         cfg.validate()?;
         let t = 1usize << cfg.log2_hashmap_size;
         let resolutions = cfg.level_resolutions();
+        let scales = cfg.level_scales();
         let mut offsets = Vec::with_capacity(resolutions.len() + 1);
         let mut levels = Vec::with_capacity(resolutions.len());
         let mut total = 0usize;
-        for &res in &resolutions {
+        for (&res, &scale) in resolutions.iter().zip(&scales) {
             let stride = res as usize + 1;
             let verts = (stride as u64).pow(3);
             let dense = cfg.dense_levels && verts <= t as u64;
@@ -285,6 +354,8 @@ impl<T: Real> HashGrid<T> {
                 dense,
                 stride,
                 mask: (t - 1) as u32,
+                scale,
+                offset: cfg.level_offset(),
             });
         }
         offsets.push(total);
@@ -440,7 +511,7 @@ impl<T: Real> HashGrid<T> {
         };
         for (li, lv) in self.levels.iter().enumerate() {
             let off = self.offsets[li];
-            let res_t = T::c(lv.res as f64);
+            let so = lv.scale_offset::<T>();
             let lo = li * F;
             // On a level larger than the caches the gathers are cache misses: prefetch the corners
             // of the sample PREFETCH_DISTANCE ahead, so that several misses are in flight at once.
@@ -448,7 +519,7 @@ impl<T: Real> HashGrid<T> {
             let n = input.len() / 3;
             let outs = out.chunks_exact_mut(od);
             if self.is_prefetched(li, std::mem::size_of::<G::Elem>()) {
-                let at = |i: usize| cell::<T, F>(lv, res_t, &input[3 * i..3 * i + 3]);
+                let at = |i: usize| cell::<T, F>(lv, so, &input[3 * i..3 * i + 3]);
                 let mut ring: [Cell<T>; PREFETCH_DISTANCE] = std::array::from_fn(|i| at(i.min(n - 1)));
                 for c in ring.iter().take(n) {
                     table.prefetch(off, &c.idx);
@@ -465,7 +536,7 @@ impl<T: Real> HashGrid<T> {
                 }
             } else {
                 for (x, o) in input.chunks_exact(3).zip(outs) {
-                    interpolate(&cell::<T, F>(lv, res_t, x), off, &mut o[lo..lo + F]);
+                    interpolate(&cell::<T, F>(lv, so, x), off, &mut o[lo..lo + F]);
                 }
             }
         }
@@ -489,7 +560,7 @@ impl<T: Real> HashGrid<T> {
     fn level_backward<const F: usize>(&self, li: usize, input: &[T], d_out: &[T], d: &mut [T]) {
         let lv = &self.levels[li];
         let od = self.levels.len() * F;
-        let res_t = T::c(lv.res as f64);
+        let so = lv.scale_offset::<T>();
         let n = input.len() / 3;
         // As in the forward pass: on a level larger than the caches, prefetch the corners of the
         // sample PREFETCH_DISTANCE ahead (the pointer is only a hint; `d` is not read through it).
@@ -507,7 +578,7 @@ impl<T: Real> HashGrid<T> {
             // As in the forward pass, the cells computed for the prefetch wait in a ring. (One
             // helper for both rings, with the loop bodies as closures, measured 6 % slower on the
             // CPU hash step: 2 interleaved pairs of 500 steps, 2026-11-23; hence the two loops.)
-            let at = |i: usize| cell::<T, F>(lv, res_t, &input[3 * i..3 * i + 3]);
+            let at = |i: usize| cell::<T, F>(lv, so, &input[3 * i..3 * i + 3]);
             let mut ring: [Cell<T>; PREFETCH_DISTANCE] = std::array::from_fn(|i| at(i.min(n - 1)));
             for c in ring.iter().take(n) {
                 Full(&d[..]).prefetch(0, &c.idx);
@@ -527,7 +598,7 @@ impl<T: Real> HashGrid<T> {
         } else {
             for (x, g) in input.chunks_exact(3).zip(grads) {
                 if !is_zero(g) {
-                    scatter(&cell::<T, F>(lv, res_t, x), g, d);
+                    scatter(&cell::<T, F>(lv, so, x), g, d);
                 }
             }
         }
@@ -572,7 +643,7 @@ impl<T: Real> HashGrid<T> {
         d_in.fill(T::zero());
         for (li, lv) in self.levels.iter().enumerate() {
             let off = self.offsets[li];
-            let res_t = T::c(lv.res as f64);
+            let so = lv.scale_offset::<T>();
             for ((x, g), dx) in input
                 .chunks_exact(3)
                 .zip(d_out.chunks_exact(od))
@@ -582,7 +653,7 @@ impl<T: Real> HashGrid<T> {
                 if g.iter().all(|v| *v == T::zero()) {
                     continue;
                 }
-                let c = cell::<T, F>(lv, res_t, x);
+                let c = cell::<T, F>(lv, so, x);
                 let v: [[T; F]; 8] = table.corners(off, &c.idx);
                 // s_k = Σ_j g_j · e_kj: the loss's sensitivity to corner k's weight.
                 let mut s = [T::zero(); 8];
@@ -605,7 +676,7 @@ impl<T: Real> HashGrid<T> {
                 for a in 0..3 {
                     // clamp(x, 0, 1) has zero derivative outside the unit cube.
                     if x[a] >= T::zero() && x[a] <= one {
-                        dx[a] += dw[a] * res_t;
+                        dx[a] += dw[a] * so[0];
                     }
                 }
             }
@@ -719,14 +790,15 @@ struct Cell<T> {
 }
 
 #[inline(always)]
-fn cell<T: Real, const F: usize>(lv: &Level, res_t: T, x: &[T]) -> Cell<T> {
+fn cell<T: Real, const F: usize>(lv: &Level, [scale_t, off_t]: [T; 2], x: &[T]) -> Cell<T> {
     let one = T::one();
     let mut v = [0u32; 3];
     let mut frac = [T::zero(); 3];
     for a in 0..3 {
         // max/min map NaN to 0 (IEEE maxNum), so the index stays in range for any input.
         let xc = x[a].max(T::zero()).min(one);
-        let p = xc * res_t;
+        // + 0 (corner grids) leaves every p ≥ 0 as it is.
+        let p = xc * scale_t + off_t;
         // p ≥ 0, so truncation is floor (and avoids a libm `floorf` call on baseline x86-64).
         let vi = p.to_u32().unwrap_or(0).min(lv.res - 1);
         v[a] = vi;
@@ -887,6 +959,7 @@ mod tests {
             dense_levels: false,
             storage: Precision::F32,
             init_scale: 1e-4,
+            align: GridAlign::Corner,
         }
     }
 
@@ -901,6 +974,7 @@ mod tests {
             dense_levels: true,
             storage,
             init_scale: 1.0,
+            align: GridAlign::Corner,
         }
     }
 
@@ -1092,7 +1166,7 @@ mod tests {
             let ch = flat(&pl["corner_hash_indices"]);
             let lv = g.levels[l];
             for i in 0..5 {
-                let c = cell::<f64, 2>(&lv, lv.res as f64, &x[3 * i..3 * i + 3]);
+                let c = cell::<f64, 2>(&lv, lv.scale_offset(), &x[3 * i..3 * i + 3]);
                 let v0: [u32; 3] = std::array::from_fn(|a| bl[3 * i + a] as u32);
                 for a in 0..3 {
                     let v = (x[3 * i + a] * lv.res as f64).floor() as u32;
@@ -1116,6 +1190,39 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// tiny-cuda-nn's placement: `p = x·(N_min·b^l − 1) + ½`, worked out by hand for the default
+    /// levels; the box's corners sit in the middle of a level's first and last cells.
+    #[test]
+    fn staggered_levels_by_hand() {
+        let cfg = HashGridConfig { align: GridAlign::Staggered, ..HashGridConfig::default() };
+        let b = cfg.growth_factor();
+        let scales = cfg.level_scales();
+        assert_eq!(scales[0], 15.0);
+        assert_eq!(scales[1], 16.0 * b - 1.0);
+        assert_eq!(cfg.level_offset(), 0.5);
+        let res = cfg.level_resolutions();
+        // Level 0: p ∈ [0.5, 15.5], cells 0..=15 (17 vertices per axis); the finest: s = 2047
+        // (b^15 in f32 may land a hair below 128), p ≤ 2047.5, 2048 cells.
+        assert_eq!(res[0], 16);
+        assert_eq!(res[15], (scales[15] + 0.5).floor() as u32 + 1);
+        assert!((2047..=2048).contains(&res[15]), "{res:?}");
+        for (s, r) in scales.iter().zip(&res) {
+            assert!(((s + 0.5).floor() as u32) < *r);
+        }
+        let small = HashGridConfig { n_levels: 2, log2_hashmap_size: 14, base_resolution: 4, max_resolution: 8, init_scale: 1.0, ..cfg };
+        let g = HashGrid::<f64>::new(&small, &mut nerf_core::rng(3, 0));
+        // Level 0 (s = 3, dense: 5³ ≤ 2^14): x = 0 → p = ½, the middle of cell 0 → equal weights.
+        let c = cell::<f64, 2>(&g.levels[0], g.levels[0].scale_offset(), &[0.0, 0.0, 1.0]);
+        assert!(c.w.iter().all(|w| (w - 0.125).abs() < 1e-15), "{:?}", c.w);
+        // z = 1 → p = 3.5: cell 3, corners at z = 3 and 4.
+        assert_eq!(c.idx[0], g.slot(0, [0, 0, 3]) * 2);
+        assert_eq!(c.idx[7], g.slot(0, [1, 1, 4]) * 2);
+        // x = 0.3 at level 1 (s = 7): p = 2.6 → cell 2, fraction 0.6.
+        let c = cell::<f64, 2>(&g.levels[1], g.levels[1].scale_offset(), &[0.3, 0.0, 0.0]);
+        assert!((c.frac[0] - 0.6).abs() < 1e-6 && c.frac[1] == 0.5);
+        assert_eq!(c.idx[0], g.slot(1, [2, 0, 0]) * 2);
     }
 
     #[test]
@@ -1151,10 +1258,10 @@ mod tests {
             tries += 1;
             assert!(tries < 1_000_000, "could not find interior points");
             let p: [f64; 3] = std::array::from_fn(|_| r.gen::<f64>());
-            let ok = g.resolutions().iter().all(|&res| {
+            let ok = g.levels.iter().all(|lv| {
                 p.iter().all(|&x| {
-                    let f = x * res as f64 - (x * res as f64).floor();
-                    (0.05..=0.95).contains(&f)
+                    let q = x * lv.scale as f64 + lv.offset as f64;
+                    (0.05..=0.95).contains(&(q - q.floor()))
                 })
             });
             if ok {
@@ -1172,8 +1279,8 @@ mod tests {
 
     #[test]
     fn backward_params_matches_finite_differences_f64() {
-        for f in [1, 2, 4] {
-            let cfg = small_config(f, Precision::F32);
+        for (f, align) in [(1, GridAlign::Corner), (2, GridAlign::Corner), (4, GridAlign::Corner), (2, GridAlign::Staggered)] {
+            let cfg = HashGridConfig { align, ..small_config(f, Precision::F32) };
             let mut r = nerf_core::rng(4, f as u64);
             let mut g = HashGrid::<f64>::new(&cfg, &mut r);
             assert!((0..6).any(|l| g.is_dense(l)) && (0..6).any(|l| !g.is_dense(l)));
@@ -1219,13 +1326,15 @@ mod tests {
 
     #[test]
     fn backward_input_matches_finite_differences_f64() {
-        for (f, storage) in [
-            (2, Precision::F32),
-            (4, Precision::F32),
-            (8, Precision::F16),
-            (2, Precision::F16),
+        for (f, storage, align) in [
+            (2, Precision::F32, GridAlign::Corner),
+            (4, Precision::F32, GridAlign::Corner),
+            (8, Precision::F16, GridAlign::Corner),
+            (2, Precision::F16, GridAlign::Corner),
+            (2, Precision::F32, GridAlign::Staggered),
+            (4, Precision::F16, GridAlign::Staggered),
         ] {
-            let cfg = small_config(f, storage);
+            let cfg = HashGridConfig { align, ..small_config(f, storage) };
             let mut r = nerf_core::rng(5, f as u64);
             let g = HashGrid::<f64>::new(&cfg, &mut r);
             let n = 6;
@@ -1244,7 +1353,7 @@ mod tests {
                 let err = (fd - dx[i]).abs() / dx[i].abs().max(1.0);
                 assert!(
                     err < 1e-6,
-                    "F={f} {storage:?} d_input[{i}]: analytic {} vs fd {fd}",
+                    "F={f} {storage:?} {align:?} d_input[{i}]: analytic {} vs fd {fd}",
                     dx[i]
                 );
                 assert!(

@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 pub mod hash_grid;
 pub mod sh;
 
-pub use hash_grid::{spatial_hash, HashGrid, HashGridConfig, HashGridConfigError, Precision};
+pub use hash_grid::{spatial_hash, GridAlign, HashGrid, HashGridConfig, HashGridConfigError, Precision};
 pub use sh::{ShConfig, ShConfigError, SphericalHarmonics};
 
 /// An input encoding: maps `input_dim` floats per sample to `output_dim` floats. Parameter-free encodings

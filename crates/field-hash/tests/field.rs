@@ -21,6 +21,7 @@ fn small() -> HashNerfConfig {
             dense_levels: true,
             storage: Precision::F32,
             init_scale: 0.5,
+            ..Default::default()
         },
         sh_degree: 3,
         geo_features: 3,

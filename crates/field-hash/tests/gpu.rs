@@ -13,8 +13,13 @@ fn check_small_field(storage: nerf_encoding::Precision, seed: u64) {
 }
 
 fn check_small_field_with(storage: nerf_encoding::Precision, seed: u64, subgroup_sums: bool) {
+    check_small_field_aligned(storage, seed, subgroup_sums, nerf_encoding::GridAlign::Corner);
+}
+
+fn check_small_field_aligned(storage: nerf_encoding::Precision, seed: u64, subgroup_sums: bool, align: nerf_encoding::GridAlign) {
     let Some(ctx) = GpuContext::for_tests() else { return };
     let mut cfg = HashNerfConfig { gpu_hash_subgroup_sums: subgroup_sums, ..Default::default() };
+    cfg.grid.align = align;
     cfg.grid.n_levels = 6;
     cfg.grid.log2_hashmap_size = 12;
     cfg.grid.base_resolution = 4;
@@ -47,14 +52,23 @@ fn gpu_hash_field_with_subgroup_sums_matches_the_cpu_field() {
     check_small_field_with(nerf_encoding::Precision::F32, 9, true);
 }
 
+/// The same with tiny-cuda-nn's staggered levels (`grid.align = "staggered"`), with plain atomics
+/// and with subgroup sums.
+#[test]
+fn gpu_hash_field_with_staggered_levels_matches_the_cpu_field() {
+    check_small_field_aligned(nerf_encoding::Precision::F32, 10, false, nerf_encoding::GridAlign::Staggered);
+    check_small_field_aligned(nerf_encoding::Precision::F32, 13, true, nerf_encoding::GridAlign::Staggered);
+}
+
 /// Camera pose refinement's input gradients (∂L/∂x through the hash encoding and the box's
 /// normalisation, ∂L/∂dir through the SH encoding and the colour net's input gradient) against
 /// the CPU field's `backward_with_inputs`, and the parameter gradients with them on.
 #[test]
 fn gpu_hash_field_input_gradients_match_the_cpu_field() {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    for (seed, sh_degree) in [(11, 4), (12, 2)] {
+    for (seed, sh_degree, align) in [(11, 4, nerf_encoding::GridAlign::Corner), (12, 2, nerf_encoding::GridAlign::Corner), (14, 4, nerf_encoding::GridAlign::Staggered)] {
         let mut cfg = HashNerfConfig::default();
+        cfg.grid.align = align;
         cfg.grid.n_levels = 6;
         cfg.grid.log2_hashmap_size = 12;
         cfg.grid.base_resolution = 4;

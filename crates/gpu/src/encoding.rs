@@ -178,12 +178,17 @@ impl GpuHashGrid {
         for (li, lv) in levels.iter_mut().enumerate().take(l) {
             *lv = [grid.resolutions()[li], grid.level_offsets()[li] as u32, grid.is_dense(li) as u32, mask];
         }
+        let mut scales = [[0f32; 4]; MAX_HASH_LEVELS / 4];
+        for (li, s) in cfg.level_scales().into_iter().enumerate() {
+            scales[li / 4][li % 4] = s;
+        }
         let params = HashGridParams {
             aabb_min,
             n_levels: l as u32,
             inv_extent: inv_extent(aabb_min, aabb_max)?,
-            _pad: 0,
+            offset: cfg.level_offset(),
             levels,
+            scales,
         };
         let float_atomics = mode != AtomicMode::CompareExchange && ctx.features.float32_atomics;
         let subgroup_sums = float_atomics && mode == AtomicMode::SubgroupSums && ctx.features.subgroups;

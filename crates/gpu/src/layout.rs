@@ -60,7 +60,7 @@ pub struct BatchParams {
 }
 
 // ---- encoding.rs ----
-/// `Params` of `shaders/hash_grid.wgsl` (uniform; 1056 bytes).
+/// `Params` of `shaders/hash_grid.wgsl` (uniform; 1312 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct HashGridParams {
@@ -70,10 +70,13 @@ pub struct HashGridParams {
     pub n_levels: u32,
     /// `1 / (aabb_max − aabb_min)` per axis, computed in `f32` as `nerf-field-hash` does.
     pub inv_extent: [f32; 3],
-    /// Padding (uniform layout).
-    pub _pad: u32,
+    /// `o` of `p = x·s_l + o` ([`nerf_encoding::HashGridConfig::level_offset`]: 0 or ½).
+    pub offset: f32,
     /// Per level: resolution, offset of the level in the parameters (floats), 1 when dense, T − 1.
     pub levels: [[u32; 4]; crate::encoding::MAX_HASH_LEVELS],
+    /// Per level `l`: `s_l` of `p = x·s_l + o` at `[l / 4][l % 4]`
+    /// ([`nerf_encoding::HashGridConfig::level_scales`]).
+    pub scales: [[f32; 4]; crate::encoding::MAX_HASH_LEVELS / 4],
 }
 
 // ---- glue.rs ----

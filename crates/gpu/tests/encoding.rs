@@ -4,7 +4,7 @@
 //! any adapter (lavapipe in CI); prints a notice and skips where no adapter exists.
 
 use nerf_encoding::{
-    Encoding, FrequencyEncoding, FrequencyEncodingConfig, HashGrid, HashGridConfig, Precision, ShConfig,
+    Encoding, FrequencyEncoding, FrequencyEncodingConfig, HashGrid, GridAlign, HashGridConfig, Precision, ShConfig,
     SphericalHarmonics,
 };
 use nerf_gpu::encoding::{AtomicMode, GpuFrequencyEncoding, GpuHashGrid, GpuSphericalHarmonics};
@@ -74,12 +74,17 @@ fn grid_configs() -> Vec<HashGridConfig> {
         dense_levels: dense,
         storage: Precision::F32,
         init_scale: 1.0,
+        ..Default::default()
     };
+    let staggered = |c: HashGridConfig| HashGridConfig { align: GridAlign::Staggered, ..c };
     vec![
         c(6, 2, 12, 4, 64, true),
         c(5, 1, 10, 3, 40, false),
         c(4, 4, 13, 6, 96, true),
         c(3, 8, 9, 2, 30, true),
+        // tiny-cuda-nn's staggered levels: dense and hashed, F = 2 and 4.
+        staggered(c(6, 2, 12, 4, 64, true)),
+        staggered(c(4, 4, 13, 6, 96, false)),
     ]
 }
 
