@@ -211,15 +211,21 @@ fn the_example_ablations_parse_and_plan() {
         }
     }
     // The device ablations (their scene is a copy of ../shared's lego in .data/, made on demand).
-    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_coop.toml", 2)] {
+    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_coop.toml", 2)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(plans.len(), n_runs, "{name}");
         assert!(plans.iter().all(|p| p.config.field == "hash" && p.config.target_samples_per_step == Some(1 << 18)), "{name}");
-        if name == "h100_lego.toml" {
+        if name.starts_with("h100_lego") {
             // configs/gpu_hash.toml's schedule: annealed over the 5 minutes, whatever the step rate.
             assert!(matches!(&plans[0].config.lr, nerf::optim::LrSchedule::Progress { at, warmup_steps: 100, .. } if at.len() == 3));
             assert!(plans[0].config.validate().is_ok());
+            // The preset run keeps its checkpoint for eval_half.sh (all 200 test views).
+            assert_eq!(a.spec.checkpoints, name == "h100_lego.toml");
+        }
+        if name == "h100_lego_tcnn_grid.toml" {
+            let grid = &plans[0].config.field_config["grid"];
+            assert_eq!((grid["max_resolution"].as_u64(), grid["align"].as_str()), (Some(4096), Some("staggered")));
         }
     }
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
