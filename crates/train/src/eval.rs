@@ -82,7 +82,7 @@ impl AlphaSplit {
     /// the error and their mean opacity.
     pub fn summary(&self) -> String {
         format!(
-            "object pixels {:.2} dB, empty pixels ({:.0} % of them) {:.2} dB with {:.1} % of the squared error, mean opacity there {:.4}",
+            "object pixels {:.2} dB; empty pixels ({:.0} % of the image) {:.2} dB, {:.1} % of the squared error, mean opacity there {:.4}",
             nerf_metrics::mse_to_psnr(self.mse_object),
             100.0 * self.empty_fraction,
             nerf_metrics::mse_to_psnr(self.mse_empty),
