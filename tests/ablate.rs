@@ -228,6 +228,17 @@ fn the_example_ablations_parse_and_plan() {
             assert_eq!((grid["max_resolution"].as_u64(), grid["align"].as_str()), (Some(4096), Some("staggered")));
         }
     }
+    // The GPU/CPU parity run trains the CPU's lego 400x400 preset row as it was (same config),
+    // on two seeds.
+    let parity = Ablation::load(&dir.join("h100_lego400_parity.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    let cpu = Ablation::load(&dir.join("nerfacc_lego400.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(parity.len(), 2);
+    for p in &parity {
+        let mut c = p.config.clone();
+        c.seed = cpu[0].config.seed;
+        assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&cpu[0].config).unwrap());
+    }
+    assert_ne!(parity[0].config.seed, parity[1].config.seed);
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));

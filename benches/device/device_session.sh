@@ -10,7 +10,9 @@
 # LEGO=FILE runs another lego ablation in place of h100_lego.toml (its scene path must be
 # ../../.data/lego, as there). The run keeps its checkpoint in runs/device/lego: two calls of
 # eval_half.sh on the same warm machine then score it on all 200 test views (~1 min each).
-# ONLY_LEGO=1 skips the checks before and the grid runs after the lego run (~6 min in all), to
+# Before the lego run, examples/ablations/h100_lego400_parity.toml (~1 min) trains the CPU's lego
+# 400x400 preset row on the GPU, for GPU/CPU parity per step on a real scene.
+# ONLY_LEGO=1 skips the checks before and the grid runs after those runs (~7 min in all), to
 # leave the lease room for eval_half.sh twice and lego_variant.sh.
 # Build and pack here first: `bash benches/device/prepare.sh --rebuild`; carry .gl .bin .bint .data.
 set -u
@@ -29,6 +31,11 @@ echo "== bench ($(left) s left)"
 timeout 45 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "trunk|hash_grid_(forward|backward|input)" > "$OUT/bench.log" 2>&1
 grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 fi
+echo "== parity ($(left) s left)"
+# The CPU's lego 400x400 preset row on the GPU, two seeds (~20 s each): a device-only fault would
+# show as a gap beyond the seed spread (CPU, seed 0: 30.65 dB after 2000 steps).
+timeout 100 .bin/nerf ablate examples/ablations/h100_lego400_parity.toml --device gpu --out /tmp/parity > "$OUT/parity.log" 2>&1
+cat /tmp/parity/results.md >> "$OUT/parity.log" 2>/dev/null; cat /tmp/parity/results.md 2>/dev/null
 echo "== lego ($(left) s left)"
 # Into runs/device/lego (git-ignored, so kept between calls): eval_half.sh scores its checkpoint
 # on all 200 test views afterwards. A run of an earlier call would be skipped as finished.
