@@ -113,9 +113,11 @@ fn tiny_ablation_end_to_end_and_skip_on_rerun() {
         let log = m["train_log"].as_array().unwrap();
         assert_eq!(log.iter().map(|p| p["step"].as_u64().unwrap()).collect::<Vec<_>>(), [3, 4], "{}", r.plan.id);
         for p in log {
-            for key in ["elapsed_secs", "loss", "train_psnr", "lr", "samples", "marched_samples"] {
+            for key in ["elapsed_secs", "loss", "train_psnr", "lr", "samples", "marched_samples", "rays", "alive_rays", "train_psnr_alive"] {
                 assert!(p[key].as_f64().is_some_and(|x| x.is_finite() && x > 0.0), "{}: train_log {key}: {p}", r.plan.id);
             }
+            // The alive rays are some of the batch.
+            assert!(p["alive_rays"].as_u64() <= p["rays"].as_u64(), "{p}");
         }
         assert!(log[0]["elapsed_secs"].as_f64() <= log[1]["elapsed_secs"].as_f64());
     }

@@ -77,6 +77,16 @@ fn a_compacted_step_is_the_full_step_on_fewer_samples() {
             comp.n_samples,
             full.n_samples
         );
+        // The alive rays (those that met a sample) are the same either way: compaction keeps every
+        // ray's first sample. Their MSE is the part of the batch's that they carry.
+        assert_eq!((full.n_rays, comp.n_rays), (256, 256), "{name}: rays read back");
+        assert_eq!(full.alive_rays, comp.alive_rays, "{name}: alive rays");
+        assert!(full.alive_rays > 0 && full.alive_rays < full.n_rays, "{name}: {} alive rays of {}", full.alive_rays, full.n_rays);
+        for s in [&full, &comp] {
+            let (all, alive) = (s.mse as f64 * s.n_rays as f64, s.mse_alive as f64 * s.alive_rays as f64);
+            assert!(alive.is_finite() && alive > 0.0 && alive <= all * (1.0 + 1e-5), "{name}: alive rays' squared error {alive} of {all}");
+        }
+        assert!((full.mse_alive - comp.mse_alive).abs() <= 1e-5 * full.mse_alive, "{name}: {} vs {}", full.mse_alive, comp.mse_alive);
         // The density pass saw exactly the samples the full step trained on.
         assert_eq!((full.n_marched, comp.n_marched), (full.n_samples, full.n_samples), "{name}: marched samples");
         // The update: what the step moved, and how far apart the two results are.

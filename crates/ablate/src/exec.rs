@@ -43,6 +43,16 @@ pub struct TrainLogPoint {
     pub samples: usize,
     /// Samples marched in the step (before compaction).
     pub marched_samples: usize,
+    /// Rays in the step's batch.
+    #[serde(default)]
+    pub rays: usize,
+    /// Rays that met at least one sample (positive opacity; nerfacc's `alive_ray_mask`).
+    #[serde(default)]
+    pub alive_rays: usize,
+    /// PSNR of the photometric MSE over those rays alone, dB: what nerfacc's training log prints
+    /// (as an MSE). `null` without such a ray.
+    #[serde(default)]
+    pub train_psnr_alive: Option<f64>,
 }
 
 /// What a finished run wrote to `runs/<id>/metrics.json` (stable keys, shared with `nerf train`
@@ -204,6 +214,9 @@ fn log_point(s: &nerf_train::StepStats, step: u64, elapsed_secs: f64) -> TrainLo
         lr: s.lr,
         samples: s.n_samples,
         marched_samples: s.n_marched,
+        rays: s.n_rays,
+        alive_rays: s.alive_rays,
+        train_psnr_alive: s.mse_alive.is_finite().then(|| nerf_metrics::mse_to_psnr(s.mse_alive as f64)),
     }
 }
 

@@ -628,6 +628,7 @@ impl GpuEngine {
         }
         let (mut loss, mut mse) = (f32::NAN, f32::NAN);
         let (mut n_samples, mut n_marched) = self.last_n_samples.get();
+        let (mut n_rays_read, mut alive_rays, mut mse_alive) = (0, 0, f32::NAN);
         if read {
             let (mut l, mut total) = (0.0f64, 0usize);
             for (i, st) in self.stages.iter().enumerate() {
@@ -645,6 +646,9 @@ impl GpuEngine {
                 total += c[1] as usize;
                 if i == last {
                     mse = m as f32;
+                    n_rays_read = n_rays;
+                    let opacity = ctx.read_f32(&st.opacity, n_rays).map_err(gerr)?;
+                    (alive_rays, mse_alive) = crate::trainer::alive_mse(&opacity, |r| sq[r] as f64);
                 }
             }
             if let Some(p) = &self.pose {
@@ -657,7 +661,7 @@ impl GpuEngine {
             n_samples = total;
             self.last_n_samples.set((total, n_marched));
         }
-        Ok(StepStats { step, loss, mse, n_samples, n_marched, lr })
+        Ok(StepStats { step, loss, mse, n_samples, n_marched, n_rays: n_rays_read, alive_rays, mse_alive, lr })
     }
 
     /// The profile of `TrainConfig::gpu_profile` once its window is complete (once), or with

@@ -221,6 +221,9 @@ pub fn run(
                 "lr": s.lr,
                 "samples": s.n_samples,
                 "marched_samples": s.n_marched,
+                "rays": s.n_rays,
+                "alive_rays": s.alive_rays,
+                "train_psnr_alive": s.mse_alive.is_finite().then(|| nerf_metrics::mse_to_psnr(s.mse_alive as f64)),
             });
             writeln!(history, "{line}").map_err(io_err(&hist_path))?;
         }

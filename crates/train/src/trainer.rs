@@ -122,8 +122,32 @@ pub struct StepStats {
     /// density pass saw them); without compaction the first stage's `n_samples`. On the GPU read
     /// back with the loss, as `n_samples`.
     pub n_marched: usize,
+    /// Rays in the step's batch. On the GPU read back with the loss (0 in between).
+    pub n_rays: usize,
+    /// Rays of the final stage whose composited opacity is positive, i.e. that met at least one
+    /// sample (nerfacc's `alive_ray_mask`); read back with the loss on the GPU.
+    pub alive_rays: usize,
+    /// Photometric MSE of the final stage over those rays alone: what nerfacc's training log
+    /// prints as its loss. Rays that met no sample show the background they are composited on, so
+    /// with random backgrounds they add exact zeros to [`mse`](Self::mse). NaN when not read (GPU,
+    /// between reads) or when no ray is alive.
+    pub mse_alive: f32,
     /// Learning rate used.
     pub lr: f32,
+}
+
+/// `(rays with a positive opacity, the MSE over their 3 channels)` from per-ray opacities and
+/// per-ray squared errors summed over the channels ([`StepStats::alive_rays`],
+/// [`StepStats::mse_alive`]; NaN without such a ray).
+pub(crate) fn alive_mse(opacity: &[f32], ray_sq_err: impl Fn(usize) -> f64) -> (usize, f32) {
+    let (mut n, mut sum) = (0usize, 0.0f64);
+    for (r, &a) in opacity.iter().enumerate() {
+        if a > 0.0 {
+            n += 1;
+            sum += ray_sq_err(r);
+        }
+    }
+    (n, if n > 0 { (sum / (3 * n) as f64) as f32 } else { f32::NAN })
 }
 
 /// Field instances that hold the EMA weights, for rendering on the CPU. Filled from the average
@@ -561,6 +585,7 @@ impl Trainer {
         let mut loss = 0.0;
         let mut mse = 0.0;
         let mut n_samples = 0;
+        let (mut alive_rays, mut mse_alive) = (0, f32::NAN);
         let n_stages = self.stages.len();
         let depth_range = self.bounds.far - self.bounds.near;
         for (i, (field, st)) in self.fields.iter_mut().zip(self.stages.iter_mut()).enumerate() {
@@ -574,6 +599,10 @@ impl Trainer {
             });
             let pred = color.as_ref().map_or(&st.comp.rgb, |c| &c.out);
             mse = photometric_loss_grad(pred, &b.target, cfg.loss.huber_delta(), &mut st.d_ray_rgb);
+            if i + 1 == n_stages {
+                let sq = |r: usize| (0..3).map(|c| ((pred[3 * r + c] - b.target[3 * r + c]) as f64).powi(2)).sum::<f64>();
+                (alive_rays, mse_alive) = alive_mse(&st.comp.opacity[..n_rays], sq);
+            }
             let (d_ray_rgb, d_opacity) = match color {
                 Some(c) => {
                     c.d_rgb.resize(3 * n_rays, 0.0);
@@ -658,7 +687,7 @@ impl Trainer {
         let spr = self.stages[0].samples.len() as f32 / n_rays.max(1) as f32;
         self.samples_per_ray = if self.samples_per_ray > 0.0 { 0.9 * self.samples_per_ray + 0.1 * spr } else { spr };
         let n_marched = if cfg.compact_samples { self.marched.len() } else { self.stages[0].samples.len() };
-        let stats = StepStats { step: self.step, loss, mse, n_samples, n_marched, lr };
+        let stats = StepStats { step: self.step, loss, mse, n_samples, n_marched, n_rays, alive_rays, mse_alive, lr };
         self.samples_seen += n_samples as u64;
         self.step += 1;
         stats
@@ -1212,6 +1241,17 @@ fn run_stage(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn alive_mse_counts_only_rays_with_opacity() {
+        let opacity = [0.0f32, 0.5, 1e-30, 0.0, 1.0];
+        let sq = [9.0f64, 0.3, 0.6, 5.0, 0.0];
+        let (n, m) = alive_mse(&opacity, |r| sq[r]);
+        assert_eq!(n, 3);
+        assert!((m as f64 - 0.9 / 9.0).abs() < 1e-7, "{m}");
+        let (n, m) = alive_mse(&[0.0, 0.0], |_| 1.0);
+        assert!(n == 0 && m.is_nan());
+    }
 
     #[test]
     fn seen_marks_round_trip_through_checkpoint_values() {
