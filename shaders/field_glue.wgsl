@@ -4,7 +4,8 @@
 // forward_t / backward_t / query_t (each GPU field is compared with its CPU field in its crate).
 //
 //   x = dout[k·dd]  (the density network's first output)
-//   σ = exp(min(x, 80))            (act = 0, Instant-NGP; backward: exp(min(x, 15)), truncated exp)
+//   σ = exp(min(x + b, 80))        (act = 0, Instant-NGP; backward: exp(min(x + b, 15)), truncated
+//                                   exp; b = bias, 0 by default, nerfacc's example: −1)
 //   σ = max(x, 0)                  (act = 1, the paper)
 //   colour input = [dout[feat_start .. dd], dir_enc[0 .. dir_dim]]
 //   backward: d_dout[j] = d_color_in[j − feat_start] for j ≥ feat_start, else 0; d_dout[0] += dσ·σ'(x)
@@ -15,7 +16,7 @@ struct GlueParams {
     capacity: u32,
     feat_start: u32,
     act: u32,
-    _pad0: u32,
+    bias: f32,
     _pad1: u32,
     _pad2: u32,
 }
@@ -36,14 +37,14 @@ fn n_samples() -> u32 {
 
 fn activate(x: f32) -> f32 {
     if (gp.act == 0u) {
-        return exp(min(x, 80.0));
+        return exp(min(x + gp.bias, 80.0));
     }
     return max(x, 0.0);
 }
 
 fn activation_grad(x: f32) -> f32 {
     if (gp.act == 0u) {
-        return exp(min(x, 15.0));
+        return exp(min(x + gp.bias, 15.0));
     }
     return select(0.0, 1.0, x > 0.0);
 }

@@ -89,7 +89,7 @@ impl GpuHashNerf {
         // alone, not for the SH encoding.
         density.set_partial(ctx, 1, enc_dim);
         color.set_partial(ctx, field.color.config.output_dim, dd);
-        let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp, capacity);
+        let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp { bias: cfg.density_bias }, capacity);
         let wd = cfg.mlp_weight_decay;
         let values = [field.grid.params(), field.density.params(), field.color.params()];
         let groups = GROUP_NAMES

@@ -41,6 +41,10 @@ pub struct HashNerfConfig {
     pub mlp_bias: bool,
     /// L2 weight decay on the MLP weights (the hash table gets none).
     pub mlp_weight_decay: f32,
+    /// `b` of `σ = exp(x + b)`, `x` the density MLP's first output (instant-ngp: 0; nerfacc's
+    /// example: −1, so that a fresh field starts at σ ≈ e⁻¹ rather than 1). The colour MLP still
+    /// sees `x` itself.
+    pub density_bias: f32,
     /// Which fully fused MLP kernels the GPU twin runs (ignored on the CPU): `plain` WGSL (every
     /// adapter) or `coop`erative matrices (tensor cores; adapters that offer them).
     pub gpu_mlp: GpuMlp,
@@ -84,6 +88,7 @@ impl Default for HashNerfConfig {
             color_layers: 2,
             mlp_bias: false,
             mlp_weight_decay: 1e-6,
+            density_bias: 0.0,
             gpu_mlp: GpuMlp::Plain,
             gpu_keep_density_activations: false,
             gpu_hash_subgroup_sums: false,
@@ -159,6 +164,9 @@ impl<T: Real> HashNerf<T> {
         let bad = |m: String| FieldError::InvalidConfig { field: "hash".into(), message: m };
         if !(1..=4).contains(&config.sh_degree) {
             return Err(bad(format!("sh_degree must be 1..=4, got {}", config.sh_degree)));
+        }
+        if !config.density_bias.is_finite() {
+            return Err(bad(format!("density_bias must be finite, got {}", config.density_bias)));
         }
         if config.density_hidden == 0 || config.color_hidden == 0 {
             return Err(bad("MLP widths must be positive".into()));
@@ -314,6 +322,7 @@ impl<T: Real> HashNerf<T> {
     /// The rest of a training forward once `t.xn` and `t.enc` hold the samples' normalised
     /// positions and encodings; stores the tape.
     fn forward_from_encoding(&mut self, mut t: Tape<T>, dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
+        let bias = T::c(self.config.density_bias as f64);
         let n = t.xn.len() / 3;
         assert_eq!(dirs.len(), 3 * n);
         let (dd, sh_dim) = (self.dout_dim(), self.sh_dim());
@@ -326,7 +335,7 @@ impl<T: Real> HashNerf<T> {
         t.color_in.resize(n * (dd + sh_dim), T::zero());
         for k in 0..n {
             let row = &dout[k * dd..(k + 1) * dd];
-            sigma[k] = row[0].min(T::c(MAX_LOG_DENSITY)).exp();
+            sigma[k] = (row[0] + bias).min(T::c(MAX_LOG_DENSITY)).exp();
             let ci = &mut t.color_in[k * (dd + sh_dim)..(k + 1) * (dd + sh_dim)];
             ci[..dd].copy_from_slice(row);
             ci[dd..].copy_from_slice(&t.sh[k * sh_dim..(k + 1) * sh_dim]);
@@ -345,6 +354,7 @@ impl<T: Real> HashNerf<T> {
     /// [`RadianceField::backward_with_inputs`]). A position outside the box is clamped to it
     /// before the encoding, so its gradient across the clamped axis is 0.
     pub fn backward_inputs_t(&mut self, d_sigma: &[T], d_rgb: &[T], inputs: Option<(&mut [T], &mut [T])>) {
+        let bias = T::c(self.config.density_bias as f64);
         let mut t = std::mem::take(&mut self.tape);
         let n = t.n;
         assert_eq!(d_sigma.len(), n);
@@ -358,8 +368,8 @@ impl<T: Real> HashNerf<T> {
         for (k, &ds) in d_sigma.iter().enumerate() {
             let dr = &mut t.d_density_out[k * dd..(k + 1) * dd];
             dr.copy_from_slice(&t.d_color_in[k * (dd + sh_dim)..k * (dd + sh_dim) + dd]);
-            // σ = exp(x) with a truncated gradient: dσ/dx := exp(min(x, TRUNC)).
-            let x = t.color_in[k * (dd + sh_dim)];
+            // σ = exp(x + b) with a truncated gradient: dσ/dx := exp(min(x + b, TRUNC)).
+            let x = t.color_in[k * (dd + sh_dim)] + bias;
             dr[0] += ds * x.min(T::c(TRUNC)).exp();
         }
         t.d_enc.resize(n * enc_dim, T::zero());
@@ -409,6 +419,7 @@ impl<T: Real> HashNerf<T> {
         mut keep_enc: Option<&mut [T]>,
         s: &mut Scratch<T>,
     ) {
+        let bias = T::c(self.config.density_bias as f64);
         let n = positions.len() / 3;
         let (dd, enc_dim, sh_dim) = (self.dout_dim(), self.enc_dim(), self.sh_dim());
         for c0 in (0..n).step_by(QUERY_CHUNK) {
@@ -426,7 +437,7 @@ impl<T: Real> HashNerf<T> {
             s.dout.resize(m * dd, T::zero());
             self.density.infer(m, enc, &mut s.mlp, &mut s.dout);
             for k in 0..m {
-                sigma[c0 + k] = s.dout[k * dd].min(T::c(MAX_LOG_DENSITY)).exp();
+                sigma[c0 + k] = (s.dout[k * dd] + bias).min(T::c(MAX_LOG_DENSITY)).exp();
             }
             if let (Some(dirs), Some(rgb)) = (dirs, rgb.as_deref_mut()) {
                 s.sh.resize(m * sh_dim, T::zero());

@@ -31,6 +31,7 @@ fn small() -> HashNerfConfig {
         color_layers: 2,
         mlp_bias: true,
         mlp_weight_decay: 1e-6,
+        density_bias: 0.0,
         gpu_mlp: GpuMlp::Plain,
         gpu_keep_density_activations: true,
         gpu_hash_subgroup_sums: false,
@@ -65,7 +66,17 @@ fn loss(f: &HashNerf<f64>, pos: &[f64], dirs: &[f64], a: &[f64], b: &[f64]) -> f
 
 #[test]
 fn whole_field_backward_matches_finite_differences_f64() {
-    let mut f = HashNerf::<f64>::new(small(), &unit_ctx(4)).unwrap();
+    backward_matches_finite_differences(small());
+}
+
+/// The same with nerfacc's density bias (σ = exp(x − 1)).
+#[test]
+fn whole_field_backward_with_a_density_bias_matches_finite_differences_f64() {
+    backward_matches_finite_differences(HashNerfConfig { density_bias: -1.0, ..small() });
+}
+
+fn backward_matches_finite_differences(cfg: HashNerfConfig) {
+    let mut f = HashNerf::<f64>::new(cfg, &unit_ctx(4)).unwrap();
     let mut rng = nerf_core::rng(9, 0);
     let n = 7;
     let res = f.grid().resolutions().to_vec();
@@ -196,6 +207,41 @@ fn density_gradient_is_truncated_for_large_log_density() {
     assert!((bias_grad - 15f64.exp()).abs() < 1e-6 * 15f64.exp(), "truncated gradient {bias_grad}");
 }
 
+/// `density_bias = b` scales σ by e^b and leaves the colours alone (the colour net sees the
+/// unbiased output), and the truncation of the gradient applies to `x + b`.
+#[test]
+fn density_bias_scales_sigma_and_moves_the_truncation() {
+    let mut cfg = small();
+    cfg.density_layers = 0;
+    cfg.mlp_bias = true;
+    let run = |bias: f64, x: f64| {
+        let mut f = HashNerf::<f64>::new(HashNerfConfig { density_bias: bias as f32, ..cfg.clone() }, &unit_ctx(1)).unwrap();
+        {
+            let [d, _] = f.mlps_mut();
+            let p = d.params_mut();
+            p.iter_mut().for_each(|v| *v = 0.0);
+            let bias0 = p.len() - 4; // 1 + geo_features outputs
+            p[bias0] = x;
+        }
+        let (mut s, mut c) = ([0.0], [0.0; 3]);
+        f.forward_t(&[0.3, 0.4, 0.6], &[0.0, 0.0, 1.0], &mut s, &mut c);
+        f.backward_t(&[1.0], &[0.0; 3]);
+        let [d, _] = f.mlps();
+        let g = d.grads();
+        (s[0], c, g[g.len() - 4])
+    };
+    let (s0, c0, g0) = run(0.0, 0.7);
+    let (s1, c1, g1) = run(-1.0, 0.7);
+    assert!((s1 - s0 * (-1f64).exp()).abs() < 1e-12 * s0, "{s1} vs {s0}");
+    assert_eq!(c0, c1, "the colour net sees x, not x + b");
+    assert!((g1 - g0 * (-1f64).exp()).abs() < 1e-12 * g0, "{g1} vs {g0}");
+    // x = 15.5: truncated without a bias, not with b = −1 (x + b = 14.5).
+    let (_, _, g) = run(0.0, 15.5);
+    assert!((g - 15f64.exp()).abs() < 1e-9 * g);
+    let (s, _, g) = run(-1.0, 15.5);
+    assert!((s - 14.5f64.exp()).abs() < 1e-9 * s && (g - 14.5f64.exp()).abs() < 1e-9 * g, "{g}");
+}
+
 #[test]
 fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
     let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 2, scene_scale: 1.0 };
@@ -290,6 +336,8 @@ fn bad_configs_are_rejected() {
     assert!(e.to_string().contains("levls"), "{e}");
     let flat = FieldContext { aabb_min: [0.0; 3], aabb_max: [1.0, 0.0, 1.0], seed: 0, scene_scale: 1.0 };
     assert!(nerf_field_hash::build(&serde_json::Value::Null, &flat).is_err());
+    let e = HashNerf::<f32>::new(HashNerfConfig { density_bias: f32::NAN, ..small() }, &unit_ctx(0)).err().unwrap();
+    assert!(e.to_string().contains("density_bias"), "{e}");
 }
 
 #[test]

@@ -17,8 +17,12 @@ fn check_small_field_with(storage: nerf_encoding::Precision, seed: u64, subgroup
 }
 
 fn check_small_field_aligned(storage: nerf_encoding::Precision, seed: u64, subgroup_sums: bool, align: nerf_encoding::GridAlign) {
+    check_small_field_biased(storage, seed, subgroup_sums, align, 0.0);
+}
+
+fn check_small_field_biased(storage: nerf_encoding::Precision, seed: u64, subgroup_sums: bool, align: nerf_encoding::GridAlign, density_bias: f32) {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    let mut cfg = HashNerfConfig { gpu_hash_subgroup_sums: subgroup_sums, ..Default::default() };
+    let mut cfg = HashNerfConfig { gpu_hash_subgroup_sums: subgroup_sums, density_bias, ..Default::default() };
     cfg.grid.align = align;
     cfg.grid.n_levels = 6;
     cfg.grid.log2_hashmap_size = 12;
@@ -58,6 +62,12 @@ fn gpu_hash_field_with_subgroup_sums_matches_the_cpu_field() {
 fn gpu_hash_field_with_staggered_levels_matches_the_cpu_field() {
     check_small_field_aligned(nerf_encoding::Precision::F32, 10, false, nerf_encoding::GridAlign::Staggered);
     check_small_field_aligned(nerf_encoding::Precision::F32, 13, true, nerf_encoding::GridAlign::Staggered);
+}
+
+/// The same with nerfacc's density bias (σ = exp(x − 1)).
+#[test]
+fn gpu_hash_field_with_a_density_bias_matches_the_cpu_field() {
+    check_small_field_biased(nerf_encoding::Precision::F32, 14, false, nerf_encoding::GridAlign::Corner, -1.0);
 }
 
 /// Camera pose refinement's input gradients (∂L/∂x through the hash encoding and the box's

@@ -7,10 +7,14 @@ use crate::{shaders, GpuContext};
 pub use crate::layout::{GlueParams};
 
 /// How σ is made from the density network's first output `x`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum SigmaActivation {
-    /// `σ = exp(min(x, 80))`, gradient `exp(min(x, 15))` (Instant-NGP's truncated exp).
-    TruncExp,
+    /// `σ = exp(min(x + bias, 80))`, gradient `exp(min(x + bias, 15))` (Instant-NGP's truncated
+    /// exp; nerfacc's example shifts it by `bias = −1`).
+    TruncExp {
+        /// Added to `x` before the exponential.
+        bias: f32,
+    },
     /// `σ = max(x, 0)` (the paper).
     Relu,
 }
@@ -41,10 +45,14 @@ impl FieldGlue {
             capacity: capacity as u32,
             feat_start: feat_start as u32,
             act: match act {
-                SigmaActivation::TruncExp => 0,
+                SigmaActivation::TruncExp { .. } => 0,
                 SigmaActivation::Relu => 1,
             },
-            _pad: [0; 3],
+            bias: match act {
+                SigmaActivation::TruncExp { bias } => bias,
+                SigmaActivation::Relu => 0.0,
+            },
+            _pad: [0; 2],
         };
         Self {
             assemble: Kernel::from_module(ctx, &module, "assemble", &[]),

@@ -94,8 +94,10 @@ pub struct GlueParams {
     pub feat_start: u32,
     /// 0 = truncated exp, 1 = ReLU.
     pub act: u32,
+    /// Added to the density output before the truncated exp (0 for ReLU).
+    pub bias: f32,
     /// Padding.
-    pub _pad: [u32; 3],
+    pub _pad: [u32; 2],
 }
 
 // ---- linear.rs ----

@@ -24,14 +24,14 @@ struct Shape {
 
 fn sigma_of(act: SigmaActivation, x: f32) -> f32 {
     match act {
-        SigmaActivation::TruncExp => x.min(80.0).exp(),
+        SigmaActivation::TruncExp { bias } => (x + bias).min(80.0).exp(),
         SigmaActivation::Relu => x.max(0.0),
     }
 }
 
 fn sigma_grad(act: SigmaActivation, x: f32) -> f32 {
     match act {
-        SigmaActivation::TruncExp => x.min(15.0).exp(),
+        SigmaActivation::TruncExp { bias } => (x + bias).min(15.0).exp(),
         SigmaActivation::Relu => (x > 0.0) as u32 as f32,
     }
 }
@@ -129,7 +129,7 @@ fn glue_matches_its_cpu_twin() {
             dd: 16,
             dir_dim: 16,
             feat_start: 0,
-            act: SigmaActivation::TruncExp,
+            act: SigmaActivation::TruncExp { bias: 0.0 },
         },
         // The paper's field: σ, 256 features, 27 direction encodings.
         Shape {
@@ -149,7 +149,7 @@ fn glue_matches_its_cpu_twin() {
             dd: 1,
             dir_dim: 7,
             feat_start: 0,
-            act: SigmaActivation::TruncExp,
+            act: SigmaActivation::TruncExp { bias: -1.0 },
         },
     ];
     let mut seed = 10;
