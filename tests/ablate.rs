@@ -213,7 +213,7 @@ fn the_example_ablations_parse_and_plan() {
         }
     }
     // The device ablations (their scene is a copy of ../shared's lego in .data/, made on demand).
-    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_coop.toml", 2)] {
+    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(plans.len(), n_runs, "{name}");
@@ -224,6 +224,18 @@ fn the_example_ablations_parse_and_plan() {
             assert!(plans[0].config.validate().is_ok());
             // The preset run keeps its checkpoint for eval_half.sh (all 200 test views).
             assert_eq!(a.spec.checkpoints, name == "h100_lego.toml");
+        }
+        if name == "h100_lego_occ_threshold.toml" {
+            // The preset's sampler but for the threshold.
+            let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
+            match (&plans[0].config.sampler, &preset[0].config.sampler) {
+                (nerf::train::SamplerConfig::Occupancy { grid: g, .. }, nerf::train::SamplerConfig::Occupancy { grid: p, .. }) => {
+                    assert_eq!((g.threshold, p.threshold), (0.05, 0.01));
+                    assert_eq!(nerf::sampling::OccupancyGridConfig { threshold: p.threshold, ..g.clone() }, *p);
+                }
+                s => panic!("{name}: sampler {s:?}"),
+            }
+            assert_eq!(plans[0].config.field_config, preset[0].config.field_config);
         }
         if name == "h100_lego_tcnn_grid.toml" {
             let grid = &plans[0].config.field_config["grid"];
