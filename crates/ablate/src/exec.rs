@@ -216,7 +216,7 @@ fn log_point(s: &nerf_train::StepStats, step: u64, elapsed_secs: f64) -> TrainLo
         marched_samples: s.n_marched,
         rays: s.n_rays,
         alive_rays: s.alive_rays,
-        train_psnr_alive: s.mse_alive.is_finite().then(|| nerf_metrics::mse_to_psnr(s.mse_alive as f64)),
+        train_psnr_alive: s.psnr_alive(),
     }
 }
 

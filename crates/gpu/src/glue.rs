@@ -39,19 +39,17 @@ impl FieldGlue {
             label: Some("field_glue.wgsl"),
             source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::FIELD_GLUE).into()),
         });
+        let (act, bias) = match act {
+            SigmaActivation::TruncExp { bias } => (0, bias),
+            SigmaActivation::Relu => (1, 0.0),
+        };
         let p = GlueParams {
             dd: dd as u32,
             dir_dim: dir_dim as u32,
             capacity: capacity as u32,
             feat_start: feat_start as u32,
-            act: match act {
-                SigmaActivation::TruncExp { .. } => 0,
-                SigmaActivation::Relu => 1,
-            },
-            bias: match act {
-                SigmaActivation::TruncExp { bias } => bias,
-                SigmaActivation::Relu => 0.0,
-            },
+            act,
+            bias,
             _pad: [0; 2],
         };
         Self {

@@ -223,7 +223,7 @@ pub fn run(
                 "marched_samples": s.n_marched,
                 "rays": s.n_rays,
                 "alive_rays": s.alive_rays,
-                "train_psnr_alive": s.mse_alive.is_finite().then(|| nerf_metrics::mse_to_psnr(s.mse_alive as f64)),
+                "train_psnr_alive": s.psnr_alive(),
             });
             writeln!(history, "{line}").map_err(io_err(&hist_path))?;
         }

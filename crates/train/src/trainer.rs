@@ -136,6 +136,13 @@ pub struct StepStats {
     pub lr: f32,
 }
 
+impl StepStats {
+    /// PSNR of [`mse_alive`](Self::mse_alive), dB; `None` when it is NaN.
+    pub fn psnr_alive(&self) -> Option<f64> {
+        self.mse_alive.is_finite().then(|| nerf_metrics::mse_to_psnr(self.mse_alive as f64))
+    }
+}
+
 /// `(rays with a positive opacity, the MSE over their 3 channels)` from per-ray opacities and
 /// per-ray squared errors summed over the channels ([`StepStats::alive_rays`],
 /// [`StepStats::mse_alive`]; NaN without such a ray).
