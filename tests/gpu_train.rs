@@ -151,6 +151,69 @@ fn gpu_checkpoints_render_the_same_on_the_cpu_with_every_sampler() {
     }
 }
 
+/// `NERF_GPU_CHECKS=off` builds the kernels without wgpu's runtime checks (index clamps, loop
+/// counters; `GpuContext::shader_module`). That must change no value: the fields trained on a
+/// checked device, restored on an unchecked one, render the same first test view bit for bit
+/// (marching, both encodings, the MLPs and compositing all run), and a few more training steps
+/// on each (every kernel of a step) keep them together, for the hash field and for the paper's
+/// field with hierarchical sampling.
+#[test]
+fn shader_runtime_checks_change_no_result() {
+    let Some(mut checked) = GpuContext::for_tests() else { return };
+    checked.shader_checks = true;
+    let mut unchecked = GpuContext::for_tests().unwrap();
+    unchecked.shader_checks = false;
+    let (checked, unchecked) = (Arc::new(checked), Arc::new(unchecked));
+    let train = load(Split::Train, ViewSelection::First(10));
+    let test = load(Split::Test, ViewSelection::First(1));
+    let registry = nerf::registry();
+    let bounds = SceneBounds::of(&train);
+    let paper = TrainConfig {
+        iters: 5,
+        batch_rays: 128,
+        field_config: serde_json::json!({"width": 32, "depth": 3, "skips": [1], "view_width": 16}),
+        sampler: SamplerConfig::Hierarchical { n_coarse: 16, n_fine: 16 },
+        ..TrainConfig::default()
+    };
+    for (name, config) in [("hash", small_hash_config(40)), ("paper", paper)] {
+        let mut a = Trainer::new_on(config.clone(), &registry, bounds, Some(checked.clone())).unwrap();
+        for _ in 0..config.iters {
+            a.step(&train).unwrap();
+        }
+        let mut b = Trainer::new_on(config.clone(), &registry, bounds, Some(unchecked.clone())).unwrap();
+        b.restore(a.step_count(), &a.export_fields().unwrap(), a.adam_state().unwrap(), &a.sampler_state().unwrap())
+            .unwrap();
+        let mut batch = nerf::data::RayBatch::default();
+        test.view_rays(0, config.eval_background, config.pixel_convention, &mut batch);
+        let n = batch.len();
+        let render = |t: &Trainer| {
+            let (mut rgb, mut op, mut depth) = (vec![f32::NAN; 3 * n], vec![f32::NAN; n], vec![f32::NAN; n]);
+            t.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut op, &mut depth).unwrap();
+            [rgb, op, depth].map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>())
+        };
+        let (ra, rb) = (render(&a), render(&b));
+        let opacity: f32 = ra[1].iter().map(|&x| f32::from_bits(x)).sum::<f32>() / n as f32;
+        // A trained field, not an empty one: some rays meet matter.
+        assert!(opacity > 0.01 && ra.iter().flatten().all(|&x| f32::from_bits(x).is_finite()), "{name}: opacity {opacity}");
+        for (what, (x, y)) in ["colour", "opacity", "depth"].iter().zip(ra.iter().zip(&rb)) {
+            let differ = x.iter().zip(y).filter(|(p, q)| p != q).count();
+            assert_eq!(differ, 0, "{name}: {differ} {what} values differ with the shader checks on and off");
+        }
+        println!("{name}: {n} rays, mean opacity {opacity:.3}, identical with and without the checks");
+        for _ in 0..5 {
+            a.step(&train).unwrap();
+            b.step(&train).unwrap();
+        }
+        let (ra, rb) = (render(&a), render(&b));
+        let max_diff = ra[0].iter().zip(&rb[0]).map(|(&p, &q)| (f32::from_bits(p) - f32::from_bits(q)).abs()).fold(0.0f32, f32::max);
+        let moved = ra[0].iter().zip(&rb[0]).filter(|(p, q)| p != q).count();
+        println!("{name}: after 5 more steps on each, colour max |Δ| {max_diff:.2e} ({moved} of {} values differ)", 3 * n);
+        // The scatter-adds of the hash table's gradients may sum in another order; a kernel that
+        // read past its tile would move the colours by far more.
+        assert!(max_diff < 1e-3, "{name}: colour max |Δ| {max_diff} after training on and off");
+    }
+}
+
 #[test]
 fn a_gpu_run_resumes_from_a_gpu_or_a_cpu_checkpoint() {
     let Some(ctx) = device() else { return };

@@ -48,10 +48,7 @@ impl GpuColorCorrection {
         if n_views == 0 {
             return Err(GpuError::Unsupported("colour correction without training views".into()));
         }
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("color.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::COLOR).into()),
-        });
+        let module = ctx.shader_module("color.wgsl", &shaders::with_common(shaders::COLOR));
         let identity: Vec<f32> = (0..n_views).flat_map(|_| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]).collect();
         let params = ColorParams { n_views: n_views as u32, capacity_rays: capacity_rays as u32, _pad: [0; 2] };
         Ok(Self {

@@ -43,10 +43,7 @@ impl GpuCompactor {
                 "compaction binds {COMPACT_STORAGE_BINDINGS} storage buffers per stage, the adapter allows {have}"
             )));
         }
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("compact.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::COMPACT).into()),
-        });
+        let module = ctx.shader_module("compact.wgsl", &shaders::with_common(shaders::COMPACT));
         let p = CompactParams { cap_rays: capacity_rays as u32, cap_out: capacity_out as u32, t_threshold, _pad: 0 };
         Ok(Self {
             count: Kernel::from_module(ctx, &module, "compact_count", &[]),

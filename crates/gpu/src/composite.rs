@@ -74,10 +74,7 @@ impl Compositor {
     /// Builds the pipelines for at most `capacity_rays` rays per launch.
     pub fn new(ctx: &GpuContext, capacity_rays: usize, t_threshold: f32, has_background: bool) -> Self {
         let src = shaders::with_common(shaders::COMPOSITE);
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("composite.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(src.into()),
-        });
+        let module = ctx.shader_module("composite.wgsl", &src);
         let params = layout::CompositeParams {
             n_rays: capacity_rays as u32,
             t_threshold,
@@ -329,10 +326,7 @@ impl TrainGlue {
     /// Pipelines for `capacity_rays` rays; `batch` sizes steps by samples (see `next_batch`).
     pub fn new(ctx: &GpuContext, capacity_rays: usize, batch: BatchParams) -> Self {
         let src = shaders::with_common(shaders::TRAIN);
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("train.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(src.into()),
-        });
+        let module = ctx.shader_module("train.wgsl", &src);
         Self {
             loss: Kernel::from_module(ctx, &module, "mse_loss", &[]),
             next_batch: Kernel::from_module(ctx, &module, "next_batch", &[]),

@@ -194,10 +194,7 @@ impl GpuHashGrid {
         let subgroup_sums = float_atomics && mode == AtomicMode::SubgroupSums && ctx.features.subgroups;
         let f = cfg.n_features_per_level;
         let (src, per_slot) = hash_grid_source(f, float_atomics, subgroup_sums);
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("hash_grid.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(src.into()),
-        });
+        let module = ctx.shader_module("hash_grid.wgsl", &src);
         let constants = [("FEATS", f as f64), ("VEC_PER_SLOT", per_slot as f64), ("WG", HASH_WG as f64)];
         let forward = Kernel::from_module(ctx, &module, "hash_forward", &constants);
         let backward_entry = match (float_atomics, subgroup_sums) {
@@ -456,10 +453,7 @@ impl GpuSphericalHarmonics {
     /// Builds the pipeline for `cfg.degree` bands (1..=4).
     pub fn new(ctx: &GpuContext, cfg: &ShConfig) -> Result<Self, GpuError> {
         cfg.validate().map_err(|e| GpuError::Unsupported(e.to_string()))?;
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("sh.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::SH).into()),
-        });
+        let module = ctx.shader_module("sh.wgsl", &shaders::with_common(shaders::SH));
         let constants = [("DEGREE", cfg.degree as f64), ("WG", ENC_WG as f64)];
         let kernel = Kernel::from_module(ctx, &module, "sh_forward", &constants);
         let input_grad = Kernel::from_module(ctx, &module, "sh_input_grad", &constants);
@@ -559,10 +553,7 @@ impl GpuFrequencyEncoding {
                 "frequency encoding: no frequencies and include_input = false give an empty encoding".into(),
             ));
         }
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("frequency.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::FREQUENCY).into()),
-        });
+        let module = ctx.shader_module("frequency.wgsl", &shaders::with_common(shaders::FREQUENCY));
         let constants =
             [("D", input_dim as f64), ("N_FREQ", cfg.n_frequencies as f64), ("SKIP", skip as f64), ("WG", ENC_WG as f64)];
         let kernel = Kernel::from_module(ctx, &module, "frequency_forward", &constants);

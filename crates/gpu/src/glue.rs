@@ -35,10 +35,7 @@ impl FieldGlue {
     /// `feat_start` on.
     pub fn new(ctx: &GpuContext, dd: usize, dir_dim: usize, feat_start: usize, act: SigmaActivation, capacity: usize) -> Self {
         assert!(feat_start < dd.max(1) || dd == 0);
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("field_glue.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::FIELD_GLUE).into()),
-        });
+        let module = ctx.shader_module("field_glue.wgsl", &shaders::with_common(shaders::FIELD_GLUE));
         let (act, bias) = match act {
             SigmaActivation::TruncExp { bias } => (0, bias),
             SigmaActivation::Relu => (1, 0.0),

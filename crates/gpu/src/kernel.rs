@@ -55,10 +55,7 @@ const BIND_GROUP_CACHE: usize = 64;
 impl Kernel {
     /// Compiles `entry` of `source` with pipeline-overridable constants.
     pub fn new(ctx: &GpuContext, source: &str, entry: &str, constants: &[(&str, f64)]) -> Self {
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some(entry),
-            source: wgpu::ShaderSource::Wgsl(source.into()),
-        });
+        let module = ctx.shader_module(entry, source);
         Self::from_module(ctx, &module, entry, constants)
     }
 

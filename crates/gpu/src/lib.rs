@@ -144,6 +144,11 @@ pub struct GpuContext {
     /// Whether per-sample kernels are launched from device-written arguments
     /// ([`dispatch::DispatchArgs`]); off under `NERF_NO_INDIRECT` (for A/B timing).
     pub indirect_dispatch: bool,
+    /// Whether the shader modules built from this context keep wgpu's runtime checks (index
+    /// clamps on fixed-size arrays, loop counters): on by default; off under
+    /// `NERF_GPU_CHECKS=off`, for A/B timing on a device (see [`GpuContext::shader_module`]). Set
+    /// it before building the kernels it should apply to.
+    pub shader_checks: bool,
     /// The pass timer of [`profile`] (made on first use).
     profiler: std::sync::Mutex<Option<profile::Recorder>>,
 }
@@ -216,7 +221,8 @@ impl GpuContext {
         }))
         .map_err(|e| GpuError::Device { adapter: info.name.clone(), message: e.to_string() })?;
         let indirect_dispatch = std::env::var_os("NERF_NO_INDIRECT").is_none();
-        Ok(Some(Self { device, queue, info, features, indirect_dispatch, profiler: Default::default() }))
+        let shader_checks = shader_checks_from(std::env::var("NERF_GPU_CHECKS").ok().as_deref());
+        Ok(Some(Self { device, queue, info, features, indirect_dispatch, shader_checks, profiler: Default::default() }))
     }
 
     /// For tests and benches: any adapter (software ones such as lavapipe included, the
@@ -241,14 +247,60 @@ impl GpuContext {
         self.info.device_type == wgpu::DeviceType::Cpu
     }
 
+    /// Compiles one WGSL file (every kernel is built through here).
+    ///
+    /// With [`GpuContext::shader_checks`] off, the module is built without the checks that naga
+    /// otherwise adds to the SPIR-V it hands the driver: a clamp on every index into a fixed-size
+    /// array (the workgroup tiles of the fused MLPs and GEMMs, read and written in their innermost
+    /// loops) and an iteration counter on every loop. Divisions keep their guard, and storage
+    /// buffers stay bounds-checked by the driver's robust buffer access, which wgpu enables
+    /// wherever the adapter offers it. Whether this is faster
+    /// depends on the driver's compiler: on lavapipe the fused MLPs gain ~5 % and the plain GEMM
+    /// loses ~40 % (docs/results.md), so the checks stay on until a device measures both fields.
+    /// `tests/gpu_train.rs` checks that turning them off changes no rendered value and trains
+    /// the same.
+    pub fn shader_module(&self, label: &str, source: &str) -> wgpu::ShaderModule {
+        let desc = wgpu::ShaderModuleDescriptor { label: Some(label), source: wgpu::ShaderSource::Wgsl(source.into()) };
+        if self.shader_checks {
+            return self.device.create_shader_module(desc);
+        }
+        let checks = wgpu::ShaderRuntimeChecks {
+            bounds_checks: false,
+            force_loop_bounding: false,
+            // Kept: a guarded division by a runtime value costs one select, none sits in a hot
+            // loop, and a zero divisor from a bad parameter stays defined.
+            int_div_checks: true,
+            ..wgpu::ShaderRuntimeChecks::checked()
+        };
+        // SAFETY: the kernels index their fixed-size arrays within bounds (each is tested against
+        // its CPU twin on random inputs; rendering and training with the checks off are compared
+        // with the checks on), every loop is bounded by its parameters, and buffer accesses stay
+        // checked by the driver's robust buffer access.
+        unsafe { self.device.create_shader_module_trusted(desc, checks) }
+    }
+
     /// One line describing the adapter (recorded in metrics.json by the GPU path).
     pub fn describe(&self) -> String {
         format!("{} ({:?}, {:?}, {})", self.info.name, self.info.backend, self.info.device_type, self.info.driver)
     }
-
 }
 
+/// `NERF_GPU_CHECKS`: `off`, `0`, `false` or `no` (any case) turn wgpu's shader runtime checks
+/// off; anything else, or nothing, keeps them.
+fn shader_checks_from(value: Option<&str>) -> bool {
+    !matches!(value.map(|v| v.trim().to_ascii_lowercase()).as_deref(), Some("off" | "0" | "false" | "no"))
+}
 
 /// The wgpu version the kernels are written against, re-exported so fields and the trainer name
 /// the same types.
 pub use wgpu;
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn shader_checks_stay_on_unless_turned_off() {
+        use super::shader_checks_from as f;
+        assert!(f(None) && f(Some("")) && f(Some("on")) && f(Some("1")));
+        assert!(!f(Some("off")) && !f(Some(" OFF ")) && !f(Some("0")) && !f(Some("false")) && !f(Some("no")));
+    }
+}

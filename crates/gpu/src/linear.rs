@@ -276,10 +276,7 @@ impl GpuMlp {
 
     fn build_plain(&self, ctx: &GpuContext) -> Plain {
         let src = shaders::with_common(shaders::LINEAR);
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("linear.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(src.into()),
-        });
+        let module = ctx.shader_module("linear.wgsl", &src);
         let k = |e: &str| Kernel::from_module(ctx, &module, e, &[]);
         let cfg = &self.config;
         let h = cfg.hidden_dim;
@@ -674,10 +671,7 @@ mod coop {
         /// ([`CoopTiling::WorkgroupWide`]); w16 and the f32
         /// partials do not depend on the tiling.
         pub(super) fn new(ctx: &GpuContext, m: &GpuMlp, src: &str, tiling: CoopTiling) -> Result<Self, GpuError> {
-            let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("linear_coop.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(src.to_string().into()),
-            });
+            let module = ctx.shader_module("linear_coop.wgsl", src);
             let k = |e: &str| Kernel::from_module(ctx, &module, e, &[]);
             let cfg = &m.config;
             let xp = r16(cfg.input_dim);

@@ -163,10 +163,7 @@ impl FusedMlp {
         let fps = 2 * total;
         let n_params = off;
         let params = |mode| Self::uniform_params(config, fps, n_params, mode, config.output_dim, config.input_dim);
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("mlp_fused.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::MLP_FUSED).into()),
-        });
+        let module = ctx.shader_module("mlp_fused.wgsl", &shaders::with_common(shaders::MLP_FUSED));
         Ok(Self {
             config: config.clone(),
             n_params,

@@ -195,10 +195,7 @@ impl FusedMlpCoop {
     #[doc(hidden)]
     pub fn with_source(ctx: &GpuContext, config: &MlpConfig, source: &str) -> Result<Self, GpuError> {
         Self::check_config(ctx, config)?;
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("mlp_fused_coop.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(source.into()),
-        });
+        let module = ctx.shader_module("mlp_fused_coop.wgsl", source);
         let k = |e: &str| Kernel::from_module(ctx, &module, e, &[]);
         let kernels = Kernels {
             convert: k("convert_weights"),

@@ -124,10 +124,7 @@ impl GpuOccupancyGrid {
             lv_lo,
             lv_cell,
         };
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("occupancy.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::OCCUPANCY).into()),
-        });
+        let module = ctx.shader_module("occupancy.wgsl", &shaders::with_common(shaders::OCCUPANCY));
         let mk = |e: &str| Kernel::from_module(ctx, &module, e, &[("WG", WG as f64)]);
         let k = Kernels {
             choose: mk("choose"),

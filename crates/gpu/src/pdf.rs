@@ -26,10 +26,7 @@ fn clip_params(clip: Option<([f32; 3], [f32; 3])>) -> PdfParams {
 }
 
 fn module(ctx: &GpuContext) -> wgpu::ShaderModule {
-    ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some("pdf.wgsl"),
-        source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::PDF).into()),
-    })
+    ctx.shader_module("pdf.wgsl", &shaders::with_common(shaders::PDF))
 }
 
 /// Output buffers of one packed sample batch (caller-owned, sized for the capacity).

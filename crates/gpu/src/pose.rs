@@ -76,10 +76,7 @@ impl GpuPoseCorrection {
         if n_views == 0 {
             return Err(GpuError::Unsupported("camera pose refinement without training views".into()));
         }
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("pose.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::POSE).into()),
-        });
+        let module = ctx.shader_module("pose.wgsl", &shaders::with_common(shaders::POSE));
         let params = PoseParams { n_views: n_views as u32, capacity_rays: capacity_rays as u32, trans_penalty, rot_penalty };
         let cap = capacity_rays.max(1);
         Ok(Self {

@@ -323,10 +323,7 @@ impl GpuScan {
     /// Prepares the scan of `len` values (any length up to 2³⁰; 0 gives `out = [0]`).
     pub fn new(ctx: &GpuContext, len: usize) -> Self {
         assert!(len < 1 << 30, "scan length {len} too large");
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("scan.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::SCAN).into()),
-        });
+        let module = ctx.shader_module("scan.wgsl", &shaders::with_common(shaders::SCAN));
         let block = Kernel::from_module(ctx, &module, "scan_block", &[]);
         let inplace = Kernel::from_module(ctx, &module, "scan_inplace", &[]);
         let add = Kernel::from_module(ctx, &module, "scan_add", &[]);
@@ -563,10 +560,7 @@ impl GpuMarcher {
         }
         let res = cfg.resolution;
         let cres = res.div_ceil(CBLOCK);
-        let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("march.wgsl"),
-            source: wgpu::ShaderSource::Wgsl(shaders::with_common(shaders::MARCH).into()),
-        });
+        let module = ctx.shader_module("march.wgsl", &shaders::with_common(shaders::MARCH));
         let cell: [f32; 3] = std::array::from_fn(|a| (cfg.aabb_max[a] - cfg.aabb_min[a]) / res as f32);
         let inv_cell: [f32; 3] = std::array::from_fn(|a| res as f32 / (cfg.aabb_max[a] - cfg.aabb_min[a]));
         // The levels exactly as the CPU grid's (nerf_sampling::cascade_box); the margin of a level
