@@ -3,7 +3,7 @@
 //! GPU checkpoint restored into a CPU trainer renders the same image. Prints a notice and returns
 //! where no adapter exists.
 
-use nerf::data::{Split, ViewSelection};
+use nerf::data::{Dataset, Split, ViewSelection};
 use nerf::gpu::GpuContext;
 use nerf::train::{evaluate, SamplerConfig, SceneBounds, TrainConfig, Trainer};
 use std::sync::Arc;
@@ -50,6 +50,16 @@ fn gpu_and_cpu_training_reach_the_same_psnr() {
     assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
 }
 
+/// The first view of `test` rendered by `t`: colours, opacities and depths.
+fn render_first_view(t: &Trainer, test: &Dataset, config: &TrainConfig) -> [Vec<f32>; 3] {
+    let mut batch = nerf::data::RayBatch::default();
+    test.view_rays(0, config.eval_background, config.pixel_convention, &mut batch);
+    let n = batch.len();
+    let (mut rgb, mut op, mut depth) = (vec![f32::NAN; 3 * n], vec![f32::NAN; n], vec![f32::NAN; n]);
+    t.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut op, &mut depth).unwrap();
+    [rgb, op, depth]
+}
+
 /// Trains `config` for its `iters` steps on the GPU, moves the checkpoint into a CPU trainer and
 /// renders the first test view with both: same parameters (and occupancy grid), deterministic
 /// sampling, so the images agree up to f32 summation order (and a marched sample whose cell test
@@ -69,16 +79,9 @@ fn gpu_checkpoint_renders_the_same_on_the_cpu(ctx: Arc<GpuContext>, config: &Tra
         .unwrap();
     // The optimiser state made the trip too (a resumed CPU run continues from the GPU's moments).
     assert_eq!(cpu.adam_state().unwrap().step, config.iters);
-    let mut batch = nerf::data::RayBatch::default();
-    test.view_rays(0, config.eval_background, config.pixel_convention, &mut batch);
-    let n = batch.len();
-    let render = |t: &Trainer| {
-        let (mut rgb, mut op, mut depth) = (vec![f32::NAN; 3 * n], vec![f32::NAN; n], vec![f32::NAN; n]);
-        t.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut op, &mut depth).unwrap();
-        (rgb, op)
-    };
-    let (g_rgb, g_op) = render(&gpu);
-    let (c_rgb, c_op) = render(&cpu);
+    let [g_rgb, g_op, _] = render_first_view(&gpu, &test, config);
+    let [c_rgb, c_op, _] = render_first_view(&cpu, &test, config);
+    let n = g_op.len();
     assert!(g_rgb.iter().chain(&g_op).all(|x| x.is_finite()));
     let max_diff = g_rgb.iter().zip(&c_rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
     let mean_diff = g_rgb.iter().zip(&c_rgb).map(|(a, b)| (a - b).abs()).sum::<f32>() / g_rgb.len() as f32;
@@ -183,15 +186,9 @@ fn shader_runtime_checks_change_no_result() {
         let mut b = Trainer::new_on(config.clone(), &registry, bounds, Some(unchecked.clone())).unwrap();
         b.restore(a.step_count(), &a.export_fields().unwrap(), a.adam_state().unwrap(), &a.sampler_state().unwrap())
             .unwrap();
-        let mut batch = nerf::data::RayBatch::default();
-        test.view_rays(0, config.eval_background, config.pixel_convention, &mut batch);
-        let n = batch.len();
-        let render = |t: &Trainer| {
-            let (mut rgb, mut op, mut depth) = (vec![f32::NAN; 3 * n], vec![f32::NAN; n], vec![f32::NAN; n]);
-            t.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut op, &mut depth).unwrap();
-            [rgb, op, depth].map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>())
-        };
+        let render = |t: &Trainer| render_first_view(t, &test, &config).map(|v| v.iter().map(|x| x.to_bits()).collect::<Vec<u32>>());
         let (ra, rb) = (render(&a), render(&b));
+        let n = ra[1].len();
         let opacity: f32 = ra[1].iter().map(|&x| f32::from_bits(x)).sum::<f32>() / n as f32;
         // A trained field, not an empty one: some rays meet matter.
         assert!(opacity > 0.01 && ra.iter().flatten().all(|&x| f32::from_bits(x).is_finite()), "{name}: opacity {opacity}");
