@@ -223,7 +223,9 @@ fn log_point(s: &nerf_train::StepStats, step: u64, elapsed_secs: f64) -> TrainLo
 /// Trains one planned run to its budget, evaluating at the schedule's points and at the end.
 ///
 /// With `checkpoint`, the trained fields are written there (atomically) after the final
-/// evaluation, in `nerf train`'s checkpoint format.
+/// evaluation, in `nerf train`'s checkpoint format. With `progress`, each training-log point and
+/// each evaluation is printed to stderr as it happens, after that prefix.
+#[allow(clippy::too_many_arguments)]
 pub fn train_run(
     ablation: &Ablation,
     plan: &RunPlan,
@@ -232,6 +234,7 @@ pub fn train_run(
     test: &Dataset,
     device: nerf_gpu::DevicePreference,
     checkpoint: Option<&Path>,
+    progress: Option<&str>,
 ) -> Result<RunMetrics, AblateError> {
     let terr = |source| AblateError::Train { id: plan.id.clone(), error: source };
     let sched = &ablation.spec.eval;
@@ -252,6 +255,9 @@ pub fn train_run(
             return Err(terr(TrainError::Diverged { step: t.step_count(), loss: f32::NAN }));
         }
         curve.push(CurvePoint { iter: t.step_count(), seconds: elapsed, psnr: r.psnr, ssim: r.ssim });
+        if let Some(prefix) = progress {
+            eprintln!("{prefix}: step {}, {elapsed:.1} s: test PSNR {:.2} dB, SSIM {:.4}", t.step_count(), r.psnr, r.ssim);
+        }
         if r.render_seconds > 0.0 {
             render_fps.set(r.views.len() as f64 / r.render_seconds);
         }
@@ -277,6 +283,16 @@ pub fn train_run(
         if stats.loss.is_finite() {
             let point = log_point(&stats, done, elapsed);
             if done % cfg.log_every.max(1) == 0 {
+                if let Some(prefix) = progress {
+                    let alive = point
+                        .train_psnr_alive
+                        .map(|p| format!(" ({p:.2} dB over the {} of {} rays with opacity > 0)", point.alive_rays, point.rays))
+                        .unwrap_or_default();
+                    eprintln!(
+                        "{prefix}: step {done}, {elapsed:.1} s: loss {:.3e}, training PSNR {:.2} dB{alive}",
+                        point.loss, point.train_psnr
+                    );
+                }
                 train_log.push(point);
             }
             last_point = Some(point);
@@ -412,7 +428,9 @@ pub fn run_ablation(
             eprintln!("[{}] {} ({}) starting", k + 1, plan.id, plan.config.field);
         }
         let checkpoint = s.checkpoints.then(|| dir.join("checkpoint.bin"));
-        let m = match train_run(ablation, &plan, registry, train, test, opts.device, checkpoint.as_deref()) {
+        let prefix = format!("[{}] {}", k + 1, plan.id);
+        let progress = opts.verbose.then_some(prefix.as_str());
+        let m = match train_run(ablation, &plan, registry, train, test, opts.device, checkpoint.as_deref(), progress) {
             Err(AblateError::Train { id, error: TrainError::Diverged { step, loss } }) => {
                 eprintln!("[{}] {id} diverged: loss {loss} after step {step}; left out of the results", k + 1);
                 diverged.push((id, step));

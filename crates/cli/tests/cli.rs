@@ -1001,3 +1001,34 @@ fn render_and_exports_read_only_the_cameras_of_the_training_photos() {
     // points.
     assert!(points() == points_before, "export-points gave other points without the photos' pixels");
 }
+
+#[test]
+fn ablate_shows_each_runs_progress() {
+    let tmp = tempfile::tempdir().unwrap();
+    let scene = small_scene(tmp.path());
+    let file = tmp.path().join("tiny.toml");
+    std::fs::write(
+        &file,
+        format!(
+            "name = \"tiny\"\nscenes = [{:?}]\ndownscale = 1\ntrain_views = \"all\"\ntest_views = \"all\"\nseeds = [0]\n\
+             [budget]\niters = 6\n[eval]\nevery_iters = 3\n\
+             [base]\nfield = \"freq\"\nbatch_rays = 64\nlog_every = 2\n\
+             field_config = {{ width = 16, depth = 2, skips = [], view_width = 8 }}\n\
+             sampler = {{ kind = \"hierarchical\", n_coarse = 8, n_fine = 8 }}\n\
+             [[runs]]\nname = \"a\"\nconfig = {{}}\n",
+            scene.display().to_string()
+        ),
+    )
+    .unwrap();
+    let o = nerf().arg("ablate").arg(&file).args(["--device", "cpu", "--out"]).arg(tmp.path().join("out")).output().unwrap();
+    let e = stderr(&o);
+    assert!(o.status.success(), "{e}");
+    // The training log every 2 steps and the test PSNR at steps 3 and 6, as they happen.
+    for step in [2, 4, 6] {
+        assert!(e.contains(&format!("[1] a__scene__s0: step {step}, ")) && e.contains("training PSNR"), "step {step}: {e}");
+    }
+    for step in [3, 6] {
+        let line = e.lines().find(|l| l.starts_with(&format!("[1] a__scene__s0: step {step}, ")) && l.contains("test PSNR"));
+        assert!(line.is_some(), "no evaluation at step {step}: {e}");
+    }
+}
