@@ -3,16 +3,14 @@
 # (the hash field at 2^18 samples per step, the paper's field with its default GEMMs; 600 steps or
 # 15 s each) with wgpu's shader runtime checks (the default: index clamps on fixed-size arrays,
 # loop counters) and without (NERF_GPU_CHECKS=off), then the kernel bench's trunk, hash-grid and
-# fused-MLP rows both ways. device_session.sh runs it before the parity run; alone:
+# fused-MLP rows both ways. Its own call on the warm machine (~2 min), after device_session.sh:
 #   run(command="bash benches/device/checks_ab.sh", carry=[".gl", ".bin", ".bint"], timeout_s=200)
-# Writes checks_ab.log (or CHECKS_LOG).
+# Brings back checks_ab.log.
 set -u
-if [ ! -x .bin/nerf ]; then
-  for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
-  (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf) && tar xJf .bint/tests3.tar.xz -C .bin
-fi
-export XDG_RUNTIME_DIR=/tmp
-log="${CHECKS_LOG:-$OUT/checks_ab.log}"
+for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
+(cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
+[ -f .bint/tests3.tar.xz ] && tar xJf .bint/tests3.tar.xz -C .bin
+log="$OUT/checks_ab.log"
 for mode in on off; do
   if [ $mode = on ]; then unset NERF_GPU_CHECKS; else export NERF_GPU_CHECKS=off; fi
   echo "== shader checks $mode" | tee -a "$log"

@@ -12,8 +12,6 @@
 # eval_half.sh on the same warm machine then score it on all 200 test views (~1 min each).
 # Before the lego run, examples/ablations/h100_lego400_parity.toml (~1 min) trains the CPU's lego
 # 400x400 preset row on the GPU, for GPU/CPU parity per step on a real scene.
-# Then benches/device/checks_ab.sh (~100 s; NO_CHECKS_AB=1 skips it) times both fields with wgpu's
-# shader runtime checks on and off.
 # ONLY_LEGO=1 skips the checks before and the grid runs after those runs (~7 min in all), to
 # leave the lease room for eval_half.sh twice and lego_variant.sh.
 # Build and pack here first: `bash benches/device/prepare.sh --rebuild`; carry .gl .bin .bint .data.
@@ -33,9 +31,6 @@ echo "== bench ($(left) s left)"
 timeout 45 .bin/t3/kernels-bench --bench --warm-up-time 0.2 --measurement-time 0.5 "trunk|hash_grid_(forward|backward|input)" > "$OUT/bench.log" 2>&1
 grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 fi
-echo "== shader checks ($(left) s left)"
-# wgpu's runtime checks on and off (~100 s, appended to gpu.txt for the 8-file limit).
-[ -z "${NO_CHECKS_AB:-}" ] && CHECKS_LOG="$OUT/gpu.txt" bash benches/device/checks_ab.sh | grep -E "^==|^\| |time:"
 echo "== parity ($(left) s left)"
 # The CPU's lego 400x400 preset row on the GPU, two seeds (~20 s each): a device-only fault would
 # show as a gap beyond the seed spread (CPU, seed 0: 30.65 dB after 2000 steps).
