@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # A second 5-minute lego run on the warm machine, after device_session.sh and the two
-# eval_half.sh calls: FILE (default examples/ablations/h100_lego_occ_threshold.toml, a stricter
-# occupancy grid; h100_lego_tcnn_grid.toml is the other candidate; the scene path
-# must be ../../.data/lego) against the preset run of device_session.sh, every 8th test view.
-#   run(command="bash benches/device/lego_variant.sh", carry=[".gl", ".bin", ".data"], timeout_s=400)
+# eval_half.sh calls: FILE (a lego ablation whose scene path is ../../.data/lego, e.g.
+# examples/ablations/h100_lego_occ_threshold.toml, a stricter occupancy grid, or
+# h100_lego_tcnn_grid.toml, nerfacc's grid) against the preset run of device_session.sh, every
+# 8th test view. Neither candidate beat the preset on the CPU (docs/results.md, 2026-11-27), so
+# there is no default.
+#   run(command="bash benches/device/lego_variant.sh FILE", carry=[".gl", ".bin", ".data"], timeout_s=400)
 # Brings back variant_metrics.json (with train_log) and variant_curve.csv.
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
-file=${1:-examples/ablations/h100_lego_occ_threshold.toml}
+file=${1:?usage: lego_variant.sh FILE (a lego ablation, e.g. examples/ablations/h100_lego_tcnn_grid.toml)}
 timeout 380 .bin/nerf ablate "$file" --device gpu --out /tmp/variant > "$OUT/variant.log" 2>&1
 for d in /tmp/variant/runs/*/; do cp "$d/metrics.json" "$OUT/variant_metrics.json"; cp "$d/curve.csv" "$OUT/variant_curve.csv"; done 2>/dev/null
 tail -3 "$OUT/variant.log"; cat "$OUT/variant_curve.csv" 2>/dev/null
