@@ -41,6 +41,9 @@ pub struct HashNerfConfig {
     pub mlp_bias: bool,
     /// L2 weight decay on the MLP weights (the hash table gets none).
     pub mlp_weight_decay: f32,
+    /// How the MLP weights start: `torch` (PyTorch's `nn.Linear`, HashNeRF-pytorch's field) or
+    /// `xavier` (tiny-cuda-nn's fully fused MLPs, which instant-ngp and nerfacc train).
+    pub mlp_init: MlpInit,
     /// `b` of `σ = exp(x + b)`, `x` the density MLP's first output (instant-ngp: 0; nerfacc's
     /// example: −1, so that a fresh field starts at σ ≈ e⁻¹ rather than 1). The colour MLP still
     /// sees `x` itself.
@@ -63,6 +66,38 @@ pub struct HashNerfConfig {
     /// on lavapipe; on the H100, slower in a training run of an older build, faster in the kernel
     /// bench on samples in ray order (docs/results.md).
     pub gpu_hash_subgroup_sums: bool,
+}
+
+/// How the hash field's MLP weights start ([`HashNerfConfig::mlp_init`]). Biases, where
+/// `mlp_bias` asks for them, keep PyTorch's bound either way.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MlpInit {
+    /// U(±1/√fan_in), PyTorch's `nn.Linear`.
+    #[default]
+    Torch,
+    /// U(±√(6 / (fan_in + fan_out))) with both widths rounded up to a multiple of 16, as
+    /// tiny-cuda-nn pads its fully fused MLPs (Xavier-uniform on the padded matrices). For the
+    /// preset's nets that is 1.4× (first layer), 1.7× (hidden) and 2.2× (output layer) PyTorch's
+    /// bound.
+    Xavier,
+}
+
+impl MlpInit {
+    /// Draws the weights of every layer of `mlp` again under this rule (`Torch` leaves them).
+    fn apply<T: Real>(self, mlp: &mut Mlp<T>, rng: &mut nerf_core::Rng) {
+        if self == MlpInit::Torch {
+            return;
+        }
+        use rand::Rng;
+        let pad = |n: usize| n.div_ceil(16) * 16;
+        for ((fan_in, out), (w, _)) in mlp.layer_shapes().into_iter().zip(mlp.layer_offsets()) {
+            let bound = (6.0 / (pad(fan_in) + pad(out)) as f64).sqrt();
+            for p in &mut mlp.params_mut()[w..w + fan_in * out] {
+                *p = T::c((2.0 * rng.gen::<f64>() - 1.0) * bound);
+            }
+        }
+    }
 }
 
 /// The fully fused MLP kernels of the hash field's GPU twin ([`HashNerfConfig::gpu_mlp`]).
@@ -88,6 +123,7 @@ impl Default for HashNerfConfig {
             color_layers: 2,
             mlp_bias: false,
             mlp_weight_decay: 1e-6,
+            mlp_init: MlpInit::Torch,
             density_bias: 0.0,
             gpu_mlp: GpuMlp::Plain,
             gpu_keep_density_activations: false,
@@ -195,16 +231,20 @@ impl<T: Real> HashNerf<T> {
             skips: vec![],
             bias: config.mlp_bias,
         };
-        let density = Mlp::try_new(
+        let mut density = Mlp::try_new(
             mlp(enc_dim, dout, config.density_hidden, config.density_layers, Activation::None),
             &mut rng,
         )
         .map_err(|e| bad(e.to_string()))?;
-        let color = Mlp::try_new(
+        let mut color = Mlp::try_new(
             mlp(dout + sh_dim, 3, config.color_hidden, config.color_layers, Activation::Sigmoid),
             &mut rng,
         )
         .map_err(|e| bad(e.to_string()))?;
+        // A stream of its own, so that the default init draws exactly what it drew before.
+        let mut init_rng = nerf_core::rng(ctx.seed, 0x4A55);
+        config.mlp_init.apply(&mut density, &mut init_rng);
+        config.mlp_init.apply(&mut color, &mut init_rng);
         let grid_grad = vec![T::zero(); Encoding::<T>::n_params(&grid)];
         Ok(Self {
             config,

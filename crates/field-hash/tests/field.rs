@@ -3,7 +3,7 @@
 
 use nerf_encoding::{HashGridConfig, Precision};
 use nerf_field::{FieldContext, RadianceField};
-use nerf_field_hash::{GpuMlp, HashNerf, HashNerfConfig};
+use nerf_field_hash::{GpuMlp, HashNerf, HashNerfConfig, MlpInit};
 use rand::Rng as _;
 
 fn unit_ctx(seed: u64) -> FieldContext {
@@ -31,6 +31,7 @@ fn small() -> HashNerfConfig {
         color_layers: 2,
         mlp_bias: true,
         mlp_weight_decay: 1e-6,
+        mlp_init: MlpInit::Torch,
         density_bias: 0.0,
         gpu_mlp: GpuMlp::Plain,
         gpu_keep_density_activations: true,
@@ -327,6 +328,32 @@ fn default_dimensions_follow_instant_ngp() {
     assert_eq!(d.layer_shapes(), vec![(32, 64), (64, 16)], "density MLP: 32 → 64 → 16");
     assert_eq!(c.layer_shapes(), vec![(32, 64), (64, 64), (64, 3)], "colour MLP: 16+16 → 64 → 64 → 3");
     assert_eq!(d.n_params() + c.n_params(), 32 * 64 + 64 * 16 + 32 * 64 + 64 * 64 + 64 * 3);
+}
+
+/// `mlp_init = "xavier"` draws tiny-cuda-nn's bounds, √(6 / (fan_in + fan_out)) over widths
+/// padded to 16, and touches nothing else: the table and, with the default, every weight stay
+/// what they were.
+#[test]
+fn xavier_init_draws_tiny_cuda_nns_bounds_and_only_the_mlp_weights() {
+    let ctx = unit_ctx(3);
+    let torch = HashNerf::<f32>::new(HashNerfConfig::default(), &ctx).unwrap();
+    let cfg: HashNerfConfig = serde_json::from_value(serde_json::json!({"mlp_init": "xavier"})).unwrap();
+    let xavier = HashNerf::<f32>::new(cfg, &ctx).unwrap();
+    assert_eq!(torch.grid().params(), xavier.grid().params(), "the table does not depend on the MLP init");
+    let explicit: HashNerfConfig = serde_json::from_value(serde_json::json!({"mlp_init": "torch"})).unwrap();
+    assert_eq!(explicit, HashNerfConfig::default());
+    let pad = |n: usize| n.div_ceil(16) * 16;
+    for (t, x) in torch.mlps().into_iter().zip(xavier.mlps()) {
+        for ((fan_in, out), (w, _)) in x.layer_shapes().into_iter().zip(x.layer_offsets()) {
+            let max = |m: &nerf_mlp::Mlp<f32>| m.params()[w..w + fan_in * out].iter().fold(0.0f32, |a, v| a.max(v.abs()));
+            let (bt, bx) = (1.0 / (fan_in as f32).sqrt(), (6.0 / (pad(fan_in) + pad(out)) as f32).sqrt());
+            // Each bound nearly reached and never passed (the layers hold ≥ 192 weights).
+            assert!(max(t) <= bt && max(t) > 0.9 * bt, "torch {fan_in}→{out}: max {} against {bt}", max(t));
+            assert!(max(x) <= bx && max(x) > 0.9 * bx, "xavier {fan_in}→{out}: max {} against {bx}", max(x));
+            assert!(bx > 1.3 * bt, "{fan_in}→{out}: {bx} against {bt}");
+        }
+    }
+    assert!(serde_json::from_value::<HashNerfConfig>(serde_json::json!({"mlp_init": "he"})).is_err());
 }
 
 #[test]
