@@ -33,7 +33,7 @@ grep -E "time:" -B1 "$OUT/bench.log" | grep -vE "^--" | head -40
 fi
 echo "== parity ($(left) s left)"
 # The CPU's lego 400x400 preset row on the GPU, two seeds (~20 s each): a device-only fault would
-# show as a gap beyond the seed spread (CPU, seed 0: 30.65 dB after 2000 steps).
+# show as a gap beyond the seed spread (CPU: 30.78 and 31.00 dB after 2000 steps, seeds 0 and 1).
 timeout 100 .bin/nerf ablate examples/ablations/h100_lego400_parity.toml --device gpu --out /tmp/parity > "$OUT/parity.log" 2>&1
 cat /tmp/parity/results.md >> "$OUT/parity.log" 2>/dev/null; cat /tmp/parity/results.md 2>/dev/null
 echo "== lego ($(left) s left)"

@@ -330,18 +330,17 @@ fn default_dimensions_follow_instant_ngp() {
     assert_eq!(d.n_params() + c.n_params(), 32 * 64 + 64 * 16 + 32 * 64 + 64 * 64 + 64 * 3);
 }
 
-/// `mlp_init = "xavier"` draws tiny-cuda-nn's bounds, √(6 / (fan_in + fan_out)) over widths
-/// padded to 16, and touches nothing else: the table and, with the default, every weight stay
-/// what they were.
+/// `mlp_init = "xavier"` (the default) draws tiny-cuda-nn's bounds, √(6 / (fan_in + fan_out))
+/// over widths padded to 16, `torch` PyTorch's 1/√fan_in, and the choice touches nothing else.
 #[test]
 fn xavier_init_draws_tiny_cuda_nns_bounds_and_only_the_mlp_weights() {
     let ctx = unit_ctx(3);
-    let torch = HashNerf::<f32>::new(HashNerfConfig::default(), &ctx).unwrap();
-    let cfg: HashNerfConfig = serde_json::from_value(serde_json::json!({"mlp_init": "xavier"})).unwrap();
-    let xavier = HashNerf::<f32>::new(cfg, &ctx).unwrap();
+    let cfg: HashNerfConfig = serde_json::from_value(serde_json::json!({"mlp_init": "torch"})).unwrap();
+    let torch = HashNerf::<f32>::new(cfg, &ctx).unwrap();
+    let xavier = HashNerf::<f32>::new(HashNerfConfig::default(), &ctx).unwrap();
     assert_eq!(torch.grid().params(), xavier.grid().params(), "the table does not depend on the MLP init");
-    let explicit: HashNerfConfig = serde_json::from_value(serde_json::json!({"mlp_init": "torch"})).unwrap();
-    assert_eq!(explicit, HashNerfConfig::default());
+    let explicit: HashNerfConfig = serde_json::from_value(serde_json::json!({"mlp_init": "xavier"})).unwrap();
+    assert_eq!(explicit, HashNerfConfig::default(), "xavier is the default");
     let pad = |n: usize| n.div_ceil(16) * 16;
     for (t, x) in torch.mlps().into_iter().zip(xavier.mlps()) {
         for ((fan_in, out), (w, _)) in x.layer_shapes().into_iter().zip(x.layer_offsets()) {
