@@ -80,12 +80,14 @@ fn moved_cameras_are_corrected_and_novel_views_render_better_and_accurate_ones_s
     let r = rotation_correlation(&params, &noise);
     println!("test PSNR without refinement {p_off:.2} dB, with {p_on:.2} dB; ray error {before:.4} → {after:.4}; rotations r = {r:.3}");
     assert!(off.pose_params().unwrap().is_none());
-    // Measured: 18.51 dB without, 21.95 dB with; ray error 0.096 → 0.030; r = 0.78.
+    // Measured: 18.66 dB without, 23.47 dB with; ray error 0.096 → 0.026; r = 0.80 (tiny-cuda-nn's
+    // MLP init; with PyTorch's 18.51 and 21.95 dB, 0.096 → 0.030, r = 0.78).
     assert!(after < 0.5 * before, "the corrections bring the rays back: {before} → {after}");
     assert!(r > 0.5, "learnt rotations follow the opposite of the noise: r = {r}");
     assert!(p_on > p_off + 2.0, "{p_on} vs {p_off}");
     // On accurate poses the corrections' wandering (noisy per-view gradients) costs little at
-    // the default rate (measured: 24.95 dB without, 24.06 dB with; at nerfacto's 10⁻³: 20.83 dB).
+    // the default rate (measured: 26.25 dB without, 25.53 dB with; with PyTorch's MLP init 24.95 and
+    // 24.06 dB, and at nerfacto's 10⁻³ 20.83 dB).
     let on_truth = train(&config(iters, true), &truth);
     let p_truth = sparse_psnr(&on_truth, &test, 3);
     let p_truth_off = sparse_psnr(&train(&config(iters, false), &truth), &test, 3);
@@ -265,13 +267,18 @@ fn one_gpu_step_moves_the_cameras_as_the_cpu_step_does() {
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&full);
     let lr = 1e-3;
-    let c = TrainConfig {
+    let mut c = TrainConfig {
         camera_optimizer: Some(CameraOptimizerConfig { lr, lr_final: lr, ..Default::default() }),
         train_background: nerf::data::Background::White,
         perturb: false,
         pixel_jitter: false,
         ..config(1, true)
     };
+    // PyTorch's MLP init, under which this test was written. With the default (tiny-cuda-nn's)
+    // the 100 steps leave one view whose six corrections all move the other way on the GPU: the
+    // whole view's gradient flips sign, as it does when its centre pixel's residual is within
+    // summation noise of zero. Which field the pre-training yields is beside the point here.
+    c.field_config["mlp_init"] = "torch".into();
     // 100 steps without refinement, then a checkpoint (not at a grid update: 100 % 16 ≠ 0).
     let pre = train(&TrainConfig { camera_optimizer: None, iters: 100, ..c.clone() }, &full);
     let (fields, adam, sampler) = (pre.export_fields().unwrap(), pre.adam_state().unwrap(), pre.sampler_state().unwrap());
