@@ -297,7 +297,8 @@ fn gpu_and_cpu_ema_training_reach_the_same_psnr() {
     // Two samples of the same training (different random streams, see tests/gpu_train.rs, whose
     // 1.5 dB tolerance this keeps). Measured on lavapipe: CPU 16.69 dB, GPU 16.83 dB after 100
     // steps (PyTorch's MLP init: 15.20 / 16.29 dB, and 17.06 / 18.29 dB after 150). 13 dB is
-    // 3.3 dB above the background-only image (9.7    // dB), where a broken average (zeros, stale initial weights, NaN) stays.
+    // 3.3 dB above the background-only image (9.7 dB), where a broken average (zeros, stale
+    // initial weights, NaN) stays.
     assert!(psnr[0] > 13.0, "CPU PSNR {:.2}", psnr[0]);
     assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
 }
