@@ -4,8 +4,9 @@
 //   march_coarse  (one bit per 4³ block of cells: any cell occupied; after clearing `coarse`)
 //   march_count   (samples per ray → counts[r], r < n_rays = min(counters[0], cap_rays))
 //   GpuScan       (exclusive scan of counts → raw offsets, raw[cap_rays] = total)
-//   march_fill    (offsets = min(raw, cap_samples); counters[1] = min(total, cap_samples);
-//                  samples written at their offsets).
+//   march_fill    (offsets = min(raw, L), L = the largest raw offset ≤ cap_samples: whole rays
+//                  only, a ray whose samples would cross the capacity gets none, as do the rays
+//                  after it; counters[1] = L; samples written at their offsets).
 //
 // Sampling rule (the CPU's): [near, far] clipped to the box (slab test) gives [t0, t1); sample k
 // sits at t_k = t0 + (k + u)·step (with a cone, cone > 0: t_k = S⁻¹(S(t0) + (k + u)·step), the
@@ -307,6 +308,30 @@ fn march_count(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
     counts[r] = n;
 }
 
+// The end of the whole rays that fit the sample capacity: the largest raw offset ≤ cap_samples
+// (the raw offsets do not decrease and raw_offsets[0] = 0), by bisection over the cap_rays + 1
+// offsets (~17 reads, cached, per invocation). Training keeps whole rays only: a ray cut short
+// would be trained to show its whole pixel in the part of it that was marched.
+fn whole_rays_end() -> u32 {
+    if (raw_offsets[P.cap_rays] <= P.cap_samples) {
+        return raw_offsets[P.cap_rays];
+    }
+    var lo = 0u;          // raw_offsets[lo] ≤ cap_samples
+    var hi = P.cap_rays;  // raw_offsets[hi] > cap_samples
+    loop {
+        if (hi - lo <= 1u) {
+            break;
+        }
+        let mid = lo + (hi - lo) / 2u;
+        if (raw_offsets[mid] <= P.cap_samples) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    return raw_offsets[lo];
+}
+
 // Pass 3 (after the scan): clamped offsets, the sample count, and the samples. Launched for
 // cap_rays + 1 invocations.
 @compute @workgroup_size(WG)
@@ -315,15 +340,16 @@ fn march_fill(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
     if (r > P.cap_rays) {
         return;
     }
-    let start = min(raw_offsets[r], P.cap_samples);
+    let limit = whole_rays_end();
+    let start = min(raw_offsets[r], limit);
     out_offsets[r] = start;
     if (r == 0u) {
-        counters[1] = min(raw_offsets[P.cap_rays], P.cap_samples);
+        counters[1] = limit;
     }
     if (r >= min(counters[0], P.cap_rays)) {
         return;
     }
-    let end = min(raw_offsets[r + 1u], P.cap_samples);
+    let end = min(raw_offsets[r + 1u], limit);
     if (end <= start) {
         return;
     }

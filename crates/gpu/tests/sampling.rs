@@ -630,18 +630,27 @@ fn marching_clips_to_the_sample_capacity() {
     let total = ref_t.len();
     let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: 32, cascades: 1, step_size: step, near: 0.0, far: 6.0, max_samples_per_ray: 1024, cone_angle: 0.0 };
     let bits = bitfield(&g);
-    for cap in [total / 3, total - 1, 1] {
+    // A capacity that ends inside a ray (at its second sample), one that ends exactly at a ray's
+    // end, one sample short of everything, and one sample short of the first ray with samples.
+    let long = (0..n_rays).find(|&r| ref_off[r + 1] - ref_off[r] >= 3).expect("a ray with 3 samples");
+    let first = (0..n_rays).find(|&r| ref_off[r + 1] > 0).expect("a ray with samples");
+    let one_short = (ref_off[first + 1] as usize - 1).max(1);
+    for cap in [ref_off[long] as usize + 2, ref_off[long + 1] as usize, total / 3, total - 1, one_short] {
         let m = GpuMarcher::new(&ctx, cfg, n_rays, cap).unwrap();
         let gpu = run_gpu(&ctx, &m, &bits, &o, &d, n_rays, 0, false);
-        assert_eq!(gpu.n_samples as usize, cap, "cap {cap}: counters[1]");
+        // Whole rays only: every ray that fits entirely keeps its samples, the ray that would
+        // cross the capacity and every later one get none.
+        let end = *ref_off.iter().filter(|&&x| x as usize <= cap).max().unwrap();
+        assert_eq!(gpu.n_samples, end, "cap {cap}: counters[1]");
         for (r, &x) in ref_off.iter().enumerate() {
-            assert_eq!(gpu.offsets[r], x.min(cap as u32), "cap {cap}: offset {r}");
+            assert_eq!(gpu.offsets[r], x.min(end), "cap {cap}: offset {r}");
         }
-        // The kept samples are the first `cap` of the unclipped batch, the straddling ray's prefix included.
-        for (k, &t) in ref_t.iter().enumerate().take(cap) {
+        for (k, &t) in ref_t.iter().enumerate().take(end as usize) {
             assert!((gpu.t[k] - t).abs() <= 1e-5 * t.abs().max(1.0), "cap {cap}: t[{k}]");
             assert_eq!(gpu.dt[k], step);
         }
+        // Nothing is written past them (the buffers start as NaN).
+        assert!(gpu.t[end as usize..cap].iter().all(|x| x.is_nan()), "cap {cap}: samples past the whole rays");
     }
     // No rays at all: every offset 0, no samples.
     let m = GpuMarcher::new(&ctx, cfg, 64, 1000).unwrap();

@@ -284,12 +284,15 @@ impl GpuEngine {
         group_names: &[Vec<String>],
     ) -> Result<Self, TrainError> {
         let (capacity_rays, capacity_samples) = capacities(config);
-        // With compaction the marched samples get their own buffers: with an adaptive batch (which
-        // targets the trained samples) twice the training batch's, as they are about trained /
-        // kept fraction; a fixed batch's capacity already holds every sample its rays can get.
-        // The density pass over them runs in chunks of the stage's capacity.
+        // With compaction the marched samples get their own buffers. With an adaptive batch (which
+        // targets the trained samples) they hold 8 × the target (4 × the stage's capacity): a
+        // step marches trained / kept fraction samples, and lego at 800×800 keeps about a quarter
+        // of them (on the H100 the 4 × of 2026-11-27 filled from step 7000 on, so the batch's
+        // last rays went unmarched; instant-ngp sizes its buffer at 16 × the target). A fixed
+        // batch's capacity already holds every sample its rays can get. The density pass over
+        // them runs in chunks of the stage's capacity.
         let capacity_marched = match (config.compact_samples, config.target_samples_per_step) {
-            (true, Some(_)) => 2 * capacity_samples,
+            (true, Some(_)) => 4 * capacity_samples,
             _ => capacity_samples,
         };
         if config.gpu_profile.is_some() && !ctx.features.timestamps {
