@@ -26,7 +26,7 @@ enable wgpu_cooperative_matrix;
 struct CP {
     n_out: u32, k_in: u32, ka: u32, act: u32,
     np: u32, kp: u32, xp: u32, hp: u32,
-    w16_off: u32, h_src: u32, h_dst: u32, flags: u32,    // flags: 1 dst, 2 out2, 4 bias, 8 d_input, 16 h16
+    w16_off: u32, h_src: u32, h_dst: u32, flags: u32,    // flags: 1 dst, 2 out2, 4 bias, 8 d_input, 16 h16, 32 act' from h16
     t_stride: u32, t_off: u32, t_prev_off: u32, out_dim: u32,
     w_off: u32, bias_off: u32, chunk: u32, c_lo: u32,
     prev_act: u32, kcp: u32, in_dim: u32, _pad: u32,
@@ -216,6 +216,18 @@ fn output_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workg
 @group(0) @binding(4) var<storage, read_write> d_dh16: array<f16>;
 @group(0) @binding(5) var<storage, read> d_tape: array<f32>;
 @group(0) @binding(6) var<storage, read_write> d_input: array<f32>;
+@group(0) @binding(7) var<storage, read> d_h16: array<f16>;
+
+// The previous layer's post-activation at (row, h), for act'(y): from the f32 tape, or with flag
+// 32 (a net whose forward keeps no f32 tape of its hidden layers: ReLU or identity ones, whose
+// act' needs only the sign) from its f16 copy in h16, this layer's input. The two differ only
+// where 0 < y < 3·10⁻⁸ rounds to an f16 zero, which the next layer's product already saw as 0.
+fn prev_y(row: u32, h: u32) -> f32 {
+    if (P.flags & 32u) != 0u {
+        return f32(d_h16[P.h_src + row * P.hp + h]);
+    }
+    return d_tape[row * P.t_stride + P.t_prev_off + h];
+}
 
 @compute @workgroup_size(32)
 fn backward_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
@@ -268,7 +280,7 @@ fn backward_data(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
             let h = col - P.xp;
             var g = 0.0;
             if row < n && h < hidden {
-                g = v * act_grad(P.prev_act, d_tape[row * P.t_stride + P.t_prev_off + h]);
+                g = v * act_grad(P.prev_act, prev_y(row, h));
             }
             d_dh16[row * P.hp + h] = f16(g);
         }
@@ -589,7 +601,7 @@ fn bt_put(n: u32, row: u32, col: u32, v: f32) {
         let h = col - P.xp;
         var g = 0.0;
         if row < n && h < P.k_in - P.ka {
-            g = v * act_grad(P.prev_act, d_tape[row * P.t_stride + P.t_prev_off + h]);
+            g = v * act_grad(P.prev_act, prev_y(row, h));
         }
         d_dh16[row * P.hp + h] = f16(g);
     }

@@ -268,6 +268,13 @@ fn the_example_ablations_parse_and_plan() {
     let check = Ablation::load(&dir.join("device_check.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert_eq!(check.iter().map(|p| p.config.field.as_str()).collect::<Vec<_>>(), ["hash", "freq", "freq"]);
     assert_eq!(check[2].config.field_config["gpu_linear"], "coop_tiled_wide");
+    // The paper's field with and without its hidden f32 tape (benches/device/hidden_tape_ab.sh).
+    let tape = Ablation::load(&dir.join("device_hidden_tape.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(tape.len(), 2);
+    assert!(tape.iter().all(|p| p.config.field == "freq" && p.config.gpu_profile.is_some()));
+    assert_eq!(tape[1].config.field_config["gpu_hidden_tape"], false);
+    let f: nerf::field_freq::FreqNerfConfig = serde_json::from_value(tape[1].config.field_config.clone()).unwrap();
+    assert!(!f.gpu_hidden_tape);
     assert!(check.iter().all(|p| p.config.gpu_profile == quick[0].config.gpu_profile && p.config.iters == quick[0].config.iters));
     let variants = Ablation::load(&dir.join("device_variants.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert_eq!(variants.len(), 7);

@@ -69,8 +69,16 @@ impl GpuFreqNerf {
                 serde_json::to_value(field.config.gpu_linear).unwrap_or_default()
             ),
         };
-        let trunk = GpuMlp::new_with(ctx, &field.trunk.config, capacity, path).map_err(linear_err)?;
-        let color = GpuMlp::new_with(ctx, &field.color.config, capacity, path).map_err(linear_err)?;
+        let mut trunk = GpuMlp::new_with(ctx, &field.trunk.config, capacity, path).map_err(linear_err)?;
+        let mut color = GpuMlp::new_with(ctx, &field.color.config, capacity, path).map_err(linear_err)?;
+        if !field.config.gpu_hidden_tape {
+            let tape_err = |e: nerf_gpu::GpuError| FieldError::InvalidConfig {
+                field: "freq".into(),
+                message: format!("gpu_hidden_tape = false: {e} (the GEMMs here: {:?})", path),
+            };
+            trunk.drop_hidden_tape(ctx).map_err(tape_err)?;
+            color.drop_hidden_tape(ctx).map_err(tape_err)?;
+        }
         let (pd, dd, w) = (field.pos_dim(), field.dir_dim(), field.config.width);
         let glue = FieldGlue::new(ctx, 1 + w, dd, 1, SigmaActivation::Relu, capacity);
         let wd = field.config.weight_decay;

@@ -43,6 +43,12 @@ pub struct FreqNerfConfig {
     pub weight_decay: f32,
     /// Which layer-by-layer GEMM kernels the GPU twin runs (ignored on the CPU).
     pub gpu_linear: GpuLinear,
+    /// Whether the GPU twin's training forward keeps the f32 tape of the networks' hidden layers
+    /// (default). `false` takes their ReLU masks from the f16 copies the cooperative-matrix
+    /// GEMMs keep anyway, saving 8 KiB written and read per sample of the trunk
+    /// ([`nerf_gpu::linear::GpuMlp::drop_hidden_tape`]); it needs those GEMMs (an error on the
+    /// plain path). Ignored on the CPU.
+    pub gpu_hidden_tape: bool,
 }
 
 /// The GEMM kernels of the paper field's GPU twin ([`FreqNerfConfig::gpu_linear`]).
@@ -80,6 +86,7 @@ impl Default for FreqNerfConfig {
             view_width: 128,
             weight_decay: 0.0,
             gpu_linear: GpuLinear::Auto,
+            gpu_hidden_tape: true,
         }
     }
 }

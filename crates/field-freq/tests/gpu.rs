@@ -67,3 +67,22 @@ fn gpu_linear_selects_the_kernels() {
         }
     }
 }
+
+/// `gpu_hidden_tape = false` (no f32 tape of the hidden layers; ReLU masks from the f16 copies):
+/// the GPU twin still matches the CPU field with the f16 tolerances where the adapter has
+/// cooperative matrices; elsewhere (lavapipe, plain GEMMs) the field refuses, naming the setting.
+#[test]
+fn gpu_paper_field_without_its_hidden_tape_matches_the_cpu_field() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let cfg = FreqNerfConfig { width: 64, depth: 4, skips: vec![2], view_width: 32, gpu_hidden_tape: false, ..Default::default() };
+    let mut f = FreqNerf::<f32>::new(cfg, 8).unwrap();
+    let aabb = ([-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]);
+    match f.to_gpu(&ctx, 300).expect("the paper field has a GPU twin") {
+        Ok(_) => check_gpu_twin(&mut f, &ctx, aabb, 300, 4, 2e-2, 1e-1),
+        Err(e) => {
+            eprintln!("NOTICE: gpu_hidden_tape = false is not available on {}: {e}", ctx.describe());
+            assert!(!ctx.features.cooperative_matrix, "{e}");
+            assert!(e.to_string().contains("gpu_hidden_tape") && e.to_string().contains("cooperative-matrix"), "{e}");
+        }
+    }
+}

@@ -240,16 +240,24 @@ fn kernels(c: &mut Criterion) {
             modes.push(LinearPath::CoopTiledWide);
         }
     }
-    for path in modes {
-        let net = GpuMlp::new_with(&ctx, &trunk, m, path).unwrap();
+    // Each cooperative-matrix path also without the hidden layers' f32 tape (`drop_hidden_tape`).
+    let runs: Vec<(LinearPath, bool)> = modes.iter().flat_map(|&p| [(p, true), (p, false)]).filter(|&(p, keep)| keep || p != LinearPath::Plain).collect();
+    for (path, keep_tape) in runs {
+        let mut net = GpuMlp::new_with(&ctx, &trunk, m, path).unwrap();
+        if !keep_tape {
+            net.drop_hidden_tape(&ctx).unwrap();
+        }
         let p = ctx.upload("w", &random(net.n_params(), -0.05, 0.05, 9));
         let gr = ctx.zeros("dw", 4 * net.n_params());
         let tape = ctx.zeros("tape", 4 * m * net.tape_floats_per_sample());
-        let name = match path {
-            LinearPath::Plain => "trunk_8x256_plain_forward_backward",
-            LinearPath::Coop => "trunk_8x256_coop_forward_backward",
-            LinearPath::CoopTiled => "trunk_8x256_coop_tiled_forward_backward",
-            LinearPath::CoopTiledWide => "trunk_8x256_coop_tiled_wide_forward_backward",
+        let name = match (path, keep_tape) {
+            (LinearPath::Plain, _) => "trunk_8x256_plain_forward_backward",
+            (LinearPath::Coop, true) => "trunk_8x256_coop_forward_backward",
+            (LinearPath::Coop, false) => "trunk_8x256_coop_no_hidden_tape_forward_backward",
+            (LinearPath::CoopTiled, true) => "trunk_8x256_coop_tiled_forward_backward",
+            (LinearPath::CoopTiled, false) => "trunk_8x256_coop_tiled_no_hidden_tape_forward_backward",
+            (LinearPath::CoopTiledWide, true) => "trunk_8x256_coop_tiled_wide_forward_backward",
+            (LinearPath::CoopTiledWide, false) => "trunk_8x256_coop_tiled_wide_no_hidden_tape_forward_backward",
         };
         g.throughput(Throughput::Elements(m as u64));
         g.bench_function(BenchmarkId::new(name, m), |b| {

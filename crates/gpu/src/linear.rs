@@ -21,7 +21,8 @@
 //!   `d_input` like `input`;
 //! - `params` / `grads` `[n_params()]` in the CPU layout; backward ACCUMULATES into `grads`;
 //! - `tape` `[capacity][tape_floats_per_sample()]`: per sample, the post-activations of every layer
-//!   (hidden layers, then the output) side by side;
+//!   (hidden layers, then the output) side by side; after [`GpuMlp::drop_hidden_tape`] the
+//!   training forward writes only the output block;
 //! - `counters` (`array<u32>`): slot [`crate::layout::COUNTER_N_SAMPLES`] holds `n`, the number of
 //!   samples of the step (`n ≤ capacity`).
 
@@ -376,6 +377,36 @@ impl GpuMlp {
         &self.config
     }
 
+    /// Whether the training forward writes the f32 tape of the hidden layers (true unless
+    /// [`GpuMlp::drop_hidden_tape`] was called).
+    pub fn keeps_hidden_tape(&self) -> bool {
+        self.coop.as_ref().is_none_or(|c| c.hidden_tape)
+    }
+
+    /// Stops the training forward from writing the hidden layers' f32 tape (cooperative-matrix
+    /// paths). The backward then takes a hidden layer's `act'` from the f16 copy of its output,
+    /// which the next layer's products read anyway; only the output block of the tape is still
+    /// written. That saves 4 bytes written and 4 read per hidden activation and sample: 8 KiB per
+    /// sample for the paper's 8×256 trunk. Needs ReLU or identity hidden layers, whose `act'`
+    /// depends only on the sign (the f16 copy rounds `0 < y < 3·10⁻⁸` to zero, a value the next
+    /// layer's product already saw as zero); an [`GpuError::Unsupported`] on the plain path or
+    /// with another hidden activation.
+    pub fn drop_hidden_tape(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
+        let act = self.config.hidden_activation;
+        if !matches!(act, Activation::Relu | Activation::None) {
+            return Err(GpuError::Unsupported(format!(
+                "an MLP without its hidden f32 tape needs ReLU or identity hidden layers, not {act:?}"
+            )));
+        }
+        match self.coop.as_mut() {
+            Some(c) => {
+                c.drop_hidden_tape(ctx);
+                Ok(())
+            }
+            None => Err(GpuError::Unsupported("only the cooperative-matrix GEMMs can train without the hidden f32 tape".into())),
+        }
+    }
+
     /// Whether this instance runs on cooperative matrices.
     pub fn uses_coop(&self) -> bool {
         self.coop.is_some()
@@ -589,6 +620,8 @@ mod coop {
 
     /// Writes the f16 copy of the hidden activations.
     const FLAG_H16: u32 = 16;
+    /// backward_data takes the previous layer's activation for `act'` from h16, not the f32 tape.
+    const FLAG_PREV_H16: u32 = 32;
     /// Block edge of the `*_wide` entry points.
     const WIDE: usize = 128;
 
@@ -635,10 +668,15 @@ mod coop {
         fwd: wgpu::Buffer,
         inf: wgpu::Buffer,
         bwd: [wgpu::Buffer; 2],
+        /// The contents of `fwd` and `bwd` as built (before [`Coop::drop_hidden_tape`]).
+        fwd_p: CoopParams,
+        bwd_p: [CoopParams; 2],
     }
 
     pub(super) struct Coop {
         pub(super) tiling: CoopTiling,
+        /// Whether the training forward writes the hidden layers' f32 tape.
+        pub(super) hidden_tape: bool,
         convert_input: Kernel,
         convert_weights: Kernel,
         forward: Kernel,
@@ -738,6 +776,8 @@ mod coop {
                     fwd: ctx.uniform("coop fwd", &fwd),
                     inf: ctx.uniform("coop inf", &inf),
                     bwd: [ctx.uniform("coop bwd", &bwd(false)), ctx.uniform("coop bwd+dx", &bwd(true))],
+                    fwd_p: fwd,
+                    bwd_p: [bwd(false), bwd(true)],
                 });
                 w16_off += np * kp;
             }
@@ -769,6 +809,7 @@ mod coop {
                 .then(|| ["forward", "backward_data", "backward_weight"].map(|e| k(&format!("{e}_wide"))));
             Ok(Self {
                 tiling,
+                hidden_tape: true,
                 convert_input: k("convert_input"),
                 convert_weights: k("convert_weights"),
                 forward: tiled("forward"),
@@ -808,6 +849,23 @@ mod coop {
                 n[2] += self.wide(l.np).and(self.wide(l.kp)).is_some() as usize;
             }
             n
+        }
+
+        /// See [`GpuMlp::drop_hidden_tape`]: the hidden layers' forward without `FLAG_WORK`, and
+        /// every backward that reaches a hidden layer with `FLAG_PREV_H16`.
+        pub(super) fn drop_hidden_tape(&mut self, ctx: &GpuContext) {
+            let nl = self.layers.len();
+            for (i, l) in self.layers.iter().enumerate() {
+                if i + 1 < nl {
+                    ctx.write(&l.fwd, 0, &[CoopParams { flags: l.fwd_p.flags & !FLAG_WORK, ..l.fwd_p }]);
+                }
+                if i > 0 {
+                    for (u, p) in l.bwd.iter().zip(&l.bwd_p) {
+                        ctx.write(u, 0, &[CoopParams { flags: p.flags | FLAG_PREV_H16, ..*p }]);
+                    }
+                }
+            }
+            self.hidden_tape = false;
         }
 
         fn record_weights(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, params: &wgpu::Buffer) {
@@ -905,7 +963,8 @@ mod coop {
                 let c_lo = if d_input.is_some() { 0 } else { l.xp };
                 if c_lo < l.kp {
                     let dx = d_input.unwrap_or(&m.dummy);
-                    let b = [(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.w16), (4, &self.dz16[1 - cur]), (5, tape), (6, dx)];
+                    // Binding 7: h16, the previous layer's activations for act' under FLAG_PREV_H16.
+                    let b = [(0, u), (1, counters), (2, &self.dz16[cur]), (3, &self.w16), (4, &self.dz16[1 - cur]), (5, tape), (6, dx), (7, &self.h16)];
                     let cols = l.kp - c_lo;
                     match self.wide(cols) {
                         Some([_, backward_data, _]) => backward_data.record(ctx, enc, &b, GpuMlp::row_groups(capacity, WIDE, cols / WIDE)),

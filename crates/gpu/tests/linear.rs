@@ -499,3 +499,113 @@ fn linear_paths_map_to_tilings() {
     let g = GpuMlp::new_with(&ctx, &small_trunk(Activation::None, 4), 16, LinearPath::Plain).unwrap();
     assert_eq!((g.path(), g.uses_coop()), (LinearPath::Plain, false));
 }
+
+// ---------------------------------------------------------------------------------------------
+// Training without the hidden layers' f32 tape (GpuMlp::drop_hidden_tape).
+
+/// ReLU hidden layers (the only kind, with identity, that may drop the tape), sized as
+/// `tiled_config`: partial 64-row and 64-column blocks, a skip, biases, a sigmoid output.
+fn relu_tiled_config() -> MlpConfig {
+    MlpConfig { hidden_activation: Activation::Relu, ..tiled_config() }
+}
+
+/// `make(cfg, capacity, drop)` builds the same kernels twice, the second time without the hidden
+/// f32 tape. On the same inputs both must give the same output, tape output block, gradients and
+/// input gradients: the kernels are the same, and a ReLU's act' from the f16 copy of its output
+/// equals the one from the f32 tape wherever that output is not in (0, 3·10⁻⁸). The dropped
+/// tape's hidden blocks stay unwritten (NaN poison).
+fn hidden_tape_changes_nothing(ctx: &GpuContext, configs: &[MlpConfig], make: &dyn Fn(&MlpConfig, usize, bool) -> GpuMlp) {
+    for (ci, cfg) in configs.iter().enumerate() {
+        let capacity = 300;
+        let (kept, dropped) = (make(cfg, capacity, false), make(cfg, capacity, true));
+        assert!(kept.keeps_hidden_tape() && !dropped.keeps_hidden_tape());
+        let mut r = nerf_core::rng(500 + ci as u64, 2);
+        let mlp = Mlp::<f32>::new(cfg.clone(), &mut r);
+        for n in [1, 77, 300] {
+            let input: Vec<f32> = (0..n * cfg.input_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+            let d_out: Vec<f32> = (0..n * cfg.output_dim).map(|_| r.gen_range(-1.0f32..1.0)).collect();
+            let tag = format!("config {ci} n {n}");
+            let run = |g: &GpuMlp| {
+                let (out, tape) = g.run_forward(ctx, &input, mlp.params(), n, true).unwrap();
+                let mut grads = vec![0.0f32; g.n_params()];
+                let dx = g.run_backward(ctx, &input, mlp.params(), &d_out, &mut grads, n, true).unwrap().unwrap();
+                (out, tape, grads, dx)
+            };
+            let (a, b) = (run(&kept), run(&dropped));
+            check(&format!("{tag}: output"), &b.0, &a.0, 1e-6);
+            let t = kept.tape_floats_per_sample();
+            let hidden = t - cfg.output_dim;
+            for k in 0..n {
+                let row = |tape: &[f32]| tape[k * t..(k + 1) * t].to_vec();
+                let (ra, rb) = (row(&a.1), row(&b.1));
+                check(&format!("{tag}: tape output block of sample {k}"), &rb[hidden..], &ra[hidden..], 1e-6);
+                assert!(ra[..hidden].iter().all(|v| v.is_finite()), "{tag}: the kept tape was not written");
+                assert!(rb[..hidden].iter().all(|v| v.is_nan()), "{tag}: the hidden tape was written after drop_hidden_tape");
+            }
+            check(&format!("{tag}: grads"), &b.2, &a.2, 1e-6);
+            check(&format!("{tag}: d_input"), &b.3, &a.3, 1e-6);
+            assert!(a.2.iter().any(|v| v.abs() > 1e-3), "{tag}: gradients all ~0: the comparison would be vacuous");
+        }
+    }
+}
+
+/// The emulated subgroup- and workgroup-tiled kernels (lavapipe) without the hidden tape.
+#[test]
+fn emulated_coop_mlp_trains_the_same_without_its_hidden_tape() {
+    let Some(ctx) = context() else { return };
+    if !ctx.features.shader_f16 {
+        eprintln!("NOTICE: adapter {} has no SHADER_F16; the emulated kernels cannot run", ctx.describe());
+        return;
+    }
+    let src = coop_emu::emulate(&shaders::with_common(shaders::LINEAR_COOP));
+    let cfgs = [small_trunk(Activation::None, 5), relu_tiled_config(), MlpConfig { hidden_activation: Activation::None, ..small_trunk(Activation::Sigmoid, 3) }];
+    for tiling in [CoopTiling::Subgroup, CoopTiling::Workgroup] {
+        hidden_tape_changes_nothing(&ctx, &cfgs, &|cfg, capacity, drop| {
+            let mut g = GpuMlp::with_coop_source(&ctx, cfg, capacity, &src, tiling).unwrap();
+            if drop {
+                g.drop_hidden_tape(&ctx).unwrap();
+            }
+            g
+        });
+    }
+}
+
+/// The same on tensor cores (the H100), for every cooperative-matrix path the adapter runs.
+#[test]
+fn coop_mlp_trains_the_same_without_its_hidden_tape() {
+    let Some(ctx) = context() else { return };
+    if !(ctx.features.cooperative_matrix && ctx.features.shader_f16) {
+        eprintln!("NOTICE: adapter {} has no cooperative matrices / f16; not compared on tensor cores", ctx.describe());
+        return;
+    }
+    let sg32 = ctx.info.subgroup_min_size == 32 && ctx.info.subgroup_max_size == 32;
+    let paths: &[LinearPath] = if sg32 { &[LinearPath::Coop, LinearPath::CoopTiled, LinearPath::CoopTiledWide] } else { &[LinearPath::Coop] };
+    let cfgs = [relu_tiled_config(), MlpConfig { hidden_activation: Activation::Relu, ..wide_config() }];
+    for &path in paths {
+        hidden_tape_changes_nothing(&ctx, &cfgs, &|cfg, capacity, drop| {
+            let mut g = GpuMlp::new_with(&ctx, cfg, capacity, path).unwrap();
+            if drop {
+                g.drop_hidden_tape(&ctx).unwrap();
+            }
+            g
+        });
+    }
+}
+
+/// Where the hidden tape cannot be dropped: on the plain path (which keeps it), and with hidden
+/// layers whose act' needs the value (softplus, tanh, sigmoid).
+#[test]
+fn the_hidden_tape_stays_where_it_is_needed() {
+    let Some(ctx) = context() else { return };
+    let mut plain = GpuMlp::new_with(&ctx, &relu_tiled_config(), 16, LinearPath::Plain).unwrap();
+    let e = plain.drop_hidden_tape(&ctx).unwrap_err().to_string();
+    assert!(e.contains("cooperative-matrix"), "{e}");
+    assert!(plain.keeps_hidden_tape());
+    if ctx.features.shader_f16 {
+        let src = coop_emu::emulate(&shaders::with_common(shaders::LINEAR_COOP));
+        let mut soft = GpuMlp::with_coop_source(&ctx, &tiled_config(), 16, &src, CoopTiling::Subgroup).unwrap();
+        let e = soft.drop_hidden_tape(&ctx).unwrap_err().to_string();
+        assert!(e.contains("ReLU") && e.contains("Softplus"), "{e}");
+        assert!(soft.keeps_hidden_tape());
+    }
+}
