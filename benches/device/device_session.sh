@@ -12,8 +12,9 @@
 # eval_half.sh on the same warm machine then score it on all 200 test views (~1 min each).
 # Before the lego run, examples/ablations/h100_lego400_parity.toml (~1 min) trains the CPU's lego
 # 400x400 preset row on the GPU, for GPU/CPU parity per step on a real scene.
-# ONLY_LEGO=1 skips the checks before and the grid runs after those runs (~7 min in all), to
-# leave the lease room for eval_half.sh twice and lego_variant.sh.
+# ONLY_LEGO=1 skips the checks before and the grid runs after those runs (335 s in all on
+# 2026-11-27), to leave the lease room for hidden_tape_ab.sh in the same call and eval_half.sh
+# twice (docs/gpu.md: the plan of a lease).
 # Build and pack here first: `bash benches/device/prepare.sh --rebuild`; carry .gl .bin .bint .data.
 set -u
 t0=$(date +%s); left() { echo $(( ${BUDGET:-570} - ($(date +%s) - t0) )); }
