@@ -254,6 +254,16 @@ fn the_example_ablations_parse_and_plan() {
         assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&cpu[0].config).unwrap());
     }
     assert_ne!(parity[0].config.seed, parity[1].config.seed);
+    // The same over 6000 steps: the preset row of the CPU's long occupancy-threshold run.
+    let long = Ablation::load(&dir.join("h100_lego400_parity_long.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    let cpu_long = Ablation::load(&dir.join("occ_threshold_lego400_long.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(long.len(), 2);
+    assert_ne!(long[0].config.seed, long[1].config.seed);
+    for p in &long {
+        let mut c = p.config.clone();
+        c.seed = cpu_long[0].config.seed;
+        assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&cpu_long[0].config).unwrap());
+    }
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
