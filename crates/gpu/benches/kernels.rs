@@ -241,7 +241,7 @@ fn kernels(c: &mut Criterion) {
         }
     }
     // Each cooperative-matrix path also without the hidden layers' f32 tape (`drop_hidden_tape`).
-    let runs: Vec<(LinearPath, bool)> = modes.iter().flat_map(|&p| [(p, true), (p, false)]).filter(|&(p, keep)| keep || p != LinearPath::Plain).collect();
+    let runs = modes.iter().flat_map(|&p| [(p, true), (p, false)]).filter(|&(p, keep)| keep || p != LinearPath::Plain);
     for (path, keep_tape) in runs {
         let mut net = GpuMlp::new_with(&ctx, &trunk, m, path).unwrap();
         if !keep_tape {
@@ -250,15 +250,13 @@ fn kernels(c: &mut Criterion) {
         let p = ctx.upload("w", &random(net.n_params(), -0.05, 0.05, 9));
         let gr = ctx.zeros("dw", 4 * net.n_params());
         let tape = ctx.zeros("tape", 4 * m * net.tape_floats_per_sample());
-        let name = match (path, keep_tape) {
-            (LinearPath::Plain, _) => "trunk_8x256_plain_forward_backward",
-            (LinearPath::Coop, true) => "trunk_8x256_coop_forward_backward",
-            (LinearPath::Coop, false) => "trunk_8x256_coop_no_hidden_tape_forward_backward",
-            (LinearPath::CoopTiled, true) => "trunk_8x256_coop_tiled_forward_backward",
-            (LinearPath::CoopTiled, false) => "trunk_8x256_coop_tiled_no_hidden_tape_forward_backward",
-            (LinearPath::CoopTiledWide, true) => "trunk_8x256_coop_tiled_wide_forward_backward",
-            (LinearPath::CoopTiledWide, false) => "trunk_8x256_coop_tiled_wide_no_hidden_tape_forward_backward",
+        let kernels = match path {
+            LinearPath::Plain => "plain",
+            LinearPath::Coop => "coop",
+            LinearPath::CoopTiled => "coop_tiled",
+            LinearPath::CoopTiledWide => "coop_tiled_wide",
         };
+        let name = format!("trunk_8x256_{kernels}{}_forward_backward", if keep_tape { "" } else { "_no_hidden_tape" });
         g.throughput(Throughput::Elements(m as u64));
         g.bench_function(BenchmarkId::new(name, m), |b| {
             b.iter(|| {
