@@ -282,9 +282,12 @@ fn the_example_ablations_parse_and_plan() {
     let tape = Ablation::load(&dir.join("device_hidden_tape.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert_eq!(tape.len(), 2);
     assert!(tape.iter().all(|p| p.config.field == "freq" && p.config.gpu_profile.is_some()));
-    assert_eq!(tape[1].config.field_config["gpu_hidden_tape"], false);
-    let f: nerf::field_freq::FreqNerfConfig = serde_json::from_value(tape[1].config.field_config.clone()).unwrap();
-    assert!(!f.gpu_hidden_tape);
+    assert_eq!(tape[0].config.field_config["gpu_hidden_tape"], true);
+    let f: nerf::field_freq::FreqNerfConfig = serde_json::from_value(tape[0].config.field_config.clone()).unwrap();
+    assert_eq!(f.gpu_hidden_tape, Some(true));
+    // The second run is the default (dropped on cooperative matrices).
+    assert!(tape[1].config.field_config.get("gpu_hidden_tape").is_none());
+    assert_eq!(nerf::field_freq::FreqNerfConfig::default().gpu_hidden_tape, None);
     assert!(check.iter().all(|p| p.config.gpu_profile == quick[0].config.gpu_profile && p.config.iters == quick[0].config.iters));
     let variants = Ablation::load(&dir.join("device_variants.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert_eq!(variants.len(), 7);

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The paper's field without the f32 tape of its hidden layers (`gpu_hidden_tape = false`) on the
-# device (~100 s): first the hardware test (`linear`'s coop_mlp_trains_the_same_without_its_hidden_tape
+# The paper's field with and without the f32 tape of its hidden layers (`gpu_hidden_tape`; since
+# 2026-11-27 dropped by default on cooperative matrices) on the device (~100 s): first the hardware test (`linear`'s coop_mlp_trains_the_same_without_its_hidden_tape
 # and the tiled path against the CPU twin), then examples/ablations/device_hidden_tape.toml (both
 # runs 600 steps or 15 s, with a profile window) and the kernel bench's trunk rows with and
 # without the tape. A call of its own on the warm machine:

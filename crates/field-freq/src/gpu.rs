@@ -36,6 +36,15 @@ pub struct GpuFreqNerf {
     width: usize,
 }
 
+/// Whether the GPU twin drops its networks' hidden f32 tape (`gpu_hidden_tape`): as asked, or,
+/// unset, wherever the GEMMs are cooperative-matrix ones (their f16 copies give the ReLU masks).
+fn drops_hidden_tape(setting: Option<bool>, path: LinearPath) -> bool {
+    match setting {
+        Some(keep) => !keep,
+        None => path != LinearPath::Plain,
+    }
+}
+
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
     FieldError::Gpu { field: "freq".into(), source: e }
 }
@@ -71,7 +80,7 @@ impl GpuFreqNerf {
         };
         let mut trunk = GpuMlp::new_with(ctx, &field.trunk.config, capacity, path).map_err(linear_err)?;
         let mut color = GpuMlp::new_with(ctx, &field.color.config, capacity, path).map_err(linear_err)?;
-        if !field.config.gpu_hidden_tape {
+        if drops_hidden_tape(field.config.gpu_hidden_tape, path) {
             let tape_err = |e: nerf_gpu::GpuError| FieldError::InvalidConfig {
                 field: "freq".into(),
                 message: format!("gpu_hidden_tape = false: {e} (the GEMMs here: {:?})", path),
@@ -205,5 +214,24 @@ impl GpuRadianceField for GpuFreqNerf {
         let pd = self.pos_enc.output_dim();
         self.pos_enc.record_input_gradient(ctx, enc, s.counters, s.positions, d_pos, pd, 0, d_positions, cap);
         self.dir_enc.record_input_gradient(ctx, enc, s.counters, s.dirs, &self.d_color_in, self.glue.color_in_dim, self.width, d_dirs, cap);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_hidden_tape_is_dropped_by_default_on_cooperative_matrices_only() {
+        for path in [LinearPath::Coop, LinearPath::CoopTiled, LinearPath::CoopTiledWide] {
+            assert!(drops_hidden_tape(None, path), "{path:?}");
+            assert!(!drops_hidden_tape(Some(true), path), "{path:?}");
+            assert!(drops_hidden_tape(Some(false), path), "{path:?}");
+        }
+        // The plain GEMMs need the tape: kept unless asked otherwise (which `drop_hidden_tape`
+        // then refuses with an error naming the setting).
+        assert!(!drops_hidden_tape(None, LinearPath::Plain));
+        assert!(!drops_hidden_tape(Some(true), LinearPath::Plain));
+        assert!(drops_hidden_tape(Some(false), LinearPath::Plain));
     }
 }

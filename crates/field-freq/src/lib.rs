@@ -43,12 +43,15 @@ pub struct FreqNerfConfig {
     pub weight_decay: f32,
     /// Which layer-by-layer GEMM kernels the GPU twin runs (ignored on the CPU).
     pub gpu_linear: GpuLinear,
-    /// Whether the GPU twin's training forward keeps the f32 tape of the networks' hidden layers
-    /// (default). `false` takes their ReLU masks from the f16 copies the cooperative-matrix
-    /// GEMMs keep anyway, saving 8 KiB written and read per sample of the trunk
-    /// ([`nerf_gpu::linear::GpuMlp::drop_hidden_tape`]); it needs those GEMMs (an error on the
-    /// plain path). Ignored on the CPU.
-    pub gpu_hidden_tape: bool,
+    /// Whether the GPU twin's training forward keeps the f32 tape of the networks' hidden layers.
+    /// Unset (the default since 2026-11-27): dropped where the GEMMs are cooperative-matrix ones
+    /// (their ReLU masks then come from the f16 copies those GEMMs keep anyway, saving 8 KiB
+    /// written and read per sample of the trunk, [`nerf_gpu::linear::GpuMlp::drop_hidden_tape`];
+    /// on the H100 the step took 29.9 against 33.6 ms, docs/results.md), kept on the plain path,
+    /// which needs it. `true` keeps it on every path; `false` drops it and is an error on the
+    /// plain path. Ignored on the CPU.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu_hidden_tape: Option<bool>,
 }
 
 /// The GEMM kernels of the paper field's GPU twin ([`FreqNerfConfig::gpu_linear`]).
@@ -86,7 +89,7 @@ impl Default for FreqNerfConfig {
             view_width: 128,
             weight_decay: 0.0,
             gpu_linear: GpuLinear::Auto,
-            gpu_hidden_tape: true,
+            gpu_hidden_tape: None,
         }
     }
 }

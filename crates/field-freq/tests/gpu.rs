@@ -74,7 +74,7 @@ fn gpu_linear_selects_the_kernels() {
 #[test]
 fn gpu_paper_field_without_its_hidden_tape_matches_the_cpu_field() {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    let cfg = FreqNerfConfig { width: 64, depth: 4, skips: vec![2], view_width: 32, gpu_hidden_tape: false, ..Default::default() };
+    let cfg = FreqNerfConfig { width: 64, depth: 4, skips: vec![2], view_width: 32, gpu_hidden_tape: Some(false), ..Default::default() };
     let mut f = FreqNerf::<f32>::new(cfg, 8).unwrap();
     let aabb = ([-1.5, -1.5, -1.5], [1.5, 1.5, 1.5]);
     match f.to_gpu(&ctx, 300).expect("the paper field has a GPU twin") {

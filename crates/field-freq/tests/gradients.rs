@@ -14,7 +14,7 @@ fn small() -> FreqNerfConfig {
         view_width: 6,
         weight_decay: 0.0,
         gpu_linear: Default::default(),
-        gpu_hidden_tape: true,
+        gpu_hidden_tape: None,
     }
 }
 
