@@ -43,11 +43,20 @@ struct CompactParams {
 @group(0) @binding(14) var<storage, read_write> out_t: array<f32>;
 @group(0) @binding(15) var<storage, read_write> out_dt: array<f32>;
 @group(0) @binding(16) var<storage, read_write> out_rows: array<u32>;      // [cap_out]
-// compact_gather: rows of ROW_FLOATS f32 from gather_src (indexed by out_rows) to gather_dst.
+// compact_gather: rows of ROW_FLOATS f32 from gather_src (indexed by out_rows) to gather_dst;
+// copy_rows: the out_counters[1] rows from row C.src_row of gather_src to row C.dst_row of gather_dst.
 @group(0) @binding(17) var<storage, read> gather_src: array<f32>;          // [S][ROW_FLOATS]
 @group(0) @binding(18) var<storage, read_write> gather_dst: array<f32>;    // [cap_out][ROW_FLOATS]
 
 override ROW_FLOATS: u32 = 1u;
+
+struct RowCopyParams {
+    src_row: u32,
+    dst_row: u32,
+    _pad0: u32,
+    _pad1: u32,
+}
+@group(0) @binding(19) var<uniform> C: RowCopyParams;
 
 fn n_rays() -> u32 {
     return min(src_counters[0], P.cap_rays);
@@ -121,4 +130,19 @@ fn compact_gather(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     }
     let j = i - b * ROW_FLOATS;
     gather_dst[i] = gather_src[out_rows[b] * ROW_FLOATS + j];
+}
+
+// Copies the out_counters[1] rows of a chunk between buffers at row offsets: gather_dst[C.dst_row
+// + b][j] = gather_src[C.src_row + b][j] (CPU twin: a slice copy). What a buffer copy of the
+// chunk's whole capacity did, for the rows the batch has: a chunked density pass whose later
+// chunks are empty or partly filled moves only their samples. One invocation per float.
+@compute @workgroup_size(WG)
+fn copy_rows(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_id(gid, nwg, WG);
+    let b = i / ROW_FLOATS;
+    if (b >= out_counters[1]) {
+        return;
+    }
+    let j = i - b * ROW_FLOATS;
+    gather_dst[(C.dst_row + b) * ROW_FLOATS + j] = gather_src[(C.src_row + b) * ROW_FLOATS + j];
 }

@@ -7,7 +7,7 @@
 use crate::{HashNerf, GROUP_NAMES};
 use nerf_field::gpu::wgpu;
 use nerf_field::{FieldError, GpuParamGroup, GpuRadianceField, GpuSamples};
-use nerf_gpu::compact::GpuRowGather;
+use nerf_gpu::compact::{GpuRowCopy, GpuRowGather, RowOffsets};
 use nerf_gpu::encoding::{AtomicMode, GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
 use nerf_gpu::mlp::{fused_nets, FusedMlpPath, FusedNet};
@@ -54,6 +54,39 @@ struct KeptPass {
     rows: usize,
     gather: GpuRowGather,
     activations: Option<wgpu::Buffer>,
+    /// The copies of a later chunk's encodings and activations to their rows, for the chunk's
+    /// samples only (a buffer copy would move its whole capacity), and the copy offsets of each
+    /// chunk that starts at a multiple of the field's capacity (`nerf_field::ChunkedDensity`'s
+    /// chunks); a chunk elsewhere falls back to buffer copies.
+    copy_enc: GpuRowCopy,
+    copy_activations: Option<GpuRowCopy>,
+    chunk_offsets: Vec<(usize, RowOffsets)>,
+}
+
+impl KeptPass {
+    /// Copies the first `launch`'s count of rows (`counters[1]`) of `src` to rows `first_row..` of
+    /// `dst`, through `copy` where the chunk's offsets were made, else the chunk's whole capacity
+    /// by a buffer copy.
+    #[allow(clippy::too_many_arguments)]
+    fn copy_chunk(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        copy: &GpuRowCopy,
+        row_floats: usize,
+        counters: &wgpu::Buffer,
+        (src, dst): (&wgpu::Buffer, &wgpu::Buffer),
+        first_row: usize,
+        launch: Launch<'_>,
+    ) {
+        match self.chunk_offsets.iter().find(|(r, _)| *r == first_row) {
+            Some((_, offsets)) => copy.record(ctx, enc, counters, offsets, src, dst, launch),
+            None => {
+                let row = 4 * row_floats as u64;
+                enc.copy_buffer_to_buffer(src, 0, dst, row * first_row as u64, row * launch.capacity() as u64);
+            }
+        }
+    }
 }
 
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
@@ -225,7 +258,20 @@ impl GpuRadianceField for GpuHashNerf {
             (true, Some(net)) => ctx.zeros_checked("kept density activations", 4 * rows * net.activation_floats_per_sample()).ok(),
             _ => None,
         };
-        self.kept = Some(KeptPass { enc, rows, gather: GpuRowGather::new(ctx, width).map_err(gpu_err)?, activations });
+        let copy_activations = match (&activations, self.density.as_plain()) {
+            (Some(_), Some(net)) => Some(GpuRowCopy::new(ctx, net.activation_floats_per_sample()).map_err(gpu_err)?),
+            _ => None,
+        };
+        let chunk_offsets = (self.capacity..rows).step_by(self.capacity).map(|r| (r, GpuRowCopy::offsets(ctx, 0, r))).collect();
+        self.kept = Some(KeptPass {
+            enc,
+            rows,
+            gather: GpuRowGather::new(ctx, width).map_err(gpu_err)?,
+            activations,
+            copy_enc: GpuRowCopy::new(ctx, width).map_err(gpu_err)?,
+            copy_activations,
+            chunk_offsets,
+        });
         Ok(())
     }
 
@@ -245,9 +291,9 @@ impl GpuRadianceField for GpuHashNerf {
             ctx.profile_part("glue");
             self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma, l);
             if first_row != 0 {
-                let (enc_row, act_row) = (4 * self.grid.output_dim() as u64, 4 * net.activation_floats_per_sample() as u64);
-                enc.copy_buffer_to_buffer(&self.enc, 0, &k.enc, enc_row * first_row as u64, enc_row * cap as u64);
-                enc.copy_buffer_to_buffer(&self.density_tape, 0, acts, act_row * first_row as u64, act_row * cap as u64);
+                k.copy_chunk(ctx, enc, &k.copy_enc, self.grid.output_dim(), s.counters, (&self.enc, &k.enc), first_row, l);
+                let copy = k.copy_activations.as_ref().expect("a copy for the kept activations");
+                k.copy_chunk(ctx, enc, copy, net.activation_floats_per_sample(), s.counters, (&self.density_tape, acts), first_row, l);
             }
             return;
         }
@@ -255,8 +301,8 @@ impl GpuRadianceField for GpuHashNerf {
             self.record_density_via(ctx, enc, s, sigma, &k.enc);
         } else {
             self.record_density(ctx, enc, s, sigma);
-            let row_bytes = 4 * self.grid.output_dim() as u64;
-            enc.copy_buffer_to_buffer(&self.enc, 0, &k.enc, row_bytes * first_row as u64, row_bytes * cap as u64);
+            let l = self.launch(ctx, enc, &s);
+            k.copy_chunk(ctx, enc, &k.copy_enc, self.grid.output_dim(), s.counters, (&self.enc, &k.enc), first_row, l);
         }
     }
 

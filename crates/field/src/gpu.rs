@@ -10,6 +10,7 @@
 //! samples is `counters[COUNTER_N_SAMPLES]`, and every kernel is launched for `capacity` samples.
 
 pub use nerf_gpu::wgpu;
+use nerf_gpu::compact::{GpuRowCopy, RowOffsets};
 use nerf_gpu::GpuContext;
 
 /// One parameter group on the device.
@@ -201,18 +202,23 @@ pub trait GpuRadianceField: Send {
 /// A field's density query over a batch larger than the field's capacity (the marched samples of
 /// training on compacted samples): the batch is cut into chunks of the field's capacity; the
 /// first chunk is read and written in place, every later one goes through chunk buffers
-/// (positions copied in, σ copied out), each with its sample count computed on the device from
+/// (positions copied in, σ copied out, [`GpuRowCopy`](nerf_gpu::compact::GpuRowCopy): only the
+/// chunk's samples, not its capacity), each with its sample count computed on the device from
 /// the batch's `counters[1]`. Buffers and uniforms are made once.
 pub struct ChunkedDensity {
     chunk: usize,
     total: usize,
     glue: nerf_gpu::TrainGlue,
-    /// (offset, size, chunk uniform) per chunk.
-    chunks: Vec<(usize, usize, wgpu::Buffer)>,
+    /// (offset, size, chunk uniform, copy offsets in and out) per chunk.
+    chunks: Vec<(usize, usize, wgpu::Buffer, RowOffsets, RowOffsets)>,
     counters: wgpu::Buffer,
     points: wgpu::Buffer,
     dirs: wgpu::Buffer,
     sigma: wgpu::Buffer,
+    /// Copies of rows of 3 (positions) and 1 (σ) floats, launched from the chunk's count.
+    copy_points: GpuRowCopy,
+    copy_sigma: GpuRowCopy,
+    args: nerf_gpu::DispatchArgs,
 }
 
 impl ChunkedDensity {
@@ -222,7 +228,10 @@ impl ChunkedDensity {
         let glue = nerf_gpu::TrainGlue::new(ctx, 1, nerf_gpu::composite::BatchParams::default());
         let chunks = (0..total.max(1))
             .step_by(chunk)
-            .map(|o| (o, chunk.min(total.max(1) - o), nerf_gpu::TrainGlue::chunk_uniform(ctx, o, chunk)))
+            .map(|o| {
+                let size = chunk.min(total.max(1) - o);
+                (o, size, nerf_gpu::TrainGlue::chunk_uniform(ctx, o, chunk), GpuRowCopy::offsets(ctx, o, 0), GpuRowCopy::offsets(ctx, 0, o))
+            })
             .collect();
         let spill = if total > chunk { chunk } else { 1 };
         Self {
@@ -234,6 +243,9 @@ impl ChunkedDensity {
             points: ctx.zeros("density chunk points", 12 * spill),
             dirs: ctx.zeros("density chunk dirs", 12 * spill),
             sigma: ctx.zeros("density chunk sigma", 4 * spill),
+            copy_points: GpuRowCopy::new(ctx, 3).expect("rows of 3 floats"),
+            copy_sigma: GpuRowCopy::new(ctx, 1).expect("rows of 1 float"),
+            args: nerf_gpu::DispatchArgs::new(ctx, chunk),
         }
     }
 
@@ -283,18 +295,18 @@ impl ChunkedDensity {
             "ChunkedDensity: buffers hold fewer than {} samples",
             self.total
         );
-        for (offset, size, uniform) in &self.chunks {
+        for (offset, size, uniform, copy_in, copy_out) in &self.chunks {
             self.glue.record_chunk_count(ctx, enc, uniform, counters, &self.counters);
-            let (o, n) = (*offset as u64, *size as u64);
-            if o == 0 {
+            if *offset == 0 {
                 // (A density query reads no directions.)
                 let s = GpuSamples { counters: &self.counters, positions, dirs: positions, capacity: self.chunk.min(self.total) };
                 query(enc, s, sigma, 0);
             } else {
-                enc.copy_buffer_to_buffer(positions, 12 * o, &self.points, 0, 12 * n);
+                let launch = self.args.record(ctx, enc, &self.counters, *size);
+                self.copy_points.record(ctx, enc, &self.counters, copy_in, positions, &self.points, launch);
                 let s = GpuSamples { counters: &self.counters, positions: &self.points, dirs: &self.dirs, capacity: *size };
                 query(enc, s, &self.sigma, *offset);
-                enc.copy_buffer_to_buffer(&self.sigma, 0, sigma, 4 * o, 4 * n);
+                self.copy_sigma.record(ctx, enc, &self.counters, copy_out, &self.sigma, sigma, launch);
             }
         }
     }

@@ -6,7 +6,7 @@
 
 use crate::dispatch::Launch;
 use crate::kernel::{groups_1d, Kernel};
-use crate::layout::{CompactParams, COUNTER_N_RAYS};
+use crate::layout::{CompactParams, RowCopyParams, COUNTER_N_RAYS};
 use crate::sampling::{GpuSamples, GpuScan};
 use crate::{shaders, GpuContext, GpuError};
 
@@ -156,4 +156,64 @@ impl GpuRowGather {
         let b = [(10, counters), (16, rows), (17, src), (18, dst)];
         launch.record(&self.kernel, ctx, enc, &b, self.row_floats as u32, WG, 1);
     }
+}
+
+/// Copies the rows of a batch between buffers at row offsets (`copy_rows`): `dst[dst_row + b] =
+/// src[src_row + b]`, rows of `row_floats` f32, for the `counters[1]` rows of the batch. A
+/// chunked pass (`nerf_field::ChunkedDensity`, the hash field's kept encodings) moves a chunk's
+/// samples in and out of the field's buffers with it: a buffer copy would move the chunk's whole
+/// capacity, filled or not, as the host does not know the device's count.
+pub struct GpuRowCopy {
+    kernel: Kernel,
+    row_floats: usize,
+}
+
+impl GpuRowCopy {
+    /// The copy of rows of `row_floats` (≥ 1) f32.
+    pub fn new(ctx: &GpuContext, row_floats: usize) -> Result<Self, GpuError> {
+        if row_floats == 0 || row_floats > 1 << 16 {
+            return Err(GpuError::Unsupported(format!("a row copy needs 1..=65536 floats per row, got {row_floats}")));
+        }
+        Ok(Self { kernel: Kernel::new(ctx, &shaders::with_common(shaders::COMPACT), "copy_rows", &[("ROW_FLOATS", row_floats as f64)]), row_floats })
+    }
+
+    /// The row offsets of one copy, for [`record`](Self::record) (made once per offset pair: a
+    /// chunk's offsets do not change between steps).
+    pub fn offsets(ctx: &GpuContext, src_row: usize, dst_row: usize) -> RowOffsets {
+        let p = RowCopyParams { src_row: src_row as u32, dst_row: dst_row as u32, _pad: [0; 2] };
+        RowOffsets { params: ctx.uniform("row copy offsets", &p), src_row, dst_row }
+    }
+
+    /// Records `dst[dst_row + b][..] = src[src_row + b][..]` for `b < counters[1]` (at most
+    /// `launch.capacity()`); both buffers must hold their offset plus `launch.capacity()` rows.
+    pub fn record(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        offsets: &RowOffsets,
+        src: &wgpu::Buffer,
+        dst: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        let RowOffsets { params, src_row, dst_row } = offsets;
+        let (src_row, dst_row) = (*src_row, *dst_row);
+        let (capacity, row_bytes) = (launch.capacity(), 4 * self.row_floats as u64);
+        assert!(
+            ((src_row.max(dst_row) + capacity) * self.row_floats) < u32::MAX as usize,
+            "GpuRowCopy: rows {src_row}/{dst_row} + {capacity} of {} floats overflow u32 indices",
+            self.row_floats
+        );
+        assert!(src.size() >= row_bytes * (src_row + capacity) as u64, "GpuRowCopy: src holds fewer than {} rows", src_row + capacity);
+        assert!(dst.size() >= row_bytes * (dst_row + capacity) as u64, "GpuRowCopy: dst holds fewer than {} rows", dst_row + capacity);
+        let b = [(10, counters), (17, src), (18, dst), (19, params)];
+        launch.record(&self.kernel, ctx, enc, &b, self.row_floats as u32, WG, 1);
+    }
+}
+
+/// The row offsets of a [`GpuRowCopy`] (a uniform buffer and the offsets it holds).
+pub struct RowOffsets {
+    params: wgpu::Buffer,
+    src_row: usize,
+    dst_row: usize,
 }

@@ -279,6 +279,15 @@ pub(crate) struct CompactParams {
     pub(crate) _pad: u32,
 }
 
+/// `RowCopyParams` of `shaders/compact.wgsl` (`copy_rows`, 16 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub(crate) struct RowCopyParams {
+    pub(crate) src_row: u32,
+    pub(crate) dst_row: u32,
+    pub(crate) _pad: [u32; 2],
+}
+
 // ---- color.rs ----
 /// `ColorParams` of `shaders/color.wgsl`.
 #[repr(C)]

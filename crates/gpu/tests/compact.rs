@@ -4,7 +4,7 @@
 //! poisoned before each run. Runs on any adapter (lavapipe in CI); prints a notice and returns
 //! where none exists.
 
-use nerf_gpu::compact::{GpuCompactor, GpuRowGather};
+use nerf_gpu::compact::{GpuCompactor, GpuRowCopy, GpuRowGather};
 use nerf_gpu::wgpu;
 use nerf_gpu::sampling::GpuSamples;
 use nerf_gpu::{DispatchArgs, GpuContext};
@@ -190,4 +190,40 @@ fn compactor_rejects_bad_thresholds() {
     let Some(ctx) = GpuContext::for_tests() else { return };
     assert!(GpuCompactor::new(&ctx, 10, 10, f32::NAN).is_err());
     assert!(GpuCompactor::new(&ctx, 10, 10, -1.0).is_err());
+}
+
+/// `GpuRowCopy` against the CPU's slice copy: random rows at random offsets, counts from empty to
+/// the launch's capacity, launched from the device's count (rows of 1 and 32 floats) or for the
+/// capacity (3 and 80 floats); the destination is poisoned, and no row past the count is written.
+#[test]
+fn row_copy_moves_the_counted_rows_only() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let mut g = nerf_core::rng(0x0c09, 1);
+    for width in [1usize, 3, 32, 80] {
+        let copy = GpuRowCopy::new(&ctx, width).unwrap();
+        for trial in 0..4 {
+            let cap = g.gen_range(1..400usize);
+            let count = match trial {
+                0 => 0,
+                1 => cap,
+                _ => g.gen_range(0..=cap),
+            };
+            let (src_row, dst_row) = (g.gen_range(0..300usize), g.gen_range(0..300usize));
+            let (n_src, n_dst) = (src_row + cap + g.gen_range(0..5), dst_row + cap + g.gen_range(0..5));
+            let src: Vec<f32> = (0..n_src * width).map(|_| g.gen_range(-1.0f32..1.0)).collect();
+            let (src_buf, dst) = (ctx.upload("copy src", &src), ctx.upload("copy dst", &vec![f32::NAN; n_dst * width]));
+            let counters = ctx.upload("copy counters", &[7u32, count as u32]);
+            let offsets = GpuRowCopy::offsets(&ctx, src_row, dst_row);
+            let args = DispatchArgs::new(&ctx, cap);
+            let mut enc = ctx.encoder("row copy");
+            let launch = args.record(&ctx, &mut enc, &counters, cap);
+            copy.record(&ctx, &mut enc, &counters, &offsets, &src_buf, &dst, launch);
+            ctx.queue.submit([enc.finish()]);
+            let got = ctx.read_f32(&dst, n_dst * width).unwrap();
+            let (d0, d1) = (dst_row * width, (dst_row + count) * width);
+            assert_eq!(&got[d0..d1], &src[src_row * width..(src_row + count) * width], "width {width}, count {count} of {cap}");
+            assert!(got[..d0].iter().chain(&got[d1..]).all(|x| x.is_nan()), "width {width}: written outside rows {dst_row}..+{count}");
+        }
+    }
+    assert!(GpuRowCopy::new(&ctx, 0).is_err());
 }
