@@ -213,11 +213,18 @@ fn the_example_ablations_parse_and_plan() {
         }
     }
     // The device ablations (their scene is a copy of ../shared's lego in .data/, made on demand).
-    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2)] {
+    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(plans.len(), n_runs, "{name}");
         assert!(plans.iter().all(|p| p.config.field == "hash" && p.config.target_samples_per_step == Some(1 << 18)), "{name}");
+        if name == "h100_lego60.toml" {
+            // The preset's minute, profiled after the marched samples' growth, against the
+            // table's subgroup sums (benches/device/recheck.sh).
+            assert!(plans.iter().all(|p| p.config.time_budget_secs == Some(60.0) && p.config.gpu_profile.is_some_and(|w| w.start == 6000)));
+            assert_eq!(plans[1].config.field_config["gpu_hash_subgroup_sums"], true);
+            continue;
+        }
         if name.starts_with("h100_lego") {
             // configs/gpu_hash.toml's schedule: annealed over the 5 minutes, whatever the step rate.
             assert!(matches!(&plans[0].config.lr, nerf::optim::LrSchedule::Progress { at, warmup_steps: 100, .. } if at.len() == 3));
