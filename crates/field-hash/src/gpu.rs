@@ -89,6 +89,13 @@ impl KeptPass {
     }
 }
 
+/// Whether the table's backward sums over subgroups first (`gpu_hash_subgroup_sums`): as asked,
+/// or, unset, on hardware adapters (where the atomics of a batch's neighbouring samples contend)
+/// and not on software ones (where they do not, and the sums cost more than they save).
+fn subgroup_sums(setting: Option<bool>, software_adapter: bool) -> bool {
+    setting.unwrap_or(!software_adapter)
+}
+
 fn gpu_err(e: nerf_gpu::GpuError) -> FieldError {
     FieldError::Gpu { field: "hash".into(), source: e }
 }
@@ -99,7 +106,7 @@ impl GpuHashNerf {
         let cfg = &field.config;
         let capacity = capacity.max(1);
         let aabb_min = field.aabb_min;
-        let atomics = if cfg.gpu_hash_subgroup_sums { AtomicMode::SubgroupSums } else { AtomicMode::Auto };
+        let atomics = if subgroup_sums(cfg.gpu_hash_subgroup_sums, ctx.is_software()) { AtomicMode::SubgroupSums } else { AtomicMode::Auto };
         let grid = GpuHashGrid::with_atomics(ctx, &cfg.grid, aabb_min, field.aabb_max, atomics).map_err(gpu_err)?;
         let sh = GpuSphericalHarmonics::new(ctx, field.sh.config()).map_err(gpu_err)?;
         let path = match cfg.gpu_mlp {
@@ -371,5 +378,20 @@ impl GpuRadianceField for GpuHashNerf {
         self.density.record_backward(ctx, enc, s.counters, &self.enc, &g[1].params, &self.density_tape, &self.d_dout, &g[1].grads, Some(&self.d_enc), l);
         ctx.profile_part("hash encoding");
         self.grid.record_backward(ctx, enc, s.counters, s.positions, &self.d_enc, &g[0].grads, l);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn subgroup_sums_are_on_by_default_on_hardware_adapters_only() {
+        assert!(subgroup_sums(None, false));
+        assert!(!subgroup_sums(None, true));
+        for software in [false, true] {
+            assert!(subgroup_sums(Some(true), software));
+            assert!(!subgroup_sums(Some(false), software));
+        }
     }
 }

@@ -35,7 +35,7 @@ fn small() -> HashNerfConfig {
         density_bias: 0.0,
         gpu_mlp: GpuMlp::Plain,
         gpu_keep_density_activations: true,
-        gpu_hash_subgroup_sums: false,
+        gpu_hash_subgroup_sums: None,
     }
 }
 

@@ -22,7 +22,7 @@ fn check_small_field_aligned(storage: nerf_encoding::Precision, seed: u64, subgr
 
 fn check_small_field_biased(storage: nerf_encoding::Precision, seed: u64, subgroup_sums: bool, align: nerf_encoding::GridAlign, density_bias: f32) {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    let mut cfg = HashNerfConfig { gpu_hash_subgroup_sums: subgroup_sums, density_bias, ..Default::default() };
+    let mut cfg = HashNerfConfig { gpu_hash_subgroup_sums: Some(subgroup_sums), density_bias, ..Default::default() };
     cfg.grid.align = align;
     cfg.grid.n_levels = 6;
     cfg.grid.log2_hashmap_size = 12;
