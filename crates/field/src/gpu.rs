@@ -202,7 +202,7 @@ pub trait GpuRadianceField: Send {
 /// A field's density query over a batch larger than the field's capacity (the marched samples of
 /// training on compacted samples): the batch is cut into chunks of the field's capacity; the
 /// first chunk is read and written in place, every later one goes through chunk buffers
-/// (positions copied in, σ copied out, [`GpuRowCopy`](nerf_gpu::compact::GpuRowCopy): only the
+/// (positions copied in, σ copied out, [`GpuRowCopy`]: only the
 /// chunk's samples, not its capacity), each with its sample count computed on the device from
 /// the batch's `counters[1]`. Buffers and uniforms are made once.
 pub struct ChunkedDensity {
