@@ -250,6 +250,14 @@ fn the_example_ablations_parse_and_plan() {
             assert_eq!((grid["max_resolution"].as_u64(), grid["align"].as_str()), (Some(4096), Some("staggered")));
         }
     }
+    // Supersampled evaluation: the second run trains with jitter and scores with 8 rays per pixel,
+    // the first as the preset; both keep their checkpoints for `nerf eval --spp`.
+    let a = Ablation::load(&dir.join("supersample_lego400.toml")).unwrap();
+    let ss = a.plan(&nerf::registry()).unwrap();
+    assert!(a.spec.checkpoints && ss.len() == 2);
+    assert_eq!((ss[0].config.pixel_jitter, ss[0].config.eval_spp), (false, 1));
+    assert_eq!((ss[1].config.pixel_jitter, ss[1].config.eval_spp), (true, 8));
+    assert!(ss.iter().all(|p| p.config.validate().is_ok()));
     // The GPU/CPU parity run trains the CPU's lego 400x400 preset row as it was (same config),
     // on two seeds.
     let parity = Ablation::load(&dir.join("h100_lego400_parity.toml")).unwrap().plan(&nerf::registry()).unwrap();

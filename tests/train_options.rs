@@ -258,3 +258,44 @@ fn a_time_budget_drives_a_progress_schedule() {
     assert!((lrs[lrs.len() - 1] - 1e-3).abs() < 1e-9, "last step after half the budget: {}", lrs[lrs.len() - 1]);
     assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "the rate never rises again");
 }
+
+/// `eval_spp`: the evaluation renders each test view through `eval_spp` points of every pixel
+/// (`PixelConvention::sample_offsets`) and scores their mean; one point is the default
+/// evaluation exactly. Checked against renders made here through the same points, on the CPU and
+/// (where an adapter exists) on the GPU; an `eval_spp` of 0 is refused.
+#[test]
+fn supersampled_evaluation_scores_the_mean_of_its_renders() {
+    let _device = take_device();
+    let (train, test) = (load(), load_test_view());
+    let devices = [None, GpuContext::for_tests().map(Arc::new)];
+    for dev in devices.iter().enumerate().filter(|(i, d)| *i == 0 || d.is_some()).map(|(_, d)| d.clone()) {
+        let mut t = Trainer::new_on(config(), &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
+        for _ in 0..30 {
+            t.step(&train).unwrap();
+        }
+        let one = nerf::train::evaluate(&t, &test, None, |_, _| ()).unwrap();
+        let (w, h) = (test.width as usize, test.height as usize);
+        let (mut rgb, mut opacity, mut depth) = (vec![0.0f32; 3 * w * h], vec![0.0f32; w * h], vec![0.0f32; w * h]);
+        let mut batch = nerf::data::RayBatch::default();
+        let mut render = |t: &Trainer, point: [f32; 2], rgb: &mut Vec<f32>| {
+            test.view_rays_at(0, t.config().eval_background, point, &mut batch);
+            t.render_rays(&batch.origins, &batch.dirs, &batch.background, rgb, &mut opacity, &mut depth).unwrap();
+            batch.target.clone()
+        };
+        // One point: the pixel convention's, the evaluation as it always was.
+        let gt = render(&t, t.config().pixel_convention.sample_offsets(1)[0], &mut rgb);
+        assert_eq!(one.psnr, nerf::metrics::psnr(&rgb, &gt), "device {:?}", t.device());
+        // Four points: the mean of four renders.
+        t.set_eval_spp(4).unwrap();
+        let four = nerf::train::evaluate(&t, &test, None, |_, _| ()).unwrap();
+        let mut sum = vec![0.0f32; 3 * w * h];
+        for point in t.config().pixel_convention.sample_offsets(4) {
+            render(&t, point, &mut rgb);
+            sum.iter_mut().zip(&rgb).for_each(|(s, x)| *s += x);
+        }
+        let mean: Vec<f32> = sum.iter().map(|s| s * 0.25).collect();
+        assert_eq!(four.psnr, nerf::metrics::psnr(&mean, &gt), "device {:?}", t.device());
+        assert_ne!(four.psnr, one.psnr, "four points must render something else than one");
+        assert!(t.set_eval_spp(0).is_err());
+    }
+}

@@ -135,6 +135,10 @@ struct EvalArgs {
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
+    /// Rays per pixel, averaged (supersampling; instant-ngp scores its test views with 8)
+    /// [default: the run's `eval_spp`, 1 unless set].
+    #[arg(long)]
+    spp: Option<u32>,
 }
 
 #[derive(Args)]
@@ -486,18 +490,24 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
     let test = load_scene(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc, cameras_only: false })?;
-    let mut trainer = make_trainer(&ck.config.for_rendering(), &nerf::registry(), SceneBounds::of(&test), a.device)?;
+    let mut config = ck.config.for_rendering();
+    if let Some(spp) = a.spp {
+        config.eval_spp = spp;
+        config.validate().map_err(|e| anyhow::anyhow!("--spp {spp}: {e}"))?;
+    }
+    let mut trainer = make_trainer(&config, &nerf::registry(), SceneBounds::of(&test), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
     let pb = progress(a.quiet, test.n_views(), "eval {bar:30} {pos}/{len} views");
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |i, _| pb.set_position(i as u64))?;
     pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
-        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "test_psnr": report.psnr, "test_ssim": report.ssim,
+        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "test_psnr": report.psnr, "test_ssim": report.ssim,
         "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
-    println!("test PSNR {:.2} dB, SSIM {:.4} on {} views -> {}", report.psnr, report.ssim, report.views.len(), out.display());
+    let spp = if config.eval_spp > 1 { format!(", {} rays per pixel", config.eval_spp) } else { String::new() };
+    println!("test PSNR {:.2} dB, SSIM {:.4} on {} views{spp} -> {}", report.psnr, report.ssim, report.views.len(), out.display());
     if let Some(split) = &report.alpha_split {
         println!("  by ground-truth alpha: {}", split.summary());
     }

@@ -656,6 +656,17 @@ impl Dataset {
         conv: PixelConvention,
         out: &mut RayBatch,
     ) {
+        let o = conv.offset();
+        self.view_rays_at(i, background, [o, o], out);
+    }
+
+    /// As [`view_rays`](Self::view_rays), each ray through the point `offset` of its pixel:
+    /// pixel `(col, row)` → image coordinates `(col + offset[0], row + offset[1])` (one of
+    /// [`PixelConvention::sample_offsets`] for supersampling).
+    ///
+    /// # Panics
+    /// If `i >= n_views()`, or if the dataset was loaded without its pixels.
+    pub fn view_rays_at(&self, i: usize, background: Background, offset: [f32; 2], out: &mut RayBatch) {
         assert!(i < self.n_views(), "view index {i} out of range");
         self.expect_pixels("view_rays");
         let (w, h) = (self.width as usize, self.height as usize);
@@ -675,7 +686,7 @@ impl Dataset {
             .enumerate()
             .for_each(|(row, (o, d, t, b, vi, pi))| {
                 for col in 0..w {
-                    let ray = self.warp(cam.ray(col as u32, row as u32, conv));
+                    let ray = self.warp(cam.ray_at(col as f32 + offset[0], row as f32 + offset[1]));
                     let pix = row * w + col;
                     let s = 3 * col..3 * col + 3;
                     o[s.clone()].copy_from_slice(&ray.origin.to_array());

@@ -113,8 +113,9 @@ pub struct EvalReport {
     pub render_seconds: f64,
 }
 
-/// Renders every view of `data` with the trainer's fields on `data`'s evaluation background,
-/// scores it, and writes `<out_dir>/<stem>.png` renders when `out_dir` is given.
+/// Renders every view of `data` with the trainer's fields on `data`'s evaluation background
+/// (`eval_spp` rays per pixel, averaged), scores it, and writes `<out_dir>/<stem>.png` renders when
+/// `out_dir` is given.
 pub fn evaluate(
     trainer: &Trainer,
     data: &Dataset,
@@ -127,18 +128,40 @@ pub fn evaluate(
     }
     let bg = trainer.config().eval_background;
     let conv = trainer.config().pixel_convention;
+    // Supersampling: the mean of the renders through these points of each pixel.
+    let points = conv.sample_offsets(trainer.config().eval_spp as usize);
     let (w, h) = (data.width as usize, data.height as usize);
     let mut batch = RayBatch::default();
     let mut rgb = vec![0.0f32; 3 * w * h];
     let mut opacity = vec![0.0f32; w * h];
     let mut depth = vec![0.0f32; w * h];
+    let mut sums = (points.len() > 1).then(|| (vec![0.0f32; 3 * w * h], vec![0.0f32; w * h], vec![0.0f32; w * h]));
     let mut views = Vec::with_capacity(data.n_views());
     let mut render_seconds = 0.0;
     for i in 0..data.n_views() {
-        data.view_rays(i, bg, conv, &mut batch);
-        let t = std::time::Instant::now();
-        trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
-        render_seconds += t.elapsed().as_secs_f64();
+        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
+            for s in [&mut *s_rgb, &mut *s_opacity, &mut *s_depth] {
+                s.fill(0.0);
+            }
+            for &point in &points {
+                data.view_rays_at(i, bg, point, &mut batch);
+                let t = std::time::Instant::now();
+                trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
+                render_seconds += t.elapsed().as_secs_f64();
+                for (s, x) in [(&mut *s_rgb, &rgb), (&mut *s_opacity, &opacity), (&mut *s_depth, &depth)] {
+                    s.iter_mut().zip(x.iter()).for_each(|(s, x)| *s += x);
+                }
+            }
+            let k = 1.0 / points.len() as f32;
+            for (x, s) in [(&mut rgb, &*s_rgb), (&mut opacity, &*s_opacity), (&mut depth, &*s_depth)] {
+                x.iter_mut().zip(s.iter()).for_each(|(x, s)| *x = s * k);
+            }
+        } else {
+            data.view_rays_at(i, bg, points[0], &mut batch);
+            let t = std::time::Instant::now();
+            trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
+            render_seconds += t.elapsed().as_secs_f64();
+        }
         let gt = &batch.target;
         let psnr = nerf_metrics::psnr(&rgb, gt);
         let ssim = nerf_metrics::ssim(&rgb, gt, w, h);

@@ -417,6 +417,15 @@ impl Trainer {
         self.step
     }
 
+    /// Rays per pixel of the evaluation's renders from now on (`eval_spp`, 1..=256; see
+    /// [`crate::evaluate`]); an error names a count out of range and leaves the setting as it was.
+    pub fn set_eval_spp(&mut self, spp: u32) -> Result<(), TrainError> {
+        let c = TrainConfig { eval_spp: spp, ..self.config.clone() };
+        c.validate().map_err(TrainError::Config)?;
+        self.config.eval_spp = spp;
+        Ok(())
+    }
+
     /// Tells the trainer how much of its run is done, in `[0, 1]` (values outside are clamped):
     /// what a [`LrSchedule::Progress`](nerf_optim::LrSchedule::Progress) learning rate follows.
     /// A run with a time budget sets the larger of its step and time fractions before each step.
