@@ -186,6 +186,7 @@ impl GpuRowCopy {
 
     /// Records `dst[dst_row + b][..] = src[src_row + b][..]` for `b < counters[1]` (at most
     /// `launch.capacity()`); both buffers must hold their offset plus `launch.capacity()` rows.
+    #[allow(clippy::too_many_arguments)]
     pub fn record(
         &self,
         ctx: &GpuContext,
