@@ -116,6 +116,15 @@ impl GpuCompactor {
     }
 }
 
+/// A kernel of `compact.wgsl` that moves rows of `row_floats` (1..=65536) f32 (`entry`:
+/// `compact_gather` or `copy_rows`; `what` names it in the error).
+fn row_kernel(ctx: &GpuContext, entry: &str, what: &str, row_floats: usize) -> Result<Kernel, GpuError> {
+    if row_floats == 0 || row_floats > 1 << 16 {
+        return Err(GpuError::Unsupported(format!("{what} needs 1..=65536 floats per row, got {row_floats}")));
+    }
+    Ok(Kernel::new(ctx, &shaders::with_common(shaders::COMPACT), entry, &[("ROW_FLOATS", row_floats as f64)]))
+}
+
 /// Gathers per-sample rows of a batch for the samples a [`GpuCompactor`] kept
 /// (`compact_gather`): `dst[b] = src[rows[b]]`, rows of `row_floats` f32, for the
 /// `counters[1]` kept samples. Used by a field that keeps values of its density pass (the hash
@@ -128,10 +137,7 @@ pub struct GpuRowGather {
 impl GpuRowGather {
     /// The gather of rows of `row_floats` (≥ 1) f32.
     pub fn new(ctx: &GpuContext, row_floats: usize) -> Result<Self, GpuError> {
-        if row_floats == 0 || row_floats > 1 << 16 {
-            return Err(GpuError::Unsupported(format!("a row gather needs 1..=65536 floats per row, got {row_floats}")));
-        }
-        Ok(Self { kernel: Kernel::new(ctx, &shaders::with_common(shaders::COMPACT), "compact_gather", &[("ROW_FLOATS", row_floats as f64)]), row_floats })
+        Ok(Self { kernel: row_kernel(ctx, "compact_gather", "a row gather", row_floats)?, row_floats })
     }
 
     /// Records `dst[b][..] = src[rows[b]][..]` for `b < counters[1]` (counters as a compaction's
@@ -171,10 +177,7 @@ pub struct GpuRowCopy {
 impl GpuRowCopy {
     /// The copy of rows of `row_floats` (≥ 1) f32.
     pub fn new(ctx: &GpuContext, row_floats: usize) -> Result<Self, GpuError> {
-        if row_floats == 0 || row_floats > 1 << 16 {
-            return Err(GpuError::Unsupported(format!("a row copy needs 1..=65536 floats per row, got {row_floats}")));
-        }
-        Ok(Self { kernel: Kernel::new(ctx, &shaders::with_common(shaders::COMPACT), "copy_rows", &[("ROW_FLOATS", row_floats as f64)]), row_floats })
+        Ok(Self { kernel: row_kernel(ctx, "copy_rows", "a row copy", row_floats)?, row_floats })
     }
 
     /// The row offsets of one copy, for [`record`](Self::record) (made once per offset pair: a
