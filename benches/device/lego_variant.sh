@@ -3,14 +3,19 @@
 # eval_half.sh calls: FILE (a lego ablation whose scene path is ../../.data/lego, e.g.
 # examples/ablations/h100_lego_occ_threshold.toml, a stricter occupancy grid, or
 # h100_lego_tcnn_grid.toml, nerfacc's grid) against the preset run of device_session.sh, every
-# 8th test view. Neither candidate beat the preset on the CPU (docs/results.md, 2026-11-27), so
-# there is no default.
+# 8th test view. Neither of those two beat the preset on the CPU (docs/results.md, 2026-11-27).
+# It replaces runs/device/lego, so score device_session.sh's run there first if it is wanted.
 #   run(command="bash benches/device/lego_variant.sh FILE", carry=[".gl", ".bin", ".data"], timeout_s=400)
-# Brings back variant_metrics.json (with train_log) and variant_curve.csv.
+# Brings back variant_metrics.json (with train_log) and variant_curve.csv. Candidates since
+# 2026-11-27: h100_lego_table21.toml and h100_lego_table20.toml (a larger hash table, ahead on the
+# CPU at 800x800).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
 file=${1:?usage: lego_variant.sh FILE (a lego ablation, e.g. examples/ablations/h100_lego_tcnn_grid.toml)}
-timeout 380 .bin/nerf ablate "$file" --device gpu --out /tmp/variant > "$OUT/variant.log" 2>&1
-for d in /tmp/variant/runs/*/; do cp "$d/metrics.json" "$OUT/variant_metrics.json"; cp "$d/curve.csv" "$OUT/variant_curve.csv"; done 2>/dev/null
+# Into runs/device/lego (git-ignored, kept between calls), as device_session.sh's preset run: two
+# calls of eval_half.sh on the same warm machine then score it on all 200 test views.
+rm -rf runs/device/lego
+timeout 380 .bin/nerf ablate "$file" --device gpu --out runs/device/lego > "$OUT/variant.log" 2>&1
+for d in runs/device/lego/runs/*/; do cp "$d/metrics.json" "$OUT/variant_metrics.json"; cp "$d/curve.csv" "$OUT/variant_curve.csv"; done 2>/dev/null
 tail -3 "$OUT/variant.log"; cat "$OUT/variant_curve.csv" 2>/dev/null
