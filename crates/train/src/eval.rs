@@ -139,28 +139,26 @@ pub fn evaluate(
     let mut views = Vec::with_capacity(data.n_views());
     let mut render_seconds = 0.0;
     for i in 0..data.n_views() {
-        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
-            for s in [&mut *s_rgb, &mut *s_opacity, &mut *s_depth] {
-                s.fill(0.0);
-            }
-            for &point in &points {
-                data.view_rays_at(i, bg, point, &mut batch);
-                let t = std::time::Instant::now();
-                trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
-                render_seconds += t.elapsed().as_secs_f64();
-                for (s, x) in [(&mut *s_rgb, &rgb), (&mut *s_opacity, &opacity), (&mut *s_depth, &depth)] {
-                    s.iter_mut().zip(x.iter()).for_each(|(s, x)| *s += x);
-                }
-            }
-            let k = 1.0 / points.len() as f32;
-            for (x, s) in [(&mut rgb, &*s_rgb), (&mut opacity, &*s_opacity), (&mut depth, &*s_depth)] {
-                x.iter_mut().zip(s.iter()).for_each(|(x, s)| *x = s * k);
-            }
-        } else {
-            data.view_rays_at(i, bg, points[0], &mut batch);
+        for (j, &point) in points.iter().enumerate() {
+            data.view_rays_at(i, bg, point, &mut batch);
             let t = std::time::Instant::now();
             trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
             render_seconds += t.elapsed().as_secs_f64();
+            if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
+                for (s, x) in [(&mut *s_rgb, &rgb), (&mut *s_opacity, &opacity), (&mut *s_depth, &depth)] {
+                    if j == 0 {
+                        s.copy_from_slice(x);
+                    } else {
+                        s.iter_mut().zip(x.iter()).for_each(|(s, x)| *s += x);
+                    }
+                }
+            }
+        }
+        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_ref() {
+            let k = 1.0 / points.len() as f32;
+            for (x, s) in [(&mut rgb, s_rgb), (&mut opacity, s_opacity), (&mut depth, s_depth)] {
+                x.iter_mut().zip(s.iter()).for_each(|(x, s)| *x = s * k);
+            }
         }
         let gt = &batch.target;
         let psnr = nerf_metrics::psnr(&rgb, gt);
