@@ -135,7 +135,7 @@ impl GpuHashNerf {
         let groups = GROUP_NAMES
             .iter()
             .zip(values)
-            .zip([0.0, wd, wd])
+            .zip([cfg.grid_weight_decay, wd, wd])
             .map(|((name, v), weight_decay)| GpuParamGroup {
                 name: name.to_string(),
                 len: v.len(),

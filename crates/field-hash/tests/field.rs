@@ -31,6 +31,7 @@ fn small() -> HashNerfConfig {
         color_layers: 2,
         mlp_bias: true,
         mlp_weight_decay: 1e-6,
+        grid_weight_decay: 0.0,
         mlp_init: MlpInit::Torch,
         density_bias: 0.0,
         gpu_mlp: GpuMlp::Plain,
@@ -265,6 +266,11 @@ fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
     let total: usize = groups.iter().map(|g| g.params.len()).sum();
     drop(groups);
     assert_eq!(total, f.n_params());
+    // nerfacc's decay of the whole field: the table's group carries its own key.
+    let cfg = serde_json::json!({"grid": {"log2_hashmap_size": 14}, "grid_weight_decay": 2e-6, "mlp_weight_decay": 3e-6});
+    let mut f = nerf_field_hash::build(&cfg, &ctx).unwrap();
+    let names: Vec<_> = f.param_groups().iter().map(|g| (g.name, g.weight_decay)).collect();
+    assert_eq!(names, vec![("hash_grid", 2e-6), ("density_mlp", 3e-6), ("color_mlp", 3e-6)]);
 }
 
 /// σ, rgb and gradients of a field's training forward and backward on `pos`/`dirs`, run either
@@ -364,6 +370,14 @@ fn bad_configs_are_rejected() {
     assert!(nerf_field_hash::build(&serde_json::Value::Null, &flat).is_err());
     let e = HashNerf::<f32>::new(HashNerfConfig { density_bias: f32::NAN, ..small() }, &unit_ctx(0)).err().unwrap();
     assert!(e.to_string().contains("density_bias"), "{e}");
+    for (cfg, key) in [
+        (HashNerfConfig { grid_weight_decay: -1e-6, ..small() }, "grid_weight_decay"),
+        (HashNerfConfig { grid_weight_decay: f32::INFINITY, ..small() }, "grid_weight_decay"),
+        (HashNerfConfig { mlp_weight_decay: f32::NAN, ..small() }, "mlp_weight_decay"),
+    ] {
+        let e = HashNerf::<f32>::new(cfg, &unit_ctx(0)).err().unwrap();
+        assert!(e.to_string().contains(key), "{e}");
+    }
 }
 
 #[test]

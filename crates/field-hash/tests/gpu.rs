@@ -21,14 +21,19 @@ fn check_small_field_aligned(storage: nerf_encoding::Precision, seed: u64, subgr
 }
 
 fn check_small_field_biased(storage: nerf_encoding::Precision, seed: u64, subgroup_sums: bool, align: nerf_encoding::GridAlign, density_bias: f32) {
-    let Some(ctx) = GpuContext::for_tests() else { return };
     let mut cfg = HashNerfConfig { gpu_hash_subgroup_sums: Some(subgroup_sums), density_bias, ..Default::default() };
     cfg.grid.align = align;
+    cfg.grid.storage = storage;
+    check_small_config(cfg, seed);
+}
+
+/// `cfg` on the small grid of [`check_small_field`] (its grid shape replaced).
+fn check_small_config(mut cfg: HashNerfConfig, seed: u64) {
+    let Some(ctx) = GpuContext::for_tests() else { return };
     cfg.grid.n_levels = 6;
     cfg.grid.log2_hashmap_size = 12;
     cfg.grid.base_resolution = 4;
     cfg.grid.max_resolution = 64;
-    cfg.grid.storage = storage;
     let aabb = ([-1.5, -1.2, -1.0], [1.5, 1.3, 1.1]);
     let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed, scene_scale: 1.0 };
     let mut cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
@@ -73,6 +78,13 @@ fn gpu_hash_field_with_a_density_bias_matches_the_cpu_field() {
 /// Camera pose refinement's input gradients (∂L/∂x through the hash encoding and the box's
 /// normalisation, ∂L/∂dir through the SH encoding and the colour net's input gradient) against
 /// the CPU field's `backward_with_inputs`, and the parameter gradients with them on.
+/// nerfacc's decay of the whole field: the twin's parameter groups carry the CPU field's decays
+/// (`check_gpu_twin` compares them), which the GPU's Adam applies as the CPU's does.
+#[test]
+fn gpu_hash_field_with_a_decayed_table_matches_the_cpu_field() {
+    check_small_config(HashNerfConfig { grid_weight_decay: 2e-6, mlp_weight_decay: 3e-6, ..Default::default() }, 5);
+}
+
 #[test]
 fn gpu_hash_field_input_gradients_match_the_cpu_field() {
     let Some(ctx) = GpuContext::for_tests() else { return };

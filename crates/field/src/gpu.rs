@@ -393,6 +393,7 @@ pub fn check_gpu_twin(
     assert_eq!(groups.len(), gpu.groups().len());
     for (g, cg) in gpu.groups().iter().zip(groups) {
         assert_eq!(g.name, cg.name);
+        assert_eq!(g.weight_decay, cg.weight_decay, "weight decay of {}", g.name);
         close(&format!("grad {}", g.name), &ctx.read_f32(&g.grads, g.len).unwrap(), cg.grads, grad_tol);
     }
     let exported = gpu.export_params(ctx).unwrap();
