@@ -42,11 +42,10 @@ pub struct HashNerfConfig {
     /// L2 weight decay on the MLP weights (instant-ngp: 1e-6, the MLPs only).
     pub mlp_weight_decay: f32,
     /// L2 weight decay on the hash table's features (`wd·p` added to their gradient before Adam's
-    /// moments; 0, the default, as in instant-ngp). nerfacc's example gives the whole field,
-    /// table included, torch Adam's `weight_decay = 1e-6` on a loss half the scale of this
-    /// trainer's MSE (`smooth_l1_loss`: `½e²` for small residuals), so 2e-6 here is its setting.
-    /// With a dense Adam and ε = 1e-15, an entry that no sample touches for a while is pulled
-    /// towards zero at about the learning rate per step.
+    /// moments; 0, the default, as in instant-ngp). Zip-NeRF decays its grid values (0.1 × the
+    /// mean of their squares per level: ~2e-7 per entry of a hashed level of 2^19 × 2 features
+    /// on this trainer's loss scale). With a dense Adam and ε = 1e-15 an entry that no sample
+    /// touches for a while is pulled towards zero at about the learning rate per step.
     pub grid_weight_decay: f32,
     /// How the MLP weights start: `xavier` (tiny-cuda-nn's fully fused MLPs, which instant-ngp
     /// and nerfacc train; the default since 2026-11-27) or `torch` (PyTorch's `nn.Linear`,
