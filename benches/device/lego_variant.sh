@@ -7,7 +7,7 @@
 # It replaces runs/device/lego, so score device_session.sh's run there first if it is wanted.
 #   run(command="bash benches/device/lego_variant.sh FILE", carry=[".gl", ".bin", ".data"], timeout_s=400)
 # Brings back variant_metrics.json (with train_log) and variant_curve.csv. Candidates since
-# 2026-11-27: h100_lego_table21.toml and h100_lego_table20.toml (a larger hash table, ahead on the
+# 2026-11-27: h100_lego_table20.toml, then h100_lego_table21.toml (a larger hash table, ahead on the
 # CPU at 800x800).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
