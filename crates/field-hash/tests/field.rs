@@ -266,7 +266,7 @@ fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
     let total: usize = groups.iter().map(|g| g.params.len()).sum();
     drop(groups);
     assert_eq!(total, f.n_params());
-    // nerfacc's decay of the whole field: the table's group carries its own key.
+    // With `grid_weight_decay` the table's group carries its own decay.
     let cfg = serde_json::json!({"grid": {"log2_hashmap_size": 14}, "grid_weight_decay": 2e-6, "mlp_weight_decay": 3e-6});
     let mut f = nerf_field_hash::build(&cfg, &ctx).unwrap();
     let names: Vec<_> = f.param_groups().iter().map(|g| (g.name, g.weight_decay)).collect();

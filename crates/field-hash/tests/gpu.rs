@@ -75,16 +75,17 @@ fn gpu_hash_field_with_a_density_bias_matches_the_cpu_field() {
     check_small_field_biased(nerf_encoding::Precision::F32, 14, false, nerf_encoding::GridAlign::Corner, -1.0);
 }
 
-/// Camera pose refinement's input gradients (∂L/∂x through the hash encoding and the box's
-/// normalisation, ∂L/∂dir through the SH encoding and the colour net's input gradient) against
-/// the CPU field's `backward_with_inputs`, and the parameter gradients with them on.
-/// nerfacc's decay of the whole field: the twin's parameter groups carry the CPU field's decays
-/// (`check_gpu_twin` compares them), which the GPU's Adam applies as the CPU's does.
+/// A decayed table (`grid_weight_decay`) and MLPs: the twin's parameter groups carry the CPU
+/// field's decays (`check_gpu_twin` compares them), which the GPU's Adam applies as the CPU's
+/// does (crates/gpu/tests/optim.rs).
 #[test]
 fn gpu_hash_field_with_a_decayed_table_matches_the_cpu_field() {
     check_small_config(HashNerfConfig { grid_weight_decay: 2e-6, mlp_weight_decay: 3e-6, ..Default::default() }, 5);
 }
 
+/// Camera pose refinement's input gradients (∂L/∂x through the hash encoding and the box's
+/// normalisation, ∂L/∂dir through the SH encoding and the colour net's input gradient) against
+/// the CPU field's `backward_with_inputs`, and the parameter gradients with them on.
 #[test]
 fn gpu_hash_field_input_gradients_match_the_cpu_field() {
     let Some(ctx) = GpuContext::for_tests() else { return };
