@@ -213,7 +213,7 @@ fn the_example_ablations_parse_and_plan() {
         }
     }
     // The device ablations (their scene is a copy of ../shared's lego in .data/, made on demand).
-    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table21.toml", 1)] {
+    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(plans.len(), n_runs, "{name}");
@@ -246,9 +246,12 @@ fn the_example_ablations_parse_and_plan() {
             assert_eq!(plans[0].config.field_config, preset[0].config.field_config);
         }
         if let Some(t) = name.strip_prefix("h100_lego_table").and_then(|r| r.strip_suffix(".toml")) {
-            // The preset but for the table's size.
+            // The preset but for the table's size (and, for `_f16`, its lookups' storage).
             let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
-            assert_eq!(plans[0].config.field_config["grid"]["log2_hashmap_size"].as_u64(), t.parse().ok());
+            let (size, f16) = t.split_once("_f16").map_or((t, false), |(s, _)| (s, true));
+            let grid = &plans[0].config.field_config["grid"];
+            assert_eq!(grid["log2_hashmap_size"].as_u64(), size.parse().ok(), "{name}");
+            assert_eq!(grid["storage"].as_str(), f16.then_some("f16"), "{name}");
             assert_eq!((&plans[0].config.sampler, plans[0].config.time_budget_secs), (&preset[0].config.sampler, preset[0].config.time_budget_secs));
         }
         if name == "h100_lego_tcnn_grid.toml" {
