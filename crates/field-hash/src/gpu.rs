@@ -130,12 +130,11 @@ impl GpuHashNerf {
         density.set_partial(ctx, 1, enc_dim);
         color.set_partial(ctx, field.color.config.output_dim, dd);
         let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp { bias: cfg.density_bias }, capacity);
-        let wd = cfg.mlp_weight_decay;
         let values = [field.grid.params(), field.density.params(), field.color.params()];
         let groups = GROUP_NAMES
             .iter()
             .zip(values)
-            .zip([cfg.grid_weight_decay, wd, wd])
+            .zip(cfg.group_weight_decays())
             .map(|((name, v), weight_decay)| GpuParamGroup {
                 name: name.to_string(),
                 len: v.len(),

@@ -526,6 +526,14 @@ impl<T: Real> HashNerf<T> {
 /// Group names (stable: they key optimiser state and checkpoints).
 pub const GROUP_NAMES: [&str; 3] = ["hash_grid", "density_mlp", "color_mlp"];
 
+impl HashNerfConfig {
+    /// L2 weight decay of each parameter group, in [`GROUP_NAMES`] order (the CPU field's groups
+    /// and its GPU twin's).
+    pub fn group_weight_decays(&self) -> [f32; 3] {
+        [self.grid_weight_decay, self.mlp_weight_decay, self.mlp_weight_decay]
+    }
+}
+
 impl RadianceField for HashNerf<f32> {
     fn kind(&self) -> &'static str {
         "hash"
@@ -586,18 +594,13 @@ impl RadianceField for HashNerf<f32> {
     }
     fn param_groups(&mut self) -> Vec<ParamGroupMut<'_>> {
         self.density_pass.valid = false; // the caller may change the parameters
-        let wd = self.config.mlp_weight_decay;
+        let wd = self.config.group_weight_decays();
         let (dp, dg) = self.density.params_and_grads_mut();
         let (cp, cg) = self.color.params_and_grads_mut();
         vec![
-            ParamGroupMut {
-                name: GROUP_NAMES[0],
-                params: self.grid.params_mut(),
-                grads: &mut self.grid_grad,
-                weight_decay: self.config.grid_weight_decay,
-            },
-            ParamGroupMut { name: GROUP_NAMES[1], params: dp, grads: dg, weight_decay: wd },
-            ParamGroupMut { name: GROUP_NAMES[2], params: cp, grads: cg, weight_decay: wd },
+            ParamGroupMut { name: GROUP_NAMES[0], params: self.grid.params_mut(), grads: &mut self.grid_grad, weight_decay: wd[0] },
+            ParamGroupMut { name: GROUP_NAMES[1], params: dp, grads: dg, weight_decay: wd[1] },
+            ParamGroupMut { name: GROUP_NAMES[2], params: cp, grads: cg, weight_decay: wd[2] },
         ]
     }
     fn export_params(&self) -> Vec<(String, Vec<f32>)> {
