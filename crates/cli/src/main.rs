@@ -139,6 +139,28 @@ struct EvalArgs {
     /// [default: the run's `eval_spp`, 1 unless set].
     #[arg(long)]
     spp: Option<u32>,
+    /// Background the renders and the ground truth are composited on: white (the NeRF paper's
+    /// protocol) or black (instant-ngp's) [default: the run's `eval_background`, white unless set].
+    #[arg(long)]
+    background: Option<EvalBackground>,
+}
+
+/// The fixed backgrounds a test view can be scored on (`nerf eval --background`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum EvalBackground {
+    /// White (1, 1, 1): the NeRF paper's numbers.
+    White,
+    /// Black (0, 0, 0): instant-ngp's paper's numbers.
+    Black,
+}
+
+impl From<EvalBackground> for nerf::data::Background {
+    fn from(b: EvalBackground) -> Self {
+        match b {
+            EvalBackground::White => nerf::data::Background::White,
+            EvalBackground::Black => nerf::data::Background::Black,
+        }
+    }
 }
 
 #[derive(Args)]
@@ -495,6 +517,9 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
         config.eval_spp = spp;
         config.validate().map_err(|e| anyhow::anyhow!("--spp {spp}: {e}"))?;
     }
+    if let Some(bg) = a.background {
+        config.eval_background = bg.into();
+    }
     let mut trainer = make_trainer(&config, &nerf::registry(), SceneBounds::of(&test), a.device)?;
     trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
@@ -502,7 +527,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |i, _| pb.set_position(i as u64))?;
     pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
-        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "test_psnr": report.psnr, "test_ssim": report.ssim,
+        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
         "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;

@@ -233,6 +233,21 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
     let (a, b) = (m["test_psnr"].as_f64().unwrap(), e["test_psnr"].as_f64().unwrap());
     assert!((a - b).abs() < 1e-9, "eval of the checkpoint must reproduce the run's PSNR: {a} vs {b}");
     assert!(run.join("eval/r_0.png").is_file());
+    assert_eq!(e["background"], "white");
+    // Scored on black (instant-ngp's protocol): the render and the ground truth both composited
+    // on black. After 3 steps the field is nearly empty, so the render's corner is the background.
+    let black = d.path().join("eval_black");
+    let o = nerf().arg("eval").arg(&run).arg(&s).arg("--out").arg(&black).args(["--background", "black"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let k: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(black.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(k["background"], "black");
+    assert!((k["test_psnr"].as_f64().unwrap() - b).abs() > 1e-3, "black {} vs white {b}", k["test_psnr"]);
+    let corner = |p: &Path| image::open(p).unwrap().to_rgb8().get_pixel(0, 0).0;
+    assert!(corner(&run.join("eval/r_0.png")).iter().all(|&c| c > 200), "{:?}", corner(&run.join("eval/r_0.png")));
+    assert!(corner(&black.join("r_0.png")).iter().all(|&c| c < 55), "{:?}", corner(&black.join("r_0.png")));
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--background", "random"]).output().unwrap();
+    // A random background has no fixed colour to score on: clap names the values it takes.
+    assert!(!o.status.success() && stderr(&o).contains("random") && stderr(&o).contains("black"), "{}", stderr(&o));
 }
 
 /// Starts a long tiny run into `run`, interrupts it (SIGINT) once it has logged a few steps, and
