@@ -6,10 +6,13 @@
 #   run(command="bash benches/device/eval_half.sh a", carry=[".gl", ".bin", ".eval_a"])
 #   run(command="bash benches/device/eval_half.sh b", carry=[".gl", ".bin", ".eval_b"])
 # Each brings back eval_<half>.json (per-view PSNR and SSIM, alpha_split). Both halves hold 100
-# views, so the mean over all 200 is the mean of the two halves' means.
+# views, so the mean over all 200 is the mean of the two halves' means. A second argument `both`
+# also scores the half on black (instant-ngp's protocol; `nerf eval --background black`) into
+# eval_<half>_black.json, ~5 s more: only meaningful for a run trained on random backgrounds.
 # Build here first: `bash benches/device/prepare.sh` (makes .eval_a and .eval_b).
 set -u
-half=${1:?usage: eval_half.sh a|b}
+half=${1:?usage: eval_half.sh a|b [both]}
+both=${2:-}
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
 run=$(ls -d runs/device/lego/runs/*/ 2>/dev/null | head -1)
@@ -17,3 +20,7 @@ run=$(ls -d runs/device/lego/runs/*/ 2>/dev/null | head -1)
 echo "== $run on .eval_$half/lego"
 .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --out "/tmp/eval_$half" --quiet
 cp "/tmp/eval_$half/eval.json" "$OUT/eval_$half.json"
+if [ "$both" = both ]; then
+  .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --background black --out "/tmp/eval_${half}_black" --quiet
+  cp "/tmp/eval_${half}_black/eval.json" "$OUT/eval_${half}_black.json"
+fi
