@@ -170,9 +170,10 @@ fn the_distortion_loss_is_counted_and_gathers_the_weights() {
     let train = load();
     let gpu = GpuContext::for_tests().map(Arc::new);
     // Mean distortion per ray, (loss − mse)/λ, over the last 10 of `steps` steps with λ.
-    let measure = |dev: Option<Arc<GpuContext>>, lambda: f32, steps: usize| -> f64 {
+    let measure_with = |dev: Option<Arc<GpuContext>>, lambda: f32, steps: usize, compact: bool| -> f64 {
         let name = if dev.is_some() { "gpu" } else { "cpu" };
-        let c = TrainConfig { distortion_loss: Some(lambda), log_every: 1, ..config() };
+        let threshold = if compact { 1e-4 } else { config().transmittance_threshold };
+        let c = TrainConfig { distortion_loss: Some(lambda), log_every: 1, compact_samples: compact, transmittance_threshold: threshold, ..config() };
         let mut t = Trainer::new_on(c, &nerf::registry(), SceneBounds::of(&train), dev).unwrap();
         let mut tail = Vec::new();
         for i in 0..steps {
@@ -184,14 +185,19 @@ fn the_distortion_loss_is_counted_and_gathers_the_weights() {
         }
         tail.iter().sum::<f64>() / tail.len() as f64
     };
+    let measure = |dev: Option<Arc<GpuContext>>, lambda: f32, steps: usize| measure_with(dev, lambda, steps, false);
     for dev in std::iter::once(None).chain(gpu.map(Some)) {
         let name = if dev.is_some() { "gpu" } else { "cpu" };
         let c = TrainConfig { log_every: 1, ..config() };
         let mut t = Trainer::new_on(c, &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
         let s = t.step(&train).unwrap();
         assert_eq!(s.loss, s.mse, "{name}: without the distortion loss the loss is the photometric one");
-        let d = measure(dev, 1.0, 10);
+        let d = measure(dev.clone(), 1.0, 10);
         assert!(d > 0.0 && d < 1.0, "{name}: mean distortion {d}");
+        // On compacted samples (the hash preset's default, where the last stage holds each ray's
+        // kept samples only) the loss is counted the same way.
+        let d = measure_with(dev, 1.0, 10, true);
+        assert!(d > 0.0 && d < 1.0, "{name}, compacted: mean distortion {d}");
     }
     // The untrained field is a haze through the whole box (distortion ~0.16 per ray); measured
     // on 2 cores: 0.147 (λ 1e-4) against 0.015 (λ 10) after 200 steps.
