@@ -213,6 +213,8 @@ fn the_example_ablations_parse_and_plan() {
         }
     }
     // The device ablations (their scene is a copy of ../shared's lego in .data/, made on demand).
+    // The variants of h100_lego.toml are checked against its plan.
+    let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
     for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
@@ -235,7 +237,6 @@ fn the_example_ablations_parse_and_plan() {
         }
         if name == "h100_lego_occ_threshold.toml" {
             // The preset's sampler but for the threshold.
-            let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
             match (&plans[0].config.sampler, &preset[0].config.sampler) {
                 (nerf::train::SamplerConfig::Occupancy { grid: g, .. }, nerf::train::SamplerConfig::Occupancy { grid: p, .. }) => {
                     assert_eq!((g.threshold, p.threshold), (0.05, 0.01));
@@ -247,7 +248,6 @@ fn the_example_ablations_parse_and_plan() {
         }
         if let Some(t) = name.strip_prefix("h100_lego_table").and_then(|r| r.strip_suffix(".toml")) {
             // The preset but for the table's size (and, for `_f16`, its lookups' storage).
-            let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
             let (size, f16) = t.split_once("_f16").map_or((t, false), |(s, _)| (s, true));
             let grid = &plans[0].config.field_config["grid"];
             assert_eq!(grid["log2_hashmap_size"].as_u64(), size.parse().ok(), "{name}");
@@ -260,7 +260,6 @@ fn the_example_ablations_parse_and_plan() {
         }
         if let Some(lambda) = [("h100_lego_distortion.toml", 0.01), ("h100_lego_distortion_003.toml", 0.03)].iter().find(|(n, _)| *n == name).map(|(_, l)| *l) {
             // The preset but for the distortion loss.
-            let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
             let mut same = plans[0].config.clone();
             assert_eq!((same.distortion_loss, preset[0].config.distortion_loss), (Some(lambda), None), "{name}");
             same.distortion_loss = None;
@@ -269,7 +268,6 @@ fn the_example_ablations_parse_and_plan() {
         if name == "h100_lego_nerfacc.toml" {
             // The preset but for nerfacc's recipe: Adam's beta2, the training background, the
             // grid (tiny-cuda-nn's, as h100_lego_tcnn_grid.toml) and sigma = exp(x - 1).
-            let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
             let (c, p) = (&plans[0].config, &preset[0].config);
             assert_eq!((c.adam.beta2, p.adam.beta2), (0.999, 0.99));
             assert_eq!((c.train_background, p.train_background), (nerf::data::Background::White, nerf::data::Background::Random));
