@@ -215,7 +215,7 @@ fn the_example_ablations_parse_and_plan() {
     // The device ablations (their scene is a copy of ../shared's lego in .data/, made on demand).
     // The variants of h100_lego.toml are checked against its plan.
     let preset = Ablation::load(&dir.join("h100_lego.toml")).unwrap().plan(&nerf::registry()).unwrap();
-    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1)] {
+    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1), ("h100_lego_color_features.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(plans.len(), n_runs, "{name}");
@@ -265,6 +265,13 @@ fn the_example_ablations_parse_and_plan() {
             same.distortion_loss = None;
             assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&preset[0].config).unwrap());
         }
+        if name == "h100_lego_color_features.toml" {
+            // The preset but for the colour MLP's input (nerfacc's head).
+            let mut same = plans[0].config.clone();
+            assert_eq!(same.field_config, serde_json::json!({ "color_input": "features" }), "{name}");
+            same.field_config = preset[0].config.field_config.clone();
+            assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&preset[0].config).unwrap());
+        }
         if name == "h100_lego_nerfacc.toml" {
             // The preset but for nerfacc's recipe: Adam's beta2, the training background, the
             // grid (tiny-cuda-nn's, as h100_lego_tcnn_grid.toml) and sigma = exp(x - 1).
@@ -308,6 +315,13 @@ fn the_example_ablations_parse_and_plan() {
         c.seed = cpu_long[0].config.seed;
         assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&cpu_long[0].config).unwrap());
     }
+    // nerfacc's colour head over the same 6000 steps: that preset row but for the colour input.
+    let head = Ablation::load(&dir.join("color_input_lego400_long.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(head.len(), 1);
+    let mut c = head[0].config.clone();
+    assert_eq!(c.field_config, serde_json::json!({ "color_input": "features" }));
+    c.field_config = cpu_long[0].config.field_config.clone();
+    assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&cpu_long[0].config).unwrap());
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));

@@ -39,7 +39,7 @@ pub struct GpuHashNerf {
     kept: Option<KeptPass>,
     /// [`crate::HashNerfConfig::gpu_keep_density_activations`].
     keep_activations: bool,
-    /// Outputs of the density net (`dd`) and of the colour net.
+    /// Density features the colour net reads (`dd − feat_start`) and outputs of the colour net.
     dims: (usize, usize),
     /// Whether the colour net's backward writes its input gradient for the SH inputs too
     /// ([`GpuRadianceField::enable_input_gradients`]).
@@ -123,13 +123,13 @@ impl GpuHashNerf {
         let mut nets = fused_nets(ctx, &[field.density.config.clone(), field.color.config.clone()], path).map_err(mlp_err)?;
         let mut color = nets.pop().expect("two nets");
         let mut density = nets.pop().expect("two nets");
-        let (dd, enc_dim, sh_dim) = (field.dout_dim(), field.enc_dim(), field.sh_dim());
+        let (dd, fs, enc_dim, sh_dim) = (field.dout_dim(), field.feat_start(), field.enc_dim(), field.sh_dim());
         // The density pass reads σ (the density net's first output) alone, and the glue's backward
-        // reads the colour net's input gradient for the density features (its first dd columns)
-        // alone, not for the SH encoding.
+        // reads the colour net's input gradient for the density features (its first dd − fs
+        // columns) alone, not for the SH encoding.
         density.set_partial(ctx, 1, enc_dim);
-        color.set_partial(ctx, field.color.config.output_dim, dd);
-        let glue = FieldGlue::new(ctx, dd, sh_dim, 0, SigmaActivation::TruncExp { bias: cfg.density_bias }, capacity);
+        color.set_partial(ctx, field.color.config.output_dim, dd - fs);
+        let glue = FieldGlue::new(ctx, dd, sh_dim, fs, SigmaActivation::TruncExp { bias: cfg.density_bias }, capacity);
         let values = [field.grid.params(), field.density.params(), field.color.params()];
         let groups = GROUP_NAMES
             .iter()
@@ -172,7 +172,7 @@ impl GpuHashNerf {
             d_enc,
             kept: None,
             keep_activations: cfg.gpu_keep_density_activations,
-            dims: (dd, field.color.config.output_dim),
+            dims: (dd - fs, field.color.config.output_dim),
             input_gradients: false,
             args: DispatchArgs::new(ctx, capacity),
             glue,
@@ -329,9 +329,9 @@ impl GpuRadianceField for GpuHashNerf {
 
     fn enable_input_gradients(&mut self, ctx: &GpuContext) -> Result<(), FieldError> {
         // The colour net's input gradient for the SH inputs too (the direction's gradient).
-        let (dd, out) = self.dims;
+        let (nf, out) = self.dims;
         self.color.set_partial(ctx, out, self.glue.color_in_dim);
-        debug_assert_eq!(self.glue.color_in_dim, dd + self.sh.output_dim());
+        debug_assert_eq!(self.glue.color_in_dim, nf + self.sh.output_dim());
         self.input_gradients = true;
         Ok(())
     }
@@ -342,8 +342,8 @@ impl GpuRadianceField for GpuHashNerf {
         ctx.profile_part("hash encoding (input gradient)");
         self.grid.record_input_gradient(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.d_enc, d_positions, l);
         ctx.profile_part("SH (input gradient)");
-        let (dd, _) = self.dims;
-        self.sh.record_input_gradient(ctx, enc, s.counters, s.dirs, &self.d_color_in, self.glue.color_in_dim, dd, d_dirs, l);
+        let (nf, _) = self.dims;
+        self.sh.record_input_gradient(ctx, enc, s.counters, s.dirs, &self.d_color_in, self.glue.color_in_dim, nf, d_dirs, l);
     }
 
     fn record_query(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, rgb: &wgpu::Buffer) {

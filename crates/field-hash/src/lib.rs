@@ -57,6 +57,11 @@ pub struct HashNerfConfig {
     /// example: −1, so that a fresh field starts at σ ≈ e⁻¹ rather than 1). The colour MLP still
     /// sees `x` itself.
     pub density_bias: f32,
+    /// What the colour MLP reads of the density MLP's outputs besides the direction encoding:
+    /// `all` of them, the density logit `x` included (instant-ngp's `NerfNetwork`; the default),
+    /// or the geometry `features` alone (nerfacc's `NGPRadianceField`, whose colour head reads
+    /// the 15 features and not the logit), so that σ is shaped by the compositing alone.
+    pub color_input: ColorInput,
     /// Which fully fused MLP kernels the GPU twin runs (ignored on the CPU): `plain` WGSL (every
     /// adapter) or `coop`erative matrices (tensor cores; adapters that offer them).
     pub gpu_mlp: GpuMlp,
@@ -113,6 +118,28 @@ impl MlpInit {
     }
 }
 
+/// What the hash field's colour MLP reads of the density MLP's outputs
+/// ([`HashNerfConfig::color_input`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ColorInput {
+    /// All `1 + geo_features` outputs, the density logit first (instant-ngp).
+    #[default]
+    All,
+    /// The `geo_features` outputs after the logit (nerfacc's example).
+    Features,
+}
+
+impl ColorInput {
+    /// The first density output that the colour MLP reads (0 or 1).
+    pub fn feat_start(self) -> usize {
+        match self {
+            ColorInput::All => 0,
+            ColorInput::Features => 1,
+        }
+    }
+}
+
 /// The fully fused MLP kernels of the hash field's GPU twin ([`HashNerfConfig::gpu_mlp`]).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -139,6 +166,7 @@ impl Default for HashNerfConfig {
             grid_weight_decay: 0.0,
             mlp_init: MlpInit::Xavier,
             density_bias: 0.0,
+            color_input: ColorInput::All,
             gpu_mlp: GpuMlp::Plain,
             gpu_keep_density_activations: false,
             gpu_hash_subgroup_sums: None,
@@ -161,6 +189,8 @@ struct Tape<T: Real> {
     /// The samples' directions (the SH backward of input gradients reads them).
     dirs: Vec<T>,
     color_in: Vec<T>,
+    /// The density MLP's first output `x` per sample (σ = exp(x + b)).
+    logit: Vec<T>,
     density: MlpTape<T>,
     color: MlpTape<T>,
     d_color_in: Vec<T>,
@@ -256,7 +286,7 @@ impl<T: Real> HashNerf<T> {
         )
         .map_err(|e| bad(e.to_string()))?;
         let mut color = Mlp::try_new(
-            mlp(dout + sh_dim, 3, config.color_hidden, config.color_layers, Activation::Sigmoid),
+            mlp(dout - config.color_input.feat_start() + sh_dim, 3, config.color_hidden, config.color_layers, Activation::Sigmoid),
             &mut rng,
         )
         .map_err(|e| bad(e.to_string()))?;
@@ -328,6 +358,11 @@ impl<T: Real> HashNerf<T> {
         1 + self.config.geo_features
     }
 
+    /// The first density output the colour MLP reads ([`HashNerfConfig::color_input`]).
+    fn feat_start(&self) -> usize {
+        self.config.color_input.feat_start()
+    }
+
     /// Training forward; keeps the tape for [`Self::backward_t`].
     pub fn forward_t(&mut self, positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
         let n = positions.len() / 3;
@@ -384,20 +419,23 @@ impl<T: Real> HashNerf<T> {
         let bias = T::c(self.config.density_bias as f64);
         let n = t.xn.len() / 3;
         assert_eq!(dirs.len(), 3 * n);
-        let (dd, sh_dim) = (self.dout_dim(), self.sh_dim());
+        let (dd, fs, sh_dim) = (self.dout_dim(), self.feat_start(), self.sh_dim());
+        let w = dd - fs + sh_dim;
         t.n = n;
         let dout = self.density.forward(n, &t.enc, &mut t.density);
         t.sh.resize(n * sh_dim, T::zero());
         self.sh.forward(dirs, &mut t.sh);
         t.dirs.clear();
         t.dirs.extend_from_slice(dirs);
-        t.color_in.resize(n * (dd + sh_dim), T::zero());
+        t.color_in.resize(n * w, T::zero());
+        t.logit.resize(n, T::zero());
         for k in 0..n {
             let row = &dout[k * dd..(k + 1) * dd];
+            t.logit[k] = row[0];
             sigma[k] = (row[0] + bias).min(T::c(MAX_LOG_DENSITY)).exp();
-            let ci = &mut t.color_in[k * (dd + sh_dim)..(k + 1) * (dd + sh_dim)];
-            ci[..dd].copy_from_slice(row);
-            ci[dd..].copy_from_slice(&t.sh[k * sh_dim..(k + 1) * sh_dim]);
+            let ci = &mut t.color_in[k * w..(k + 1) * w];
+            ci[..dd - fs].copy_from_slice(&row[fs..]);
+            ci[dd - fs..].copy_from_slice(&t.sh[k * sh_dim..(k + 1) * sh_dim]);
         }
         rgb.copy_from_slice(self.color.forward(n, &t.color_in, &mut t.color));
         self.tape = t;
@@ -417,18 +455,20 @@ impl<T: Real> HashNerf<T> {
         let mut t = std::mem::take(&mut self.tape);
         let n = t.n;
         assert_eq!(d_sigma.len(), n);
-        let (dd, enc_dim, sh_dim) = (self.dout_dim(), self.enc_dim(), self.sh_dim());
-        t.d_color_in.resize(n * (dd + sh_dim), T::zero());
+        let (dd, fs, enc_dim, sh_dim) = (self.dout_dim(), self.feat_start(), self.enc_dim(), self.sh_dim());
+        let (nf, w) = (dd - fs, dd - fs + sh_dim);
+        t.d_color_in.resize(n * w, T::zero());
         // Without input gradients only the density features' columns of the colour net's input
         // gradient are read (the SH encoding has no parameters).
-        let cols = if inputs.is_some() { dd + sh_dim } else { dd };
+        let cols = if inputs.is_some() { w } else { nf };
         self.color.backward_cols(n, &t.color_in, &mut t.color, d_rgb, Some(&mut t.d_color_in), cols);
         t.d_density_out.resize(n * dd, T::zero());
         for (k, &ds) in d_sigma.iter().enumerate() {
             let dr = &mut t.d_density_out[k * dd..(k + 1) * dd];
-            dr.copy_from_slice(&t.d_color_in[k * (dd + sh_dim)..k * (dd + sh_dim) + dd]);
+            dr[..fs].fill(T::zero());
+            dr[fs..].copy_from_slice(&t.d_color_in[k * w..k * w + nf]);
             // σ = exp(x + b) with a truncated gradient: dσ/dx := exp(min(x + b, TRUNC)).
-            let x = t.color_in[k * (dd + sh_dim)] + bias;
+            let x = t.logit[k] + bias;
             dr[0] += ds * x.min(T::c(TRUNC)).exp();
         }
         t.d_enc.resize(n * enc_dim, T::zero());
@@ -449,7 +489,7 @@ impl<T: Real> HashNerf<T> {
                 }
                 t.d_sh.resize(n * sh_dim, T::zero());
                 for k in 0..n {
-                    let row = &t.d_color_in[k * (dd + sh_dim) + dd..(k + 1) * (dd + sh_dim)];
+                    let row = &t.d_color_in[k * w + nf..(k + 1) * w];
                     t.d_sh[k * sh_dim..(k + 1) * sh_dim].copy_from_slice(row);
                 }
                 let mut no_params: [T; 0] = [];
@@ -480,7 +520,8 @@ impl<T: Real> HashNerf<T> {
     ) {
         let bias = T::c(self.config.density_bias as f64);
         let n = positions.len() / 3;
-        let (dd, enc_dim, sh_dim) = (self.dout_dim(), self.enc_dim(), self.sh_dim());
+        let (dd, fs, enc_dim, sh_dim) = (self.dout_dim(), self.feat_start(), self.enc_dim(), self.sh_dim());
+        let w = dd - fs + sh_dim;
         for c0 in (0..n).step_by(QUERY_CHUNK) {
             let c1 = (c0 + QUERY_CHUNK).min(n);
             let m = c1 - c0;
@@ -501,11 +542,11 @@ impl<T: Real> HashNerf<T> {
             if let (Some(dirs), Some(rgb)) = (dirs, rgb.as_deref_mut()) {
                 s.sh.resize(m * sh_dim, T::zero());
                 self.sh.forward(&dirs[3 * c0..3 * c1], &mut s.sh);
-                s.color_in.resize(m * (dd + sh_dim), T::zero());
+                s.color_in.resize(m * w, T::zero());
                 for k in 0..m {
-                    let ci = &mut s.color_in[k * (dd + sh_dim)..(k + 1) * (dd + sh_dim)];
-                    ci[..dd].copy_from_slice(&s.dout[k * dd..(k + 1) * dd]);
-                    ci[dd..].copy_from_slice(&s.sh[k * sh_dim..(k + 1) * sh_dim]);
+                    let ci = &mut s.color_in[k * w..(k + 1) * w];
+                    ci[..dd - fs].copy_from_slice(&s.dout[k * dd + fs..(k + 1) * dd]);
+                    ci[dd - fs..].copy_from_slice(&s.sh[k * sh_dim..(k + 1) * sh_dim]);
                 }
                 self.color.infer(m, &s.color_in, &mut s.mlp, &mut rgb[3 * c0..3 * c1]);
             }

@@ -3,7 +3,7 @@
 
 use nerf_encoding::{HashGridConfig, Precision};
 use nerf_field::{FieldContext, RadianceField};
-use nerf_field_hash::{GpuMlp, HashNerf, HashNerfConfig, MlpInit};
+use nerf_field_hash::{ColorInput, GpuMlp, HashNerf, HashNerfConfig, MlpInit};
 use rand::Rng as _;
 
 fn unit_ctx(seed: u64) -> FieldContext {
@@ -34,6 +34,7 @@ fn small() -> HashNerfConfig {
         grid_weight_decay: 0.0,
         mlp_init: MlpInit::Torch,
         density_bias: 0.0,
+        color_input: ColorInput::All,
         gpu_mlp: GpuMlp::Plain,
         gpu_keep_density_activations: true,
         gpu_hash_subgroup_sums: None,
@@ -75,6 +76,14 @@ fn whole_field_backward_matches_finite_differences_f64() {
 #[test]
 fn whole_field_backward_with_a_density_bias_matches_finite_differences_f64() {
     backward_matches_finite_differences(HashNerfConfig { density_bias: -1.0, ..small() });
+}
+
+/// The same with nerfacc's colour head (`color_input = "features"`: the colour net reads the
+/// geometry features, not the density logit), with a density bias besides.
+#[test]
+fn whole_field_backward_with_the_features_colour_input_matches_finite_differences_f64() {
+    backward_matches_finite_differences(HashNerfConfig { color_input: ColorInput::Features, ..small() });
+    backward_matches_finite_differences(HashNerfConfig { color_input: ColorInput::Features, density_bias: -1.0, ..small() });
 }
 
 fn backward_matches_finite_differences(cfg: HashNerfConfig) {
@@ -242,6 +251,46 @@ fn density_bias_scales_sigma_and_moves_the_truncation() {
     assert!((g - 15f64.exp()).abs() < 1e-9 * g);
     let (s, _, g) = run(-1.0, 15.5);
     assert!((s - 14.5f64.exp()).abs() < 1e-9 * s && (g - 14.5f64.exp()).abs() < 1e-9 * g, "{g}");
+}
+
+/// `color_input = "features"`: the colour net has `geo_features + SH` inputs, the density logit
+/// moves σ and not the colour, and the colour's gradient does not reach the logit. With `all`
+/// (instant-ngp's) the logit moves the colour and receives its gradient.
+#[test]
+fn the_features_colour_input_keeps_the_logit_out_of_the_colour() {
+    let mut cfg = small();
+    cfg.density_layers = 0;
+    let run = |color_input: ColorInput, x: f64| {
+        let mut f = HashNerf::<f64>::new(HashNerfConfig { color_input, ..cfg.clone() }, &unit_ctx(1)).unwrap();
+        {
+            let [d, _] = f.mlps_mut();
+            let p = d.params_mut();
+            let bias0 = p.len() - 4; // 1 + geo_features outputs
+            p[bias0] = x;
+        }
+        let (mut s, mut c) = ([0.0], [0.0; 3]);
+        f.forward_t(&[0.3, 0.4, 0.6], &[0.0, 0.0, 1.0], &mut s, &mut c);
+        // A loss on the colour alone.
+        f.backward_t(&[0.0], &[1.0, -0.5, 0.25]);
+        let [d, c_net] = f.mlps();
+        let g = d.grads();
+        (s[0], c, g[g.len() - 4], c_net.config.input_dim)
+    };
+    let sh = 9; // degree 3
+    let (s0, c0, g0, w) = run(ColorInput::Features, 0.2);
+    let (s1, c1, _, _) = run(ColorInput::Features, 1.3);
+    assert_eq!(w, 3 + sh, "the features and the SH encoding");
+    assert!((s1 / s0 - 1.1f64.exp()).abs() < 1e-9, "σ follows the logit: {s0} → {s1}");
+    assert_eq!(c0, c1, "the colour does not");
+    assert_eq!(g0, 0.0, "no colour gradient reaches the logit");
+    let (_, a0, ga, wa) = run(ColorInput::All, 0.2);
+    let (_, a1, _, _) = run(ColorInput::All, 1.3);
+    assert_eq!(wa, 1 + 3 + sh);
+    assert_ne!(a0, a1, "instant-ngp's colour net reads the logit");
+    assert!(ga != 0.0, "and passes it the colour's gradient");
+    let j: HashNerfConfig = serde_json::from_value(serde_json::json!({"color_input": "features"})).unwrap();
+    assert_eq!(j.color_input, ColorInput::Features);
+    assert_eq!(HashNerfConfig::default().color_input, ColorInput::All);
 }
 
 #[test]

@@ -75,6 +75,13 @@ fn gpu_hash_field_with_a_density_bias_matches_the_cpu_field() {
     check_small_field_biased(nerf_encoding::Precision::F32, 14, false, nerf_encoding::GridAlign::Corner, -1.0);
 }
 
+/// The same with nerfacc's colour head (`color_input = "features"`: the glue hands the colour
+/// net the density outputs after the logit).
+#[test]
+fn gpu_hash_field_with_the_features_colour_input_matches_the_cpu_field() {
+    check_small_config(HashNerfConfig { color_input: nerf_field_hash::ColorInput::Features, ..Default::default() }, 15);
+}
+
 /// A decayed table (`grid_weight_decay`) and MLPs: the twin's parameter groups carry the CPU
 /// field's decays (`check_gpu_twin` compares them), which the GPU's Adam applies as the CPU's
 /// does (crates/gpu/tests/optim.rs).
@@ -89,8 +96,15 @@ fn gpu_hash_field_with_a_decayed_table_matches_the_cpu_field() {
 #[test]
 fn gpu_hash_field_input_gradients_match_the_cpu_field() {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    for (seed, sh_degree, align) in [(11, 4, nerf_encoding::GridAlign::Corner), (12, 2, nerf_encoding::GridAlign::Corner), (14, 4, nerf_encoding::GridAlign::Staggered)] {
-        let mut cfg = HashNerfConfig::default();
+    use nerf_field_hash::ColorInput::{All, Features};
+    for (seed, sh_degree, align, color_input) in [
+        (11, 4, nerf_encoding::GridAlign::Corner, All),
+        (12, 2, nerf_encoding::GridAlign::Corner, All),
+        (14, 4, nerf_encoding::GridAlign::Staggered, All),
+        // The SH columns start after the features alone.
+        (16, 4, nerf_encoding::GridAlign::Corner, Features),
+    ] {
+        let mut cfg = HashNerfConfig { color_input, ..Default::default() };
         cfg.grid.align = align;
         cfg.grid.n_levels = 6;
         cfg.grid.log2_hashmap_size = 12;
