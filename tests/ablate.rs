@@ -322,6 +322,22 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!(c.field_config, serde_json::json!({ "color_input": "features" }));
     c.field_config = cpu_long[0].config.field_config.clone();
     assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&cpu_long[0].config).unwrap());
+    // The H100's lego run scaled down 16x: a sixteenth of the pixels and of the samples per
+    // step, a quarter of the finest level, a sixteenth of the table; the H100 run's steps and
+    // schedule.
+    let mimic = Ablation::load(&dir.join("h100_mimic_lego200.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(mimic.len(), 3);
+    for p in &mimic {
+        let c = &p.config;
+        assert_eq!((c.downscale, c.target_samples_per_step, c.iters), (4, Some((1 << 18) / 16), 43000));
+        assert_eq!(c.lr, preset[0].config.lr);
+        let grid = &c.field_config["grid"];
+        assert_eq!(grid["max_resolution"].as_u64(), Some(2048 / 4));
+        assert!(c.validate().is_ok());
+    }
+    let log2 = |i: usize| mimic[i].config.field_config["grid"]["log2_hashmap_size"].as_u64();
+    assert_eq!((log2(0), log2(1), log2(2)), (Some(19 - 4), Some(20 - 4), Some(19 - 4)));
+    assert_eq!(mimic.iter().map(|p| p.config.distortion_loss).collect::<Vec<_>>(), [None, None, Some(0.01)]);
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
