@@ -189,8 +189,6 @@ struct Tape<T: Real> {
     /// The samples' directions (the SH backward of input gradients reads them).
     dirs: Vec<T>,
     color_in: Vec<T>,
-    /// The density MLP's first output `x` per sample (σ = exp(x + b)).
-    logit: Vec<T>,
     density: MlpTape<T>,
     color: MlpTape<T>,
     d_color_in: Vec<T>,
@@ -428,14 +426,10 @@ impl<T: Real> HashNerf<T> {
         t.dirs.clear();
         t.dirs.extend_from_slice(dirs);
         t.color_in.resize(n * w, T::zero());
-        t.logit.resize(n, T::zero());
         for k in 0..n {
             let row = &dout[k * dd..(k + 1) * dd];
-            t.logit[k] = row[0];
             sigma[k] = (row[0] + bias).min(T::c(MAX_LOG_DENSITY)).exp();
-            let ci = &mut t.color_in[k * w..(k + 1) * w];
-            ci[..dd - fs].copy_from_slice(&row[fs..]);
-            ci[dd - fs..].copy_from_slice(&t.sh[k * sh_dim..(k + 1) * sh_dim]);
+            color_input_row(row, fs, &t.sh[k * sh_dim..(k + 1) * sh_dim], &mut t.color_in[k * w..(k + 1) * w]);
         }
         rgb.copy_from_slice(self.color.forward(n, &t.color_in, &mut t.color));
         self.tape = t;
@@ -467,8 +461,9 @@ impl<T: Real> HashNerf<T> {
             let dr = &mut t.d_density_out[k * dd..(k + 1) * dd];
             dr[..fs].fill(T::zero());
             dr[fs..].copy_from_slice(&t.d_color_in[k * w..k * w + nf]);
-            // σ = exp(x + b) with a truncated gradient: dσ/dx := exp(min(x + b, TRUNC)).
-            let x = t.logit[k] + bias;
+            // σ = exp(x + b) with a truncated gradient: dσ/dx := exp(min(x + b, TRUNC)); x is the
+            // density net's first output, still on its tape.
+            let x = t.density.output()[k * dd] + bias;
             dr[0] += ds * x.min(T::c(TRUNC)).exp();
         }
         t.d_enc.resize(n * enc_dim, T::zero());
@@ -544,9 +539,7 @@ impl<T: Real> HashNerf<T> {
                 self.sh.forward(&dirs[3 * c0..3 * c1], &mut s.sh);
                 s.color_in.resize(m * w, T::zero());
                 for k in 0..m {
-                    let ci = &mut s.color_in[k * w..(k + 1) * w];
-                    ci[..dd - fs].copy_from_slice(&s.dout[k * dd + fs..(k + 1) * dd]);
-                    ci[dd - fs..].copy_from_slice(&s.sh[k * sh_dim..(k + 1) * sh_dim]);
+                    color_input_row(&s.dout[k * dd..(k + 1) * dd], fs, &s.sh[k * sh_dim..(k + 1) * sh_dim], &mut s.color_in[k * w..(k + 1) * w]);
                 }
                 self.color.infer(m, &s.color_in, &mut s.mlp, &mut rgb[3 * c0..3 * c1]);
             }
@@ -562,6 +555,14 @@ impl<T: Real> HashNerf<T> {
     pub fn density_t(&self, positions: &[T], sigma: &mut [T]) {
         self.infer(positions, None, sigma, None, None, &mut Scratch::default())
     }
+}
+
+/// One sample's colour-net input: the density net's outputs from `feat_start` on, then the
+/// direction's SH encoding.
+fn color_input_row<T: Copy>(dout: &[T], feat_start: usize, sh: &[T], out: &mut [T]) {
+    let nf = dout.len() - feat_start;
+    out[..nf].copy_from_slice(&dout[feat_start..]);
+    out[nf..].copy_from_slice(sh);
 }
 
 /// Group names (stable: they key optimiser state and checkpoints).

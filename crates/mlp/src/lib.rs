@@ -206,6 +206,12 @@ impl<T> MlpTape<T> {
     pub fn n(&self) -> usize {
         self.n
     }
+
+    /// The last forward's output (`n·output_dim`, what [`Mlp::forward`] returned; empty before
+    /// any forward).
+    pub fn output(&self) -> &[T] {
+        self.acts.last().map_or(&[], |a| &a[..])
+    }
 }
 
 /// Scratch of [`Mlp::infer`] (two ping-pong activation buffers). One per thread.
