@@ -123,9 +123,14 @@ struct EvalArgs {
     run: PathBuf,
     /// Scene folder (Blender, instant-ngp / nerfstudio or LLFF format).
     scene: PathBuf,
-    /// Test views: all, every:K, first:N (default: the run's).
-    #[arg(long = "test-views")]
+    /// Views of the split to score: all, every:K, first:N (default: the run's test views).
+    #[arg(long = "test-views", visible_alias = "views")]
     test_views: Option<ViewSelection>,
+    /// Which of the scene's splits to score: the held-out `test` views, or the `train` views the
+    /// field was fitted to (rendered and scored the same way; the gap between the two separates
+    /// fit from generalisation).
+    #[arg(long, value_enum, default_value = "test")]
+    split: EvalSplit,
     /// Where to write renders and eval.json (default: `RUN/eval`).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -143,6 +148,31 @@ struct EvalArgs {
     /// protocol) or black (instant-ngp's) [default: the run's `eval_background`, white unless set].
     #[arg(long)]
     background: Option<EvalBackground>,
+}
+
+/// The split `nerf eval` scores (`--split`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum EvalSplit {
+    /// The held-out test views (the usual evaluation).
+    Test,
+    /// The training views.
+    Train,
+}
+
+impl EvalSplit {
+    fn split(self) -> Split {
+        match self {
+            EvalSplit::Test => Split::Test,
+            EvalSplit::Train => Split::Train,
+        }
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            EvalSplit::Test => "test",
+            EvalSplit::Train => "train",
+        }
+    }
 }
 
 /// The fixed backgrounds a test view can be scored on (`nerf eval --background`).
@@ -511,7 +541,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let ck_path = a.run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
-    let test = load_scene(&a.scene, Split::Test, &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc, cameras_only: false })?;
+    let test = load_scene(&a.scene, a.split.split(), &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc, cameras_only: false })?;
     let mut config = ck.config.for_rendering();
     if let Some(spp) = a.spp {
         config.eval_spp = spp;
@@ -527,12 +557,12 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |i, _| pb.set_position(i as u64))?;
     pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
-        "field": ck.config.field, "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
+        "field": ck.config.field, "split": a.split.name(), "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
         "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
     let spp = if config.eval_spp > 1 { format!(", {} rays per pixel", config.eval_spp) } else { String::new() };
-    println!("test PSNR {:.2} dB, SSIM {:.4} on {} views{spp} -> {}", report.psnr, report.ssim, report.views.len(), out.display());
+    println!("{} PSNR {:.2} dB, SSIM {:.4} on {} views{spp} -> {}", a.split.name(), report.psnr, report.ssim, report.views.len(), out.display());
     if let Some(split) = &report.alpha_split {
         println!("  by ground-truth alpha: {}", split.summary());
     }

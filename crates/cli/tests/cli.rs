@@ -234,6 +234,18 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
     assert!((a - b).abs() < 1e-9, "eval of the checkpoint must reproduce the run's PSNR: {a} vs {b}");
     assert!(run.join("eval/r_0.png").is_file());
     assert_eq!(e["background"], "white");
+    assert_eq!(e["split"], "test");
+    // The training views, rendered and scored as the test views are: all three of them, read
+    // from the scene's train/ folder, with their own score.
+    let train = d.path().join("eval_train");
+    let o = nerf().arg("eval").arg(&run).arg(&s).arg("--out").arg(&train).args(["--split", "train", "--views", "all"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).starts_with("train PSNR"), "{}", String::from_utf8_lossy(&o.stdout));
+    let t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(train.join("eval.json")).unwrap()).unwrap();
+    assert_eq!((&t["split"], &t["n_test_views"]), (&serde_json::json!("train"), &serde_json::json!(3)));
+    let files: Vec<&str> = t["per_view"].as_array().unwrap().iter().map(|v| v["file"].as_str().unwrap()).collect();
+    assert!(files.len() == 3 && files.iter().all(|f| f.contains("train")), "{files:?}");
+    assert!((t["test_psnr"].as_f64().unwrap() - b).abs() > 1e-6, "train {} vs test {b}", t["test_psnr"]);
     // Scored on black (instant-ngp's protocol): the render and the ground truth both composited
     // on black. After 3 steps the field is nearly empty, so the render's corner is the background.
     let black = d.path().join("eval_black");
