@@ -325,8 +325,10 @@ fn the_example_ablations_parse_and_plan() {
     // The H100's lego run scaled down 16x: a sixteenth of the pixels and of the samples per
     // step, a quarter of the finest level, a sixteenth of the table; the H100 run's steps and
     // schedule.
-    let mimic = Ablation::load(&dir.join("h100_mimic_lego200.toml")).unwrap().plan(&nerf::registry()).unwrap();
-    assert_eq!(mimic.len(), 3);
+    let mimic_spec = Ablation::load(&dir.join("h100_mimic_lego200.toml")).unwrap();
+    assert!(mimic_spec.spec.checkpoints);
+    let mimic = mimic_spec.plan(&nerf::registry()).unwrap();
+    assert_eq!(mimic.len(), 6);
     for p in &mimic {
         let c = &p.config;
         assert_eq!((c.downscale, c.target_samples_per_step, c.iters), (4, Some((1 << 18) / 16), 43000));
@@ -336,8 +338,18 @@ fn the_example_ablations_parse_and_plan() {
         assert!(c.validate().is_ok());
     }
     let log2 = |i: usize| mimic[i].config.field_config["grid"]["log2_hashmap_size"].as_u64();
-    assert_eq!((log2(0), log2(1), log2(2)), (Some(19 - 4), Some(20 - 4), Some(19 - 4)));
-    assert_eq!(mimic.iter().map(|p| p.config.distortion_loss).collect::<Vec<_>>(), [None, None, Some(0.01)]);
+    assert_eq!((0..6).map(log2).collect::<Vec<_>>(), [15, 16, 15, 15, 15, 15].map(Some));
+    assert_eq!(mimic.iter().map(|p| p.config.distortion_loss).collect::<Vec<_>>(), [None, None, Some(0.01), None, None, None]);
+    // The generalisation runs: one setting each away from t15, and every run keeps its checkpoint
+    // (for `nerf eval --split train`).
+    assert_eq!(mimic[3].config.field_config["sh_degree"], 2);
+    assert!(mimic[4].config.pixel_jitter && !mimic[0].config.pixel_jitter);
+    assert_eq!((mimic[5].config.ema_decay, mimic[0].config.ema_decay), (Some(0.99), Some(0.95)));
+    for i in 3..6 {
+        let (mut c, t15) = (mimic[i].config.clone(), &mimic[0].config);
+        (c.pixel_jitter, c.ema_decay, c.field_config) = (t15.pixel_jitter, t15.ema_decay, t15.field_config.clone());
+        assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(t15).unwrap(), "run {i}");
+    }
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
