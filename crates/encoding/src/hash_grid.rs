@@ -134,6 +134,17 @@ pub struct HashGridConfig {
     /// Where the levels' vertices sit: HashNeRF's `corner` (the default) or tiny-cuda-nn's
     /// `staggered` ([`GridAlign`]).
     pub align: GridAlign,
+    /// Accumulate the table's gradient as tiny-cuda-nn does in half precision, with this loss
+    /// scale `S`: each sample's gradient for the level's features is scaled by `S` and rounded to
+    /// `f16` (tiny-cuda-nn's `dL/dy` buffer), each corner's share `f16(g·S)·w` is rounded to
+    /// `f16`, and every addition into an entry rounds the running sum to `f16` (its `half2`
+    /// atomics), the entry being read back divided by `S`. Contributions below `f16`'s smallest
+    /// subnormal (2⁻²⁴ after scaling) vanish and small ones lose precision, as there. `None` (the
+    /// default): `f32` sums. A power of two keeps the scaling exact. CPU only: the GPU field
+    /// refuses it. (Left out of the serialised config when `None`, so older configs keep their
+    /// hashes.)
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub grad_f16_scale: Option<f32>,
 }
 
 impl Default for HashGridConfig {
@@ -148,6 +159,7 @@ impl Default for HashGridConfig {
             storage: Precision::F32,
             init_scale: 1e-4,
             align: GridAlign::Corner,
+            grad_f16_scale: None,
         }
     }
 }
@@ -175,6 +187,9 @@ pub enum HashGridConfigError {
     /// `init_scale` is negative or not finite.
     #[error("hash grid config: init_scale must be finite and >= 0, got {0}")]
     InitScale(f32),
+    /// `grad_f16_scale` is not a finite positive number.
+    #[error("hash grid config: grad_f16_scale must be finite and > 0, got {0}")]
+    GradScale(f32),
 }
 
 impl HashGridConfig {
@@ -201,6 +216,9 @@ impl HashGridConfig {
         }
         if !(self.init_scale.is_finite() && self.init_scale >= 0.0) {
             return Err(HashGridConfigError::InitScale(self.init_scale));
+        }
+        if let Some(s) = self.grad_f16_scale.filter(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(HashGridConfigError::GradScale(s));
         }
         Ok(())
     }
@@ -564,11 +582,28 @@ impl<T: Real> HashGrid<T> {
         let n = input.len() / 3;
         // As in the forward pass: on a level larger than the caches, prefetch the corners of the
         // sample PREFETCH_DISTANCE ahead (the pointer is only a hint; `d` is not read through it).
-        let scatter = |c: &Cell<T>, g: &[T; F], d: &mut [T]| {
-            for k in 0..8 {
-                let dst: &mut [T; F] = (&mut d[c.idx[k]..c.idx[k] + F]).try_into().unwrap();
-                for j in 0..F {
-                    dst[j] += c.w[k] * g[j];
+        let f16_scale = self.cfg.grad_f16_scale;
+        let scatter = |c: &Cell<T>, g: &[T; F], d: &mut [T]| match f16_scale {
+            None => {
+                for k in 0..8 {
+                    let dst: &mut [T; F] = (&mut d[c.idx[k]..c.idx[k] + F]).try_into().unwrap();
+                    for j in 0..F {
+                        dst[j] += c.w[k] * g[j];
+                    }
+                }
+            }
+            // tiny-cuda-nn's half-precision accumulation (`HashGridConfig::grad_f16_scale`): the
+            // scaled gradient, each corner's share and each running sum rounded to f16; the
+            // entries hold the sums divided by the scale.
+            Some(s) => {
+                let gs: [f32; F] = std::array::from_fn(|j| round_f16(g[j].f32() * s));
+                for k in 0..8 {
+                    let w = c.w[k].f32();
+                    let dst: &mut [T; F] = (&mut d[c.idx[k]..c.idx[k] + F]).try_into().unwrap();
+                    for j in 0..F {
+                        let sum = round_f16(dst[j].f32() * s + round_f16(gs[j] * w));
+                        dst[j] = T::c((sum / s) as f64);
+                    }
                 }
             }
         };
@@ -774,6 +809,12 @@ impl<T: Real> Encoding<T> for HashGrid<T> {
     }
 }
 
+/// `x` rounded to the nearest `f16` (overflow to ±∞, underflow through the subnormals to 0).
+#[inline(always)]
+fn round_f16(x: f32) -> f32 {
+    half::f16::from_f32(x).to_f32()
+}
+
 /// `params` viewed as `f32` when `T` is `f32`.
 fn as_f32<T: Real>(params: &[T]) -> Option<&[f32]> {
     (std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>())
@@ -960,6 +1001,7 @@ mod tests {
             storage: Precision::F32,
             init_scale: 1e-4,
             align: GridAlign::Corner,
+            grad_f16_scale: None,
         }
     }
 
@@ -975,6 +1017,7 @@ mod tests {
             storage,
             init_scale: 1.0,
             align: GridAlign::Corner,
+            grad_f16_scale: None,
         }
     }
 
@@ -1371,6 +1414,85 @@ mod tests {
         assert_eq!(dx[0], 0.0);
         assert_eq!(dx[2], 0.0);
         assert!(dx[1] != 0.0);
+    }
+
+    #[test]
+    fn f16_gradient_sums_match_f32_within_half_rounding() {
+        // Gradients whose scaled shares lie in f16's normal range: the half-precision sums stay
+        // within a few f16 roundings of the f32 sums, and do differ from them.
+        let mut r = nerf_core::rng(21, 0);
+        for f in [1, 2, 4] {
+            let cfg = small_config(f, Precision::F32);
+            let g32 = HashGrid::<f32>::new(&cfg, &mut nerf_core::rng(22, f as u64));
+            let g16 = HashGrid::<f32>::new(&HashGridConfig { grad_f16_scale: Some(1024.0), ..cfg.clone() }, &mut nerf_core::rng(22, f as u64));
+            let n = 400;
+            let x: Vec<f32> = (0..3 * n).map(|_| r.gen::<f32>()).collect();
+            let w: Vec<f32> = (0..n * 6 * f).map(|_| (r.gen::<f32>() - 0.5) * 1e-2).collect();
+            let w_abs: Vec<f32> = w.iter().map(|v| v.abs()).collect();
+            let (mut d32, mut d16, mut d_abs) = (vec![0.0; g32.params().len()], vec![0.0; g32.params().len()], vec![0.0; g32.params().len()]);
+            g32.backward(&x, &w, &mut d32, None);
+            g16.backward(&x, &w, &mut d16, None);
+            // Σ w_k·|g| over an entry's contributions (trilinear weights are ≥ 0).
+            g32.backward(&x, &w_abs, &mut d_abs, None);
+            let mut differ = 0;
+            for i in 0..d32.len() {
+                // Each share and each running sum rounds once (relative 2⁻¹¹), the scaled
+                // gradient too; a few hundred additions at most reach one entry here.
+                let tol = 4.0 * 2f32.powi(-11) * d_abs[i] * 8.0 + 1e-9;
+                assert!((d16[i] - d32[i]).abs() <= tol, "F={f} entry {i}: f16 {} vs f32 {} (|Σ| {})", d16[i], d32[i], d_abs[i]);
+                differ += (d16[i] != d32[i]) as usize;
+            }
+            assert!(differ > 0, "F={f}: the f16 sums equal the f32 ones everywhere");
+            assert!(d16.iter().filter(|v| **v != 0.0).count() > 100, "F={f}: too few entries touched");
+        }
+    }
+
+    #[test]
+    fn f16_gradient_sums_round_each_share_and_drop_the_tiny_ones() {
+        let cfg = HashGridConfig { grad_f16_scale: Some(16.0), ..small_config(2, Precision::F32) };
+        let g = HashGrid::<f32>::new(&cfg, &mut nerf_core::rng(23, 0));
+        let x = [0.3137f32, 0.7071, 0.5772];
+        let nd = 6 * 2;
+        let r16 = |v: f32| half::f16::from_f32(v).to_f32();
+        // One sample: every entry holds f16(f16(g·S)·w)/S, its trilinear share rounded twice.
+        let gv = 1.2345e-3f32;
+        let mut d = vec![0.0f32; g.params().len()];
+        g.backward(&x, &vec![gv; nd], &mut d, None);
+        let mut d32 = vec![0.0f32; g.params().len()];
+        HashGrid::<f32>::new(&HashGridConfig { grad_f16_scale: None, ..cfg.clone() }, &mut nerf_core::rng(23, 0)).backward(&x, &vec![gv; nd], &mut d32, None);
+        let mut checked = 0;
+        for (a, b) in d.iter().zip(&d32) {
+            if *b != 0.0 {
+                let w = b / gv; // the f32 share's trilinear weight
+                let want = r16(r16(gv * 16.0) * w) / 16.0;
+                assert!((a - want).abs() <= 1e-6 * want.abs(), "entry: {a} vs {want} (w {w})");
+                checked += 1;
+            }
+        }
+        assert!(checked >= 8 * 6, "only {checked} entries checked");
+        // A gradient whose scaled shares fall below half of f16's smallest subnormal (2⁻²⁴) leaves
+        // every entry at exactly zero, where f32 sums keep it.
+        let tiny = 2f32.powi(-26) / 16.0;
+        let mut d = vec![0.0f32; g.params().len()];
+        g.backward(&x, &vec![tiny; nd], &mut d, None);
+        assert!(d.iter().all(|v| *v == 0.0), "a tiny gradient survived the f16 sums");
+        let mut d32 = vec![0.0f32; g.params().len()];
+        HashGrid::<f32>::new(&HashGridConfig { grad_f16_scale: None, ..cfg.clone() }, &mut nerf_core::rng(23, 0)).backward(&x, &vec![tiny; nd], &mut d32, None);
+        assert!(d32.iter().any(|v| *v != 0.0));
+    }
+
+    #[test]
+    fn grad_f16_scale_is_validated_and_left_out_of_configs_without_it() {
+        for bad in [0.0, -1.0, f32::NAN, f32::INFINITY] {
+            let cfg = HashGridConfig { grad_f16_scale: Some(bad), ..HashGridConfig::default() };
+            assert!(matches!(cfg.validate(), Err(HashGridConfigError::GradScale(_))), "{bad} passed");
+        }
+        assert!(HashGridConfig { grad_f16_scale: Some(128.0), ..HashGridConfig::default() }.validate().is_ok());
+        let v = serde_json::to_value(HashGridConfig::default()).unwrap();
+        assert!(v.get("grad_f16_scale").is_none(), "the default config serialises the key: {v}");
+        let c: HashGridConfig = serde_json::from_str(r#"{"grad_f16_scale": 1024}"#).unwrap();
+        assert_eq!(c.grad_f16_scale, Some(1024.0));
+        assert_eq!(serde_json::from_value::<HashGridConfig>(serde_json::to_value(&c).unwrap()).unwrap(), c);
     }
 
     #[test]
