@@ -357,6 +357,17 @@ fn the_example_ablations_parse_and_plan() {
         (c.pixel_jitter, c.ema_decay, c.field_config) = (t15.pixel_jitter, t15.ema_decay, t15.field_config.clone());
         assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(t15).unwrap(), "run {i}");
     }
+    // tiny-cuda-nn's half precision in the table, in the same scaled-down run: t15 as above, and
+    // t15 with the f16 mirror and f16 gradient sums, nothing else changed.
+    let half = Ablation::load(&dir.join("f16_grad_mimic_lego200.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(half.len(), 4);
+    assert_eq!(half.iter().map(|p| p.config.seed).collect::<Vec<_>>(), [0, 1, 0, 1]);
+    let t15_s0 = serde_json::to_value(&mimic[0].config).unwrap();
+    assert_eq!(serde_json::to_value(&half[0].config).unwrap(), t15_s0);
+    let mut c = half[2].config.clone();
+    let grid = c.field_config["grid"].as_object_mut().unwrap();
+    assert_eq!((grid.remove("storage").unwrap(), grid.remove("grad_f16_scale").unwrap()), (serde_json::json!("f16"), serde_json::json!(16.0)));
+    assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
