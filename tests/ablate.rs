@@ -368,6 +368,20 @@ fn the_example_ablations_parse_and_plan() {
     let grid = c.field_config["grid"].as_object_mut().unwrap();
     assert_eq!((grid.remove("storage").unwrap(), grid.remove("grad_f16_scale").unwrap()), (serde_json::json!("f16"), serde_json::json!(16.0)));
     assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
+    // nerfacc's recipe in the same scaled-down run: t15 but for nerfacc's settings (its finest
+    // level scaled as the mimic scales the preset's), and t15 with its Adam alone.
+    let nac = Ablation::load(&dir.join("nerfacc_mimic_lego200.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(nac.len(), 2);
+    let mut c = nac[0].config.clone();
+    assert_eq!((c.adam.beta2, c.train_background), (0.999, nerf::data::Background::White));
+    assert_eq!((c.field_config["grid"]["max_resolution"].as_u64(), c.field_config["density_bias"].as_f64()), (Some(1024), Some(-1.0)));
+    assert_eq!(c.field_config["grid"]["align"], "staggered");
+    (c.adam, c.train_background, c.field_config) = (mimic[0].config.adam.clone(), mimic[0].config.train_background, mimic[0].config.field_config.clone());
+    assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
+    let mut c = nac[1].config.clone();
+    assert_eq!(c.adam.beta2, 0.999);
+    c.adam.beta2 = mimic[0].config.adam.beta2;
+    assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
