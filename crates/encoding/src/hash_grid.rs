@@ -140,7 +140,7 @@ pub struct HashGridConfig {
     /// `f16`, and every addition into an entry rounds the running sum to `f16` (its `half2`
     /// atomics), the entry being read back divided by `S`. Contributions below `f16`'s smallest
     /// subnormal (2⁻²⁴ after scaling) vanish and small ones lose precision, as there. `None` (the
-    /// default): `f32` sums. A power of two keeps the scaling exact. CPU only: the GPU field
+    /// default): `f32` sums. A power of two keeps the scaling exact. CPU only: the GPU grid
     /// refuses it. (Left out of the serialised config when `None`, so older configs keep their
     /// hashes.)
     #[serde(skip_serializing_if = "Option::is_none")]

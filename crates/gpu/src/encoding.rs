@@ -158,6 +158,11 @@ impl GpuHashGrid {
         aabb_max: [f32; 3],
         mode: AtomicMode,
     ) -> Result<Self, GpuError> {
+        if let Some(s) = cfg.grad_f16_scale {
+            return Err(GpuError::Unsupported(format!(
+                "hash grid: grad_f16_scale = {s} (the table's gradient summed in f16) is implemented on the CPU only: leave it out to train on the GPU"
+            )));
+        }
         // Resolutions, offsets and dense flags from the CPU encoding itself: equal by construction.
         let grid = HashGrid::<f32>::zeros(cfg).map_err(|e| GpuError::Unsupported(e.to_string()))?;
         let l = grid.n_levels();
