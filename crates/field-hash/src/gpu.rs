@@ -104,6 +104,12 @@ impl GpuHashNerf {
     /// The GPU twin of `field` with buffers for `capacity` samples per launch.
     pub fn new(field: &HashNerf<f32>, ctx: &GpuContext, capacity: usize) -> Result<Self, FieldError> {
         let cfg = &field.config;
+        if let Some(s) = cfg.mlp_f16_scale {
+            return Err(FieldError::InvalidConfig {
+                field: "hash".into(),
+                message: format!("mlp_f16_scale = {s} (the MLPs in emulated f16 arithmetic) is implemented on the CPU only: leave it out to train on the GPU"),
+            });
+        }
         let capacity = capacity.max(1);
         let aabb_min = field.aabb_min;
         let atomics = if subgroup_sums(cfg.gpu_hash_subgroup_sums, ctx.is_software()) { AtomicMode::SubgroupSums } else { AtomicMode::Auto };

@@ -83,6 +83,13 @@ pub struct HashNerfConfig {
     /// (docs/results.md). `true` or `false` chooses on every adapter.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gpu_hash_subgroup_sums: Option<bool>,
+    /// CPU only: both MLPs compute as tiny-cuda-nn's half-precision fully fused MLPs do, with
+    /// this loss scale ([`Mlp::set_f16_arithmetic`]: inputs, weights and every layer's output
+    /// rounded to f16; the backward scaled, rounded at each layer and unscaled after). tiny-cuda-nn's
+    /// PyTorch bindings scale by 128. Unset (the default): the MLPs compute in full precision. The
+    /// GPU field refuses it.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mlp_f16_scale: Option<f32>,
 }
 
 /// How the hash field's MLP weights start ([`HashNerfConfig::mlp_init`]). Biases, where
@@ -170,6 +177,7 @@ impl Default for HashNerfConfig {
             gpu_mlp: GpuMlp::Plain,
             gpu_keep_density_activations: false,
             gpu_hash_subgroup_sums: None,
+            mlp_f16_scale: None,
         }
     }
 }
@@ -251,6 +259,9 @@ impl<T: Real> HashNerf<T> {
                 return Err(bad(format!("{key} must be finite and >= 0, got {wd}")));
             }
         }
+        if let Some(s) = config.mlp_f16_scale.filter(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(bad(format!("mlp_f16_scale must be finite and > 0, got {s}")));
+        }
         if config.density_hidden == 0 || config.color_hidden == 0 {
             return Err(bad("MLP widths must be positive".into()));
         }
@@ -292,6 +303,8 @@ impl<T: Real> HashNerf<T> {
         let mut init_rng = nerf_core::rng(ctx.seed, 0x4A55);
         config.mlp_init.apply(&mut density, &mut init_rng);
         config.mlp_init.apply(&mut color, &mut init_rng);
+        density.set_f16_arithmetic(config.mlp_f16_scale);
+        color.set_f16_arithmetic(config.mlp_f16_scale);
         let grid_grad = vec![T::zero(); Encoding::<T>::n_params(&grid)];
         Ok(Self {
             config,

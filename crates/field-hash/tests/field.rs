@@ -38,6 +38,7 @@ fn small() -> HashNerfConfig {
         gpu_mlp: GpuMlp::Plain,
         gpu_keep_density_activations: true,
         gpu_hash_subgroup_sums: None,
+        mlp_f16_scale: None,
     }
 }
 
@@ -423,6 +424,8 @@ fn bad_configs_are_rejected() {
         (HashNerfConfig { grid_weight_decay: -1e-6, ..small() }, "grid_weight_decay"),
         (HashNerfConfig { grid_weight_decay: f32::INFINITY, ..small() }, "grid_weight_decay"),
         (HashNerfConfig { mlp_weight_decay: f32::NAN, ..small() }, "mlp_weight_decay"),
+        (HashNerfConfig { mlp_f16_scale: Some(0.0), ..small() }, "mlp_f16_scale"),
+        (HashNerfConfig { mlp_f16_scale: Some(f32::INFINITY), ..small() }, "mlp_f16_scale"),
     ] {
         let e = HashNerf::<f32>::new(cfg, &unit_ctx(0)).err().unwrap();
         assert!(e.to_string().contains(key), "{e}");
@@ -446,4 +449,38 @@ fn the_finest_resolution_left_out_grows_with_the_scenes_box() {
     assert_eq!(res(small.clone(), 2.5), 5120);
     assert_eq!(res(serde_json::json!({"grid": {"log2_hashmap_size": 12, "max_resolution": 1024}}), 4.0), 1024);
     assert_eq!(res(serde_json::Value::Null, 16.0), 16 * default);
+}
+
+#[test]
+fn f16_mlp_arithmetic_reaches_both_mlps_from_the_config_file() {
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 4, scene_scale: 1.0 };
+    // Table entries of O(1) (a fresh table's ~1e-4 would give logits in f16's subnormals).
+    let cfg = serde_json::json!({"grid": {"log2_hashmap_size": 12, "init_scale": 1.0}, "mlp_f16_scale": 128.0});
+    let parsed: HashNerfConfig = serde_json::from_value(cfg.clone()).unwrap();
+    assert_eq!(parsed.mlp_f16_scale, Some(128.0));
+    let back: HashNerfConfig = serde_json::from_str(&serde_json::to_string(&parsed).unwrap()).unwrap();
+    assert_eq!(back, parsed);
+    // Unset, it is left out of the written config (older readers keep reading it).
+    assert!(!serde_json::to_string(&HashNerfConfig::default()).unwrap().contains("mlp_f16_scale"));
+    let f16 = HashNerf::<f32>::new(parsed, &ctx).unwrap();
+    assert!(f16.mlps().iter().all(|m| m.f16_arithmetic() == Some(128.0)));
+    let full = HashNerf::<f32>::new(serde_json::from_value(serde_json::json!({"grid": {"log2_hashmap_size": 12, "init_scale": 1.0}})).unwrap(), &ctx).unwrap();
+    assert!(full.mlps().iter().all(|m| m.f16_arithmetic().is_none()));
+    // The same parameters, the density and the colour in f16: σ = exp(x) of an f16 x, and every
+    // colour an f16 (the sigmoid's output is rounded as the net's last layer).
+    let mut rng = nerf_core::rng(5, 0);
+    let n = 500;
+    let pos: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let dirs: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let (mut s16, mut c16) = (vec![f32::NAN; n], vec![f32::NAN; 3 * n]);
+    let (mut s32, mut c32) = (vec![f32::NAN; n], vec![f32::NAN; 3 * n]);
+    f16.query(&pos, &dirs, &mut s16, &mut c16);
+    full.query(&pos, &dirs, &mut s32, &mut c32);
+    let r = nerf_mlp::round_f16::<f32>;
+    assert!(c16.iter().all(|&c| r(c) == c));
+    // ln σ is the f16 logit up to the rounding of exp and ln in f32 (f16's spacing near 1: 1e-3).
+    assert!(s16.iter().all(|&s| (s.ln() - r(s.ln())).abs() <= 1e-5 * (1.0 + s.ln().abs())));
+    assert!(s32.iter().filter(|&&s| (s.ln() - r(s.ln())).abs() > 1e-5 * (1.0 + s.ln().abs())).count() > n / 2);
+    assert!(c16.iter().zip(&c32).any(|(a, b)| a != b));
+    assert!(c16.iter().zip(&c32).all(|(a, b)| (a - b).abs() < 1e-2), "f16 colours far from the f32 ones");
 }

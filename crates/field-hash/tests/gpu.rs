@@ -155,6 +155,22 @@ fn half_precision_gradient_sums_are_refused_on_the_gpu() {
 }
 
 #[test]
+fn f16_mlp_arithmetic_is_refused_on_the_gpu() {
+    let Some(ctx) = GpuContext::for_tests() else { return };
+    let mut cfg = HashNerfConfig::default();
+    cfg.grid.n_levels = 2;
+    cfg.grid.log2_hashmap_size = 10;
+    cfg.mlp_f16_scale = Some(128.0);
+    let fctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 7, scene_scale: 1.0 };
+    let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+    let err = match nerf_field::RadianceField::to_gpu(&cpu, &ctx, 1024).expect("the hash field has a GPU twin") {
+        Ok(_) => panic!("the GPU field took mlp_f16_scale"),
+        Err(e) => e.to_string(),
+    };
+    assert!(err.contains("mlp_f16_scale") && err.contains("CPU only"), "{err}");
+}
+
+#[test]
 fn the_cooperative_matrix_mlps_match_the_cpu_field_where_the_adapter_has_them() {
     let cfg: HashNerfConfig = serde_json::from_value(serde_json::json!({
         "gpu_mlp": "coop",

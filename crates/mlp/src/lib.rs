@@ -188,6 +188,11 @@ pub struct MlpTape<T> {
     acts: Vec<Vec<T>>,
     dz: Vec<T>,
     dh: Vec<T>,
+    /// Under [`Mlp::set_f16_arithmetic`]: the weights and the input as the forward read them
+    /// (rounded to f16), and backward's scaled parameter gradients before their rounding.
+    w16: Vec<T>,
+    x16: Vec<T>,
+    dw: Vec<T>,
 }
 
 impl<T> Default for MlpTape<T> {
@@ -197,6 +202,9 @@ impl<T> Default for MlpTape<T> {
             acts: Vec::new(),
             dz: Vec::new(),
             dh: Vec::new(),
+            w16: Vec::new(),
+            x16: Vec::new(),
+            dw: Vec::new(),
         }
     }
 }
@@ -219,6 +227,8 @@ impl<T> MlpTape<T> {
 pub struct MlpScratch<T> {
     a: Vec<T>,
     b: Vec<T>,
+    w16: Vec<T>,
+    x16: Vec<T>,
 }
 
 impl<T> Default for MlpScratch<T> {
@@ -226,8 +236,37 @@ impl<T> Default for MlpScratch<T> {
         Self {
             a: Vec::new(),
             b: Vec::new(),
+            w16: Vec::new(),
+            x16: Vec::new(),
         }
     }
+}
+
+/// `x` rounded to the nearest f16 (ties to even; overflow to ±∞, as a cast to `__half` does).
+#[inline(always)]
+pub fn round_f16<T: Real>(x: T) -> T {
+    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>() {
+        // f32 → f16 in one rounding (the F16C instruction where the CPU has it; f64's goes
+        // through software).
+        bytemuck::cast(half::f16::from_f32(bytemuck::cast::<T, f32>(x)).to_f32())
+    } else {
+        T::c(half::f16::from_f64(x.f64()).to_f64())
+    }
+}
+
+/// `v` rounded to f16 in place.
+fn round_all<T: Real>(v: &mut [T], parallel: bool) {
+    if parallel && v.len() > EW_CHUNK {
+        v.par_chunks_mut(EW_CHUNK).for_each(|c| c.iter_mut().for_each(|x| *x = round_f16(*x)));
+    } else {
+        v.iter_mut().for_each(|x| *x = round_f16(*x));
+    }
+}
+
+/// `dst` := `src` rounded to f16 (`dst` grows only past its capacity).
+fn round_into<T: Real>(dst: &mut Vec<T>, src: &[T]) {
+    dst.clear();
+    dst.extend(src.iter().map(|&x| round_f16(x)));
 }
 
 /// Resizes `v` to `len` (allocates only when it grows past its capacity).
@@ -324,6 +363,8 @@ pub struct Mlp<T: Real> {
     params: Vec<T>,
     grads: Vec<T>,
     layers: Vec<Layer>,
+    /// [`Mlp::set_f16_arithmetic`]'s loss scale.
+    f16: Option<f32>,
 }
 
 impl<T: Real> Mlp<T> {
@@ -391,7 +432,35 @@ impl<T: Real> Mlp<T> {
             grads: vec![T::zero(); off],
             params,
             layers,
+            f16: None,
         })
+    }
+
+    /// Emulates tiny-cuda-nn's half-precision fully fused MLPs (on the CPU: the products still
+    /// run in `T` and every value they read or write is rounded to f16): with `Some(S)`,
+    /// - the forward reads the input and the weights rounded to f16 and rounds every layer's
+    ///   output (after its bias and activation) to f16: what tiny-cuda-nn keeps in shared memory
+    ///   between layers and hands on, [`Mlp::infer`] included;
+    /// - the backward multiplies `dL/d(output)` by the loss scale `S` (tiny-cuda-nn's PyTorch
+    ///   bindings use 128) and rounds it, and each layer's `dL/dz` and `dL/dh`, to f16; the
+    ///   products read the rounded weights and inputs; each call's parameter gradients and
+    ///   `dL/d(input)` are rounded to f16 while scaled, then divided by `S`, so that a gradient
+    ///   below f16's smallest subnormal over `S` is lost, as in the original.
+    ///
+    /// What this leaves out: tiny-cuda-nn's tensor cores also sum the products in f16 (each
+    /// partial sum rounded), which these f32/f64 products do not. The parameters themselves, and
+    /// the optimiser, stay in `T` (tiny-cuda-nn's f32 master copy). `None` (the default) turns it
+    /// off. Panics unless `S` is finite and positive.
+    pub fn set_f16_arithmetic(&mut self, loss_scale: Option<f32>) {
+        if let Some(s) = loss_scale {
+            assert!(s.is_finite() && s > 0.0, "Mlp::set_f16_arithmetic: loss scale {s} is not finite and > 0");
+        }
+        self.f16 = loss_scale;
+    }
+
+    /// The loss scale of [`Mlp::set_f16_arithmetic`], `None` when it is off.
+    pub fn f16_arithmetic(&self) -> Option<f32> {
+        self.f16
     }
 
     /// Total number of parameters.
@@ -448,13 +517,15 @@ impl<T: Real> Mlp<T> {
     }
 
     /// The column block `[c0, c0+cols)` of layer `l`'s `W` as an `out × cols` view.
-    fn w_block(&self, l: &Layer, c0: usize, cols: usize) -> MatRef<'_, T> {
-        MatRef::new(&self.params[l.w_off + c0..], l.out, cols, l.fan_in, 1)
+    fn w_block<'a>(params: &'a [T], l: &Layer, c0: usize, cols: usize) -> MatRef<'a, T> {
+        MatRef::new(&params[l.w_off + c0..], l.out, cols, l.fan_in, 1)
     }
 
     /// `z = act([x,] h · Wᵀ + b)` for layer `i`; `h` is the previous activation (None for layer 0).
+    #[allow(clippy::too_many_arguments)]
     fn layer_forward(
         &self,
+        params: &[T],
         i: usize,
         n: usize,
         x: &[T],
@@ -471,7 +542,7 @@ impl<T: Real> Mlp<T> {
                     MatMut::row_major(z, n, out),
                     false,
                     MatRef::row_major(x, n, d_in),
-                    self.w_block(l, 0, d_in).t(),
+                    Self::w_block(params, l, 0, d_in).t(),
                     par,
                 );
             }
@@ -485,7 +556,7 @@ impl<T: Real> Mlp<T> {
                     MatMut::row_major(z, n, out),
                     false,
                     MatRef::row_major(h, n, hw),
-                    self.w_block(l, c0, hw).t(),
+                    Self::w_block(params, l, c0, hw).t(),
                     par,
                 );
                 if l.skip {
@@ -493,14 +564,18 @@ impl<T: Real> Mlp<T> {
                         MatMut::row_major(z, n, out),
                         true,
                         MatRef::row_major(x, n, d_in),
-                        self.w_block(l, 0, d_in).t(),
+                        Self::w_block(params, l, 0, d_in).t(),
                         par,
                     );
                 }
             }
         }
-        let bias = l.b_off.map(|b| &self.params[b..b + out]);
-        bias_act(z, out, bias, l.act, matches!(par, Parallelism::Rayon(_)));
+        let bias = l.b_off.map(|b| &params[b..b + out]);
+        let parallel = matches!(par, Parallelism::Rayon(_));
+        bias_act(z, out, bias, l.act, parallel);
+        if self.f16.is_some() {
+            round_all(z, parallel);
+        }
     }
 
     fn check_input(&self, n: usize, input: &[T]) {
@@ -521,12 +596,19 @@ impl<T: Real> Mlp<T> {
         tape.n = n;
         tape.acts.resize_with(nl, Vec::new);
         let par = Parallelism::Rayon(0);
+        let (params, input) = if self.f16.is_some() {
+            round_into(&mut tape.w16, &self.params);
+            round_into(&mut tape.x16, input);
+            (&tape.w16[..], &tape.x16[..])
+        } else {
+            (&self.params[..], input)
+        };
         for i in 0..nl {
             let (done, rest) = tape.acts.split_at_mut(i);
             let z = &mut rest[0];
             ensure(z, n * self.layers[i].out);
             let h = if i == 0 { None } else { Some(&done[i - 1][..]) };
-            self.layer_forward(i, n, input, h, z, par);
+            self.layer_forward(params, i, n, input, h, z, par);
         }
         &tape.acts[nl - 1]
     }
@@ -556,6 +638,13 @@ impl<T: Real> Mlp<T> {
             std::mem::take(&mut scratch.a),
             std::mem::take(&mut scratch.b),
         );
+        let (params, input) = if self.f16.is_some() {
+            round_into(&mut scratch.w16, &self.params);
+            round_into(&mut scratch.x16, input);
+            (&scratch.w16[..], &scratch.x16[..])
+        } else {
+            (&self.params[..], input)
+        };
         if nl > 1 {
             ensure(&mut a, n * w);
             ensure(&mut b, n * w);
@@ -568,14 +657,14 @@ impl<T: Real> Mlp<T> {
                 } else {
                     Some(&a[..n * self.layers[i - 1].out])
                 };
-                self.layer_forward(i, n, input, h, out, par);
+                self.layer_forward(params, i, n, input, h, out, par);
             } else {
                 let h = if i == 0 {
                     None
                 } else {
                     Some(&a[..n * self.layers[i - 1].out])
                 };
-                self.layer_forward(i, n, input, h, &mut b[..n * width], par);
+                self.layer_forward(params, i, n, input, h, &mut b[..n * width], par);
                 std::mem::swap(&mut a, &mut b);
             }
         }
@@ -649,10 +738,33 @@ impl<T: Real> Mlp<T> {
         let (mut dz, mut dh) = (std::mem::take(&mut tape.dz), std::mem::take(&mut tape.dh));
         ensure(&mut dz, n * w);
         ensure(&mut dh, n * w);
+        // Under f16 arithmetic the products read the weights and the input as the forward did, and
+        // the parameter gradients go to `dw` (scaled by S) to be rounded before they are added.
+        let (w16, x16, mut dw) = (std::mem::take(&mut tape.w16), std::mem::take(&mut tape.x16), std::mem::take(&mut tape.dw));
+        let f16 = self.f16.map(|s| T::c(s as f64));
+        let (params, input) = match f16 {
+            Some(_) => {
+                assert!(
+                    w16.len() == self.params.len() && x16.len() == input.len(),
+                    "Mlp::backward: f16 arithmetic was turned on after the forward"
+                );
+                dw.clear();
+                dw.resize(self.params.len(), T::zero());
+                (&w16[..], &x16[..])
+            }
+            None => (&self.params[..], input),
+        };
+        let grads = if f16.is_some() { &mut dw[..] } else { &mut self.grads[..] };
         // dZ of the output layer.
         let last = &self.layers[nl - 1];
-        dz[..n * last.out].copy_from_slice(d_output);
+        match f16 {
+            Some(s) => dz[..n * last.out].iter_mut().zip(d_output).for_each(|(z, &g)| *z = round_f16(g * s)),
+            None => dz[..n * last.out].copy_from_slice(d_output),
+        }
         mul_act_derivative(&mut dz[..n * last.out], &tape.acts[nl - 1], last.act, true);
+        if f16.is_some() {
+            round_all(&mut dz[..n * last.out], true);
+        }
         for i in (0..nl).rev() {
             let l = self.layers[i].clone();
             let g = &dz[..n * l.out];
@@ -667,14 +779,14 @@ impl<T: Real> Mlp<T> {
             let hc0 = l.fan_in - hw;
             if i > 0 {
                 let h = &tape.acts[i - 1];
-                let dw = MatMut::new(&mut self.grads[l.w_off + hc0..], l.out, hw, l.fan_in, 1);
+                let dw = MatMut::new(&mut grads[l.w_off + hc0..], l.out, hw, l.fan_in, 1);
                 matmul(dw, true, dzt, MatRef::row_major(h, n, hw), par);
             }
             if x_block {
-                let dw = MatMut::new(&mut self.grads[l.w_off..], l.out, d_in, l.fan_in, 1);
+                let dw = MatMut::new(&mut grads[l.w_off..], l.out, d_in, l.fan_in, 1);
                 matmul(dw, true, dzt, MatRef::row_major(input, n, d_in), par);
                 if let Some(d) = d_input.as_deref_mut() {
-                    let wx = MatRef::new(&self.params[l.w_off..], l.out, cols, l.fan_in, 1);
+                    let wx = MatRef::new(&params[l.w_off..], l.out, cols, l.fan_in, 1);
                     matmul(
                         MatMut::new(d, n, cols, d_in, 1),
                         true,
@@ -685,10 +797,10 @@ impl<T: Real> Mlp<T> {
                 }
             }
             if let Some(b) = l.b_off {
-                add_col_sums(&mut self.grads[b..b + l.out], g, l.out, true);
+                add_col_sums(&mut grads[b..b + l.out], g, l.out, true);
             }
             if i > 0 {
-                let wh = MatRef::new(&self.params[l.w_off + hc0..], l.out, hw, l.fan_in, 1);
+                let wh = MatRef::new(&params[l.w_off + hc0..], l.out, hw, l.fan_in, 1);
                 let dhs = &mut dh[..n * hw];
                 matmul(
                     MatMut::row_major(dhs, n, hw),
@@ -697,12 +809,28 @@ impl<T: Real> Mlp<T> {
                     wh,
                     par,
                 );
+                if f16.is_some() {
+                    round_all(dhs, true);
+                }
                 mul_act_derivative(dhs, &tape.acts[i - 1], self.layers[i - 1].act, true);
+                if f16.is_some() {
+                    round_all(dhs, true);
+                }
                 std::mem::swap(&mut dz, &mut dh);
+            }
+        }
+        if let Some(s) = f16 {
+            let inv = T::one() / s;
+            self.grads.iter_mut().zip(&dw).for_each(|(g, &d)| *g += round_f16(d) * inv);
+            if let Some(d) = d_input {
+                d.chunks_exact_mut(d_in).for_each(|row| row[..cols].iter_mut().for_each(|v| *v = round_f16(*v) * inv));
             }
         }
         tape.dz = dz;
         tape.dh = dh;
+        tape.w16 = w16;
+        tape.x16 = x16;
+        tape.dw = dw;
     }
 }
 

@@ -478,3 +478,206 @@ fn partial_input_gradients_match_the_full_ones() {
         }
     }
 }
+
+/// A naive f64 twin of [`Mlp::set_f16_arithmetic`], written from its doc comment: every value that
+/// the forward reads or writes rounded to f16, the backward scaled by `s` and rounded at each
+/// layer, each parameter gradient and `dL/d(input)` rounded while scaled. Returns (output, grads,
+/// d_input).
+fn f16_reference(m: &Mlp<f64>, n: usize, x: &[f64], g: &[f64], s: f64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let r = |v: f64| round_f16(v);
+    let c = &m.config;
+    let d_in = c.input_dim;
+    let w16: Vec<f64> = m.params().iter().map(|&p| r(p)).collect();
+    let x16: Vec<f64> = x.iter().map(|&v| r(v)).collect();
+    let shapes = m.layer_shapes();
+    let offs = m.layer_offsets();
+    let nl = shapes.len();
+    let act = |i: usize| if i + 1 == nl { c.output_activation } else { c.hidden_activation };
+    // The input of layer i for sample k: [x, h] for a skip layer, x for layer 0, else h.
+    let layer_in = |i: usize, k: usize, acts: &[Vec<f64>]| -> Vec<f64> {
+        let xk = &x16[k * d_in..(k + 1) * d_in];
+        if i == 0 {
+            return xk.to_vec();
+        }
+        let w = shapes[i - 1].1;
+        let h = &acts[i - 1][k * w..(k + 1) * w];
+        if c.skips.contains(&i) { [xk, h].concat() } else { h.to_vec() }
+    };
+    let mut acts: Vec<Vec<f64>> = Vec::new();
+    for i in 0..nl {
+        let (fan_in, out) = shapes[i];
+        let (wo, bo) = offs[i];
+        let mut y = vec![0.0; n * out];
+        for k in 0..n {
+            let inp = layer_in(i, k, &acts);
+            for o in 0..out {
+                let mut z: f64 = (0..fan_in).map(|j| w16[wo + o * fan_in + j] * inp[j]).sum();
+                if let Some(b) = bo {
+                    z += w16[b + o];
+                }
+                y[k * out + o] = r(act(i).apply(z));
+            }
+        }
+        acts.push(y);
+    }
+    let mut dw = vec![0.0; m.n_params()];
+    let mut dx = vec![0.0; n * d_in];
+    let out_l = shapes[nl - 1].1;
+    let mut dz: Vec<f64> = (0..n * out_l)
+        .map(|q| r(r(g[q] * s) * act(nl - 1).derivative_from_output(acts[nl - 1][q])))
+        .collect();
+    for i in (0..nl).rev() {
+        let (fan_in, out) = shapes[i];
+        let (wo, bo) = offs[i];
+        let x_cols = if i == 0 || c.skips.contains(&i) { d_in } else { 0 };
+        let mut dh = vec![0.0; if i > 0 { n * shapes[i - 1].1 } else { 0 }];
+        for k in 0..n {
+            let inp = layer_in(i, k, &acts);
+            for o in 0..out {
+                let d = dz[k * out + o];
+                for j in 0..fan_in {
+                    dw[wo + o * fan_in + j] += d * inp[j];
+                }
+                if let Some(b) = bo {
+                    dw[b + o] += d;
+                }
+            }
+            for j in 0..fan_in {
+                let v: f64 = (0..out).map(|o| dz[k * out + o] * w16[wo + o * fan_in + j]).sum();
+                if j < x_cols {
+                    dx[k * d_in + j] += v;
+                } else {
+                    let hw = shapes[i - 1].1;
+                    let jj = j - x_cols;
+                    let y = acts[i - 1][k * hw + jj];
+                    dh[k * hw + jj] = r(r(v) * act(i - 1).derivative_from_output(y));
+                }
+            }
+        }
+        dz = dh;
+    }
+    let out = acts.pop().unwrap();
+    (out, dw.iter().map(|&v| r(v) / s).collect(), dx.iter().map(|&v| r(v) / s).collect())
+}
+
+#[test]
+fn f16_arithmetic_matches_its_naive_twin() {
+    // tiny-cuda-nn's shape (no biases, ReLU, a linear output) and one with biases, a skip layer
+    // and a sigmoid output; n large enough for the parallel element-wise passes (> 2^14 values).
+    let mut skip = cfg(7, 3, 24, 3, Activation::Relu, Activation::Sigmoid);
+    skip.skips = vec![2];
+    let mut plain = cfg(32, 16, 64, 1, Activation::Relu, Activation::None);
+    plain.bias = false;
+    for (case, (c, n, s)) in [(plain, 300, 128.0), (skip, 700, 1024.0)].into_iter().enumerate() {
+        let mut m = Mlp::<f64>::new(c.clone(), &mut nerf_core::rng(40 + case as u64, 0));
+        m.set_f16_arithmetic(Some(s as f32));
+        let x = random(n * c.input_dim, 41 + case as u64, 1.0);
+        // Gradients of the size a loss over many samples hands an MLP (~1e-4), so that some of
+        // the scaled products reach f16's subnormals.
+        let g = random(n * c.output_dim, 42 + case as u64, 1e-4);
+        let (y_ref, gw_ref, dx_ref) = f16_reference(&m, n, &x, &g, s);
+        let mut tape = MlpTape::default();
+        let y = m.forward(n, &x, &mut tape).to_vec();
+        let mut dx = vec![f64::NAN; x.len()];
+        m.backward(n, &x, &mut tape, &g, Some(&mut dx));
+        // f64 products that differ from the naive sums in the last bits round to the same f16.
+        assert_eq!(y, y_ref, "case {case}: forward");
+        assert_eq!(m.grads(), &gw_ref[..], "case {case}: parameter gradients");
+        assert_eq!(dx, dx_ref, "case {case}: input gradients");
+        // The rounding happened: every output is an f16, and not every one equals the full
+        // precision output.
+        assert!(y.iter().all(|&v| round_f16(v) == v));
+        let mut full = m.clone();
+        full.set_f16_arithmetic(None);
+        let y_full = full.forward(n, &x, &mut MlpTape::default()).to_vec();
+        let moved = y.iter().zip(&y_full).filter(|(a, b)| a != b).count();
+        assert!(moved > y.len() / 2, "case {case}: only {moved} of {} outputs changed", y.len());
+        let worst = y.iter().zip(&y_full).map(|(a, b)| (a - b).abs() / b.abs().max(0.1)).fold(0.0, f64::max);
+        assert!(worst < 2e-2, "case {case}: f16 output {worst} from the f32 one (relative)");
+        // Inference reads and rounds as the training forward does.
+        let mut inf = vec![f64::NAN; y.len()];
+        m.infer(n, &x, &mut MlpScratch::default(), &mut inf);
+        assert_eq!(inf, y, "case {case}: infer");
+    }
+}
+
+#[test]
+fn f16_arithmetic_loses_gradients_below_its_range_unless_scaled() {
+    let mut c = cfg(16, 4, 32, 2, Activation::Relu, Activation::None);
+    c.bias = false;
+    let n = 64;
+    let x: Vec<f32> = random(n * 16, 51, 1.0).iter().map(|&v| v as f32).collect();
+    let g: Vec<f32> = random(n * 4, 52, 1.0).iter().map(|&v| v as f32).collect();
+    // The same gradients 2^30 times smaller (exactly): ~1e-9, below f16's smallest subnormal
+    // (5.96e-8) unless scaled.
+    let tiny = 2f32.powi(-30);
+    let g_tiny: Vec<f32> = g.iter().map(|&v| v * tiny).collect();
+    let grads = |g: &[f32], scale: Option<f32>| {
+        let mut m = Mlp::<f32>::new(c.clone(), &mut nerf_core::rng(50, 0));
+        m.set_f16_arithmetic(scale);
+        let mut tape = MlpTape::default();
+        m.forward(n, &x, &mut tape);
+        let mut dx = vec![f32::NAN; x.len()];
+        m.backward(n, &x, &mut tape, g, Some(&mut dx));
+        (m.grads().to_vec(), dx)
+    };
+    let (g_lost, dx_lost) = grads(&g_tiny, Some(1.0));
+    assert!(g_lost.iter().chain(&dx_lost).all(|&v| v == 0.0), "unscaled f16 kept a gradient of ~1e-9");
+    // Scaled by 2^30 they are the unit-sized gradients' f16 sums bit for bit, scaled back.
+    let (g_unit, dx_unit) = grads(&g, Some(1.0));
+    let (g_kept, dx_kept) = grads(&g_tiny, Some(1.0 / tiny));
+    let back = |v: &[f32]| v.iter().map(|&v| v * tiny).collect::<Vec<_>>();
+    assert_eq!(g_kept, back(&g_unit));
+    assert_eq!(dx_kept, back(&dx_unit));
+    assert!(g_kept.iter().any(|&v| v != 0.0));
+    // Near the f32 gradients: f16's rounding, and the few ReLUs whose sign the rounding of a
+    // pre-activation near 0 flips (each drops or adds a whole sample's term; here 2.6 %).
+    let (g_full, dx_full) = grads(&g, None);
+    for (name, kept, full) in [("params", &g_unit, &g_full), ("input", &dx_unit, &dx_full)] {
+        let norm = full.iter().map(|v| v * v).sum::<f32>().sqrt();
+        let err = kept.iter().zip(full).map(|(a, b)| (a - b) * (a - b)).sum::<f32>().sqrt();
+        assert!(norm > 0.0 && err < 5e-2 * norm, "{name}: f16 gradients {err} from the f32 ones (norm {norm})");
+    }
+}
+
+#[test]
+fn f16_arithmetic_turned_off_is_the_plain_mlp() {
+    let c = cfg(8, 4, 16, 2, Activation::Relu, Activation::Sigmoid);
+    let n = 40;
+    let x: Vec<f32> = random(n * 8, 61, 1.0).iter().map(|&v| v as f32).collect();
+    let g: Vec<f32> = random(n * 4, 62, 1.0).iter().map(|&v| v as f32).collect();
+    let run = |m: &mut Mlp<f32>| {
+        let mut tape = MlpTape::default();
+        let y = m.forward(n, &x, &mut tape).to_vec();
+        m.backward(n, &x, &mut tape, &g, None);
+        (y, m.grads().to_vec())
+    };
+    let mut plain = Mlp::<f32>::new(c.clone(), &mut nerf_core::rng(60, 0));
+    let mut toggled = plain.clone();
+    toggled.set_f16_arithmetic(Some(128.0));
+    assert_eq!(toggled.f16_arithmetic(), Some(128.0));
+    let (y16, _) = run(&mut toggled);
+    toggled.zero_grad();
+    toggled.set_f16_arithmetic(None);
+    let (y, gr) = run(&mut toggled);
+    assert_eq!((y.clone(), gr), run(&mut plain), "off again, the MLP computes what it did before");
+    assert_ne!(y, y16);
+}
+
+#[test]
+#[should_panic(expected = "loss scale")]
+fn f16_arithmetic_refuses_a_bad_loss_scale() {
+    Mlp::<f32>::new(cfg(2, 1, 4, 1, Activation::Relu, Activation::None), &mut nerf_core::rng(0, 0)).set_f16_arithmetic(Some(0.0));
+}
+
+#[test]
+fn f32_rounding_to_f16_is_the_f64_one() {
+    let mut r = nerf_core::rng(70, 0);
+    let mut xs: Vec<f32> = (0..20_000).map(|_| (2.0 * r.gen::<f32>() - 1.0) * 10f32.powi(r.gen_range(-9..6))).collect();
+    // Ties (halfway between two f16s), f16's subnormals and its overflow.
+    xs.extend([1.0 + 2f32.powi(-11), 1.0 + 3.0 * 2f32.powi(-11), 3e-8, 5.96e-8, 65504.0, 65520.0, 1e6, -1e6, 0.0, -0.0]);
+    for x in xs {
+        let (a, b) = (round_f16(x), round_f16(x as f64) as f32);
+        assert!(a == b && a.is_sign_negative() == b.is_sign_negative(), "{x}: f32 path {a}, f64 path {b}");
+    }
+}
