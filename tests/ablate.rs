@@ -399,15 +399,18 @@ fn the_example_ablations_parse_and_plan() {
     let grid = c.field_config["grid"].as_object_mut().unwrap();
     assert_eq!((grid.remove("storage").unwrap(), grid.remove("grad_f16_scale").unwrap()), (serde_json::json!("f16"), serde_json::json!(2048.0)));
     assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
-    // A batch of 2^19 samples scaled down: t15 with twice the samples per step, for 24 k steps.
-    let b19 = Ablation::load(&dir.join("batch19_mimic_lego200.toml")).unwrap();
-    assert_eq!((b19.spec.budget.iters, b19.spec.eval.every_iters), (Some(24_000), Some(4800)));
-    let b19 = b19.plan(&nerf::registry()).unwrap();
-    assert_eq!(b19.len(), 1);
-    let mut c = b19[0].config.clone();
-    assert_eq!((c.target_samples_per_step, mimic[0].config.target_samples_per_step), (Some(1 << 15), Some(1 << 14)));
-    (c.target_samples_per_step, c.iters) = (mimic[0].config.target_samples_per_step, mimic[0].config.iters);
-    assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
+    // Batches of 2^19 and 2^20 samples scaled down: t15 with 2x and 4x the samples per step, for
+    // the steps each would fit into the H100's 5 minutes, evaluated at the fifths.
+    for (file, log2, iters) in [("batch19_mimic_lego200.toml", 15, 24_000), ("batch20_mimic_lego200.toml", 16, 12_000)] {
+        let b = Ablation::load(&dir.join(file)).unwrap();
+        assert_eq!((b.spec.budget.iters, b.spec.eval.every_iters), (Some(iters), Some(iters / 5)), "{file}");
+        let b = b.plan(&nerf::registry()).unwrap();
+        assert_eq!(b.len(), 1);
+        let mut c = b[0].config.clone();
+        assert_eq!((c.target_samples_per_step, mimic[0].config.target_samples_per_step), (Some(1 << log2), Some(1 << 14)), "{file}");
+        (c.target_samples_per_step, c.iters) = (mimic[0].config.target_samples_per_step, mimic[0].config.iters);
+        assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0, "{file}");
+    }
     // The profile ablation (in-repo scene) and the sparse-Adam comparison.
     let prof = Ablation::load(&dir.join("h100_profile.toml")).unwrap().plan(&nerf::registry()).unwrap();
     assert!(prof.iter().all(|p| p.config.gpu_profile.is_some() && p.scene.join("transforms_train.json").exists()));
