@@ -139,35 +139,25 @@ fn a_capacity_beyond_the_devices_binding_limit_is_a_clear_error() {
 }
 
 #[test]
-fn half_precision_gradient_sums_are_refused_on_the_gpu() {
+fn cpu_only_precision_keys_are_refused_on_the_gpu() {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    let mut cfg = HashNerfConfig::default();
-    cfg.grid.n_levels = 2;
-    cfg.grid.log2_hashmap_size = 10;
-    cfg.grid.grad_f16_scale = Some(16.0);
     let fctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 7, scene_scale: 1.0 };
-    let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
-    let err = match nerf_field::RadianceField::to_gpu(&cpu, &ctx, 1024).expect("the hash field has a GPU twin") {
-        Ok(_) => panic!("the GPU field took grid.grad_f16_scale"),
-        Err(e) => e.to_string(),
-    };
-    assert!(err.contains("grad_f16_scale") && err.contains("CPU only"), "{err}");
-}
-
-#[test]
-fn f16_mlp_arithmetic_is_refused_on_the_gpu() {
-    let Some(ctx) = GpuContext::for_tests() else { return };
-    let mut cfg = HashNerfConfig::default();
-    cfg.grid.n_levels = 2;
-    cfg.grid.log2_hashmap_size = 10;
-    cfg.mlp_f16_scale = Some(128.0);
-    let fctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 7, scene_scale: 1.0 };
-    let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
-    let err = match nerf_field::RadianceField::to_gpu(&cpu, &ctx, 1024).expect("the hash field has a GPU twin") {
-        Ok(_) => panic!("the GPU field took mlp_f16_scale"),
-        Err(e) => e.to_string(),
-    };
-    assert!(err.contains("mlp_f16_scale") && err.contains("CPU only"), "{err}");
+    // The table's gradient summed in f16, and the MLPs in emulated f16 arithmetic.
+    for key in ["grad_f16_scale", "mlp_f16_scale"] {
+        let mut cfg = HashNerfConfig::default();
+        cfg.grid.n_levels = 2;
+        cfg.grid.log2_hashmap_size = 10;
+        match key {
+            "grad_f16_scale" => cfg.grid.grad_f16_scale = Some(16.0),
+            _ => cfg.mlp_f16_scale = Some(128.0),
+        }
+        let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
+        let err = match nerf_field::RadianceField::to_gpu(&cpu, &ctx, 1024).expect("the hash field has a GPU twin") {
+            Ok(_) => panic!("the GPU field took {key}"),
+            Err(e) => e.to_string(),
+        };
+        assert!(err.contains(key) && err.contains("CPU only"), "{err}");
+    }
 }
 
 #[test]

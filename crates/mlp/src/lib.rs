@@ -588,6 +588,17 @@ impl<T: Real> Mlp<T> {
         );
     }
 
+    /// The weights and the input a forward reads: as they are, or under f16 arithmetic rounded
+    /// into `w16` and `x16`.
+    fn operands<'a>(&'a self, input: &'a [T], w16: &'a mut Vec<T>, x16: &'a mut Vec<T>) -> (&'a [T], &'a [T]) {
+        if self.f16.is_none() {
+            return (&self.params, input);
+        }
+        round_into(w16, &self.params);
+        round_into(x16, input);
+        (w16, x16)
+    }
+
     /// Forward for n samples keeping what backward needs in `tape` (buffers reused across calls: no allocation
     /// once warmed up). Returns the output (n·output_dim), which lives in the tape.
     pub fn forward<'t>(&self, n: usize, input: &[T], tape: &'t mut MlpTape<T>) -> &'t [T] {
@@ -596,13 +607,7 @@ impl<T: Real> Mlp<T> {
         tape.n = n;
         tape.acts.resize_with(nl, Vec::new);
         let par = Parallelism::Rayon(0);
-        let (params, input) = if self.f16.is_some() {
-            round_into(&mut tape.w16, &self.params);
-            round_into(&mut tape.x16, input);
-            (&tape.w16[..], &tape.x16[..])
-        } else {
-            (&self.params[..], input)
-        };
+        let (params, input) = self.operands(input, &mut tape.w16, &mut tape.x16);
         for i in 0..nl {
             let (done, rest) = tape.acts.split_at_mut(i);
             let z = &mut rest[0];
@@ -638,13 +643,7 @@ impl<T: Real> Mlp<T> {
             std::mem::take(&mut scratch.a),
             std::mem::take(&mut scratch.b),
         );
-        let (params, input) = if self.f16.is_some() {
-            round_into(&mut scratch.w16, &self.params);
-            round_into(&mut scratch.x16, input);
-            (&scratch.w16[..], &scratch.x16[..])
-        } else {
-            (&self.params[..], input)
-        };
+        let (params, input) = self.operands(input, &mut scratch.w16, &mut scratch.x16);
         if nl > 1 {
             ensure(&mut a, n * w);
             ensure(&mut b, n * w);
