@@ -46,6 +46,19 @@ pub trait Real:
 impl Real for f32 {}
 impl Real for f64 {}
 
+/// `x` rounded to the nearest f16 (ties to even; overflow to ±∞, as a cast to `__half` does):
+/// what tiny-cuda-nn's half-precision arithmetic keeps, for the CPU's emulations of it.
+#[inline(always)]
+pub fn round_f16<T: Real>(x: T) -> T {
+    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>() {
+        // f32 → f16 in one rounding (the F16C instruction where the CPU has it; f64's goes
+        // through software).
+        bytemuck::cast(half::f16::from_f32(bytemuck::cast::<T, f32>(x)).to_f32())
+    } else {
+        T::c(half::f16::from_f64(x.f64()).to_f64())
+    }
+}
+
 /// The project's seeded random generator (PCG-64, stable across platforms and releases).
 pub type Rng = rand_pcg::Pcg64Mcg;
 

@@ -22,7 +22,7 @@
 use crate::Encoding;
 use half::f16;
 use half::slice::HalfFloatSliceExt;
-use nerf_core::Real;
+use nerf_core::{round_f16, Real};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -807,12 +807,6 @@ impl<T: Real> Encoding<T> for HashGrid<T> {
         }
         dispatch!(self, backward_impl, input, d_out, d_params, d_input)
     }
-}
-
-/// `x` rounded to the nearest `f16` (overflow to ±∞, underflow through the subnormals to 0).
-#[inline(always)]
-fn round_f16(x: f32) -> f32 {
-    half::f16::from_f32(x).to_f32()
 }
 
 /// `params` viewed as `f32` when `T` is `f32`.

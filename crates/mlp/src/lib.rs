@@ -14,6 +14,7 @@ pub mod matmul;
 
 pub use matmul::{matmul, MatMut, MatRef, Parallelism};
 
+pub use nerf_core::round_f16;
 use nerf_core::Real;
 use rand::Rng as _;
 use rayon::prelude::*;
@@ -239,18 +240,6 @@ impl<T> Default for MlpScratch<T> {
             w16: Vec::new(),
             x16: Vec::new(),
         }
-    }
-}
-
-/// `x` rounded to the nearest f16 (ties to even; overflow to ±∞, as a cast to `__half` does).
-#[inline(always)]
-pub fn round_f16<T: Real>(x: T) -> T {
-    if std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>() {
-        // f32 → f16 in one rounding (the F16C instruction where the CPU has it; f64's goes
-        // through software).
-        bytemuck::cast(half::f16::from_f32(bytemuck::cast::<T, f32>(x)).to_f32())
-    } else {
-        T::c(half::f16::from_f64(x.f64()).to_f64())
     }
 }
 
