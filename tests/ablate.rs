@@ -400,8 +400,13 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!((grid.remove("storage").unwrap(), grid.remove("grad_f16_scale").unwrap()), (serde_json::json!("f16"), serde_json::json!(2048.0)));
     assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
     // Batches of 2^19 and 2^20 samples scaled down: t15 with 2x and 4x the samples per step, for
-    // the steps each would fit into the H100's 5 minutes, evaluated at the fifths.
-    for (file, log2, iters) in [("batch19_mimic_lego200.toml", 15, 24_000), ("batch20_mimic_lego200.toml", 16, 12_000)] {
+    // the steps each would fit into the H100's 5 minutes (and 2x at t15's total samples),
+    // evaluated at the fifths.
+    for (file, log2, iters) in [
+        ("batch19_mimic_lego200.toml", 15, 24_000),
+        ("batch19eq_mimic_lego200.toml", 15, 21_500),
+        ("batch20_mimic_lego200.toml", 16, 12_000),
+    ] {
         let b = Ablation::load(&dir.join(file)).unwrap();
         assert_eq!((b.spec.budget.iters, b.spec.eval.every_iters), (Some(iters), Some(iters / 5)), "{file}");
         let b = b.plan(&nerf::registry()).unwrap();
