@@ -224,6 +224,15 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!(same.target_samples_per_step, Some(1 << 19));
     same.target_samples_per_step = preset[0].config.target_samples_per_step;
     assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&preset[0].config).unwrap());
+    // The doubled batch with the distortion loss: h100_lego_batch19.toml's plan but for the loss.
+    let b19d = Ablation::load(&dir.join("h100_lego_batch19_distortion.toml")).unwrap();
+    assert!(b19d.spec.checkpoints);
+    let b19d = b19d.plan(&nerf::registry()).unwrap();
+    assert_eq!(b19d.len(), 1);
+    let mut same = b19d[0].config.clone();
+    assert_eq!((same.distortion_loss, b19[0].config.distortion_loss), (Some(0.01), None));
+    same.distortion_loss = None;
+    assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&b19[0].config).unwrap());
     for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1), ("h100_lego_color_features.toml", 1), ("h100_lego_ema099.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));

@@ -8,7 +8,7 @@
 #   run(command="bash benches/device/lego_variant.sh FILE", carry=[".gl", ".bin", ".data"], timeout_s=400)
 # Brings back variant_metrics.json (with train_log) and variant_curve.csv. Lease F (2026-11-27) ran
 # h100_lego_table20.toml (no gain over the preset) and h100_lego.toml itself (the preset, for its
-# checkpoint); next: h100_lego_batch19.toml, then h100_lego_distortion.toml (docs/gpu.md, "The
+# checkpoint); next: h100_lego_batch19.toml, then h100_lego_batch19_distortion.toml (docs/gpu.md, "The
 # next lease").
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
