@@ -430,17 +430,18 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!((combo.spec.budget.iters, combo.spec.eval.every_iters), (Some(24_000), Some(4_800)));
     let combo = combo.plan(&nerf::registry()).unwrap();
     assert_eq!(combo.len(), 2);
-    let b19 = |c: &nerf::train::TrainConfig| {
+    // Back to t15's batch and steps (the loop above does the same for the batch-only files).
+    let unbatched = |c: &nerf::train::TrainConfig| {
         let mut c = c.clone();
         assert_eq!(c.target_samples_per_step, Some(1 << 15));
         (c.target_samples_per_step, c.iters) = (mimic[0].config.target_samples_per_step, mimic[0].config.iters);
         c
     };
-    let mut c = b19(&combo[0].config);
+    let mut c = unbatched(&combo[0].config);
     assert_eq!(c.distortion_loss, Some(0.01));
     c.distortion_loss = mimic[0].config.distortion_loss;
     assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
-    let mut c = b19(&combo[1].config);
+    let mut c = unbatched(&combo[1].config);
     assert_eq!(serde_json::to_value(&c.lr).unwrap()["lr0"].as_f64().map(|x| (x * 1e4).round()), Some(141.0));
     c.lr = mimic[0].config.lr.clone();
     assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0);
