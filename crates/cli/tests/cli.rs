@@ -260,6 +260,36 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
     let o = nerf().arg("eval").arg(&run).arg(&s).args(["--background", "random"]).output().unwrap();
     // A random background has no fixed colour to score on: clap names the values it takes.
     assert!(!o.status.success() && stderr(&o).contains("random") && stderr(&o).contains("black"), "{}", stderr(&o));
+    // This run's sampler is the hierarchical one: no marching step to change.
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--step-size", "0.0025"]).output().unwrap();
+    assert_clean_failure(&o, &["--step-size", "occupancy"]);
+}
+
+/// `nerf eval --step-size`: a run of the occupancy sampler rendered with a finer marching step
+/// records the step, scores differently from its own step, and a step that is not positive is a
+/// clear error.
+#[test]
+fn eval_renders_an_occupancy_run_with_another_marching_step() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let (run, cfg) = (d.path().join("run"), d.path().join("hash.toml"));
+    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 256\n[field_config.grid]\nlog2_hashmap_size = 12\n\
+        [sampler]\nkind = \"occupancy\"\nstep_size = 0.02\nmax_samples_per_ray = 256\n").unwrap();
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
+        .args(["--quiet", "--no-renders", "--iters", "30", "--device", "cpu"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json = |p: PathBuf| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap() };
+    let base = json(run.join("metrics.json"))["test_psnr"].as_f64().unwrap();
+    let fine = d.path().join("fine");
+    let o = nerf().arg("eval").arg(&run).arg(&s).arg("--out").arg(&fine).args(["--device", "cpu", "--quiet", "--step-size", "0.005"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e = json(fine.join("eval.json"));
+    assert!((e["sampler"]["step_size"].as_f64().unwrap() - 0.005).abs() < 1e-9, "{}", e["sampler"]);
+    assert_eq!(e["sampler"]["max_samples_per_ray"].as_u64(), Some(1024), "four times the cap for a quarter of the step");
+    let psnr = e["test_psnr"].as_f64().unwrap();
+    assert!(psnr.is_finite() && (psnr - base).abs() > 1e-6, "the finer step renders other samples: {psnr} vs {base}");
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet", "--step-size", "0"]).output().unwrap();
+    assert_clean_failure(&o, &["--step-size", "positive"]);
 }
 
 /// Starts a long tiny run into `run`, interrupts it (SIGINT) once it has logged a few steps, and

@@ -52,6 +52,32 @@ impl SamplerConfig {
             SamplerConfig::Hierarchical { .. } => 2,
         }
     }
+
+    /// The occupancy sampler with its marching step set to `step` (for rendering a trained run
+    /// with finer or coarser steps): the sample cap per ray grows in proportion to a finer step,
+    /// so rays reach as far, and the grid's threshold scales with the step, so a restored grid
+    /// marks the cells it marked in training (a cell is occupied when `σ·step` exceeds
+    /// `min(threshold, mean σ·step)`). Errors for the other samplers and a step that is not
+    /// positive and finite.
+    pub fn with_step_size(&self, step: f32) -> Result<SamplerConfig, String> {
+        if !(step.is_finite() && step > 0.0) {
+            return Err(format!("the marching step must be positive, got {step}"));
+        }
+        match self {
+            SamplerConfig::Occupancy { grid, step_size, max_samples_per_ray, cone_angle } => {
+                let mut grid = grid.clone();
+                grid.threshold *= step / step_size;
+                let scale = (step_size / step).max(1.0);
+                Ok(SamplerConfig::Occupancy {
+                    grid,
+                    step_size: step,
+                    max_samples_per_ray: (*max_samples_per_ray as f32 * scale).ceil() as usize,
+                    cone_angle: *cone_angle,
+                })
+            }
+            _ => Err("only the occupancy sampler marches with a step".into()),
+        }
+    }
 }
 
 /// The photometric loss on the rendered colours ([`nerf_render::photometric_loss_grad`]). Logged
@@ -405,6 +431,51 @@ impl TrainConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_new_marching_step_keeps_the_grids_cells_and_the_rays_reach() {
+        use nerf_sampling::OccupancyGrid;
+        let occ = SamplerConfig::Occupancy {
+            grid: OccupancyGridConfig { resolution: 16, ..Default::default() },
+            step_size: 0.005,
+            max_samples_per_ray: 1024,
+            cone_angle: None,
+        };
+        // Densities spread over four decades, so the threshold and the mean both matter.
+        let mut rng = 0x9e3779b97f4a7c15u64;
+        let d: Vec<f32> = (0..16 * 16 * 16)
+            .map(|_| {
+                rng ^= rng << 13;
+                rng ^= rng >> 7;
+                rng ^= rng << 17;
+                10f32.powf((rng >> 40) as f32 / (1u64 << 24) as f32 * 4.0 - 2.0)
+            })
+            .collect();
+        let bits = |c: &SamplerConfig| {
+            let SamplerConfig::Occupancy { grid, step_size, .. } = c else { unreachable!() };
+            let mut g = OccupancyGrid::new(grid.clone(), [-1.0; 3], [1.0; 3]);
+            g.set_densities(&d, *step_size).unwrap();
+            (0..d.len()).map(|i| g.is_cell_occupied(i)).collect::<Vec<bool>>()
+        };
+        let trained = bits(&occ);
+        let n = trained.iter().filter(|&&b| b).count();
+        assert!(n > 100 && n < d.len() - 100, "{n} of {} cells", d.len());
+        for step in [0.00125, 0.0025, 0.01] {
+            let c = occ.with_step_size(step).unwrap();
+            assert_eq!(bits(&c), trained, "step {step}");
+            let SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. } = c else { unreachable!() };
+            assert_eq!(step_size, step);
+            assert!(max_samples_per_ray as f32 * step >= 1024.0 * 0.005 - 1e-4, "step {step}: {max_samples_per_ray}");
+        }
+        // Left as it was, the threshold would have pruned cells at the finer step.
+        let SamplerConfig::Occupancy { grid, .. } = &occ else { unreachable!() };
+        let plain = SamplerConfig::Occupancy { grid: grid.clone(), step_size: 0.00125, max_samples_per_ray: 4096, cone_angle: None };
+        assert_ne!(bits(&plain), trained);
+        assert!(occ.with_step_size(0.0).unwrap_err().contains("positive"));
+        assert!(occ.with_step_size(f32::NAN).is_err());
+        let e = SamplerConfig::Stratified { n_samples: 64 }.with_step_size(0.01).unwrap_err();
+        assert!(e.contains("occupancy"), "{e}");
+    }
 
     #[test]
     fn config_round_trips_json_and_toml() {
