@@ -233,6 +233,26 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!((same.distortion_loss, b19[0].config.distortion_loss), (Some(0.01), None));
     same.distortion_loss = None;
     assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&b19[0].config).unwrap());
+    // The step-matched files for a lease on another GPU: their h100_*.toml counterparts stopped at
+    // lease F's 5-minute step count (halved for the doubled batch), under the same 300-s cap,
+    // evaluated at each fifth of the steps.
+    for (name, twin, iters, every) in [
+        ("h100eq_lego.toml", &preset, 43_664, 8_733),
+        ("h100eq_lego_batch19.toml", &b19, 21_832, 4_367),
+        ("h100eq_lego_batch19_distortion.toml", &b19d, 21_832, 4_367),
+    ] {
+        let a = Ablation::load(&dir.join(name)).unwrap();
+        assert!(a.spec.checkpoints, "{name}");
+        assert_eq!((a.spec.budget.iters, a.spec.budget.seconds), (Some(iters), Some(300.0)), "{name}");
+        assert_eq!((a.spec.eval.every_iters, a.spec.eval.every_seconds), (Some(every), None), "{name}");
+        assert_eq!(iters / every, 4, "{name}: four evaluations before the final one");
+        let plans = a.plan(&nerf::registry()).unwrap();
+        assert_eq!(plans.len(), 1, "{name}");
+        let mut same = plans[0].config.clone();
+        assert_eq!((same.iters, twin[0].config.iters), (iters, u64::MAX), "{name}");
+        same.iters = twin[0].config.iters;
+        assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&twin[0].config).unwrap(), "{name}");
+    }
     for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1), ("h100_lego_color_features.toml", 1), ("h100_lego_ema099.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
