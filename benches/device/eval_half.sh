@@ -9,6 +9,8 @@
 # views, so the mean over all 200 is the mean of the two halves' means. A second argument `both`
 # also scores the half on black (instant-ngp's protocol; `nerf eval --background black`) into
 # eval_<half>_black.json, ~5 s more: only meaningful for a run trained on random backgrounds.
+# With STEP=S in the environment it also renders the half with the marching step S (`nerf eval
+# --step-size S`, e.g. 0.0025, half the trained step) into eval_<half>_step.json, ~10 s more.
 # Build here first: `bash benches/device/prepare.sh` (makes .eval_a and .eval_b).
 set -u
 half=${1:?usage: eval_half.sh a|b [both]}
@@ -23,4 +25,8 @@ cp "/tmp/eval_$half/eval.json" "$OUT/eval_$half.json"
 if [ "$both" = both ]; then
   .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --background black --out "/tmp/eval_${half}_black" --quiet
   cp "/tmp/eval_${half}_black/eval.json" "$OUT/eval_${half}_black.json"
+fi
+if [ -n "${STEP:-}" ]; then
+  .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --step-size "$STEP" --out "/tmp/eval_${half}_step" --quiet
+  cp "/tmp/eval_${half}_step/eval.json" "$OUT/eval_${half}_step.json"
 fi
