@@ -442,15 +442,9 @@ mod tests {
             cone_angle: None,
         };
         // Densities spread over four decades, so the threshold and the mean both matter.
-        let mut rng = 0x9e3779b97f4a7c15u64;
-        let d: Vec<f32> = (0..16 * 16 * 16)
-            .map(|_| {
-                rng ^= rng << 13;
-                rng ^= rng >> 7;
-                rng ^= rng << 17;
-                10f32.powf((rng >> 40) as f32 / (1u64 << 24) as f32 * 4.0 - 2.0)
-            })
-            .collect();
+        use rand::Rng as _;
+        let mut rng = nerf_core::rng(7, 0);
+        let d: Vec<f32> = (0..16 * 16 * 16).map(|_| 10f32.powf(rng.gen_range(-2.0f32..2.0))).collect();
         let bits = |c: &SamplerConfig| {
             let SamplerConfig::Occupancy { grid, step_size, .. } = c else { unreachable!() };
             let mut g = OccupancyGrid::new(grid.clone(), [-1.0; 3], [1.0; 3]);
