@@ -233,6 +233,19 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!((same.distortion_loss, b19[0].config.distortion_loss), (Some(0.01), None));
     same.distortion_loss = None;
     assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&b19[0].config).unwrap());
+    // The preset with its finest grid level at 1024 cells instead of 2048, nothing else changed.
+    let res1024 = Ablation::load(&dir.join("h100_lego_res1024.toml")).unwrap();
+    assert!(res1024.spec.checkpoints);
+    let res1024 = res1024.plan(&nerf::registry()).unwrap();
+    assert_eq!(res1024.len(), 1);
+    let mut same = res1024[0].config.clone();
+    let grid = same.field_config.as_object_mut().unwrap().remove("grid").unwrap();
+    assert_eq!(grid, serde_json::json!({ "max_resolution": 1024 }));
+    assert_eq!(same.field_config, serde_json::json!({}), "the grid is the only field key it sets");
+    assert!(preset[0].config.field_config.get("grid").is_none(), "the preset leaves the grid at its defaults (2048)");
+    assert_eq!(nerf::encoding::hash_grid::HashGridConfig::default().max_resolution, 2048);
+    same.field_config = preset[0].config.field_config.clone();
+    assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&preset[0].config).unwrap());
     // The step-matched files for a lease on another GPU: their h100_*.toml counterparts stopped at
     // lease F's 5-minute step count (halved for the doubled batch), under the same 300-s cap,
     // evaluated at each fifth of the steps.
@@ -240,6 +253,7 @@ fn the_example_ablations_parse_and_plan() {
         ("h100eq_lego.toml", &preset, 43_664, 8_733),
         ("h100eq_lego_batch19.toml", &b19, 21_832, 4_367),
         ("h100eq_lego_batch19_distortion.toml", &b19d, 21_832, 4_367),
+        ("h100eq_lego_res1024.toml", &res1024, 43_664, 8_733),
     ] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         assert!(a.spec.checkpoints, "{name}");
@@ -253,7 +267,7 @@ fn the_example_ablations_parse_and_plan() {
         same.iters = twin[0].config.iters;
         assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&twin[0].config).unwrap(), "{name}");
     }
-    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1), ("h100_lego_color_features.toml", 1), ("h100_lego_ema099.toml", 1)] {
+    for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1), ("h100_lego_color_features.toml", 1), ("h100_lego_ema099.toml", 1), ("h100_lego_res1024.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
         assert_eq!(plans.len(), n_runs, "{name}");
@@ -444,6 +458,22 @@ fn the_example_ablations_parse_and_plan() {
         assert_eq!((c.target_samples_per_step, mimic[0].config.target_samples_per_step), (Some(1 << log2), Some(1 << 14)), "{file}");
         (c.target_samples_per_step, c.iters) = (mimic[0].config.target_samples_per_step, mimic[0].config.iters);
         assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0, "{file}");
+    }
+    // A coarser finest level in the same scaled-down run: t15 but for the finest level (256 and
+    // 128 cells, as 1024 and 512 at 800x800), over two seeds.
+    let maxres = Ablation::load(&dir.join("maxres_mimic_lego200.toml")).unwrap();
+    assert!(maxres.spec.checkpoints);
+    assert_eq!((maxres.spec.budget.iters, maxres.spec.eval.every_iters), (Some(43_000), Some(8_600)));
+    let maxres = maxres.plan(&nerf::registry()).unwrap();
+    assert_eq!(maxres.len(), 4);
+    let mut finest: Vec<(u64, u64)> = maxres.iter().map(|p| (p.config.field_config["grid"]["max_resolution"].as_u64().unwrap(), p.config.seed)).collect();
+    finest.sort();
+    assert_eq!(finest, [(128, 0), (128, 1), (256, 0), (256, 1)]);
+    for p in &maxres {
+        let mut c = p.config.clone();
+        c.seed = mimic[0].config.seed;
+        c.field_config["grid"]["max_resolution"] = mimic[0].config.field_config["grid"]["max_resolution"].clone();
+        assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0, "{}", p.name);
     }
     // The doubled batch combined: t15_b19 with the distortion loss, and with the rate x sqrt(2).
     let combo = Ablation::load(&dir.join("batch19_combo_mimic_lego200.toml")).unwrap();
