@@ -246,6 +246,16 @@ fn the_example_ablations_parse_and_plan() {
     assert_eq!(nerf::encoding::hash_grid::HashGridConfig::default().max_resolution, 2048);
     same.field_config = preset[0].config.field_config.clone();
     assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&preset[0].config).unwrap());
+    // Both leads at once: the doubled batch's plan with the coarser finest level.
+    let b19r = Ablation::load(&dir.join("h100_lego_batch19_res1024.toml")).unwrap();
+    assert!(b19r.spec.checkpoints);
+    let b19r = b19r.plan(&nerf::registry()).unwrap();
+    assert_eq!(b19r.len(), 1);
+    let mut same = b19r[0].config.clone();
+    assert_eq!(same.target_samples_per_step, Some(1 << 19));
+    assert_eq!(same.field_config, res1024[0].config.field_config, "the finest level of h100_lego_res1024.toml");
+    same.field_config = b19[0].config.field_config.clone();
+    assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&b19[0].config).unwrap());
     // The step-matched files for a lease on another GPU: their h100_*.toml counterparts stopped at
     // lease F's 5-minute step count (halved for the doubled batch), under the same 300-s cap,
     // evaluated at each fifth of the steps.
@@ -254,6 +264,7 @@ fn the_example_ablations_parse_and_plan() {
         ("h100eq_lego_batch19.toml", &b19, 21_832, 4_367),
         ("h100eq_lego_batch19_distortion.toml", &b19d, 21_832, 4_367),
         ("h100eq_lego_res1024.toml", &res1024, 43_664, 8_733),
+        ("h100eq_lego_batch19_res1024.toml", &b19r, 21_832, 4_367),
     ] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         assert!(a.spec.checkpoints, "{name}");
@@ -472,6 +483,20 @@ fn the_example_ablations_parse_and_plan() {
     for p in &maxres {
         let mut c = p.config.clone();
         c.seed = mimic[0].config.seed;
+        c.field_config["grid"]["max_resolution"] = mimic[0].config.field_config["grid"]["max_resolution"].clone();
+        assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0, "{}", p.name);
+    }
+    // Both of the scaled-down run's leads: t15's copy with the doubled batch (24 000 steps of
+    // 2^15 samples) and the finest level at 256 cells, over two seeds.
+    let both = Ablation::load(&dir.join("batch19_maxres_mimic_lego200.toml")).unwrap();
+    assert!(both.spec.checkpoints);
+    assert_eq!((both.spec.budget.iters, both.spec.eval.every_iters), (Some(24_000), Some(4_800)));
+    let both = both.plan(&nerf::registry()).unwrap();
+    assert_eq!(both.iter().map(|p| p.config.seed).collect::<Vec<_>>(), [0, 1]);
+    for p in &both {
+        let mut c = p.config.clone();
+        assert_eq!((c.target_samples_per_step, c.field_config["grid"]["max_resolution"].as_u64()), (Some(1 << 15), Some(256)), "{}", p.name);
+        (c.target_samples_per_step, c.iters, c.seed) = (mimic[0].config.target_samples_per_step, mimic[0].config.iters, mimic[0].config.seed);
         c.field_config["grid"]["max_resolution"] = mimic[0].config.field_config["grid"]["max_resolution"].clone();
         assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0, "{}", p.name);
     }
