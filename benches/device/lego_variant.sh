@@ -9,7 +9,7 @@
 # Brings back variant_metrics.json (with train_log) and variant_curve.csv. Lease F (2026-11-27) ran
 # h100_lego_table20.toml (no gain over the preset) and h100_lego.toml itself (the preset, for its
 # checkpoint); next: h100_lego_batch19_res1024.toml (2^19 samples per step and the finest grid
-# level at 1024 cells, +0.46 dB together in the CPU's scaled-down run), then each alone,
+# level at 1024 cells, +0.46 dB together in the CPU's scaled-down run, two seeds), then each alone,
 # h100_lego_res1024.toml and h100_lego_batch19.toml (docs/gpu.md, "The next lease").
 # On an H200 (the kind lent since 2026-11-28) run their step-matched twins instead,
 # h100eq_lego_batch19_res1024.toml, h100eq_lego.toml, h100eq_lego_res1024.toml and
