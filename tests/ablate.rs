@@ -500,6 +500,18 @@ fn the_example_ablations_parse_and_plan() {
         c.field_config["grid"]["max_resolution"] = mimic[0].config.field_config["grid"]["max_resolution"].clone();
         assert_eq!(serde_json::to_value(&c).unwrap(), t15_s0, "{}", p.name);
     }
+    // The pair's finest level bracketed by half-octaves: 362 and 181 cells (as 1448 and 724).
+    let bracket = Ablation::load(&dir.join("batch19_maxres_bracket_mimic_lego200.toml")).unwrap();
+    assert!(bracket.spec.checkpoints);
+    assert_eq!((bracket.spec.budget.iters, bracket.spec.eval.every_iters), (Some(24_000), Some(4_800)));
+    let bracket = bracket.plan(&nerf::registry()).unwrap();
+    let finest: Vec<_> = bracket.iter().map(|p| p.config.field_config["grid"]["max_resolution"].as_u64()).collect();
+    assert_eq!(finest, [Some(362), Some(181)]);
+    for p in &bracket {
+        let mut c = p.config.clone();
+        c.field_config["grid"]["max_resolution"] = both[0].config.field_config["grid"]["max_resolution"].clone();
+        assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&both[0].config).unwrap(), "{}", p.name);
+    }
     // The doubled batch combined: t15_b19 with the distortion loss, and with the rate x sqrt(2).
     let combo = Ablation::load(&dir.join("batch19_combo_mimic_lego200.toml")).unwrap();
     assert_eq!((combo.spec.budget.iters, combo.spec.eval.every_iters), (Some(24_000), Some(4_800)));
