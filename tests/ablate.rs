@@ -512,6 +512,18 @@ fn the_example_ablations_parse_and_plan() {
         c.field_config["grid"]["max_resolution"] = both[0].config.field_config["grid"]["max_resolution"].clone();
         assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&both[0].config).unwrap(), "{}", p.name);
     }
+    // The pair with tiny-cuda-nn's sparse Adam on the table, over two seeds: only the Adam differs.
+    let sparse = Ablation::load(&dir.join("batch19_maxres_sparse_mimic_lego200.toml")).unwrap();
+    assert!(sparse.spec.checkpoints);
+    assert_eq!((sparse.spec.budget.iters, sparse.spec.eval.every_iters), (Some(24_000), Some(4_800)));
+    let sparse = sparse.plan(&nerf::registry()).unwrap();
+    assert_eq!(sparse.iter().map(|p| p.config.seed).collect::<Vec<_>>(), [0, 1]);
+    for (p, dense) in sparse.iter().zip(&both) {
+        let mut c = p.config.clone();
+        assert!(c.adam.is_sparse("field/hash_grid") && !c.adam.is_sparse("field/density_mlp"), "{}", p.name);
+        c.adam.sparse_groups.clear();
+        assert_eq!(serde_json::to_value(&c).unwrap(), serde_json::to_value(&dense.config).unwrap(), "{}", p.name);
+    }
     // The doubled batch combined: t15_b19 with the distortion loss, and with the rate x sqrt(2).
     let combo = Ablation::load(&dir.join("batch19_combo_mimic_lego200.toml")).unwrap();
     assert_eq!((combo.spec.budget.iters, combo.spec.eval.every_iters), (Some(24_000), Some(4_800)));
