@@ -278,6 +278,17 @@ fn the_example_ablations_parse_and_plan() {
         same.iters = twin[0].config.iters;
         assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&twin[0].config).unwrap(), "{name}");
     }
+    // The step-matched pair with tiny-cuda-nn's sparse Adam on the table: only the Adam differs.
+    let pair = Ablation::load(&dir.join("h100eq_lego_batch19_res1024.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    let sparse = Ablation::load(&dir.join("h100eq_lego_batch19_res1024_sparse.toml")).unwrap();
+    assert!(sparse.spec.checkpoints);
+    assert_eq!((sparse.spec.budget.iters, sparse.spec.budget.seconds, sparse.spec.eval.every_iters), (Some(21_832), Some(300.0), Some(4_367)));
+    let sparse = sparse.plan(&nerf::registry()).unwrap();
+    assert_eq!((sparse.len(), pair.len()), (1, 1));
+    let mut same = sparse[0].config.clone();
+    assert!(same.adam.is_sparse("field/hash_grid") && !same.adam.is_sparse("field/color_mlp"));
+    same.adam.sparse_groups.clear();
+    assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&pair[0].config).unwrap());
     for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1), ("h100_lego_color_features.toml", 1), ("h100_lego_ema099.toml", 1), ("h100_lego_res1024.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));
