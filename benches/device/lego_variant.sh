@@ -13,7 +13,9 @@
 # h100_lego_res1024.toml and h100_lego_batch19.toml (docs/gpu.md, "The next lease").
 # On an H200 (the kind lent since 2026-11-28) run their step-matched twins instead,
 # h100eq_lego_batch19_res1024.toml, h100eq_lego.toml, h100eq_lego_res1024.toml and
-# h100eq_lego_batch19.toml: stopped at the steps the H100 makes in 5 minutes.
+# h100eq_lego_batch19.toml: stopped at the steps the H100 makes in 5 minutes. If the pair ends
+# within ~0.15 dB of 35.5 dB, h100eq_lego_batch19_res1024_sparse.toml (the pair with sparse Adam
+# on the table) comes second.
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
