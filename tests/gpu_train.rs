@@ -125,6 +125,29 @@ fn gpu_checkpoint_renders_the_same_on_the_cpu(ctx: Arc<GpuContext>, config: &Tra
         (None, None) => assert!(!matches!(config.sampler, SamplerConfig::Occupancy { .. })),
         _ => panic!("a grid on one device only"),
     }
+    // Renders at half the training step (`render_step_size`): both devices march the grid
+    // training kept at it, and the GPU queues its training step back after the frame.
+    if let SamplerConfig::Occupancy { step_size, .. } = config.sampler {
+        let fine = step_size / 2.0;
+        for t in [&mut gpu, &mut cpu] {
+            t.set_render_step_size(Some(fine)).unwrap();
+        }
+        let [gf, gf_op, _] = render_first_view(&gpu, &test, config);
+        let [cf, cf_op, _] = render_first_view(&cpu, &test, config);
+        let diff = |a: &[f32], b: &[f32]| {
+            let d = a.iter().zip(b).map(|(x, y)| (x - y).abs());
+            (d.clone().fold(0.0f32, f32::max), d.sum::<f32>() / a.len() as f32)
+        };
+        let (max, mean) = diff(&gf, &cf);
+        assert!(mean < 1e-3 && max < 0.05 && diff(&gf_op, &cf_op).1 < 1e-3, "half step: GPU vs CPU max {max}, mean {mean}");
+        let (_, moved) = diff(&gf, &g_rgb);
+        assert!(moved > 1e-5, "the half step renders other samples (mean |Δ| {moved})");
+        gpu.set_render_step_size(None).unwrap();
+        let [again, _, _] = render_first_view(&gpu, &test, config);
+        assert!(diff(&again, &g_rgb).0 <= 1e-6, "back at the training step: max |Δ| {}", diff(&again, &g_rgb).0);
+        assert!(cpu.set_render_step_size(Some(-1.0)).unwrap_err().to_string().contains("render_step_size"));
+        assert_eq!(cpu.config().render_step_size, Some(fine), "a refused step leaves the setting");
+    }
     (max_diff, mean_diff)
 }
 
@@ -153,6 +176,25 @@ fn gpu_checkpoints_render_the_same_on_the_cpu_with_every_sampler() {
         // bin on rounding, see crates/gpu/tests/pdf.rs, hence the looser max).
         assert!(mean < 1e-4 && max < 0.05, "{name}: max {max}, mean {mean}");
     }
+}
+
+/// Training marches at its own step after a render at a finer one (`render_step_size`): the
+/// GPU's occupancy marcher serves both, so a render that left its step behind would double the
+/// next steps' samples per ray. Without compaction, whose own marcher training would use.
+#[test]
+fn training_marches_at_its_own_step_after_a_finer_render() {
+    let Some(ctx) = device() else { return };
+    let train = load(Split::Train, ViewSelection::First(10));
+    let test = load(Split::Test, ViewSelection::First(1));
+    let config = TrainConfig { log_every: 1, compact_samples: false, ..small_hash_config(6) };
+    let mut gpu = Trainer::new_on(config.clone(), &nerf::registry(), SceneBounds::of(&train), Some(ctx)).unwrap();
+    let per_ray = |s: nerf::train::StepStats| s.n_marched as f64 / s.n_rays.max(1) as f64;
+    let before = (0..3).map(|_| per_ray(gpu.step(&train).unwrap())).last().unwrap();
+    let SamplerConfig::Occupancy { step_size, .. } = config.sampler else { unreachable!() };
+    gpu.set_render_step_size(Some(step_size / 2.0)).unwrap();
+    render_first_view(&gpu, &test, &config);
+    let after = per_ray(gpu.step(&train).unwrap());
+    assert!(before > 10.0 && (after / before - 1.0).abs() < 0.25, "samples per ray {before:.1} before the render, {after:.1} after");
 }
 
 /// `NERF_GPU_CHECKS=off` builds the kernels without wgpu's runtime checks (index clamps, loop

@@ -148,9 +148,9 @@ struct EvalArgs {
     /// protocol) or black (instant-ngp's) [default: the run's `eval_background`, white unless set].
     #[arg(long)]
     background: Option<EvalBackground>,
-    /// Marching step of the renders, in place of the run's `sampler.step_size` (occupancy sampler
-    /// only): the sample cap per ray grows in proportion and the grid keeps the cells it trained
-    /// with.
+    /// Marching step of the renders, in place of the run's `render_step_size` (itself the
+    /// training step, `sampler.step_size`, unless set; occupancy sampler only): the sample cap
+    /// per ray grows in proportion and the grid is the one the run trained.
     #[arg(long)]
     step_size: Option<f32>,
 }
@@ -556,7 +556,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
         config.eval_background = bg.into();
     }
     if let Some(s) = a.step_size {
-        config.sampler = config.sampler.with_step_size(s).map_err(|e| anyhow::anyhow!("--step-size {s}: {e}"))?;
+        config.render_step_size = Some(s);
         config.validate().map_err(|e| anyhow::anyhow!("--step-size {s}: {e}"))?;
     }
     let mut trainer = make_trainer(&config, &nerf::registry(), SceneBounds::of(&test), a.device)?;
@@ -566,7 +566,7 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |i, _| pb.set_position(i as u64))?;
     pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
-        "field": ck.config.field, "split": a.split.name(), "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "sampler": config.sampler, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
+        "field": ck.config.field, "split": a.split.name(), "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "sampler": config.sampler, "render_step_size": config.render_step_size, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
         "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;

@@ -267,29 +267,48 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
 
 /// `nerf eval --step-size`: a run of the occupancy sampler rendered with a finer marching step
 /// records the step, scores differently from its own step, and a step that is not positive is a
-/// clear error.
+/// clear error. A run whose config sets `render_step_size` trains as the plain run does and
+/// scores, in its own evaluation and in `nerf eval`, what `--step-size` gives the plain run.
 #[test]
 fn eval_renders_an_occupancy_run_with_another_marching_step() {
     let d = tempfile::tempdir().unwrap();
     let s = small_scene(d.path());
-    let (run, cfg) = (d.path().join("run"), d.path().join("hash.toml"));
-    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 256\n[field_config.grid]\nlog2_hashmap_size = 12\n\
-        [sampler]\nkind = \"occupancy\"\nstep_size = 0.02\nmax_samples_per_ray = 256\n").unwrap();
-    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
-        .args(["--quiet", "--no-renders", "--iters", "30", "--device", "cpu"]).output().unwrap();
-    assert!(o.status.success(), "{}", stderr(&o));
+    let base_cfg = "field = \"hash\"\nbatch_rays = 256\n[field_config.grid]\nlog2_hashmap_size = 12\n\
+        [sampler]\nkind = \"occupancy\"\nstep_size = 0.02\nmax_samples_per_ray = 256\n";
+    let train = |name: &str, cfg_text: &str| -> PathBuf {
+        let (run, cfg) = (d.path().join(name), d.path().join(format!("{name}.toml")));
+        std::fs::write(&cfg, cfg_text).unwrap();
+        let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
+            .args(["--quiet", "--no-renders", "--iters", "30", "--device", "cpu"]).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        run
+    };
+    let run = train("run", base_cfg);
     let json = |p: PathBuf| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap() };
     let base = json(run.join("metrics.json"))["test_psnr"].as_f64().unwrap();
     let fine = d.path().join("fine");
     let o = nerf().arg("eval").arg(&run).arg(&s).arg("--out").arg(&fine).args(["--device", "cpu", "--quiet", "--step-size", "0.005"]).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     let e = json(fine.join("eval.json"));
-    assert!((e["sampler"]["step_size"].as_f64().unwrap() - 0.005).abs() < 1e-9, "{}", e["sampler"]);
-    assert_eq!(e["sampler"]["max_samples_per_ray"].as_u64(), Some(1024), "four times the cap for a quarter of the step");
+    assert!((e["render_step_size"].as_f64().unwrap() - 0.005).abs() < 1e-9, "{}", e["render_step_size"]);
+    assert!((e["sampler"]["step_size"].as_f64().unwrap() - 0.02).abs() < 1e-9, "the training sampler is recorded as trained: {}", e["sampler"]);
     let psnr = e["test_psnr"].as_f64().unwrap();
     assert!(psnr.is_finite() && (psnr - base).abs() > 1e-6, "the finer step renders other samples: {psnr} vs {base}");
     let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet", "--step-size", "0"]).output().unwrap();
     assert_clean_failure(&o, &["--step-size", "positive"]);
+
+    // The config key: the same training, evaluated at the finer step.
+    let keyed = train("keyed", &format!("render_step_size = 0.005\n{base_cfg}"));
+    let m = json(keyed.join("metrics.json"));
+    assert_eq!(m["final_train_loss"], json(run.join("metrics.json"))["final_train_loss"], "training ignores the render step");
+    assert_eq!(m["test_psnr"].as_f64().unwrap(), psnr, "the run's evaluation at render_step_size is `nerf eval --step-size`'s");
+    let o = nerf().arg("eval").arg(&keyed).arg(&s).arg("--out").arg(d.path().join("keyed_eval")).args(["--device", "cpu", "--quiet"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(json(d.path().join("keyed_eval/eval.json"))["test_psnr"].as_f64().unwrap(), psnr, "nerf eval keeps the run's render step");
+    let bad = d.path().join("bad.toml");
+    std::fs::write(&bad, "render_step_size = 0.005\nfield = \"freq\"\niters = 1\n[sampler]\nkind = \"stratified\"\nn_samples = 8\n").unwrap();
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&bad).arg("--out").arg(d.path().join("bad")).args(["--quiet", "--device", "cpu"]).output().unwrap();
+    assert_clean_failure(&o, &["render_step_size", "occupancy"]);
 }
 
 /// Starts a long tiny run into `run`, interrupts it (SIGINT) once it has logged a few steps, and

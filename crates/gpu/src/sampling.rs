@@ -440,9 +440,11 @@ pub struct MarchConfig {
 }
 
 /// Byte offset of `step` in [`MarchParams`].
-const MARCH_STEP_OFFSET: u64 = 12;
+const MARCH_STEP_OFFSET: u64 = std::mem::offset_of!(MarchParams, step) as u64;
+/// Byte offset of `max_samples` in [`MarchParams`].
+const MARCH_MAX_SAMPLES_OFFSET: u64 = std::mem::offset_of!(MarchParams, max_samples) as u64;
 /// Byte offset of `seed` (followed by `jitter`) in [`MarchParams`].
-const MARCH_SEED_OFFSET: u64 = 84;
+const MARCH_SEED_OFFSET: u64 = std::mem::offset_of!(MarchParams, seed) as u64;
 
 /// Packed samples on the device (the CSR layout of `nerf_sampling::RaySamples`).
 pub struct GpuSamples {
@@ -660,6 +662,24 @@ impl GpuMarcher {
         assert!(step > 0.0 && step.is_finite(), "step size must be positive");
         self.cfg.step_size = step;
         ctx.write(&self.params, MARCH_STEP_OFFSET, &[step]);
+    }
+
+    /// Queues a step and a sample cap per ray for the submissions that follow, leaving
+    /// [`config`](Self::config) as it is: a render at another step than training's (finer steps
+    /// need a larger cap for rays to reach as far). [`restore_stepping`](Self::restore_stepping)
+    /// queues the configured ones back. No buffer depends on either, so any values fit.
+    ///
+    /// # Panics
+    /// If `step` is not positive and finite or `max_samples` is 0.
+    pub fn queue_stepping(&self, ctx: &GpuContext, step: f32, max_samples: u32) {
+        assert!(step > 0.0 && step.is_finite() && max_samples > 0, "step size must be positive, and the sample cap too");
+        ctx.write(&self.params, MARCH_STEP_OFFSET, &[step]);
+        ctx.write(&self.params, MARCH_MAX_SAMPLES_OFFSET, &[max_samples]);
+    }
+
+    /// Queues the configured step and sample cap back after [`queue_stepping`](Self::queue_stepping).
+    pub fn restore_stepping(&self, ctx: &GpuContext) {
+        self.queue_stepping(ctx, self.cfg.step_size, self.cfg.max_samples_per_ray);
     }
 
     /// Records the whole marching (coarse bits, count, scan, fill) of `min(counters[0],

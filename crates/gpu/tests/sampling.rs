@@ -518,6 +518,39 @@ fn marching_without_jitter_matches_the_cpu_march() {
     }
 }
 
+/// A render at another step than training's: `queue_stepping` marches at its step and sample
+/// cap (the CPU march at those), `restore_stepping` at the configured ones again, and the
+/// marcher's config never changes. The caps are small enough to cut rays short, so a cap that
+/// was not queued would show.
+#[test]
+fn queued_stepping_marches_at_its_step_and_restores_the_configured_one() {
+    let Some(ctx) = context() else { return };
+    let (lo, hi) = ([-1.5f32; 3], [1.5f32; 3]);
+    let g = grid(31, 32, lo, hi);
+    let (near, far, n_rays) = (0.3f32, 6.0f32, 1500usize);
+    let (o, d) = rays(31, n_rays);
+    let (step, max) = (0.02f32, 24usize);
+    let cpu = |step: f32, max: usize| {
+        let mut s = RaySamples::default();
+        march(&g, &o, &d, &vec![near; n_rays], &vec![far; n_rays], step, max, None, &mut s);
+        s
+    };
+    let (coarse, fine) = (cpu(step, max), cpu(step / 2.0, 2 * max));
+    let capped = |s: &RaySamples, m: usize| (0..n_rays).filter(|&r| s.ray_len(r) == m).count();
+    assert!(capped(&coarse, max) > 10 && capped(&fine, 2 * max) > 10, "the caps cut rays short");
+    assert!(fine.len() > coarse.len() * 3 / 2, "{} vs {} samples", fine.len(), coarse.len());
+    let cfg = MarchConfig { aabb_min: lo, aabb_max: hi, resolution: 32, cascades: 1, step_size: step, near, far, max_samples_per_ray: max as u32, cone_angle: 0.0 };
+    let m = GpuMarcher::new(&ctx, cfg, n_rays, fine.len() + 100).unwrap();
+    let bits = bitfield(&g);
+    m.queue_stepping(&ctx, step / 2.0, 2 * max as u32);
+    let gpu = run_gpu(&ctx, &m, &bits, &o, &d, n_rays, 0, false);
+    compare(&g, &gpu, &fine.ray_offsets, &fine.t, &o, &d, step / 2.0, n_rays, "queued half step");
+    assert_eq!((m.config().step_size, m.config().max_samples_per_ray), (step, max as u32), "the config is kept");
+    m.restore_stepping(&ctx);
+    let gpu = run_gpu(&ctx, &m, &bits, &o, &d, n_rays, 0, false);
+    compare(&g, &gpu, &coarse.ray_offsets, &coarse.t, &o, &d, step, n_rays, "restored step");
+}
+
 #[test]
 fn marching_with_jitter_matches_a_dense_walk_with_the_same_offsets() {
     let Some(ctx) = context() else { return };

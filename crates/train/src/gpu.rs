@@ -913,7 +913,15 @@ impl GpuEngine {
         ctx.write(f_d, 0, dirs);
         ctx.write(f_bg, 0, background);
         if let (Sampler::Occupancy(o), Some(rf)) = (&self.sampler, rounds) {
-            self.render_rounds(o, rf, n, cfg.transmittance_threshold, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth))?;
+            // At the render step (`render_step_size`), training's queued back after the frame.
+            let stepping = match cfg.render_sampler().map_err(TrainError::Config)? {
+                SamplerConfig::Occupancy { step_size, max_samples_per_ray, .. } => (step_size, max_samples_per_ray as u32),
+                _ => unreachable!("the occupancy sampler's render sampler is one"),
+            };
+            o.marcher.queue_stepping(ctx, stepping.0, stepping.1);
+            let r = self.render_rounds(o, rf, n, cfg.transmittance_threshold, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth));
+            o.marcher.restore_stepping(ctx);
+            r?;
         } else {
             self.render_chunks(n, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth))?;
         }

@@ -417,6 +417,16 @@ impl Trainer {
         self.step
     }
 
+    /// Marching step of the renders from now on (`render_step_size`; `None` = the training
+    /// step); an error (a step that is not positive, a sampler without a step) leaves the
+    /// setting as it was. Training keeps its step.
+    pub fn set_render_step_size(&mut self, step: Option<f32>) -> Result<(), TrainError> {
+        let c = TrainConfig { render_step_size: step, ..self.config.clone() };
+        c.validate().map_err(TrainError::Config)?;
+        self.config.render_step_size = step;
+        Ok(())
+    }
+
     /// Rays per pixel of the evaluation's renders from now on (`eval_spp`, 1..=256; see
     /// [`crate::evaluate`]); an error names a count out of range and leaves the setting as it was.
     pub fn set_eval_spp(&mut self, spp: u32) -> Result<(), TrainError> {
@@ -774,10 +784,10 @@ impl Trainer {
         let fields = ema_fields.as_ref().map_or(&self.fields, |g| &g.fields);
         let n = origins.len() / 3;
         let chunk = self.config.render_chunk_rays;
-        if let (Some(grid), SamplerConfig::Occupancy { step_size, max_samples_per_ray, cone_angle, .. }) =
-            (self.grid.as_ref(), &self.config.sampler)
-        {
-            // Occupancy grid: rounds that stop marching a ray once it is opaque (same image).
+        let sampler = self.config.render_sampler().map_err(TrainError::Config)?;
+        if let (Some(grid), SamplerConfig::Occupancy { step_size, max_samples_per_ray, cone_angle, .. }) = (self.grid.as_ref(), &sampler) {
+            // Occupancy grid: rounds that stop marching a ray once it is opaque (same image), at
+            // the render step (`render_step_size`) through the grid training keeps.
             let p = crate::rounds::MarchParams {
                 step: self.bounds.stepping(*step_size, *cone_angle),
                 max_samples: *max_samples_per_ray,
