@@ -250,6 +250,10 @@ struct RenderArgs {
     /// correction (how that photo was exposed) instead of the mean of all views'.
     #[arg(long, value_name = "N")]
     appearance: Option<usize>,
+    /// Marching step of the frames, in place of the run's `render_step_size` (itself the
+    /// training step unless set; occupancy sampler only), as `nerf eval --step-size`.
+    #[arg(long)]
+    step_size: Option<f32>,
 }
 
 #[derive(Args)]
@@ -650,6 +654,9 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let user_path = a.camera_path.as_deref().map(nerf::data::load_camera_path).transpose()?;
     let LoadedRun { config, step, train, mut trainer } = load_run(&a.run, &a.scene, a.device, None, false)?;
     trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
+    if let Some(s) = a.step_size {
+        trainer.set_render_step_size(Some(s)).with_context(|| format!("{}: --step-size {s}", a.run.display()))?;
+    }
     // --width scales the intrinsics; the height keeps the aspect.
     let sized = |k: nerf::rays::Intrinsics| -> Result<nerf::rays::Intrinsics> {
         let k = match a.width {
@@ -766,7 +773,7 @@ fn cmd_render(a: RenderArgs) -> Result<()> {
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": config.field, "iterations": step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "render_step_size": trainer.config().render_step_size, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;

@@ -305,6 +305,21 @@ fn eval_renders_an_occupancy_run_with_another_marching_step() {
     let o = nerf().arg("eval").arg(&keyed).arg(&s).arg("--out").arg(d.path().join("keyed_eval")).args(["--device", "cpu", "--quiet"]).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     assert_eq!(json(d.path().join("keyed_eval/eval.json"))["test_psnr"].as_f64().unwrap(), psnr, "nerf eval keeps the run's render step");
+    // nerf render: the run's render step, or --step-size's; a frame at another step differs.
+    let frame = |run: &Path, name: &str, extra: &[&str]| {
+        let out = d.path().join(name);
+        let o = nerf().arg("render").arg(run).arg(&s).args(["--frames", "1", "--width", "24", "--device", "cpu", "--quiet", "--out"]).arg(&out).args(extra).output().unwrap();
+        assert!(o.status.success(), "{name}: {}", stderr(&o));
+        (json(out.join("render.json"))["render_step_size"].as_f64(), image::open(out.join("frame_0000.png")).unwrap().to_rgb8().into_raw())
+    };
+    let (keyed_step, keyed_px) = frame(&keyed, "r_keyed", &[]);
+    assert_eq!(keyed_step, Some(0.005f32 as f64));
+    let (flag_step, flag_px) = frame(&run, "r_flag", &["--step-size", "0.005"]);
+    assert_eq!((flag_step, &flag_px), (Some(0.005f32 as f64), &keyed_px), "--step-size renders what the key does");
+    let (plain_step, plain_px) = frame(&run, "r_plain", &[]);
+    assert!(plain_step.is_none() && plain_px != keyed_px, "the training step renders another frame");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--device", "cpu", "--step-size", "0"]).output().unwrap();
+    assert_clean_failure(&o, &["--step-size", "positive"]);
     let bad = d.path().join("bad.toml");
     std::fs::write(&bad, "render_step_size = 0.005\nfield = \"freq\"\niters = 1\n[sampler]\nkind = \"stratified\"\nn_samples = 8\n").unwrap();
     let o = nerf().arg("train").arg(&s).arg("--config").arg(&bad).arg("--out").arg(d.path().join("bad")).args(["--quiet", "--device", "cpu"]).output().unwrap();
