@@ -171,6 +171,7 @@ fn checkpoints_carry_the_average() {
         fields: t.export_fields().unwrap(),
         adam: t.adam_state().unwrap(),
         sampler: t.sampler_state().unwrap(),
+        render_only: false,
     };
     ck(&t).save(&path).unwrap();
     let back = Checkpoint::load(&path).unwrap();
@@ -213,6 +214,52 @@ fn checkpoints_carry_the_average() {
     let mut t2 = Trainer::new(config, &registry, bounds).unwrap();
     let e = t2.restore(back.step, &back.fields, old.adam, &bad).unwrap_err().to_string();
     assert!(e.contains(name.trim_start_matches("ema/")), "{e}");
+}
+
+/// A render-only copy (`Checkpoint::for_rendering`, `nerf slim`) renders exactly the image the
+/// full checkpoint renders — the average, on the same occupancy grid — on the CPU and, from a GPU
+/// run, on the GPU; restoring the raw parameters of the full checkpoint without the average
+/// renders another image, so the copy really carries the average.
+#[test]
+fn a_render_only_copy_renders_what_the_full_checkpoint_renders() {
+    let train = load(Split::Train, ViewSelection::First(10));
+    let test = load(Split::Test, ViewSelection::First(1));
+    let registry = nerf::registry();
+    let bounds = SceneBounds::of(&train);
+    let config = small_hash_config(8, Some(0.9));
+    let check = |ctx: Option<Arc<GpuContext>>| {
+        let mut t = Trainer::new_on(config.clone(), &registry, bounds, ctx.clone()).unwrap();
+        for _ in 0..6 {
+            t.step(&train).unwrap();
+        }
+        let full = Checkpoint {
+            step: t.step_count(),
+            elapsed_secs: 0.0,
+            samples_seen: 0,
+            config: t.config().clone(),
+            fields: t.export_fields().unwrap(),
+            adam: t.adam_state().unwrap(),
+            sampler: t.sampler_state().unwrap(),
+            render_only: false,
+        };
+        let restored = |ck: &Checkpoint| {
+            let mut r = Trainer::new_on(ck.config.for_rendering(), &registry, bounds, ctx.clone()).unwrap();
+            r.restore(ck.step, &ck.fields, ck.adam.clone(), &ck.sampler).unwrap();
+            render(&r, &test)
+        };
+        let slim = full.for_rendering().unwrap();
+        assert!(slim.config.ema_decay.is_none() && slim.adam.groups.is_empty());
+        let image = restored(&full);
+        assert_eq!(image, render(&t, &test), "the full checkpoint renders the trainer's image");
+        assert_eq!(restored(&slim), image, "the render-only copy renders the same image ({})", t.device());
+        let raw = Checkpoint { config: TrainConfig { ema_decay: None, ..full.config.clone() }, sampler: without_ema(&full.sampler), ..full.clone() };
+        assert_ne!(restored(&raw), image, "the raw parameters render another image");
+    };
+    check(None);
+    match device() {
+        Some(ctx) => check(Some(ctx)),
+        None => eprintln!("NOTICE: no GPU adapter; the render-only copy was checked on the CPU only"),
+    }
 }
 
 fn device() -> Option<Arc<GpuContext>> {

@@ -162,6 +162,7 @@ fn check_resume(config: TrainConfig) {
         fields: first.export_fields().unwrap(),
         adam: first.adam_state().unwrap(),
         sampler: first.sampler_state().unwrap(),
+        render_only: false,
     }
     .save(&path)
     .unwrap();

@@ -340,6 +340,7 @@ pub fn train_run(
             fields: trainer.export_fields().map_err(terr)?,
             adam: trainer.adam_state().map_err(terr)?,
             sampler: trainer.sampler_state().map_err(terr)?,
+            render_only: false,
         }
         .save(path)
         .map_err(terr)?;

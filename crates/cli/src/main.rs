@@ -36,6 +36,11 @@ enum Command {
     /// Export the surface of a trained run as a coloured triangle mesh in PLY (instant-ngp's
     /// marching-cubes mesh): the isosurface of its density at a threshold, over the scene box.
     ExportMesh(MeshArgs),
+    /// Write a render-only copy of a run's checkpoint into a new run folder: the weights renders
+    /// use (the moving average for a run with `ema_decay`), the occupancy grid, no optimiser state.
+    /// About a quarter of the checkpoint's size; `eval`, `render` and the exports read it as they
+    /// read the run, training cannot resume from it.
+    Slim(SlimArgs),
     /// List the registered fields and their default configs.
     Fields,
     /// Run an ablation file: a grid of runs with the same scenes, seeds and budget; writes
@@ -115,6 +120,15 @@ struct TrainArgs {
     /// overrides it.
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
+}
+
+#[derive(Args)]
+struct SlimArgs {
+    /// A run folder written by `nerf train` or `nerf ablate` (holds checkpoint.bin).
+    run: PathBuf,
+    /// The new run folder (created; it must not hold a checkpoint yet).
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -405,6 +419,7 @@ fn main() {
         Command::ExportScene(a) => cmd_export(a),
         Command::ExportPoints(a) => cmd_export_points(a),
         Command::ExportMesh(a) => cmd_export_mesh(a),
+        Command::Slim(a) => cmd_slim(a),
         Command::Fields => cmd_fields(),
         Command::Ablate(a) => cmd_ablate(a),
     };
@@ -963,6 +978,20 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;
         println!("{:?}: {} views at {}x{} -> {}", split, ds.n_views(), ds.width, ds.height, a.dst.display());
     }
+    Ok(())
+}
+
+fn cmd_slim(a: SlimArgs) -> Result<()> {
+    let ck_path = a.run.join("checkpoint.bin");
+    let slim = Checkpoint::load(&ck_path)?.for_rendering().with_context(|| format!("{}", ck_path.display()))?;
+    let out = a.out.join("checkpoint.bin");
+    if out.exists() {
+        bail!("{}: already exists; give --out a new folder", out.display());
+    }
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    slim.save(&out)?;
+    let size = |p: &Path| std::fs::metadata(p).map(|m| m.len() as f64 / (1 << 20) as f64).unwrap_or(f64::NAN);
+    println!("{} ({:.1} MiB) -> {} ({:.1} MiB, render-only: step {})", ck_path.display(), size(&ck_path), out.display(), size(&out), slim.step);
     Ok(())
 }
 

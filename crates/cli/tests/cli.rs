@@ -326,6 +326,56 @@ fn eval_renders_an_occupancy_run_with_another_marching_step() {
     assert_clean_failure(&o, &["render_step_size", "occupancy"]);
 }
 
+/// `nerf slim`: the render-only copy of a hash run with a moving average is a fraction of the
+/// checkpoint and scores exactly what the run scores (in `nerf eval`, on the CPU and, where an
+/// adapter exists, on the GPU); a render-only copy cannot be resumed, an existing copy is not
+/// overwritten, and a missing run is named.
+#[test]
+fn slim_writes_a_render_only_copy_that_scores_what_the_run_scores() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let (run, cfg) = (d.path().join("run"), d.path().join("run.toml"));
+    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 256\nema_decay = 0.9\n[field_config.grid]\nlog2_hashmap_size = 12\n\
+        [sampler]\nkind = \"occupancy\"\nstep_size = 0.02\nmax_samples_per_ray = 256\n").unwrap();
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
+        .args(["--quiet", "--no-renders", "--iters", "20", "--device", "cpu"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let slim = d.path().join("slim");
+    let o = nerf().arg("slim").arg(&run).arg("--out").arg(&slim).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let size = |p: &Path| std::fs::metadata(p.join("checkpoint.bin")).unwrap().len() as i64;
+    let json = |p: PathBuf| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap() };
+    // Parameters, Adam's two moments and the average before, the parameters alone after (the
+    // occupancy grid in both): 3 × 4 bytes per parameter fewer, up to the headers' few bytes.
+    let n_params = json(run.join("metrics.json"))["n_params"].as_i64().unwrap();
+    let saved = size(&run) - size(&slim);
+    assert!((saved - 12 * n_params).abs() < 4096, "{saved} bytes saved, {n_params} parameters");
+    let eval = |r: &Path, device: &str| -> Option<f64> {
+        let out = d.path().join(format!("eval_{}_{device}", r.file_name().unwrap().to_string_lossy()));
+        let o = nerf().arg("eval").arg(r).arg(&s).arg("--out").arg(&out).args(["--device", device, "--quiet"]).output().unwrap();
+        if device == "gpu" && stderr(&o).contains("no GPU adapter") {
+            eprintln!("NOTICE: no GPU adapter; the render-only copy was scored on the CPU only");
+            return None;
+        }
+        assert!(o.status.success(), "{}", stderr(&o));
+        json(out.join("eval.json"))["test_psnr"].as_f64()
+    };
+    let full = eval(&run, "cpu").unwrap();
+    assert_eq!(eval(&slim, "cpu"), Some(full), "the copy scores what the run scores");
+    assert!((full - json(run.join("metrics.json"))["test_psnr"].as_f64().unwrap()).abs() < 1e-9);
+    if let Some(g) = eval(&run, "gpu") {
+        assert_eq!(eval(&slim, "gpu"), Some(g), "on the GPU too");
+    }
+    // It cannot be trained on.
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&slim)
+        .args(["--quiet", "--no-renders", "--iters", "30", "--device", "cpu", "--resume"]).output().unwrap();
+    assert_clean_failure(&o, &["checkpoint.bin", "render-only"]);
+    let o = nerf().arg("slim").arg(&run).arg("--out").arg(&slim).output().unwrap();
+    assert_clean_failure(&o, &["already exists"]);
+    let o = nerf().arg("slim").arg(d.path().join("nope")).arg("--out").arg(d.path().join("x")).output().unwrap();
+    assert_clean_failure(&o, &["nope"]);
+}
+
 /// Starts a long tiny run into `run`, interrupts it (SIGINT) once it has logged a few steps, and
 /// checks that it stopped cleanly and said how to resume; the checkpoint's step.
 #[cfg(unix)]

@@ -34,6 +34,9 @@ pub struct Checkpoint {
     /// [`Trainer::sampler_state`](crate::Trainer::sampler_state)). Checkpoints of runs without an
     /// average simply lack those entries.
     pub sampler: Vec<(String, Vec<f32>)>,
+    /// A render-only copy ([`Checkpoint::for_rendering`]): the weights renders use, no optimiser
+    /// state. Rendering, evaluation and export read it; resuming training from it is refused.
+    pub render_only: bool,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -56,6 +59,9 @@ struct Header {
     /// after the sampler state.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     adam_steps: Vec<(String, usize)>,
+    /// [`Checkpoint::render_only`]; absent (false) in a full checkpoint.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    render_only: bool,
 }
 
 fn ck_err(path: &Path, message: impl Into<String>) -> TrainError {
@@ -82,6 +88,7 @@ impl Checkpoint {
             adam: self.adam.groups.iter().map(|(n, m, _)| (n.clone(), m.len())).collect(),
             sampler: self.sampler.iter().map(|(n, v)| (n.clone(), v.len())).collect(),
             adam_steps: self.adam.steps.iter().map(|(n, k)| (n.clone(), k.len())).collect(),
+            render_only: self.render_only,
         };
         let json = serde_json::to_vec(&header).map_err(|e| ck_err(path, e.to_string()))?;
         let tmp = path.with_extension("tmp");
@@ -167,11 +174,56 @@ impl Checkpoint {
             fields,
             adam: AdamState { step: h.adam_step, groups, steps },
             sampler,
+            render_only: h.render_only,
         })
     }
 }
 
 impl Checkpoint {
+    /// A render-only copy: what rendering reads and nothing that only training needs, about a
+    /// quarter of a run's checkpoint with Adam and a moving average (`nerf slim`: small enough to
+    /// bring a lent GPU's field home and score it elsewhere). The parameters are the ones renders
+    /// use: the moving average for a run with `ema_decay` (once it has one), which then replaces
+    /// them, with `ema_decay` cleared so that nothing averages again. No optimiser state is kept;
+    /// the occupancy grid, batch sizing and any colour or pose corrections are. Rendering this
+    /// copy gives what rendering the full checkpoint gives. Errors when the moving average lacks
+    /// a group of the parameters or has another length.
+    pub fn for_rendering(&self) -> Result<Checkpoint, TrainError> {
+        let (ema, rest) = crate::trainer::ema_from_entries(&self.sampler)?;
+        let mut fields = self.fields.clone();
+        let mut config = self.config.clone();
+        if let Some(e) = ema.filter(|e| e.step > 0 && self.config.ema_decay.is_some()) {
+            let prefixes = crate::trainer::group_prefixes(fields.len());
+            for (groups, prefix) in fields.iter_mut().zip(prefixes) {
+                for (name, values) in groups.iter_mut() {
+                    let key = format!("{prefix}/{name}");
+                    match e.groups.iter().find(|(n, _)| *n == key) {
+                        Some((_, avg)) if avg.len() == values.len() => values.clone_from(avg),
+                        Some((_, avg)) => {
+                            return Err(TrainError::Config(format!(
+                                "checkpoint EMA of group `{key}` has {} values, the parameters {}",
+                                avg.len(),
+                                values.len()
+                            )))
+                        }
+                        None => return Err(TrainError::Config(format!("checkpoint EMA lacks group `{key}`"))),
+                    }
+                }
+            }
+        }
+        config.ema_decay = None;
+        Ok(Checkpoint {
+            step: self.step,
+            elapsed_secs: self.elapsed_secs,
+            samples_seen: self.samples_seen,
+            config,
+            fields,
+            adam: AdamState { step: 0, groups: Vec::new(), steps: Vec::new() },
+            sampler: rest,
+            render_only: true,
+        })
+    }
+
     /// The step a checkpoint was written at, reading only its header (not the tensors).
     pub fn read_step(path: &Path) -> Result<u64, TrainError> {
         let io = |e| TrainError::Io { path: path.to_path_buf(), source: e };
@@ -237,6 +289,7 @@ mod tests {
                 steps: vec![("g".into(), vec![7, 3])],
             },
             sampler: vec![("occ".into(), vec![0.5; 3])],
+            render_only: false,
         };
         ck.save(&p).unwrap();
         assert!(!p.with_extension("tmp").exists(), "temporary file must be renamed away");
@@ -247,6 +300,7 @@ mod tests {
         assert_eq!(back.adam.steps, ck.adam.steps);
         assert_eq!(back.adam.step, 7);
         assert_eq!(back.sampler, ck.sampler);
+        assert!(!back.render_only);
         // Truncate: the error names the file.
         let bytes = std::fs::read(&p).unwrap();
         std::fs::write(&p, &bytes[..bytes.len() - 3]).unwrap();
@@ -262,5 +316,63 @@ mod tests {
         assert!(Checkpoint::read_step(&p).unwrap_err().to_string().contains("magic"));
         let e = Checkpoint::read_step(&dir.path().join("none.bin")).unwrap_err().to_string();
         assert!(e.contains("none.bin"), "{e}");
+    }
+
+    /// A checkpoint of one field instance with groups `a` and `b`, Adam state, an occupancy
+    /// entry and (with `ema`) a moving average of both groups.
+    fn with_average(ema: bool) -> Checkpoint {
+        let mut config = TrainConfig::default();
+        config.ema_decay = ema.then_some(0.95);
+        let mut sampler = vec![("occupancy_density".to_string(), vec![0.5, 0.0, 2.0])];
+        if ema {
+            let avg = EmaState { step: 5, groups: vec![("field/a".into(), vec![9.0, -9.0]), ("field/b".into(), vec![8.0])] };
+            sampler.extend(crate::trainer::ema_to_entries(&avg));
+        }
+        Checkpoint {
+            step: 5,
+            elapsed_secs: 2.0,
+            samples_seen: 10,
+            config,
+            fields: vec![vec![("a".into(), vec![1.0, -2.0]), ("b".into(), vec![3.5])]],
+            adam: AdamState { step: 5, groups: vec![("field/a".into(), vec![0.1, 0.2], vec![0.3, 0.4])], steps: Vec::new() },
+            sampler,
+            render_only: false,
+        }
+    }
+
+    use nerf_optim::EmaState;
+
+    #[test]
+    fn a_render_only_copy_holds_the_averaged_weights_and_no_optimiser_state() {
+        let slim = with_average(true).for_rendering().unwrap();
+        assert_eq!(slim.fields, vec![vec![("a".to_string(), vec![9.0, -9.0]), ("b".to_string(), vec![8.0])]]);
+        assert_eq!(slim.config.ema_decay, None, "nothing averages the averaged weights again");
+        assert!(slim.adam.groups.is_empty() && slim.adam.steps.is_empty());
+        assert_eq!(slim.sampler, vec![("occupancy_density".to_string(), vec![0.5, 0.0, 2.0])]);
+        assert!(slim.render_only);
+        assert_eq!((slim.step, slim.samples_seen), (5, 10));
+        // The marker survives a save and a load.
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("slim.bin");
+        slim.save(&p).unwrap();
+        let back = Checkpoint::load(&p).unwrap();
+        assert!(back.render_only);
+        assert_eq!(back.fields, slim.fields);
+        // Without an average the parameters are kept as they are.
+        let plain = with_average(false).for_rendering().unwrap();
+        assert_eq!(plain.fields, with_average(false).fields);
+        // An average that does not cover the parameters is an error, not a mix.
+        let mut bad = with_average(true);
+        bad.sampler.retain(|(n, _)| n != "ema/field/b");
+        let e = bad.for_rendering().unwrap_err().to_string();
+        assert!(e.contains("field/b"), "{e}");
+        let mut short = with_average(true);
+        for (n, v) in &mut short.sampler {
+            if n == "ema/field/a" {
+                v.pop();
+            }
+        }
+        let e = short.for_rendering().unwrap_err().to_string();
+        assert!(e.contains("field/a") && e.contains("1 values"), "{e}");
     }
 }

@@ -128,6 +128,12 @@ pub fn run(
     let (mut elapsed, mut samples_seen) = (0.0f64, 0u64);
     if resuming {
         let ck = Checkpoint::load(&ck_path)?;
+        if ck.render_only {
+            return Err(TrainError::Checkpoint {
+                path: ck_path,
+                message: "is a render-only copy (`nerf slim`: no optimiser state): training cannot resume from it".into(),
+            });
+        }
         let same = |a: &TrainConfig, b: &TrainConfig| {
             a.field == b.field && a.field_config == b.field_config && a.sampler == b.sampler && a.seed == b.seed
         };
@@ -167,6 +173,7 @@ pub fn run(
             fields,
             adam: t.adam_state()?,
             sampler: t.sampler_state()?,
+            render_only: false,
         }
         .save(&ck_path)
     };

@@ -243,7 +243,7 @@ impl Trainer {
             Some(d) => (Some(Ema::new(d)), Some(Mutex::new(EmaFields { synced: 0, fields: build()? }))),
             None => (None, None),
         };
-        let prefixes: &[&str] = if n == 1 { &["field"] } else { &["coarse", "fine"] };
+        let prefixes = group_prefixes(n);
         let group_names: Vec<Vec<String>> = fields
             .iter_mut()
             .zip(prefixes)
@@ -1129,6 +1129,16 @@ fn seen_from_state(state: &[(String, Vec<f32>)]) -> Result<Option<Vec<u32>>, Tra
 
 /// Name of the moving average's update count in [`Trainer::sampler_state`].
 pub const EMA_STEP_ENTRY: &str = "ema/step";
+/// The prefixes of the parameter groups' names (`<prefix>/<group>`, as Adam and the moving
+/// average know them) of a run with `n` field instances: `field`, or `coarse` and `fine`.
+pub(crate) fn group_prefixes(n: usize) -> &'static [&'static str] {
+    if n == 1 {
+        &["field"]
+    } else {
+        &["coarse", "fine"]
+    }
+}
+
 /// Prefix of the moving average's per-group values in [`Trainer::sampler_state`].
 pub const EMA_PREFIX: &str = "ema/";
 
