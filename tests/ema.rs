@@ -150,6 +150,20 @@ fn cpu_trainer_averages_every_step_and_renders_with_the_average() {
     assert_ne!(again, with_ema);
 }
 
+/// What `nerf train` would checkpoint of `t` now.
+fn checkpoint_of(t: &Trainer) -> Checkpoint {
+    Checkpoint {
+        step: t.step_count(),
+        elapsed_secs: 0.0,
+        samples_seen: 0,
+        config: t.config().clone(),
+        fields: t.export_fields().unwrap(),
+        adam: t.adam_state().unwrap(),
+        sampler: t.sampler_state().unwrap(),
+        render_only: false,
+    }
+}
+
 #[test]
 fn checkpoints_carry_the_average() {
     let train = load(Split::Train, ViewSelection::First(10));
@@ -163,17 +177,7 @@ fn checkpoints_carry_the_average() {
     }
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("checkpoint.bin");
-    let ck = |t: &Trainer| Checkpoint {
-        step: t.step_count(),
-        elapsed_secs: 0.0,
-        samples_seen: 0,
-        config: t.config().clone(),
-        fields: t.export_fields().unwrap(),
-        adam: t.adam_state().unwrap(),
-        sampler: t.sampler_state().unwrap(),
-        render_only: false,
-    };
-    ck(&t).save(&path).unwrap();
+    checkpoint_of(&t).save(&path).unwrap();
     let back = Checkpoint::load(&path).unwrap();
     assert_eq!(back.config.ema_decay, Some(0.9));
     let mut resumed = Trainer::new(back.config.clone(), &registry, bounds).unwrap();
@@ -232,16 +236,7 @@ fn a_render_only_copy_renders_what_the_full_checkpoint_renders() {
         for _ in 0..6 {
             t.step(&train).unwrap();
         }
-        let full = Checkpoint {
-            step: t.step_count(),
-            elapsed_secs: 0.0,
-            samples_seen: 0,
-            config: t.config().clone(),
-            fields: t.export_fields().unwrap(),
-            adam: t.adam_state().unwrap(),
-            sampler: t.sampler_state().unwrap(),
-            render_only: false,
-        };
+        let full = checkpoint_of(&t);
         let restored = |ck: &Checkpoint| {
             let mut r = Trainer::new_on(ck.config.for_rendering(), &registry, bounds, ctx.clone()).unwrap();
             r.restore(ck.step, &ck.fields, ck.adam.clone(), &ck.sampler).unwrap();

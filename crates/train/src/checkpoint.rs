@@ -194,20 +194,16 @@ impl Checkpoint {
         let mut config = self.config.clone();
         if let Some(e) = ema.filter(|e| e.step > 0 && self.config.ema_decay.is_some()) {
             let prefixes = crate::trainer::group_prefixes(fields.len());
-            for (groups, prefix) in fields.iter_mut().zip(prefixes) {
-                for (name, values) in groups.iter_mut() {
-                    let key = format!("{prefix}/{name}");
-                    match e.groups.iter().find(|(n, _)| *n == key) {
-                        Some((_, avg)) if avg.len() == values.len() => values.clone_from(avg),
-                        Some((_, avg)) => {
-                            return Err(TrainError::Config(format!(
-                                "checkpoint EMA of group `{key}` has {} values, the parameters {}",
-                                avg.len(),
-                                values.len()
-                            )))
-                        }
-                        None => return Err(TrainError::Config(format!("checkpoint EMA lacks group `{key}`"))),
-                    }
+            let names: Vec<Vec<String>> = fields
+                .iter()
+                .zip(prefixes)
+                .map(|(groups, prefix)| groups.iter().map(|(name, _)| format!("{prefix}/{name}")).collect())
+                .collect();
+            crate::trainer::check_ema_groups(&e, &names, &fields)?;
+            for (groups, names) in fields.iter_mut().zip(&names) {
+                for ((_, values), key) in groups.iter_mut().zip(names) {
+                    let (_, avg) = e.groups.iter().find(|(n, _)| n == key).expect("checked above");
+                    values.clone_from(avg);
                 }
             }
         }

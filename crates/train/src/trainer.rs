@@ -1186,7 +1186,7 @@ pub fn ema_from_entries(
 }
 
 /// A restored average must cover every parameter group of the run, with the parameters' lengths.
-fn check_ema_groups(s: &EmaState, group_names: &[Vec<String>], fields: &[Vec<(String, Vec<f32>)>]) -> Result<(), TrainError> {
+pub(crate) fn check_ema_groups(s: &EmaState, group_names: &[Vec<String>], fields: &[Vec<(String, Vec<f32>)>]) -> Result<(), TrainError> {
     if s.step == 0 {
         return Ok(());
     }
