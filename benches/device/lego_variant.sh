@@ -7,8 +7,8 @@
 # It replaces runs/device/lego, so score device_session.sh's run there first if it is wanted.
 #   run(command="bash benches/device/lego_variant.sh FILE", carry=[".gl", ".bin", ".data"], timeout_s=400)
 # Brings back variant_metrics.json (with train_log), variant_curve.csv and the trained field's
-# render-only copy in parts (slim.ckpt.*; SLIM=0 skips it): score it here with score_here.sh. Lease F (2026-11-27) ran
-# h100_lego_table20.toml (no gain over the preset) and h100_lego.toml itself (the preset, for its
+# render-only copy in parts (slim.ckpt.*; SLIM=0 skips it): score it here with score_here.sh.
+# Lease F (2026-11-27) ran h100_lego_table20.toml (no gain over the preset) and h100_lego.toml itself (the preset, for its
 # checkpoint); next: h100_lego_batch19_res1024.toml (2^19 samples per step and the finest grid
 # level at 1024 cells, +0.46 dB together in the CPU's scaled-down run, two seeds), then each alone,
 # h100_lego_res1024.toml and h100_lego_batch19.toml (docs/gpu.md, "The next lease").

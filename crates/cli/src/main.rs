@@ -983,11 +983,12 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
 
 fn cmd_slim(a: SlimArgs) -> Result<()> {
     let ck_path = a.run.join("checkpoint.bin");
-    let slim = Checkpoint::load(&ck_path)?.for_rendering().with_context(|| format!("{}", ck_path.display()))?;
     let out = a.out.join("checkpoint.bin");
+    // Refused before the (large) checkpoint is read.
     if out.exists() {
         bail!("{}: already exists; give --out a new folder", out.display());
     }
+    let slim = Checkpoint::load(&ck_path)?.for_rendering().with_context(|| format!("{}", ck_path.display()))?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     slim.save(&out)?;
     let size = |p: &Path| std::fs::metadata(p).map(|m| m.len() as f64 / (1 << 20) as f64).unwrap_or(f64::NAN);

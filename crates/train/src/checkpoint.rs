@@ -268,6 +268,7 @@ fn parse_header(path: &Path, bytes: &[u8]) -> Result<(Header, usize), TrainError
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nerf_optim::EmaState;
 
     #[test]
     fn round_trip_and_corruption_is_reported() {
@@ -335,8 +336,6 @@ mod tests {
             render_only: false,
         }
     }
-
-    use nerf_optim::EmaState;
 
     #[test]
     fn a_render_only_copy_holds_the_averaged_weights_and_no_optimiser_state() {
