@@ -11,6 +11,9 @@
 # eval_<half>_black.json, ~5 s more: only meaningful for a run trained on random backgrounds.
 # With STEP=S in the environment it also renders the half with the marching step S (`nerf eval
 # --step-size S`, e.g. 0.0025, half the trained step) into eval_<half>_step.json, ~10 s more.
+# With SPP=N it also renders each view as the mean of N rays through each pixel (`nerf eval --spp
+# N`, e.g. 8, as instant-ngp scores; with STEP, at that step as well) into eval_<half>_spp.json,
+# ~N times the plain render's time (lego at 800x800, SPP=8 STEP=0.0025: ~1 min per half on an H200).
 # Build here first: `bash benches/device/prepare.sh` (makes .eval_a and .eval_b).
 set -u
 half=${1:?usage: eval_half.sh a|b [both]}
@@ -30,3 +33,11 @@ if [ -n "${STEP:-}" ]; then
   .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --step-size "$STEP" --out "/tmp/eval_${half}_step" --quiet
   cp "/tmp/eval_${half}_step/eval.json" "$OUT/eval_${half}_step.json"
 fi
+if [ -n "${SPP:-}" ]; then
+  extra=(--spp "$SPP"); [ -n "${STEP:-}" ] && extra+=(--step-size "$STEP")
+  .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu "${extra[@]}" --out "/tmp/eval_${half}_spp" --quiet
+  cp "/tmp/eval_${half}_spp/eval.json" "$OUT/eval_${half}_spp.json"
+fi
+for f in "$OUT"/eval_"$half"*.json; do
+  python3 -c "import json,sys; e=json.load(open(sys.argv[1])); print(f\"{sys.argv[1].rsplit('/',1)[-1]}: {e['test_psnr']:.3f} dB, SSIM {e['test_ssim']:.4f}, {e['n_test_views']} views, spp {e.get('spp', 1)}, step {e.get('render_step_size')}\")" "$f" 2>/dev/null || true
+done
