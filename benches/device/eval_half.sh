@@ -12,8 +12,10 @@
 # With STEP=S in the environment it also renders the half with the marching step S (`nerf eval
 # --step-size S`, e.g. 0.0025, half the trained step) into eval_<half>_step.json, ~10 s more.
 # With SPP=N it also renders each view as the mean of N rays through each pixel (`nerf eval --spp
-# N`, e.g. 8, as instant-ngp scores; with STEP, at that step as well) into eval_<half>_spp.json,
-# ~N times the plain render's time (lego at 800x800, SPP=8 STEP=0.0025: ~1 min per half on an H200).
+# N`, e.g. 8: a lattice over the pixel; instant-ngp also scores with 8 per pixel, but at the
+# centre with 8 marching offsets; with STEP, at that step as well) into eval_<half>_spp.json,
+# ~2N times the plain render's time with STEP at half the trained step (estimated ~1 min per half
+# for lego at 800x800 on an H200, from its 28 frames/s at 1 ray; not yet measured).
 # Build here first: `bash benches/device/prepare.sh` (makes .eval_a and .eval_b).
 set -u
 half=${1:?usage: eval_half.sh a|b [both]}

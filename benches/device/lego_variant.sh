@@ -16,7 +16,9 @@
 # the steps the H100 makes in 5 minutes: lease G (2026-12-04) ran h100eq_lego_batch19_res1024.toml
 # (35.38 dB on every 8th view) but lost its checkpoint; next: that file again, then
 # h100eq_lego_batch19_res1024_sparse.toml, then h100eq_lego.toml, each scored here afterwards
-# with score_here.sh (docs/gpu.md, "The next lease").
+# with score_here.sh (docs/gpu.md, "The next lease"). Since 2026-12-04 the sparse run is followed
+# on the same warm machine by `SPP=8 STEP=0.0025 bash benches/device/eval_half.sh a` and `b`
+# (all 200 test views with 8 rays per pixel at half the step, too slow to score here).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
