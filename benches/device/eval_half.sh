@@ -25,21 +25,18 @@ for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/t
 run=$(ls -d runs/device/lego/runs/*/ 2>/dev/null | head -1)
 [ -n "$run" ] && [ -f "$run/checkpoint.bin" ] || { echo "no checkpoint under runs/device/lego/runs/: run device_session.sh first, on this warm machine"; exit 1; }
 echo "== $run on .eval_$half/lego"
-.bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --out "/tmp/eval_$half" --quiet
-cp "/tmp/eval_$half/eval.json" "$OUT/eval_$half.json"
-if [ "$both" = both ]; then
-  .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --background black --out "/tmp/eval_${half}_black" --quiet
-  cp "/tmp/eval_${half}_black/eval.json" "$OUT/eval_${half}_black.json"
-fi
-if [ -n "${STEP:-}" ]; then
-  .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu --step-size "$STEP" --out "/tmp/eval_${half}_step" --quiet
-  cp "/tmp/eval_${half}_step/eval.json" "$OUT/eval_${half}_step.json"
-fi
+# score NAME [ARGS...]: the half rendered with `nerf eval ARGS` into $OUT/NAME.json, its scores printed.
+score() {
+  local name=$1; shift
+  .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu "$@" --out "/tmp/$name" --quiet || return
+  cp "/tmp/$name/eval.json" "$OUT/$name.json"
+  python3 -c "import json,sys; e=json.load(open(sys.argv[1])); print(f\"$name: {e['test_psnr']:.3f} dB, SSIM {e['test_ssim']:.4f}, {e['n_test_views']} views, spp {e.get('spp', 1)}, step {e.get('render_step_size')}\")" "$OUT/$name.json" 2>/dev/null || true
+}
+score "eval_$half"
+[ "$both" = both ] && score "eval_${half}_black" --background black
+[ -n "${STEP:-}" ] && score "eval_${half}_step" --step-size "$STEP"
 if [ -n "${SPP:-}" ]; then
   extra=(--spp "$SPP"); [ -n "${STEP:-}" ] && extra+=(--step-size "$STEP")
-  .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu "${extra[@]}" --out "/tmp/eval_${half}_spp" --quiet
-  cp "/tmp/eval_${half}_spp/eval.json" "$OUT/eval_${half}_spp.json"
+  score "eval_${half}_spp" "${extra[@]}"
 fi
-for f in "$OUT"/eval_"$half"*.json; do
-  python3 -c "import json,sys; e=json.load(open(sys.argv[1])); print(f\"{sys.argv[1].rsplit('/',1)[-1]}: {e['test_psnr']:.3f} dB, SSIM {e['test_ssim']:.4f}, {e['n_test_views']} views, spp {e.get('spp', 1)}, step {e.get('render_step_size')}\")" "$f" 2>/dev/null || true
-done
+exit 0
