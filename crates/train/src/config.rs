@@ -219,7 +219,9 @@ pub struct TrainConfig {
     pub log_every: u64,
     /// Write a checkpoint every this many steps (0 = only at the end / on interrupt).
     pub checkpoint_every: u64,
-    /// Rays per rendering chunk during evaluation.
+    /// Rays per rendering chunk during evaluation. On the CPU with the occupancy sampler the
+    /// chunks render concurrently (each marched in rounds on one thread, the field's queries
+    /// parallel inside); the image does not depend on the thread count.
     pub render_chunk_rays: usize,
     /// Time every compute pass of these training steps on the GPU (timestamp queries) and write
     /// the breakdown by stage and kernel to `gpu_profile.json` and `metrics.json`

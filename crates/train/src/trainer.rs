@@ -720,7 +720,7 @@ impl Trainer {
     }
 
     /// Renders rays (inference, deterministic sampling) in chunks of `render_chunk_rays`, on the
-    /// trainer's device. Outputs: rgb `3·n`, opacity `n`, depth `n`. With `ema_decay` set (and at
+    /// trainer's device (on the CPU with the occupancy sampler, the chunks concurrently). Outputs: rgb `3·n`, opacity `n`, depth `n`. With `ema_decay` set (and at
     /// least one step taken or restored) the field renders with the parameters' moving average;
     /// the occupancy grid is the one training keeps (from the raw parameters).
     ///
@@ -795,23 +795,29 @@ impl Trainer {
                 far: self.bounds.far,
                 t_threshold: self.config.transmittance_threshold,
             };
-            let mut scratch = crate::rounds::RoundScratch::default();
+            // Chunks render concurrently (each its own rounds), so the marching and the field's
+            // serial parts overlap; the image does not depend on the thread count.
+            use rayon::prelude::*;
             let field = fields[0].as_ref();
-            for r0 in (0..n).step_by(chunk) {
-                let r1 = (r0 + chunk).min(n);
-                crate::rounds::render_in_rounds(
-                    grid,
-                    p,
-                    &origins[3 * r0..3 * r1],
-                    &dirs[3 * r0..3 * r1],
-                    &background[3 * r0..3 * r1],
-                    &mut scratch,
-                    |pos, dir, sigma, c| field.query(pos, dir, sigma, c),
-                    &mut rgb[3 * r0..3 * r1],
-                    &mut opacity[r0..r1],
-                    &mut depth[r0..r1],
-                );
-            }
+            rgb.par_chunks_mut(3 * chunk)
+                .zip(opacity.par_chunks_mut(chunk))
+                .zip(depth.par_chunks_mut(chunk))
+                .enumerate()
+                .for_each_init(crate::rounds::RoundScratch::default, |scratch, (i, ((rgb, opacity), depth))| {
+                    let (r0, r1) = (i * chunk, (i * chunk + chunk).min(n));
+                    crate::rounds::render_in_rounds(
+                        grid,
+                        p,
+                        &origins[3 * r0..3 * r1],
+                        &dirs[3 * r0..3 * r1],
+                        &background[3 * r0..3 * r1],
+                        scratch,
+                        |pos, dir, sigma, c| field.query(pos, dir, sigma, c),
+                        rgb,
+                        opacity,
+                        depth,
+                    );
+                });
             return Ok(());
         }
         let mut stages: Vec<Stage> = (0..fields.len()).map(|_| Stage::default()).collect();
