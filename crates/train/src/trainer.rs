@@ -720,9 +720,10 @@ impl Trainer {
     }
 
     /// Renders rays (inference, deterministic sampling) in chunks of `render_chunk_rays`, on the
-    /// trainer's device (on the CPU with the occupancy sampler, the chunks concurrently). Outputs: rgb `3·n`, opacity `n`, depth `n`. With `ema_decay` set (and at
-    /// least one step taken or restored) the field renders with the parameters' moving average;
-    /// the occupancy grid is the one training keeps (from the raw parameters).
+    /// trainer's device (on the CPU with the occupancy sampler, the chunks concurrently).
+    /// Outputs: rgb `3·n`, opacity `n`, depth `n`. With `ema_decay` set (and at least one step
+    /// taken or restored) the field renders with the parameters' moving average; the occupancy
+    /// grid is the one training keeps (from the raw parameters).
     ///
     /// With `color_correction` the pixels get the mean of the training views' corrections
     /// (`nerf_render::mean_color_correction`): novel views have none of their own; or one view's
