@@ -424,11 +424,29 @@ fn main() {
         Command::Ablate(a) => cmd_ablate(a),
     };
     if let Err(e) = result {
-        eprintln!("error: {e:#}");
+        eprintln!("error: {}", error_line(&e));
         let interrupted = e.downcast_ref::<TrainError>().is_some_and(|t| matches!(t, TrainError::Interrupted { .. }))
             || e.downcast_ref::<RenderInterrupted>().is_some();
         std::process::exit(if interrupted { 130 } else { 1 });
     }
+}
+
+/// One line for an error and its causes, `outer: cause: …`, as `{e:#}` writes it, but without a
+/// cause whose text the line already holds: the libraries' errors (thiserror) write their source
+/// into their own message, e.g. "lego/transforms_train.json: malformed JSON: expected value at
+/// line 1 column 5", where the plain chain would repeat the parser's message.
+fn error_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if line.is_empty() {
+            line = text;
+        } else if !text.is_empty() && !line.contains(&text) {
+            line.push_str(": ");
+            line.push_str(&text);
+        }
+    }
+    line
 }
 
 /// Reads a TOML or JSON file into a JSON value (TOML when the extension is .toml).

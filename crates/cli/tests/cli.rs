@@ -79,7 +79,20 @@ fn malformed_json_names_the_file() {
     let s = small_scene(d.path());
     std::fs::write(s.join("transforms_train.json"), "{ \"camera_angle_x\": 0.69, \"frames\": [ }").unwrap();
     let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
-    assert_clean_failure(&o, &["transforms_train.json"]);
+    assert_clean_failure(&o, &["transforms_train.json", "malformed JSON", "line 1 column"]);
+    // The parser's position once: the library's message holds its source already, and the
+    // binary does not repeat it from the error's chain.
+    assert_eq!(stderr(&o).matches("line 1 column").count(), 1, "{}", stderr(&o));
+}
+
+#[test]
+fn malformed_config_names_the_file_and_the_parsers_message() {
+    // An error with context added at the binary's edge (anyhow) keeps its cause on the line.
+    let d = tempfile::tempdir().unwrap();
+    let cfg = d.path().join("bad.toml");
+    std::fs::write(&cfg, "batch_rays = = 3\n").unwrap();
+    let o = nerf().arg("train").arg(repo().join("scenes/lego_100")).arg("--config").arg(&cfg).arg("--out").arg(d.path().join("run")).output().unwrap();
+    assert_clean_failure(&o, &["bad.toml", "malformed TOML", "line 1"]);
 }
 
 #[test]
