@@ -1,24 +1,13 @@
 #!/usr/bin/env bash
-# A second 5-minute lego run on the warm machine, after device_session.sh and the two
-# eval_half.sh calls: FILE (a lego ablation whose scene path is ../../.data/lego, e.g.
-# examples/ablations/h100_lego_occ_threshold.toml, a stricter occupancy grid, or
-# h100_lego_tcnn_grid.toml, nerfacc's grid) against the preset run of device_session.sh, every
-# 8th test view. Neither of those two beat the preset on the CPU (docs/results.md, 2026-11-27).
-# It replaces runs/device/lego, so score device_session.sh's run there first if it is wanted.
+# A lego training run on the device from an ablation file whose scene path is ../../.data/lego
+# (examples/ablations/h100_lego*.toml, or on an H200 the step-matched h100eq_lego*.toml), into
+# runs/device/lego (git-ignored, kept between calls on a warm machine; replaced by each call):
 #   run(command="bash benches/device/lego_variant.sh FILE", carry=[".gl", ".bin", ".data"], timeout_s=400)
 # Brings back variant_metrics.json (with train_log), variant_curve.csv and the trained field's
-# render-only copy in parts (slim.ckpt.*; SLIM=0 skips it): score it here with score_here.sh.
-# Lease F (2026-11-27) ran h100_lego_table20.toml (no gain over the preset) and h100_lego.toml itself (the preset, for its
-# checkpoint); next: h100_lego_batch19_res1024.toml (2^19 samples per step and the finest grid
-# level at 1024 cells, +0.46 dB together in the CPU's scaled-down run, two seeds), then each alone,
-# h100_lego_res1024.toml and h100_lego_batch19.toml (docs/gpu.md, "The next lease").
-# On an H200 (the kind lent since 2026-11-28) run their step-matched twins instead, stopped at
-# the steps the H100 makes in 5 minutes: lease G (2026-12-04) ran h100eq_lego_batch19_res1024.toml
-# (35.38 dB on every 8th view) but lost its checkpoint; next: that file again, then
-# h100eq_lego_batch19_res1024_sparse.toml, then h100eq_lego.toml, each scored here afterwards
-# with score_here.sh (docs/gpu.md, "The next lease"). Since 2026-12-04 the sparse run is followed
-# on the same warm machine by `SPP=8 STEP=0.0025 bash benches/device/eval_half.sh a` and `b`
-# (all 200 test views with 8 rays per pixel at half the step, too slow to score here).
+# render-only copy in parts (slim.ckpt.*; SLIM=0 skips it). Score the field on all 200 test views
+# afterwards, on the same warm machine with eval_half.sh a and b (SPP=8 STEP=0.0025 as well), or
+# here with score_here.sh FILES_AT NAME 0.0025 (SPP=8 too: ~1.8 h on 2 cores). What to run next
+# and why: docs/gpu.md, "The next lease"; what each lease ran: docs/results.md.
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp
 (cd .bin && xz -dc nerf.xz > nerf && chmod +x nerf)
