@@ -905,7 +905,8 @@ fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
         let p1 = (p0 + batch).min(n);
         lattice.points(p0..p1, &mut points);
         // Only the nodes in occupied cells go to the field; the others stay empty (σ = 0).
-        (kept.clear(), rows.clear());
+        kept.clear();
+        rows.clear();
         for (k, p) in points.chunks_exact(3).enumerate() {
             if grid.as_ref().is_none_or(|g| g.is_occupied([p[0], p[1], p[2]])) {
                 kept.extend_from_slice(p);

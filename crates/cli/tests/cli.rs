@@ -772,7 +772,7 @@ fn ctrl_c_stops_a_render_and_keeps_its_frames() {
     assert!(e.contains("interrupted after") && !e.contains("panicked"), "{e}");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
     let done = r["frames"].as_u64().unwrap() as usize;
-    assert!(done >= 3 && done < 100000 && r["path_frames"] == 100000, "{r}");
+    assert!((3..100000).contains(&done) && r["path_frames"] == 100000, "{r}");
     let pngs = std::fs::read_dir(&out).unwrap().filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().starts_with("frame_")).count();
     assert_eq!(pngs, done, "render.json counts the frames written");
     assert!(out.join("camera_path.json").is_file());

@@ -1117,7 +1117,7 @@ pub fn seen_to_entry(words: &[u32]) -> Vec<f32> {
 /// The inverse of [`seen_to_entry`]; errors on an odd length or a value that is not an integer
 /// in `0..65536`.
 pub fn seen_from_entry(v: &[f32]) -> Result<Vec<u32>, TrainError> {
-    let half = |x: f32| (x >= 0.0 && x < 65536.0 && x.fract() == 0.0).then_some(x as u32);
+    let half = |x: f32| ((0.0..65536.0).contains(&x) && x.fract() == 0.0).then_some(x as u32);
     if v.len() % 2 != 0 {
         return Err(TrainError::Config(format!("malformed `{SEEN_ENTRY}` in checkpoint: odd length {}", v.len())));
     }
