@@ -16,6 +16,9 @@
 # centre with 8 marching offsets; with STEP, at that step as well) into eval_<half>_spp.json,
 # ~2N times the plain render's time with STEP at half the trained step (estimated ~1 min per half
 # for lego at 800x800 on an H200, from its 28 frames/s at 1 ray; not yet measured).
+# With FILTER=F as well (e.g. blackman-harris: Blender Cycles' film filter, 1.5 px), those N rays
+# are scored once more placed by that pixel filter (`nerf eval --filter F`) into
+# eval_<half>_spp_filter.json, the same time again.
 # Build here first: `bash benches/device/prepare.sh` (makes .eval_a and .eval_b).
 set -u
 half=${1:?usage: eval_half.sh a|b [both]}
@@ -30,7 +33,7 @@ score() {
   local name=$1; shift
   .bin/nerf eval "$run" ".eval_$half/lego" --test-views all --device gpu "$@" --out "/tmp/$name" --quiet || return
   cp "/tmp/$name/eval.json" "$OUT/$name.json"
-  python3 -c "import json,sys; e=json.load(open(sys.argv[1])); print(f\"$name: {e['test_psnr']:.3f} dB, SSIM {e['test_ssim']:.4f}, {e['n_test_views']} views, spp {e.get('spp', 1)}, step {e.get('render_step_size')}\")" "$OUT/$name.json" 2>/dev/null || true
+  python3 -c "import json,sys; e=json.load(open(sys.argv[1])); print(f\"$name: {e['test_psnr']:.3f} dB, SSIM {e['test_ssim']:.4f}, {e['n_test_views']} views, spp {e.get('spp', 1)}, filter {e.get('filter', {}).get('kind', 'box')}, step {e.get('render_step_size')}\")" "$OUT/$name.json" 2>/dev/null || true
 }
 score "eval_$half"
 [ "$both" = both ] && score "eval_${half}_black" --background black
@@ -38,5 +41,6 @@ score "eval_$half"
 if [ -n "${SPP:-}" ]; then
   extra=(--spp "$SPP"); [ -n "${STEP:-}" ] && extra+=(--step-size "$STEP")
   score "eval_${half}_spp" "${extra[@]}"
+  [ -n "${FILTER:-}" ] && score "eval_${half}_spp_filter" "${extra[@]}" --filter "$FILTER"
 fi
 exit 0

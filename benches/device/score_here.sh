@@ -10,7 +10,8 @@
 # The training views (every 4th, `--split train`) are scored with TRAIN=1; VIEWS=first:4 (any
 # `--test-views` value) scores fewer test views, for a quick look. SPP=8 (with STEP) scores the
 # views once more at that step with 8 rays per pixel (`nerf eval --spp`, eval_all_step_spp8/):
-# ~1.8 hours for the 200 views on 2 cores.
+# ~1.8 hours for the 200 views on 2 cores. FILTER=F with SPP scores those rays once more placed
+# by the pixel filter F (`nerf eval --filter`, e.g. blackman-harris), eval_all_step_sppN_filter/.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 src=${1:?usage: score_here.sh FILES_AT NAME [STEP]}
@@ -35,5 +36,6 @@ score() {
 score eval_all --test-views "${VIEWS:-all}"
 [ -n "$step" ] && score eval_all_step --test-views "${VIEWS:-all}" --step-size "$step"
 [ -n "$step" ] && [ -n "${SPP:-}" ] && score "eval_all_step_spp$SPP" --test-views "${VIEWS:-all}" --step-size "$step" --spp "$SPP"
+[ -n "$step" ] && [ -n "${SPP:-}" ] && [ -n "${FILTER:-}" ] && score "eval_all_step_spp${SPP}_filter" --test-views "${VIEWS:-all}" --step-size "$step" --spp "$SPP" --filter "$FILTER"
 [ "${TRAIN:-0}" = 1 ] && score eval_train --split train --views every:4
 exit 0

@@ -158,6 +158,12 @@ struct EvalArgs {
     /// [default: the run's `eval_spp`, 1 unless set].
     #[arg(long)]
     spp: Option<u32>,
+    /// Pixel filter the `--spp` rays are placed by: `box` (the pixel's square), or
+    /// `blackman-harris[:WIDTH]` (Blender Cycles' film filter, the ground truth's of the NeRF
+    /// synthetic scenes; WIDTH is Cycles' filter width, 1.5 pixels by default, and the window
+    /// spans ±WIDTH) [default: the run's `eval_filter`, box unless set].
+    #[arg(long, value_parser = parse_pixel_filter)]
+    filter: Option<nerf::rays::PixelFilter>,
     /// Background the renders and the ground truth are composited on: white (the NeRF paper's
     /// protocol) or black (instant-ngp's) [default: the run's `eval_background`, white unless set].
     #[arg(long)]
@@ -167,6 +173,21 @@ struct EvalArgs {
     /// per ray grows in proportion and the grid is the one the run trained.
     #[arg(long)]
     step_size: Option<f32>,
+}
+
+/// `nerf eval --filter`: `box`, `blackman-harris` or `blackman-harris:WIDTH`.
+fn parse_pixel_filter(s: &str) -> Result<nerf::rays::PixelFilter, String> {
+    use nerf::rays::PixelFilter;
+    let f = match s.split_once(':') {
+        None if s == "box" => PixelFilter::Box,
+        None if s == "blackman-harris" => PixelFilter::BlackmanHarris { width: 1.5 },
+        Some(("blackman-harris", w)) => {
+            PixelFilter::BlackmanHarris { width: w.parse().map_err(|_| format!("`{w}` is not a width in pixels"))? }
+        }
+        _ => return Err(format!("`{s}` is not a pixel filter: box, blackman-harris or blackman-harris:WIDTH")),
+    };
+    f.validate()?;
+    Ok(f)
 }
 
 /// The split `nerf eval` scores (`--split`).
@@ -589,6 +610,9 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
         config.eval_spp = spp;
         config.validate().map_err(|e| anyhow::anyhow!("--spp {spp}: {e}"))?;
     }
+    if let Some(f) = a.filter {
+        config.eval_filter = f;
+    }
     if let Some(bg) = a.background {
         config.eval_background = bg.into();
     }
@@ -603,11 +627,15 @@ fn cmd_eval(a: EvalArgs) -> Result<()> {
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |i, _| pb.set_position(i as u64))?;
     pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
-        "field": ck.config.field, "split": a.split.name(), "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "sampler": config.sampler, "render_step_size": config.render_step_size, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
+        "field": ck.config.field, "split": a.split.name(), "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "filter": config.eval_filter, "sampler": config.sampler, "render_step_size": config.render_step_size, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
         "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
-    let spp = if config.eval_spp > 1 { format!(", {} rays per pixel", config.eval_spp) } else { String::new() };
+    let spp = match (config.eval_spp, config.eval_filter) {
+        (1, _) => String::new(),
+        (n, nerf::rays::PixelFilter::Box) => format!(", {n} rays per pixel"),
+        (n, nerf::rays::PixelFilter::BlackmanHarris { width }) => format!(", {n} rays per pixel (Blackman-Harris, filter width {width} px)"),
+    };
     println!("{} PSNR {:.2} dB, SSIM {:.4} on {} views{spp} -> {}", a.split.name(), report.psnr, report.ssim, report.views.len(), out.display());
     if let Some(split) = &report.alpha_split {
         println!("  by ground-truth alpha: {}", split.summary());

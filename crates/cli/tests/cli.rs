@@ -276,6 +276,21 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
     // This run's sampler is the hierarchical one: no marching step to change.
     let o = nerf().arg("eval").arg(&run).arg(&s).args(["--step-size", "0.0025"]).output().unwrap();
     assert_clean_failure(&o, &["--step-size", "occupancy"]);
+    // Supersampled through Cycles' pixel filter: eval.json records the filter and the rays, the
+    // score line names them; a filter that is not one, or a width out of range, is a clear error.
+    let bh = d.path().join("eval_bh");
+    let o = nerf().arg("eval").arg(&run).arg(&s).arg("--out").arg(&bh).args(["--spp", "4", "--filter", "blackman-harris:2"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("4 rays per pixel (Blackman-Harris, filter width 2 px)"), "{}", String::from_utf8_lossy(&o.stdout));
+    let f: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(bh.join("eval.json")).unwrap()).unwrap();
+    assert_eq!((&f["spp"], &f["filter"]), (&serde_json::json!(4), &serde_json::json!({"kind": "blackman_harris", "width": 2.0})));
+    assert_eq!(e["filter"], serde_json::json!({"kind": "box"}));
+    for (bad, needle) in [("gauss", "not a pixel filter"), ("blackman-harris:wide", "not a width"), ("blackman-harris:0", "(0, 8]")] {
+        // (clap's usage error: exit code 2.)
+        let o = nerf().arg("eval").arg(&run).arg(&s).args(["--filter", bad]).output().unwrap();
+        let err = stderr(&o);
+        assert!(o.status.code() == Some(2) && !err.contains("panicked") && err.contains("--filter") && err.contains(needle), "{bad}: {err}");
+    }
 }
 
 /// `nerf eval --step-size`: a run of the occupancy sampler rendered with a finer marching step

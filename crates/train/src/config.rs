@@ -2,7 +2,7 @@
 
 use nerf_data::{Background, ViewSelection};
 use nerf_optim::{AdamConfig, LrSchedule};
-use nerf_rays::PixelConvention;
+use nerf_rays::{PixelConvention, PixelFilter};
 use nerf_sampling::OccupancyGridConfig;
 use serde::{Deserialize, Serialize};
 
@@ -175,6 +175,13 @@ pub struct TrainConfig {
     /// runs made before it existed keep their hashes.)
     #[serde(skip_serializing_if = "is_one")]
     pub eval_spp: u32,
+    /// The pixel filter the `eval_spp` rays of a pixel are placed by
+    /// ([`nerf_rays::PixelConvention::sample_offsets_filtered`]): the unit box (the default, left
+    /// out of the serialised config) or the Blackman–Harris window of Blender's Cycles, the
+    /// renderer of the NeRF synthetic scenes (`{ kind = "blackman_harris", width = 1.5 }`).
+    /// Acts only with `eval_spp > 1`.
+    #[serde(skip_serializing_if = "is_box")]
+    pub eval_filter: PixelFilter,
     /// Marching step of every render of the run (the evaluations during and after training,
     /// `nerf eval`, `nerf render`), when it should differ from the training step (the occupancy
     /// sampler's `step_size`, which training keeps). Rendering at a finer step than the field was
@@ -311,6 +318,7 @@ impl Default for TrainConfig {
             train_background: Background::White,
             eval_background: Background::White,
             eval_spp: 1,
+            eval_filter: PixelFilter::Box,
             render_step_size: None,
             pixel_convention: PixelConvention::Center,
             pixel_jitter: false,
@@ -331,6 +339,10 @@ impl Default for TrainConfig {
 
 /// The most rays per pixel `eval_spp` allows.
 pub const MAX_EVAL_SPP: u32 = 256;
+
+fn is_box(f: &PixelFilter) -> bool {
+    *f == PixelFilter::Box
+}
 
 fn is_one(n: &u32) -> bool {
     *n == 1
@@ -439,6 +451,7 @@ impl TrainConfig {
         if !(1..=MAX_EVAL_SPP).contains(&self.eval_spp) {
             return Err(format!("eval_spp must be 1..={MAX_EVAL_SPP} rays per pixel, got {}", self.eval_spp));
         }
+        self.eval_filter.validate().map_err(|e| format!("eval_filter: {e}"))?;
         if self.render_step_size.is_some() {
             self.render_sampler()?;
         }
@@ -549,6 +562,21 @@ mod tests {
             let e = TrainConfig { eval_spp: bad, ..TrainConfig::default() }.validate().unwrap_err();
             assert!(e.contains("eval_spp"), "{e}");
         }
+    }
+
+    #[test]
+    fn eval_filter_round_trips_and_is_validated() {
+        // The box (the default) stays out of the serialised config.
+        let json = serde_json::to_value(TrainConfig::default()).unwrap();
+        assert!(json.get("eval_filter").is_none());
+        let c: TrainConfig = toml::from_str("eval_spp = 8\neval_filter = { kind = \"blackman_harris\", width = 1.5 }\n").unwrap();
+        assert_eq!(c.eval_filter, PixelFilter::BlackmanHarris { width: 1.5 });
+        assert!(c.validate().is_ok());
+        let back: TrainConfig = toml::from_str(&toml::to_string(&c).unwrap()).unwrap();
+        assert_eq!(back, c);
+        let e = TrainConfig { eval_filter: PixelFilter::BlackmanHarris { width: -1.0 }, ..TrainConfig::default() }.validate().unwrap_err();
+        assert!(e.contains("eval_filter") && e.contains("width"), "{e}");
+        assert!(toml::from_str::<TrainConfig>("eval_filter = { kind = \"tent\" }\n").is_err());
     }
 
     #[test]

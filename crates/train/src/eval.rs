@@ -114,7 +114,7 @@ pub struct EvalReport {
 }
 
 /// Renders every view of `data` with the trainer's fields on `data`'s evaluation background
-/// (`eval_spp` rays per pixel, averaged), scores it, and writes `<out_dir>/<stem>.png` renders when
+/// (`eval_spp` rays per pixel placed by `eval_filter`, averaged), scores it, and writes `<out_dir>/<stem>.png` renders when
 /// `out_dir` is given.
 pub fn evaluate(
     trainer: &Trainer,
@@ -128,8 +128,9 @@ pub fn evaluate(
     }
     let bg = trainer.config().eval_background;
     let conv = trainer.config().pixel_convention;
-    // Supersampling: the mean of the renders through these points of each pixel.
-    let points = conv.sample_offsets(trainer.config().eval_spp as usize);
+    // Supersampling: the mean of the renders through these points of each pixel, placed by the
+    // pixel filter.
+    let points = conv.sample_offsets_filtered(trainer.config().eval_spp as usize, trainer.config().eval_filter);
     let (w, h) = (data.width as usize, data.height as usize);
     let mut batch = RayBatch::default();
     let mut rgb = vec![0.0f32; 3 * w * h];
