@@ -289,6 +289,16 @@ fn the_example_ablations_parse_and_plan() {
     assert!(same.adam.is_sparse("field/hash_grid") && !same.adam.is_sparse("field/color_mlp"));
     same.adam.sparse_groups.clear();
     assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&pair[0].config).unwrap());
+    // The density pass in place against its copies: the pair's field and batch, two runs that
+    // differ in `gpu_density_in_place` alone (and each trains the field the pair trains).
+    let ab = Ablation::load(&dir.join("h100_density_in_place.toml")).unwrap().plan(&nerf::registry()).unwrap();
+    assert_eq!(ab.len(), 2);
+    assert!(ab.iter().all(|p| p.config.target_samples_per_step == Some(1 << 19) && p.config.gpu_profile.is_some()));
+    assert_eq!(ab[1].config.field_config["gpu_density_in_place"], false);
+    assert_eq!(ab[0].config.field_config["grid"], pair[0].config.field_config["grid"]);
+    let mut copies = ab[1].config.clone();
+    copies.field_config.as_object_mut().unwrap().remove("gpu_density_in_place");
+    assert_eq!(serde_json::to_value(&copies).unwrap(), serde_json::to_value(&ab[0].config).unwrap());
     for (name, n_runs) in [("h100_lego.toml", 1), ("h100_lego_tcnn_grid.toml", 1), ("h100_lego_occ_threshold.toml", 1), ("h100_coop.toml", 2), ("h100_lego60.toml", 2), ("h100_lego_table20.toml", 1), ("h100_lego_table20_f16.toml", 1), ("h100_lego_table21.toml", 1), ("h100_lego_nerfacc.toml", 1), ("h100_lego_distortion.toml", 1), ("h100_lego_distortion_003.toml", 1), ("h100_lego_color_features.toml", 1), ("h100_lego_ema099.toml", 1), ("h100_lego_res1024.toml", 1)] {
         let a = Ablation::load(&dir.join(name)).unwrap();
         let plans = a.plan(&nerf::registry()).unwrap_or_else(|e| panic!("{name}: {e}"));

@@ -11,7 +11,7 @@ use nerf_gpu::compact::{GpuRowCopy, GpuRowGather, RowOffsets};
 use nerf_gpu::encoding::{AtomicMode, GpuHashGrid, GpuSphericalHarmonics};
 use nerf_gpu::glue::{FieldGlue, SigmaActivation};
 use nerf_gpu::mlp::{fused_nets, FusedMlpPath, FusedNet};
-use nerf_gpu::{DispatchArgs, GpuContext, Launch};
+use nerf_gpu::{Bound, DispatchArgs, GpuContext, Launch};
 
 /// [`HashNerf`] on the GPU.
 pub struct GpuHashNerf {
@@ -39,6 +39,8 @@ pub struct GpuHashNerf {
     kept: Option<KeptPass>,
     /// [`crate::HashNerfConfig::gpu_keep_density_activations`].
     keep_activations: bool,
+    /// [`crate::HashNerfConfig::gpu_density_in_place`].
+    density_in_place: bool,
     /// Density features the colour net reads (`dd − feat_start`) and outputs of the colour net.
     dims: (usize, usize),
     /// Whether the colour net's backward writes its input gradient for the SH inputs too
@@ -61,6 +63,12 @@ struct KeptPass {
     copy_enc: GpuRowCopy,
     copy_activations: Option<GpuRowCopy>,
     chunk_offsets: Vec<(usize, RowOffsets)>,
+    /// Whether the chunks are read and written in place
+    /// ([`GpuRadianceField::density_pass_in_place`]): every chunk's byte offsets in the marched
+    /// buffers (positions, σ, encodings, activations: multiples of `4 · capacity`) are multiples
+    /// of the device's storage offset alignment, so the kernels bind those buffers at the chunk,
+    /// and nothing is copied.
+    in_place: bool,
 }
 
 impl KeptPass {
@@ -178,6 +186,7 @@ impl GpuHashNerf {
             d_enc,
             kept: None,
             keep_activations: cfg.gpu_keep_density_activations,
+            density_in_place: cfg.gpu_density_in_place,
             dims: (dd - fs, field.color.config.output_dim),
             input_gradients: false,
             args: DispatchArgs::new(ctx, capacity),
@@ -203,7 +212,7 @@ impl GpuHashNerf {
         ctx.profile_part("hash encoding");
         self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, encodings, l);
         ctx.profile_part("density MLP");
-        self.density.record_inference_head(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, l);
+        self.density.record_inference_head(ctx, enc, s.counters, encodings.into(), &self.groups[1].params, &self.dout, l);
         ctx.profile_part("glue");
         self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma, l);
     }
@@ -275,6 +284,10 @@ impl GpuRadianceField for GpuHashNerf {
             _ => None,
         };
         let chunk_offsets = (self.capacity..rows).step_by(self.capacity).map(|r| (r, GpuRowCopy::offsets(ctx, 0, r))).collect();
+        // Every chunk's offset is a multiple of `4 · capacity` bytes (σ; positions, encodings and
+        // activations are whole multiples of that), so one check covers them all.
+        #[allow(clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
+        let in_place = self.density_in_place && (4 * self.capacity as u64) % ctx.storage_offset_alignment() == 0;
         self.kept = Some(KeptPass {
             enc,
             rows,
@@ -283,14 +296,39 @@ impl GpuRadianceField for GpuHashNerf {
             copy_enc: GpuRowCopy::new(ctx, width).map_err(gpu_err)?,
             copy_activations,
             chunk_offsets,
+            in_place,
         });
         Ok(())
+    }
+
+    fn density_pass_in_place(&self) -> bool {
+        self.kept.as_ref().is_some_and(|k| k.in_place)
     }
 
     fn record_density_for_training(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, s: GpuSamples<'_>, sigma: &wgpu::Buffer, first_row: usize) {
         let Some(k) = &self.kept else { return self.record_density(ctx, enc, s, sigma) };
         let cap = s.launch(self.capacity);
         assert!(first_row + cap <= k.rows, "a density pass over rows {first_row}..{} keeps {} rows", first_row + cap, k.rows);
+        if k.in_place {
+            // The chunk's rows of the marched buffers, bound at their offset: the encodings and
+            // activations land in their rows of the kept buffers, σ in its rows of the batch's.
+            let l = self.launch(ctx, enc, &s);
+            let width = self.grid.output_dim();
+            let (positions, encodings) = (Bound::rows(s.positions, 3, first_row), Bound::rows(&k.enc, width, first_row));
+            ctx.profile_part("hash encoding");
+            self.grid.record_forward(ctx, enc, s.counters, positions, &self.groups[0].params, encodings, l);
+            ctx.profile_part("density MLP");
+            match (&k.activations, self.density.as_plain()) {
+                (Some(acts), Some(net)) => {
+                    let rows = Bound::rows(acts, net.activation_floats_per_sample(), first_row);
+                    net.record_forward_rows(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, rows, l);
+                }
+                _ => self.density.record_inference_head(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, l),
+            }
+            ctx.profile_part("glue");
+            self.glue.record_density(ctx, enc, s.counters, &self.dout, Bound::rows(sigma, 1, first_row), l);
+            return;
+        }
         if let (Some(acts), Some(net)) = (&k.activations, self.density.as_plain()) {
             // The density net's training forward, its activations kept as rows (written in place for
             // the first chunk, copied to their rows for the others, as the encodings).

@@ -74,6 +74,15 @@ pub struct HashNerfConfig {
     /// Off by default: on the H100 running the density net again was faster (7.85 against
     /// 8.30 ms per step at 2^18 samples, docs/results.md); on lavapipe keeping them was.
     pub gpu_keep_density_activations: bool,
+    /// GPU twin, training on compacted samples (ignored elsewhere): the density pass over the
+    /// marched samples, which runs in chunks of the training batch's capacity, reads each chunk's
+    /// positions and writes its σ, encodings (and activations) in place, its kernels binding the
+    /// marched buffers at the chunk's offset, instead of copying every chunk after the first
+    /// through buffers of its own (`copy_rows`: 12 B in, 4 + 128 B out per sample). On by
+    /// default; it applies where the chunk's offsets meet the adapter's storage offset alignment
+    /// (a capacity that is a multiple of 64 samples on every adapter). `false` keeps the copies
+    /// (an A/B of the two, docs/gpu.md).
+    pub gpu_density_in_place: bool,
     /// GPU twin (ignored on the CPU): the hash table's backward sums the additions of its dense
     /// (coarse) levels over each subgroup before the atomics, on adapters with subgroups and
     /// float atomics ([`nerf_gpu::encoding::AtomicMode::SubgroupSums`]). Unset (the default since
@@ -176,6 +185,7 @@ impl Default for HashNerfConfig {
             color_input: ColorInput::All,
             gpu_mlp: GpuMlp::Plain,
             gpu_keep_density_activations: false,
+            gpu_density_in_place: true,
             gpu_hash_subgroup_sums: None,
             mlp_f16_scale: None,
         }

@@ -37,6 +37,7 @@ fn small() -> HashNerfConfig {
         color_input: ColorInput::All,
         gpu_mlp: GpuMlp::Plain,
         gpu_keep_density_activations: true,
+        gpu_density_in_place: true,
         gpu_hash_subgroup_sums: None,
         mlp_f16_scale: None,
     }

@@ -230,15 +230,22 @@ fn chunked_density_matches_the_cpu_field_beyond_the_fields_capacity() {
 #[test]
 fn forward_on_rows_of_the_density_pass_equals_a_fresh_forward() {
     let Some(ctx) = GpuContext::for_tests() else { return };
-    for keep_activations in [true, false] {
-        check_forward_on_rows(&ctx, keep_activations);
+    // Chunks of 301 samples are never at an aligned offset (4 · 301 bytes of σ is not a multiple
+    // of 8): they go through the chunk buffers. Chunks of 320 are (1280 bytes, 5 · 256) on every
+    // adapter: they are read and written in place, unless `gpu_density_in_place = false`.
+    let align = ctx.storage_offset_alignment();
+    assert!(align >= 8 && 1280 % align == 0, "storage offset alignment {align}");
+    for (chunk, in_place) in [(301, true), (320, true), (320, false)] {
+        for keep_activations in [true, false] {
+            check_forward_on_rows(&ctx, chunk, in_place, keep_activations);
+        }
     }
 }
 
-fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
+fn check_forward_on_rows(ctx: &GpuContext, chunk: usize, in_place: bool, keep_activations: bool) {
     use nerf_field::{ChunkedDensity, GpuRadianceField, GpuSamples, RadianceField};
     use rand::Rng as _;
-    let mut cfg = HashNerfConfig { gpu_keep_density_activations: keep_activations, ..Default::default() };
+    let mut cfg = HashNerfConfig { gpu_keep_density_activations: keep_activations, gpu_density_in_place: in_place, ..Default::default() };
     cfg.grid.n_levels = 5;
     cfg.grid.log2_hashmap_size = 12;
     cfg.grid.base_resolution = 4;
@@ -246,9 +253,10 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     let aabb = ([-1.5f32; 3], [1.5f32; 3]);
     let fctx = FieldContext { aabb_min: aabb.0, aabb_max: aabb.1, seed: 11, scene_scale: 1.0 };
     let cpu = HashNerf::<f32>::new(cfg, &fctx).unwrap();
-    // A marched batch of up to 700 samples in chunks of 300 (the first in place, the others
-    // through the chunk buffers), n of them marched; m kept rows drawn from them (repeats too).
-    let (chunk, total, n, m) = (300, 700, 650, 280);
+    // A marched batch of up to 700 samples in chunks of `chunk` (the first in place, the others
+    // through the chunk buffers or in place), n of them marched; m kept rows drawn from them
+    // (repeats too).
+    let (total, n, m) = (700, 650, 280);
     let mut rng = nerf_core::rng(5, 0);
     let pos: Vec<f32> = (0..3 * total).map(|_| rng.gen_range(-1.5f32..1.5)).collect();
     let dirs: Vec<f32> = (0..m)
@@ -288,7 +296,9 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     // The step on compacted samples: density pass (keeping the encodings), forward on the rows,
     // backward.
     let mut kept = cpu.to_gpu(ctx, chunk).unwrap().unwrap();
+    assert!(!kept.density_pass_in_place(), "in place before keep_density_pass");
     kept.keep_density_pass(ctx, total).unwrap();
+    assert_eq!(kept.density_pass_in_place(), in_place && chunk == 320, "chunks of {chunk}, gpu_density_in_place = {in_place}");
     let (sigma, rgb) = outputs();
     let mut enc = ctx.encoder("compacted");
     chunked.record_for_training(ctx, &mut enc, kept.as_ref(), &marched_counters, &marched, &marched_sigma);
@@ -302,8 +312,10 @@ fn check_forward_on_rows(ctx: &GpuContext, keep_activations: bool) {
     let got = ctx.read_f32(&marched_sigma, n).unwrap();
     let scale = want.iter().fold(0.0f32, |a, x| a.max(x.abs()));
     for i in 0..n {
-        assert!((got[i] - want[i]).abs() <= 1e-4 * scale, "density pass σ[{i}]: gpu {} vs cpu {}", got[i], want[i]);
+        assert!((got[i] - want[i]).abs() <= 1e-4 * scale, "chunks of {chunk}: density pass σ[{i}]: gpu {} vs cpu {}", got[i], want[i]);
     }
+    // Past the marched count nothing is written (the last chunk writes its own count only).
+    assert!(ctx.read_f32(&marched_sigma, total).unwrap()[n..].iter().all(|x| x.is_nan()), "chunks of {chunk}: σ written past the count");
 
     // The same samples through a fresh twin's plain forward.
     let fresh = cpu.to_gpu(ctx, chunk).unwrap().unwrap();

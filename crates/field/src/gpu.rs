@@ -100,10 +100,22 @@ pub trait GpuRadianceField: Send {
         Ok(())
     }
 
+    /// Whether [`record_density_for_training`](Self::record_density_for_training) reads and
+    /// writes its chunk in place: given the marched batch's own buffers (`s.positions` and
+    /// `sigma` hold every row, `s.capacity` is the chunk's size), it reads the positions of rows
+    /// `first_row..` and writes their σ there itself (binding the buffers at the chunk's offset,
+    /// [`nerf_gpu::Bound`]), so [`ChunkedDensity`] copies nothing in or out. Default `false`:
+    /// every chunk after the first comes in chunk buffers of its own.
+    fn density_pass_in_place(&self) -> bool {
+        false
+    }
+
     /// Records the density pass of a step on compacted samples over rows `first_row..` of the
     /// marched batch (one chunk of a [`ChunkedDensity`]): σ as
     /// [`record_density`](Self::record_density), and whatever the field keeps for
-    /// [`record_forward_rows`](Self::record_forward_rows). Default: `record_density`.
+    /// [`record_forward_rows`](Self::record_forward_rows). The buffers are the chunk's own, or
+    /// the whole batch's where the field reads in place
+    /// ([`density_pass_in_place`](Self::density_pass_in_place)). Default: `record_density`.
     fn record_density_for_training(
         &self,
         ctx: &GpuContext,
@@ -204,7 +216,9 @@ pub trait GpuRadianceField: Send {
 /// first chunk is read and written in place, every later one goes through chunk buffers
 /// (positions copied in, σ copied out, [`GpuRowCopy`]: only the
 /// chunk's samples, not its capacity), each with its sample count computed on the device from
-/// the batch's `counters[1]`. Buffers and uniforms are made once.
+/// the batch's `counters[1]` — except in the density pass of a field that reads its chunks in
+/// place ([`GpuRadianceField::density_pass_in_place`]), which copies nothing. Buffers and
+/// uniforms are made once.
 pub struct ChunkedDensity {
     chunk: usize,
     total: usize,
@@ -275,9 +289,26 @@ impl ChunkedDensity {
         positions: &wgpu::Buffer,
         sigma: &wgpu::Buffer,
     ) {
+        if field.density_pass_in_place() {
+            self.check_sizes(positions, sigma);
+            for (offset, size, uniform, _, _) in &self.chunks {
+                self.glue.record_chunk_count(ctx, enc, uniform, counters, &self.counters);
+                let s = GpuSamples { counters: &self.counters, positions, dirs: positions, capacity: *size };
+                field.record_density_for_training(ctx, enc, s, sigma, *offset);
+            }
+            return;
+        }
         self.record_chunks(ctx, enc, counters, positions, sigma, &mut |enc, s, sigma, first_row| {
             field.record_density_for_training(ctx, enc, s, sigma, first_row)
         });
+    }
+
+    fn check_sizes(&self, positions: &wgpu::Buffer, sigma: &wgpu::Buffer) {
+        assert!(
+            positions.size() >= 12 * self.total as u64 && sigma.size() >= 4 * self.total as u64,
+            "ChunkedDensity: buffers hold fewer than {} samples",
+            self.total
+        );
     }
 
     /// The chunks: `query(enc, samples, σ out, first row)` per chunk.
@@ -290,11 +321,7 @@ impl ChunkedDensity {
         sigma: &wgpu::Buffer,
         query: &mut dyn FnMut(&mut wgpu::CommandEncoder, GpuSamples<'_>, &wgpu::Buffer, usize),
     ) {
-        assert!(
-            positions.size() >= 12 * self.total as u64 && sigma.size() >= 4 * self.total as u64,
-            "ChunkedDensity: buffers hold fewer than {} samples",
-            self.total
-        );
+        self.check_sizes(positions, sigma);
         for (offset, size, uniform, copy_in, copy_out) in &self.chunks {
             self.glue.record_chunk_count(ctx, enc, uniform, counters, &self.counters);
             if *offset == 0 {

@@ -77,12 +77,12 @@ impl Launch<'_> {
     /// table and it holds the shape (`wg / items_per_sample` a power of two ≤ 1024, `z ≤ 32`);
     /// otherwise direct, for the capacity.
     #[allow(clippy::too_many_arguments, clippy::manual_is_multiple_of)] // keeps the MSRV (1.85)
-    pub fn record(
+    pub fn record<'b, B: Into<crate::kernel::Bound<'b>> + Copy>(
         &self,
         kernel: &Kernel,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
-        bindings: &[(u32, &wgpu::Buffer)],
+        bindings: &[(u32, B)],
         items_per_sample: u32,
         wg: u32,
         z: u32,

@@ -11,7 +11,7 @@
 //! row-major `f32`, laid out as on the CPU.
 
 use crate::dispatch::Launch;
-use crate::kernel::{groups_1d, Kernel};
+use crate::kernel::{groups_1d, Bound, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_encoding::{FrequencyEncodingConfig, HashGrid, HashGridConfig, Precision, ShConfig};
 pub use crate::layout::{HashGridParams};
@@ -313,17 +313,18 @@ impl GpuHashGrid {
     /// `positions` (`[n][3]`, world units), reading `params` (`n_params()` f32). Buffers hold at
     /// least `launch.capacity()` samples; `n ≤` that.
     #[allow(clippy::too_many_arguments)]
-    pub fn record_forward(
+    pub fn record_forward<'a>(
         &self,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         counters: &wgpu::Buffer,
-        positions: &wgpu::Buffer,
+        positions: impl Into<Bound<'a>>,
         params: &wgpu::Buffer,
-        features: &wgpu::Buffer,
+        features: impl Into<Bound<'a>>,
         launch: Launch<'_>,
     ) {
         let capacity = launch.capacity();
+        let (positions, features): (Bound<'a>, Bound<'a>) = (positions.into(), features.into());
         assert!(positions.size() >= 12 * capacity as u64, "GpuHashGrid: positions hold fewer than {capacity} samples");
         assert!(
             features.size() >= 4 * (capacity * self.output_dim()) as u64,
@@ -334,12 +335,12 @@ impl GpuHashGrid {
         let z = self.n_levels() as u32;
         match &self.mirror {
             None => {
-                let b = [(0, &self.uniform), (1, counters), (2, positions), (3, params), (4, features)];
+                let b = [(0, (&self.uniform).into()), (1, counters.into()), (2, positions), (3, params.into()), (4, features)];
                 launch.record(&self.forward, ctx, enc, &b, 1, HASH_WG, z);
             }
             Some(m) => {
                 m.sync.record(ctx, enc, &[(3, params), (9, &m.buffer)], groups_1d(m.words, HASH_WG));
-                let b = [(0, &self.uniform), (1, counters), (2, positions), (8, &m.buffer), (4, features)];
+                let b = [(0, (&self.uniform).into()), (1, counters.into()), (2, positions), (8, (&m.buffer).into()), (4, features)];
                 launch.record(&m.forward, ctx, enc, &b, 1, HASH_WG, z);
             }
         }

@@ -2,7 +2,7 @@
 //! σ activation and its colour network (used by the hash-grid and the paper's field).
 
 use crate::dispatch::Launch;
-use crate::kernel::Kernel;
+use crate::kernel::{Bound, Kernel};
 use crate::{shaders, GpuContext};
 pub use crate::layout::{GlueParams};
 
@@ -83,17 +83,18 @@ impl FieldGlue {
     }
 
     /// σ only.
-    pub fn record_density(
+    pub fn record_density<'a>(
         &self,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         counters: &wgpu::Buffer,
         dout: &wgpu::Buffer,
-        sigma: &wgpu::Buffer,
+        sigma: impl Into<Bound<'a>>,
         launch: Launch<'_>,
     ) {
         self.check(&launch);
-        launch.record(&self.density_only, ctx, enc, &[(0, &self.params), (1, counters), (2, dout), (4, sigma)], 1, 64, 1);
+        let b = [(0, (&self.params).into()), (1, counters.into()), (2, dout.into()), (4, sigma.into())];
+        launch.record(&self.density_only, ctx, enc, &b, 1, 64, 1);
     }
 
     /// dL/d(density outputs) from dL/dσ and dL/d(colour input); `dout` is the forward's.

@@ -46,7 +46,38 @@ fn timestamp_writes(timed: &Option<(wgpu::QuerySet, u32)>) -> Option<wgpu::Compu
 }
 
 /// Bind groups by a hash of what they bind, with the bindings kept to rule out collisions.
-type BindGroupCache = std::collections::HashMap<u64, (Vec<(u32, wgpu::Buffer)>, wgpu::BindGroup)>;
+type BindGroupCache = std::collections::HashMap<u64, (Vec<(u32, wgpu::Buffer, u64)>, wgpu::BindGroup)>;
+
+/// A storage binding: a buffer from byte `offset` to its end. A whole buffer converts to one at
+/// offset 0, so every `(binding, &buffer)` list binds as before; a binding at an offset lets a
+/// kernel read and write rows `first_row..` of a larger buffer in place (a chunk of the marched
+/// samples, `nerf_field::ChunkedDensity`). The offset must be a multiple of the device's
+/// `min_storage_buffer_offset_alignment` ([`GpuContext::storage_offset_alignment`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Bound<'a> {
+    /// The buffer.
+    pub buffer: &'a wgpu::Buffer,
+    /// Bytes skipped at its start.
+    pub offset: u64,
+}
+
+impl<'a> Bound<'a> {
+    /// Rows `first_row..` of `buffer`, rows of `row_floats` f32.
+    pub fn rows(buffer: &'a wgpu::Buffer, row_floats: usize, first_row: usize) -> Self {
+        Bound { buffer, offset: 4 * (row_floats * first_row) as u64 }
+    }
+
+    /// Bytes from the offset to the buffer's end (what a kernel sees as its array's size).
+    pub fn size(&self) -> u64 {
+        self.buffer.size().saturating_sub(self.offset)
+    }
+}
+
+impl<'a> From<&'a wgpu::Buffer> for Bound<'a> {
+    fn from(buffer: &'a wgpu::Buffer) -> Self {
+        Bound { buffer, offset: 0 }
+    }
+}
 
 /// Cached bind groups per kernel before the cache is emptied (tests that bind fresh buffers on
 /// every call would otherwise keep them alive).
@@ -86,8 +117,9 @@ impl Kernel {
     }
 
     /// Records one dispatch into `enc`; `bindings` are `(binding index, buffer)` of group 0 (whole
-    /// buffers). Bindings the shader does not use must not be passed (auto layout).
-    pub fn record(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, bindings: &[(u32, &wgpu::Buffer)], groups: [u32; 3]) {
+    /// buffers, or [`Bound`] from an offset). Bindings the shader does not use must not be passed
+    /// (auto layout).
+    pub fn record<'b, B: Into<Bound<'b>> + Copy>(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, bindings: &[(u32, B)], groups: [u32; 3]) {
         let group = self.bind_group(ctx, bindings);
         let timed = ctx.profile_pass(&self.label);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&self.label), timestamp_writes: timestamp_writes(&timed) });
@@ -98,11 +130,11 @@ impl Kernel {
 
     /// Records one dispatch whose workgroup counts are read on the device from `indirect` at
     /// byte `offset` (three `u32`, written by an earlier kernel).
-    pub fn record_indirect(
+    pub fn record_indirect<'b, B: Into<Bound<'b>> + Copy>(
         &self,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
-        bindings: &[(u32, &wgpu::Buffer)],
+        bindings: &[(u32, B)],
         indirect: &wgpu::Buffer,
         offset: u64,
     ) {
@@ -114,32 +146,42 @@ impl Kernel {
         pass.dispatch_workgroups_indirect(indirect, offset);
     }
 
-    fn bind_group(&self, ctx: &GpuContext, bindings: &[(u32, &wgpu::Buffer)]) -> wgpu::BindGroup {
+    fn bind_group<'b, B: Into<Bound<'b>> + Copy>(&self, ctx: &GpuContext, bindings: &[(u32, B)]) -> wgpu::BindGroup {
         use std::hash::{Hash, Hasher};
+        let bindings: Vec<(u32, Bound<'b>)> = bindings.iter().map(|&(i, b)| (i, b.into())).collect();
         let mut h = std::collections::hash_map::DefaultHasher::new();
-        for (i, b) in bindings {
+        for (i, b) in &bindings {
             i.hash(&mut h);
-            b.hash(&mut h);
+            b.buffer.hash(&mut h);
+            b.offset.hash(&mut h);
         }
         let key = h.finish();
         let mut cache = self.cache.lock().unwrap_or_else(|e| e.into_inner());
         if let Some((bound, group)) = cache.get(&key) {
-            if bound.len() == bindings.len() && bound.iter().zip(bindings).all(|((i, b), (j, c))| i == j && b == *c) {
+            if bound.len() == bindings.len()
+                && bound.iter().zip(&bindings).all(|((i, b, o), (j, c))| i == j && b == c.buffer && *o == c.offset)
+            {
                 return group.clone();
             }
         }
-        let group = self.create_bind_group(ctx, bindings);
+        let group = self.create_bind_group(ctx, &bindings);
         if cache.len() >= BIND_GROUP_CACHE {
             cache.clear();
         }
-        cache.insert(key, (bindings.iter().map(|(i, b)| (*i, (*b).clone())).collect(), group.clone()));
+        cache.insert(key, (bindings.iter().map(|(i, b)| (*i, b.buffer.clone(), b.offset)).collect(), group.clone()));
         group
     }
 
-    fn create_bind_group(&self, ctx: &GpuContext, bindings: &[(u32, &wgpu::Buffer)]) -> wgpu::BindGroup {
+    fn create_bind_group(&self, ctx: &GpuContext, bindings: &[(u32, Bound<'_>)]) -> wgpu::BindGroup {
         let entries: Vec<wgpu::BindGroupEntry<'_>> = bindings
             .iter()
-            .map(|(i, b)| wgpu::BindGroupEntry { binding: *i, resource: b.as_entire_binding() })
+            .map(|(i, b)| wgpu::BindGroupEntry {
+                binding: *i,
+                resource: match b.offset {
+                    0 => b.buffer.as_entire_binding(),
+                    offset => wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: b.buffer, offset, size: None }),
+                },
+            })
             .collect();
         ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(&self.label),
@@ -149,7 +191,7 @@ impl Kernel {
     }
 
     /// Records and submits one dispatch on its own (tests and set-up).
-    pub fn run(&self, ctx: &GpuContext, bindings: &[(u32, &wgpu::Buffer)], groups: [u32; 3]) {
+    pub fn run<'b, B: Into<Bound<'b>> + Copy>(&self, ctx: &GpuContext, bindings: &[(u32, B)], groups: [u32; 3]) {
         let mut enc = ctx.encoder(&self.label);
         self.record(ctx, &mut enc, bindings, groups);
         ctx.queue.submit([enc.finish()]);

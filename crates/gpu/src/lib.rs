@@ -29,7 +29,7 @@ pub mod views;
 
 pub use composite::{CompositeGrads, CompositeOutputs, Compositor, TrainGlue};
 pub use dispatch::{DispatchArgs, Launch};
-pub use kernel::{groups_1d, Kernel};
+pub use kernel::{groups_1d, Bound, Kernel};
 
 use std::str::FromStr;
 
@@ -245,6 +245,12 @@ impl GpuContext {
             }
             Err(e) => panic!("{e}"),
         }
+    }
+
+    /// The device's `min_storage_buffer_offset_alignment`: a [`Bound`] binding's offset must be
+    /// a multiple of it.
+    pub fn storage_offset_alignment(&self) -> u64 {
+        self.device.limits().min_storage_buffer_offset_alignment as u64
     }
 
     /// Whether the adapter is a software rasteriser running on the CPU (lavapipe, WARP, …).

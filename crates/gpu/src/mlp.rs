@@ -13,7 +13,7 @@
 //! capacity asks for another number of workgroups).
 
 use crate::dispatch::Launch;
-use crate::kernel::Kernel;
+use crate::kernel::{Bound, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use std::sync::Mutex;
 use nerf_mlp::{Activation, MlpConfig};
@@ -75,7 +75,8 @@ pub(crate) fn check_fused_shape(owner: &str, config: &MlpConfig) -> Result<(), G
 }
 
 /// Panics (a caller bug) when `buf` holds fewer than `floats` f32 words.
-pub(crate) fn check_buffer(owner: &str, what: &str, buf: &wgpu::Buffer, floats: usize) {
+pub(crate) fn check_buffer<'a>(owner: &str, what: &str, buf: impl Into<Bound<'a>>, floats: usize) {
+    let buf: Bound<'a> = buf.into();
     assert!(
         buf.size() >= 4 * floats as u64,
         "{owner}: {what} buffer has {} bytes, needs {} (capacity × width)",
@@ -253,11 +254,11 @@ impl FusedMlp {
         }
     }
 
-    fn check(&self, what: &str, buf: &wgpu::Buffer, floats: usize) {
+    fn check<'a>(&self, what: &str, buf: impl Into<Bound<'a>>, floats: usize) {
         check_buffer("FusedMlp", what, buf, floats);
     }
 
-    fn check_common(&self, input: &wgpu::Buffer, params: &wgpu::Buffer, capacity: usize) {
+    fn check_common<'a>(&self, input: impl Into<Bound<'a>>, params: &wgpu::Buffer, capacity: usize) {
         self.check("input", input, capacity * self.config.input_dim);
         self.check("params", params, self.n_params);
     }
@@ -275,24 +276,24 @@ impl FusedMlp {
         output: &wgpu::Buffer,
         launch: Launch<'_>,
     ) {
-        self.record_forward_with(&self.u_plain, ctx, enc, counters, input, params, output, None, launch);
+        self.record_forward_with(&self.u_plain, ctx, enc, counters, input.into(), params, output, None, launch);
     }
 
     /// As [`FusedMlp::record_inference`] for the first `head` outputs of each row only
     /// ([`FusedMlp::set_partial`]; the others are left as they were): the density pass of a
     /// field reads σ alone.
     #[allow(clippy::too_many_arguments)]
-    pub fn record_inference_head(
+    pub fn record_inference_head<'a>(
         &self,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         counters: &wgpu::Buffer,
-        input: &wgpu::Buffer,
+        input: impl Into<Bound<'a>>,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
         launch: Launch<'_>,
     ) {
-        self.record_forward_with(&self.u_head, ctx, enc, counters, input, params, output, None, launch);
+        self.record_forward_with(&self.u_head, ctx, enc, counters, input.into(), params, output, None, launch);
     }
 
     /// `mlp_forward` with `uniform`'s mode; `tape` (written by the tape and rows modes) has been
@@ -304,10 +305,10 @@ impl FusedMlp {
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         counters: &wgpu::Buffer,
-        input: &wgpu::Buffer,
+        input: Bound<'_>,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
-        tape: Option<&wgpu::Buffer>,
+        tape: Option<Bound<'_>>,
         launch: Launch<'_>,
     ) {
         let capacity = launch.capacity();
@@ -319,14 +320,14 @@ impl FusedMlp {
             ctx,
             enc,
             &[
-                (0, uniform),
-                (1, &self.layer_buf),
-                (2, counters),
+                (0, uniform.into()),
+                (1, (&self.layer_buf).into()),
+                (2, counters.into()),
                 (3, input),
-                (4, params),
-                (5, output),
-                (6, tape.unwrap_or(&self.dummy)),
-                (10, params4),
+                (4, params.into()),
+                (5, output.into()),
+                (6, tape.unwrap_or((&self.dummy).into())),
+                (10, params4.into()),
             ],
             1,
             TILE as u32,
@@ -349,7 +350,7 @@ impl FusedMlp {
         launch: Launch<'_>,
     ) {
         self.check("tape", tape, launch.capacity() * self.fps);
-        self.record_forward_with(&self.u_tape, ctx, enc, counters, input, params, output, Some(tape), launch);
+        self.record_forward_with(&self.u_tape, ctx, enc, counters, input.into(), params, output, Some(tape.into()), launch);
     }
 
     /// Floats per sample of the rows [`FusedMlp::record_forward_rows`] stores: every layer's
@@ -364,19 +365,20 @@ impl FusedMlp {
     /// the marched samples, so the training forward of the kept ones is a gather
     /// ([`FusedMlp::record_gather_tape`]) instead of the net again.
     #[allow(clippy::too_many_arguments)]
-    pub fn record_forward_rows(
+    pub fn record_forward_rows<'a>(
         &self,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         counters: &wgpu::Buffer,
-        input: &wgpu::Buffer,
+        input: impl Into<Bound<'a>>,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
-        activations: &wgpu::Buffer,
+        activations: impl Into<Bound<'a>>,
         launch: Launch<'_>,
     ) {
+        let activations = activations.into();
         self.check("activations", activations, launch.capacity() * self.activation_floats_per_sample());
-        self.record_forward_with(&self.u_rows, ctx, enc, counters, input, params, output, Some(activations), launch);
+        self.record_forward_with(&self.u_rows, ctx, enc, counters, input.into(), params, output, Some(activations), launch);
     }
 
     /// What [`FusedMlp::record_forward`] would write to `output` and `tape` for `counters[1]`
@@ -532,20 +534,19 @@ pub trait FusedNet: Send + Sync {
         launch: Launch<'_>,
     );
     /// Inference of the first [`FusedNet::partial`]`().0` outputs only (the rest of `output` is left
-    /// as it was, or written too where a path has no narrower kernel).
+    /// as it was, or written too where a path has no narrower kernel). `input` may start at an
+    /// offset ([`Bound`]): rows of a larger batch read in place.
     #[allow(clippy::too_many_arguments)]
     fn record_inference_head(
         &self,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         counters: &wgpu::Buffer,
-        input: &wgpu::Buffer,
+        input: Bound<'_>,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
         launch: Launch<'_>,
-    ) {
-        self.record_inference(ctx, enc, counters, input, params, output, launch)
-    }
+    );
     /// Narrows the work to what the caller reads: the head inference's outputs and the backward's
     /// `d_input` columns (see [`FusedMlp::set_partial`]). A path without narrower kernels keeps
     /// computing everything (a superset), which is the default.
@@ -609,6 +610,18 @@ macro_rules! impl_fused_net {
         ) {
             <$t>::record_inference(self, ctx, enc, counters, input, params, output, launch)
         }
+        fn record_inference_head(
+            &self,
+            ctx: &GpuContext,
+            enc: &mut wgpu::CommandEncoder,
+            counters: &wgpu::Buffer,
+            input: Bound<'_>,
+            params: &wgpu::Buffer,
+            output: &wgpu::Buffer,
+            launch: Launch<'_>,
+        ) {
+            <$t>::record_inference_head(self, ctx, enc, counters, input, params, output, launch)
+        }
         fn record_forward(
             &self,
             ctx: &GpuContext,
@@ -647,18 +660,6 @@ macro_rules! impl_fused_net {
     ($t:ty, plain) => {
         impl FusedNet for $t {
             impl_fused_net!(@common $t);
-            fn record_inference_head(
-                &self,
-                ctx: &GpuContext,
-                enc: &mut wgpu::CommandEncoder,
-                counters: &wgpu::Buffer,
-                input: &wgpu::Buffer,
-                params: &wgpu::Buffer,
-                output: &wgpu::Buffer,
-                launch: Launch<'_>,
-            ) {
-                <$t>::record_inference_head(self, ctx, enc, counters, input, params, output, launch)
-            }
             fn set_partial(&mut self, ctx: &GpuContext, head: usize, d_input_cols: usize) {
                 <$t>::set_partial(self, ctx, head, d_input_cols)
             }

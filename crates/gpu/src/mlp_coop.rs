@@ -23,7 +23,7 @@
 //! unscaled in f32. Expect ~1e-3 relative agreement with the f32 CPU twin, not bit equality.
 
 use crate::dispatch::Launch;
-use crate::kernel::{groups_1d, Kernel};
+use crate::kernel::{groups_1d, Bound, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_mlp::{Activation, MlpConfig};
 use std::sync::Arc;
@@ -350,11 +350,11 @@ impl FusedMlpCoop {
         self.fps
     }
 
-    fn check(&self, what: &str, buf: &wgpu::Buffer, floats: usize) {
+    fn check<'a>(&self, what: &str, buf: impl Into<Bound<'a>>, floats: usize) {
         crate::mlp::check_buffer("FusedMlpCoop", what, buf, floats);
     }
 
-    fn check_common(&self, input: &wgpu::Buffer, params: &wgpu::Buffer, capacity: usize) {
+    fn check_common<'a>(&self, input: impl Into<Bound<'a>>, params: &wgpu::Buffer, capacity: usize) {
         self.check("input", input, capacity * self.config.input_dim);
         self.check("params", params, self.n_params);
     }
@@ -374,17 +374,18 @@ impl FusedMlpCoop {
     /// `launch.capacity()`. Writes only the first n rows of `output`. (Two dispatches: the f16 weight copy,
     /// then the fused forward.)
     #[allow(clippy::too_many_arguments)]
-    pub fn record_inference(
+    pub fn record_inference<'a>(
         &self,
         ctx: &GpuContext,
         enc: &mut wgpu::CommandEncoder,
         counters: &wgpu::Buffer,
-        input: &wgpu::Buffer,
+        input: impl Into<Bound<'a>>,
         params: &wgpu::Buffer,
         output: &wgpu::Buffer,
         launch: Launch<'_>,
     ) {
         let capacity = launch.capacity();
+        let input: Bound<'a> = input.into();
         self.check_common(input, params, capacity);
         self.check("output", output, capacity * self.config.output_dim);
         self.record_convert(ctx, enc, params);
@@ -393,18 +394,34 @@ impl FusedMlpCoop {
             ctx,
             enc,
             &[
-                (0, &self.u_plain),
-                (1, counters),
+                (0, (&self.u_plain).into()),
+                (1, counters.into()),
                 (2, input),
-                (3, params),
-                (4, &self.w16),
-                (5, output),
-                (6, &self.dummy),
+                (3, params.into()),
+                (4, (&self.w16).into()),
+                (5, output.into()),
+                (6, (&self.dummy).into()),
             ],
             1,
             TILE as u32,
             1,
         );
+    }
+
+    /// [`FusedMlpCoop::record_inference`]: this path has no narrower kernel for a partial head,
+    /// so every output is written ([`crate::mlp::FusedNet::record_inference_head`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_inference_head<'a>(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        input: impl Into<Bound<'a>>,
+        params: &wgpu::Buffer,
+        output: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        self.record_inference(ctx, enc, counters, input, params, output, launch)
     }
 
     /// Records the training forward: as [`FusedMlpCoop::record_inference`] and stores what the
