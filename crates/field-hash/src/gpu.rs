@@ -309,9 +309,10 @@ impl GpuRadianceField for GpuHashNerf {
         let Some(k) = &self.kept else { return self.record_density(ctx, enc, s, sigma) };
         let cap = s.launch(self.capacity);
         assert!(first_row + cap <= k.rows, "a density pass over rows {first_row}..{} keeps {} rows", first_row + cap, k.rows);
-        if k.in_place {
-            // The chunk's rows of the marched buffers, bound at their offset: the encodings and
-            // activations land in their rows of the kept buffers, σ in its rows of the batch's.
+        if k.in_place || first_row == 0 {
+            // The chunk's rows of the marched buffers (the first chunk's are always its own; the
+            // others' are bound at their offset where the field reads in place): the encodings
+            // and activations land in their rows of the kept buffers, σ in its rows of the batch's.
             let l = self.launch(ctx, enc, &s);
             let width = self.grid.output_dim();
             let (positions, encodings) = (Bound::rows(s.positions, 3, first_row), Bound::rows(&k.enc, width, first_row));
@@ -329,26 +330,19 @@ impl GpuRadianceField for GpuHashNerf {
             self.glue.record_density(ctx, enc, s.counters, &self.dout, Bound::rows(sigma, 1, first_row), l);
             return;
         }
+        // A later chunk in chunk buffers of its own: computed into the field's buffers, then its
+        // encodings (and activations) copied to their rows.
         if let (Some(acts), Some(net)) = (&k.activations, self.density.as_plain()) {
-            // The density net's training forward, its activations kept as rows (written in place for
-            // the first chunk, copied to their rows for the others, as the encodings).
             let l = self.launch(ctx, enc, &s);
-            let (encodings, rows_out) = if first_row == 0 { (&k.enc, acts) } else { (&self.enc, &self.density_tape) };
             ctx.profile_part("hash encoding");
-            self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, encodings, l);
+            self.grid.record_forward(ctx, enc, s.counters, s.positions, &self.groups[0].params, &self.enc, l);
             ctx.profile_part("density MLP");
-            net.record_forward_rows(ctx, enc, s.counters, encodings, &self.groups[1].params, &self.dout, rows_out, l);
+            net.record_forward_rows(ctx, enc, s.counters, &self.enc, &self.groups[1].params, &self.dout, &self.density_tape, l);
             ctx.profile_part("glue");
             self.glue.record_density(ctx, enc, s.counters, &self.dout, sigma, l);
-            if first_row != 0 {
-                k.copy_chunk(ctx, enc, &k.copy_enc, self.grid.output_dim(), s.counters, (&self.enc, &k.enc), first_row, l);
-                let copy = k.copy_activations.as_ref().expect("a copy for the kept activations");
-                k.copy_chunk(ctx, enc, copy, net.activation_floats_per_sample(), s.counters, (&self.density_tape, acts), first_row, l);
-            }
-            return;
-        }
-        if first_row == 0 {
-            self.record_density_via(ctx, enc, s, sigma, &k.enc);
+            k.copy_chunk(ctx, enc, &k.copy_enc, self.grid.output_dim(), s.counters, (&self.enc, &k.enc), first_row, l);
+            let copy = k.copy_activations.as_ref().expect("a copy for the kept activations");
+            k.copy_chunk(ctx, enc, copy, net.activation_floats_per_sample(), s.counters, (&self.density_tape, acts), first_row, l);
         } else {
             self.record_density(ctx, enc, s, sigma);
             let l = self.launch(ctx, enc, &s);

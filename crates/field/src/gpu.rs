@@ -220,7 +220,6 @@ pub trait GpuRadianceField: Send {
 /// place ([`GpuRadianceField::density_pass_in_place`]), which copies nothing. Buffers and
 /// uniforms are made once.
 pub struct ChunkedDensity {
-    chunk: usize,
     total: usize,
     glue: nerf_gpu::TrainGlue,
     /// (offset, size, chunk uniform, copy offsets in and out) per chunk.
@@ -249,7 +248,6 @@ impl ChunkedDensity {
             .collect();
         let spill = if total > chunk { chunk } else { 1 };
         Self {
-            chunk,
             total,
             glue,
             chunks,
@@ -274,7 +272,7 @@ impl ChunkedDensity {
         positions: &wgpu::Buffer,
         sigma: &wgpu::Buffer,
     ) {
-        self.record_chunks(ctx, enc, counters, positions, sigma, &mut |enc, s, sigma, _| field.record_density(ctx, enc, s, sigma));
+        self.record_chunks(ctx, enc, counters, positions, sigma, false, &mut |enc, s, sigma, _| field.record_density(ctx, enc, s, sigma));
     }
 
     /// As [`record`](Self::record), the density pass of a step on compacted samples: each chunk
@@ -289,29 +287,14 @@ impl ChunkedDensity {
         positions: &wgpu::Buffer,
         sigma: &wgpu::Buffer,
     ) {
-        if field.density_pass_in_place() {
-            self.check_sizes(positions, sigma);
-            for (offset, size, uniform, _, _) in &self.chunks {
-                self.glue.record_chunk_count(ctx, enc, uniform, counters, &self.counters);
-                let s = GpuSamples { counters: &self.counters, positions, dirs: positions, capacity: *size };
-                field.record_density_for_training(ctx, enc, s, sigma, *offset);
-            }
-            return;
-        }
-        self.record_chunks(ctx, enc, counters, positions, sigma, &mut |enc, s, sigma, first_row| {
+        self.record_chunks(ctx, enc, counters, positions, sigma, field.density_pass_in_place(), &mut |enc, s, sigma, first_row| {
             field.record_density_for_training(ctx, enc, s, sigma, first_row)
         });
     }
 
-    fn check_sizes(&self, positions: &wgpu::Buffer, sigma: &wgpu::Buffer) {
-        assert!(
-            positions.size() >= 12 * self.total as u64 && sigma.size() >= 4 * self.total as u64,
-            "ChunkedDensity: buffers hold fewer than {} samples",
-            self.total
-        );
-    }
-
-    /// The chunks: `query(enc, samples, σ out, first row)` per chunk.
+    /// The chunks: `query(enc, samples, σ out, first row)` per chunk; in the batch's own buffers
+    /// for the first chunk, and for every chunk where the query reads `in_place`.
+    #[allow(clippy::too_many_arguments)]
     fn record_chunks(
         &self,
         ctx: &GpuContext,
@@ -319,15 +302,20 @@ impl ChunkedDensity {
         counters: &wgpu::Buffer,
         positions: &wgpu::Buffer,
         sigma: &wgpu::Buffer,
+        in_place: bool,
         query: &mut dyn FnMut(&mut wgpu::CommandEncoder, GpuSamples<'_>, &wgpu::Buffer, usize),
     ) {
-        self.check_sizes(positions, sigma);
+        assert!(
+            positions.size() >= 12 * self.total as u64 && sigma.size() >= 4 * self.total as u64,
+            "ChunkedDensity: buffers hold fewer than {} samples",
+            self.total
+        );
         for (offset, size, uniform, copy_in, copy_out) in &self.chunks {
             self.glue.record_chunk_count(ctx, enc, uniform, counters, &self.counters);
-            if *offset == 0 {
+            if *offset == 0 || in_place {
                 // (A density query reads no directions.)
-                let s = GpuSamples { counters: &self.counters, positions, dirs: positions, capacity: self.chunk.min(self.total) };
-                query(enc, s, sigma, 0);
+                let s = GpuSamples { counters: &self.counters, positions, dirs: positions, capacity: *size };
+                query(enc, s, sigma, *offset);
             } else {
                 let launch = self.args.record(ctx, enc, &self.counters, *size);
                 self.copy_points.record(ctx, enc, &self.counters, copy_in, positions, &self.points, launch);
