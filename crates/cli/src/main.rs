@@ -893,7 +893,7 @@ fn cmd_export_points(a: PointsArgs) -> Result<()> {
 }
 
 fn cmd_export_mesh(a: MeshArgs) -> Result<()> {
-    if !(2..=1024).contains(&a.resolution) || !(a.threshold.is_finite() && a.threshold > 0.0) {
+    if !(2..=1024).contains(&a.resolution) || !a.threshold.is_finite() || a.threshold <= 0.0 {
         bail!("--resolution must be in 2..=1024 (about 13 bytes of memory per lattice node: 14 GB at 1024) and --threshold a positive number");
     }
     let out = a.out.unwrap_or_else(|| a.run.join("mesh.ply"));

@@ -1298,7 +1298,7 @@ pub fn write_obj_mesh(
 /// The mesh writers' contract: one normal and colour per vertex, whole triangles of valid indices.
 fn check_mesh(positions: &[[f32; 3]], normals: &[[f32; 3]], colors: &[[f32; 3]], indices: &[u32]) {
     assert!(normals.len() == positions.len() && colors.len() == positions.len(), "a mesh needs one normal and colour per vertex");
-    assert!(indices.len() % 3 == 0 && indices.iter().all(|&i| (i as usize) < positions.len()), "a mesh's triangles index its vertices");
+    assert!(indices.len().is_multiple_of(3) && indices.iter().all(|&i| (i as usize) < positions.len()), "a mesh's triangles index its vertices");
 }
 
 fn write_ply_bytes(path: &Path, bytes: &[u8]) -> Result<(), DataError> {

@@ -148,8 +148,7 @@ fn paper_dimensions_and_parameter_count() {
 
 #[test]
 fn invalid_configs_are_rejected_with_a_message() {
-    let mut c = FreqNerfConfig::default();
-    c.skips = vec![7];
+    let c = FreqNerfConfig { skips: vec![7], ..FreqNerfConfig::default() };
     let e = FreqNerf::<f32>::new(c, 0).err().unwrap().to_string();
     assert!(e.contains("skip"), "{e}");
     let e = nerf_field_freq::build(&serde_json::json!({"widht": 3}), &nerf_field::FieldContext {

@@ -261,8 +261,8 @@ fn kernels(c: &mut Criterion) {
         g.bench_function(BenchmarkId::new(name, m), |b| {
             b.iter(|| {
                 run(&ctx, |e| {
-                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, m.into());
-                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, None, m.into());
+                    net.record_forward(&ctx, e, &counters, &x, &p, &y, &tape, m);
+                    net.record_backward(&ctx, e, &counters, &x, &p, &tape, &dy, &gr, None, m);
                 })
             })
         });

@@ -836,7 +836,7 @@ mod coop {
         /// The wide kernels, where this instance has them and a product's block width `cols` is a
         /// whole number of [`WIDE`] blocks.
         fn wide(&self, cols: usize) -> Option<&[Kernel; 3]> {
-            self.wide.as_ref().filter(|_| cols > 0 && cols % WIDE == 0)
+            self.wide.as_ref().filter(|_| cols > 0 && cols.is_multiple_of(WIDE))
         }
 
         /// See [`GpuMlp::wide_products`]; the same predicates as the record functions.

@@ -534,7 +534,7 @@ impl GpuMarcher {
         if cfg.resolution == 0 || cfg.resolution > nerf_sampling::MAX_RESOLUTION {
             return bad(format!("resolution must be in 1..={}, got {}", nerf_sampling::MAX_RESOLUTION, cfg.resolution));
         }
-        if cfg.cascades == 0 || cfg.cascades > nerf_sampling::MAX_CASCADES || (cfg.cascades > 1 && cfg.resolution % 16 != 0) {
+        if cfg.cascades == 0 || cfg.cascades > nerf_sampling::MAX_CASCADES || (cfg.cascades > 1 && !cfg.resolution.is_multiple_of(16)) {
             return bad(format!(
                 "cascades must be in 1..={} (more than one with a resolution divisible by 16), got {} at {}",
                 nerf_sampling::MAX_CASCADES,

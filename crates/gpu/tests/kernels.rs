@@ -60,6 +60,7 @@ fn per_sample_buffers_report_their_largest_overshoot() {
 }
 
 /// A random packed batch: rays with 0..40 samples, sorted t, mixed densities.
+#[allow(clippy::type_complexity)]
 fn batch(seed: u64, n_rays: usize) -> (Vec<u32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) {
     let mut rng = nerf_core::rng(seed, 0);
     let mut offsets = vec![0u32];

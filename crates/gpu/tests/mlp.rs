@@ -150,11 +150,11 @@ fn fused_mlp_matches_the_cpu_mlp() {
             let grads0 = random(&mut rng, cpu.n_params(), 1.0);
             let with_dx = n != 517;
             // Every other case launches from the device's count.
-            let gpu = run_gpu(&ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed % 2 == 0);
+            let gpu = run_gpu(&ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed.is_multiple_of(2));
             let what = format!("{name} (n = {n})");
             if n == 8000 {
                 // Summed in a fixed order: a second run gives the same gradient bits.
-                let again = run_gpu(&ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed % 2 == 0);
+                let again = run_gpu(&ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed.is_multiple_of(2));
                 assert_eq!(bits(&again.grads), bits(&gpu.grads), "{what}: gradients differ between two runs");
             }
             // Inference and the training forward run the same code: bit-identical.
@@ -222,7 +222,7 @@ fn partial_heads_and_input_gradients_write_only_what_is_asked() {
             let input = random(&mut rng, n * din, 2.0);
             let d_output = random(&mut rng, n * dout, 1.0);
             let grads0 = random(&mut rng, cpu.n_params(), 1.0);
-            let indirect = seed % 2 == 0;
+            let indirect = seed.is_multiple_of(2);
             let a = run_gpu(&ctx, &full, n, n + 3, &input, cpu.params(), &grads0, &d_output, true, indirect);
             let b = run_gpu(&ctx, &part, n, n + 3, &input, cpu.params(), &grads0, &d_output, true, indirect);
             let what = format!("{name} (head {head}, cols {cols})");
@@ -290,7 +290,7 @@ fn activation_rows_gather_into_the_training_forwards_tape() {
             let (out_g, tape_g) = (ctx.upload("out gathered", &nan(cap * dout)), ctx.upload("tape gathered", &nan(cap * fps)));
             let mut enc = ctx.encoder("rows test");
             let (args_src, args) = (DispatchArgs::new(&ctx, cap_src), DispatchArgs::new(&ctx, cap));
-            let indirect = seed % 2 == 0;
+            let indirect = seed.is_multiple_of(2);
             let l_src = if indirect { args_src.record(&ctx, &mut enc, &c_src, cap_src) } else { Launch::direct(cap_src) };
             net.record_forward_rows(&ctx, &mut enc, &c_src, &in_src_b, &params, &out_src, &acts, l_src);
             let l = if indirect { args.record(&ctx, &mut enc, &c, cap) } else { Launch::direct(cap) };

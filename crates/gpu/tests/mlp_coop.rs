@@ -422,7 +422,7 @@ fn compare_all(ctx: &GpuContext, make: impl Fn(&MlpConfig) -> Result<FusedMlpCoo
             let grads0 = random(&mut rng, cpu.n_params(), 1.0);
             let with_dx = n != 517 && n != 33;
             // Every other case launches from the device's count.
-            let gpu = run_gpu(ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed % 2 == 0);
+            let gpu = run_gpu(ctx, &net, n, n + extra, &input, cpu.params(), &grads0, &d_output, with_dx, seed.is_multiple_of(2));
             let what = format!("{name} (n = {n}, seed {seed})");
             // Inference and the training forward run the same code: bit-identical.
             assert_eq!(

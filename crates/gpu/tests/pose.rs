@@ -49,6 +49,7 @@ fn stage(n: usize, seed: u64) -> RaySamples {
 }
 
 #[test]
+#[allow(clippy::type_complexity)]
 fn pose_correction_matches_its_cpu_twin() {
     let Some(ctx) = GpuContext::for_tests() else { return };
     // (rays, views, capacity): one ray; more rays than a reduction workgroup; rays fewer than the

@@ -1079,7 +1079,8 @@ mod tests {
         let at = |yaw: f32, p: Vec3| Camera { intrinsics: k, rotation: Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(-0.2), position: p };
         // Three cameras: the second turned 60° from the first, the third 100° from the second
         // (a turn written the long way round: −260° is +100°).
-        let cams = [at(0.0, Vec3::ZERO), at(1.0472, Vec3::new(2.0, 0.0, 0.0)), at(1.0472 + 1.7453 - std::f32::consts::TAU, Vec3::new(2.0, 4.0, 0.0))];
+        let (d60, d100) = (60f32.to_radians(), 100f32.to_radians());
+        let cams = [at(0.0, Vec3::ZERO), at(d60, Vec3::new(2.0, 0.0, 0.0)), at(d60 + d100 - std::f32::consts::TAU, Vec3::new(2.0, 4.0, 0.0))];
         let path = interpolate(&cams, k, 9).unwrap();
         assert_eq!(path.len(), 9);
         // u = 0, 0.25, …, 2: frames 0, 4 and 8 are the cameras themselves.

@@ -36,7 +36,7 @@ pub fn identity_color_correction(n_views: usize) -> Vec<f32> {
 /// The mean of the views' corrections (all 12 values averaged): what novel views are rendered
 /// with. Errors when `params` is empty or not whole views.
 pub fn mean_color_correction(params: &[f32]) -> Result<[f32; COLOR_PARAMS_PER_VIEW], String> {
-    if params.is_empty() || params.len() % COLOR_PARAMS_PER_VIEW != 0 {
+    if params.is_empty() || !params.len().is_multiple_of(COLOR_PARAMS_PER_VIEW) {
         return Err(format!("{} colour-correction values are not whole views of {COLOR_PARAMS_PER_VIEW}", params.len()));
     }
     let n = (params.len() / COLOR_PARAMS_PER_VIEW) as f64;
@@ -50,7 +50,7 @@ pub fn mean_color_correction(params: &[f32]) -> Result<[f32; COLOR_PARAMS_PER_VI
 }
 
 fn check<T>(n_rays: usize, views: Option<&[u32]>, params: &[T], rgb: &[T], opacity: &[T], background: &[T]) {
-    assert!(params.len() % COLOR_PARAMS_PER_VIEW == 0 && !params.is_empty(), "params: {COLOR_PARAMS_PER_VIEW} values per view");
+    assert!(params.len().is_multiple_of(COLOR_PARAMS_PER_VIEW) && !params.is_empty(), "params: {COLOR_PARAMS_PER_VIEW} values per view");
     assert!(rgb.len() == 3 * n_rays && background.len() == 3 * n_rays && opacity.len() == n_rays, "rgb/background: 3 per ray, opacity: 1");
     let n_views = params.len() / COLOR_PARAMS_PER_VIEW;
     if let Some(v) = views {

@@ -196,7 +196,7 @@ impl OccupancyGridConfig {
             if c == 0 || c > MAX_CASCADES {
                 return Err(format!("occupancy grid: cascades must be in 1..={MAX_CASCADES}, got {c}"));
             }
-            if c > 1 && self.resolution % 16 != 0 {
+            if c > 1 && !self.resolution.is_multiple_of(16) {
                 return Err(format!(
                     "occupancy grid: a cascade of {c} levels needs a resolution divisible by 16, got {} (or set cascades = 1)",
                     self.resolution
@@ -662,7 +662,7 @@ impl OccupancyGrid {
         }
         let n0 = self.level_cells;
         let full = self.seen[..n0 / 64].iter().map(|w| w.count_ones() as usize).sum::<usize>();
-        let rest = if n0 % 64 != 0 { (self.seen[n0 / 64] & ((1u64 << (n0 % 64)) - 1)).count_ones() as usize } else { 0 };
+        let rest = if !n0.is_multiple_of(64) { (self.seen[n0 / 64] & ((1u64 << (n0 % 64)) - 1)).count_ones() as usize } else { 0 };
         (full + rest).max(1)
     }
 
@@ -676,7 +676,7 @@ impl OccupancyGrid {
         }
         let mut seen: Vec<u64> =
             words.chunks(2).map(|w| w[0] as u64 | (w.get(1).copied().unwrap_or(0) as u64) << 32).collect();
-        if n % 64 != 0 {
+        if !n.is_multiple_of(64) {
             // Bits past the last cell would be counted by `seen_fraction`.
             *seen.last_mut().expect("a grid has cells") &= (1u64 << (n % 64)) - 1;
         }

@@ -318,8 +318,7 @@ mod tests {
     /// A checkpoint of one field instance with groups `a` and `b`, Adam state, an occupancy
     /// entry and (with `ema`) a moving average of both groups.
     fn with_average(ema: bool) -> Checkpoint {
-        let mut config = TrainConfig::default();
-        config.ema_decay = ema.then_some(0.95);
+        let config = TrainConfig { ema_decay: ema.then_some(0.95), ..TrainConfig::default() };
         let mut sampler = vec![("occupancy_density".to_string(), vec![0.5, 0.0, 2.0])];
         if ema {
             let avg = EmaState { step: 5, groups: vec![("field/a".into(), vec![9.0, -9.0]), ("field/b".into(), vec![8.0])] };

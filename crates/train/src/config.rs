@@ -512,9 +512,7 @@ mod tests {
 
     #[test]
     fn config_round_trips_json_and_toml() {
-        let mut c = TrainConfig::default();
-        c.field_config = serde_json::json!({"width": 64});
-        c.time_budget_secs = Some(12.5);
+        let c = TrainConfig { field_config: serde_json::json!({"width": 64}), time_budget_secs: Some(12.5), ..TrainConfig::default() };
         let j = serde_json::to_string(&c).unwrap();
         assert_eq!(serde_json::from_str::<TrainConfig>(&j).unwrap(), c);
         let t = toml::to_string(&TrainConfig { time_budget_secs: Some(3.0), ..TrainConfig::default() })

@@ -135,7 +135,7 @@ mod tests {
             let (mut p, mut m) = (params.clone(), params.clone());
             p[i] += h;
             m[i] -= h;
-            let fd = (regulariser(&config, &p, &mut vec![0.0; 12]) - regulariser(&config, &m, &mut vec![0.0; 12])) / (2.0 * h);
+            let fd = (regulariser(&config, &p, &mut [0.0; 12]) - regulariser(&config, &m, &mut [0.0; 12])) / (2.0 * h);
             assert!((fd - grads[i]).abs() < 2e-3, "[{i}]: {} vs fd {fd}", grads[i]);
         }
         assert_eq!(&grads[6..9], &[0.0; 3], "no gradient at a zero translation");

@@ -618,6 +618,8 @@ impl Trainer {
             st.d_ray_rgb.resize(3 * n_rays, 0.0);
             // With colour correction the loss sees each view's corrected pixels, and compositing's
             // backward gets the gradient through the correction (with an opacity term).
+            // `inspect` would hand the closure `&&mut`, which cannot resize the buffers.
+            #[allow(clippy::manual_inspect)]
             let color = self.color.as_mut().map(|c| {
                 c.out.resize(3 * n_rays, 0.0);
                 color_correct_forward(Some(&b.view_ids), &c.views.params, &st.comp.rgb, &st.comp.opacity, &b.background, &mut c.out);
@@ -1118,7 +1120,7 @@ pub fn seen_to_entry(words: &[u32]) -> Vec<f32> {
 /// in `0..65536`.
 pub fn seen_from_entry(v: &[f32]) -> Result<Vec<u32>, TrainError> {
     let half = |x: f32| ((0.0..65536.0).contains(&x) && x.fract() == 0.0).then_some(x as u32);
-    if v.len() % 2 != 0 {
+    if !v.len().is_multiple_of(2) {
         return Err(TrainError::Config(format!("malformed `{SEEN_ENTRY}` in checkpoint: odd length {}", v.len())));
     }
     v.chunks(2)
