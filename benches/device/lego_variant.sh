@@ -6,7 +6,7 @@
 # Brings back variant_metrics.json (with train_log), variant_curve.csv and the trained field's
 # render-only copy in parts (slim.ckpt.*; SLIM=0 skips it). Score the field on all 200 test views
 # afterwards, on the same warm machine with eval_half.sh a and b (SPP=8 STEP=0.0025 as well), or
-# here with score_here.sh FILES_AT NAME 0.0025 (SPP=8 too: ~1.8 h on 2 cores). What to run next
+# here with score_here.sh FILES_AT NAME 0.0025 (SPP=8 too: ~1.7 h on 2 cores). What to run next
 # and why: docs/gpu.md, "The next lease"; what each lease ran: docs/results.md.
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; export XDG_RUNTIME_DIR=/tmp

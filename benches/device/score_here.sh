@@ -10,7 +10,7 @@
 # The training views (every 4th, `--split train`) are scored with TRAIN=1; VIEWS=first:4 (any
 # `--test-views` value) scores fewer test views, for a quick look. SPP=8 (with STEP) scores the
 # views once more at that step with 8 rays per pixel (`nerf eval --spp`, eval_all_step_spp8/):
-# ~1.8 hours for the 200 views on 2 cores. FILTER=F with SPP scores those rays once more placed
+# ~1.7 hours for the 200 views on 2 cores. FILTER=F with SPP scores those rays once more placed
 # by the pixel filter F (`nerf eval --filter`, e.g. blackman-harris), eval_all_step_sppN_filter/.
 set -euo pipefail
 cd "$(dirname "$0")/../.."

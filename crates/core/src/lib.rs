@@ -4,11 +4,14 @@
 //! once, generic over [`Real`], so that training runs in `f32` while finite-difference gradient
 //! checks run the *same code* in `f64`. [`rng`] gives the one seeded generator used everywhere so
 //! that runs are reproducible from a `u64` seed. [`par`] splits packed (CSR) ray batches across
-//! rayon threads, shared by the samplers and the compositor.
+//! rayon threads, shared by the samplers and the compositor. [`scratch`] keeps the hot paths'
+//! buffers allocated once: [`grown`] and the [`ScratchPool`] of `&self` queries.
 
 use num_traits::{Float, FromPrimitive, NumAssign, ToPrimitive};
 
 pub mod par;
+pub mod scratch;
+pub use scratch::{grown, ScratchPool};
 
 /// The scalar type of the numeric kernels: `f32` (training, rendering) or `f64` (gradient checks).
 pub trait Real:

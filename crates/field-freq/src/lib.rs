@@ -17,7 +17,7 @@
 
 pub mod gpu;
 
-use nerf_core::Real;
+use nerf_core::{grown, Real, ScratchPool};
 use nerf_encoding::{Encoding, FrequencyEncoding, FrequencyEncodingConfig};
 use nerf_field::{config_from_json, FieldContext, FieldError, ParamGroupMut, RadianceField};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpScratch, MlpTape};
@@ -137,6 +137,9 @@ pub struct FreqNerf<T: Real> {
     trunk: Mlp<T>,
     color: Mlp<T>,
     tape: Tape<T>,
+    /// Inference buffers of [`RadianceField::query`] / [`RadianceField::density`] (`&self`, on
+    /// several threads at once while rendering), kept between calls.
+    query_scratch: ScratchPool<QueryScratch<T>>,
 }
 
 /// Samples per inference chunk: bounds the scratch memory of [`RadianceField::query`].
@@ -185,7 +188,7 @@ impl<T: Real> FreqNerf<T> {
             },
             &mut rng,
         );
-        Ok(Self { config, pos_enc, dir_enc, trunk, color, tape: Tape::default() })
+        Ok(Self { config, pos_enc, dir_enc, trunk, color, tape: Tape::default(), query_scratch: ScratchPool::new() })
     }
 
     /// The config.
@@ -285,44 +288,46 @@ impl<T: Real> FreqNerf<T> {
     pub fn query_t(&self, positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
         let n = positions.len() / 3;
         let (pd, dd, w) = (self.pos_dim(), self.dir_dim(), self.config.width);
-        let mut s = QueryScratch::<T>::default();
-        for c0 in (0..n).step_by(QUERY_CHUNK) {
-            let c1 = (c0 + QUERY_CHUNK).min(n);
-            let m = c1 - c0;
-            s.pos_enc.resize(m * pd, T::zero());
-            self.pos_enc.forward(&positions[3 * c0..3 * c1], &mut s.pos_enc);
-            s.head.resize(m * (1 + w), T::zero());
-            self.trunk.infer(m, &s.pos_enc, &mut s.mlp, &mut s.head);
-            s.dir_enc.resize(m * dd, T::zero());
-            self.dir_enc.forward(&dirs[3 * c0..3 * c1], &mut s.dir_enc);
-            s.color_in.resize(m * (w + dd), T::zero());
-            for k in 0..m {
-                let row = &s.head[k * (1 + w)..(k + 1) * (1 + w)];
-                sigma[c0 + k] = row[0].max(T::zero());
-                let ci = &mut s.color_in[k * (w + dd)..(k + 1) * (w + dd)];
-                ci[..w].copy_from_slice(&row[1..]);
-                ci[w..].copy_from_slice(&s.dir_enc[k * dd..(k + 1) * dd]);
+        self.query_scratch.with(|s| {
+            for c0 in (0..n).step_by(QUERY_CHUNK) {
+                let c1 = (c0 + QUERY_CHUNK).min(n);
+                let m = c1 - c0;
+                let pos_enc = grown(&mut s.pos_enc, m * pd);
+                self.pos_enc.forward(&positions[3 * c0..3 * c1], pos_enc);
+                let head = grown(&mut s.head, m * (1 + w));
+                self.trunk.infer(m, pos_enc, &mut s.mlp, head);
+                let dir_enc = grown(&mut s.dir_enc, m * dd);
+                self.dir_enc.forward(&dirs[3 * c0..3 * c1], dir_enc);
+                let color_in = grown(&mut s.color_in, m * (w + dd));
+                for k in 0..m {
+                    let row = &head[k * (1 + w)..(k + 1) * (1 + w)];
+                    sigma[c0 + k] = row[0].max(T::zero());
+                    let ci = &mut color_in[k * (w + dd)..(k + 1) * (w + dd)];
+                    ci[..w].copy_from_slice(&row[1..]);
+                    ci[w..].copy_from_slice(&dir_enc[k * dd..(k + 1) * dd]);
+                }
+                self.color.infer(m, color_in, &mut s.mlp, &mut rgb[3 * c0..3 * c1]);
             }
-            self.color.infer(m, &s.color_in, &mut s.mlp, &mut rgb[3 * c0..3 * c1]);
-        }
+        })
     }
 
     /// Density only, chunked.
     pub fn density_t(&self, positions: &[T], sigma: &mut [T]) {
         let n = positions.len() / 3;
         let (pd, w) = (self.pos_dim(), self.config.width);
-        let mut s = QueryScratch::<T>::default();
-        for c0 in (0..n).step_by(QUERY_CHUNK) {
-            let c1 = (c0 + QUERY_CHUNK).min(n);
-            let m = c1 - c0;
-            s.pos_enc.resize(m * pd, T::zero());
-            self.pos_enc.forward(&positions[3 * c0..3 * c1], &mut s.pos_enc);
-            s.head.resize(m * (1 + w), T::zero());
-            self.trunk.infer(m, &s.pos_enc, &mut s.mlp, &mut s.head);
-            for k in 0..m {
-                sigma[c0 + k] = s.head[k * (1 + w)].max(T::zero());
+        self.query_scratch.with(|s| {
+            for c0 in (0..n).step_by(QUERY_CHUNK) {
+                let c1 = (c0 + QUERY_CHUNK).min(n);
+                let m = c1 - c0;
+                let pos_enc = grown(&mut s.pos_enc, m * pd);
+                self.pos_enc.forward(&positions[3 * c0..3 * c1], pos_enc);
+                let head = grown(&mut s.head, m * (1 + w));
+                self.trunk.infer(m, pos_enc, &mut s.mlp, head);
+                for k in 0..m {
+                    sigma[c0 + k] = head[k * (1 + w)].max(T::zero());
+                }
             }
-        }
+        })
     }
 
     /// The two networks (trunk with σ/feature head, colour branch), mutable.

@@ -180,3 +180,24 @@ fn query_equals_forward_and_density_equals_query_sigma() {
     let close = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| (x - y).abs() <= 1e-5 * (1.0 + x.abs()));
     assert!(close(&s1, &s2) && close(&c1, &c2) && close(&s2, &s3));
 }
+
+#[test]
+fn queries_reusing_their_buffers_equal_those_of_a_fresh_field() {
+    use nerf_field::RadianceField;
+    // `query` and `density` keep their inference buffers between calls: after larger and
+    // smaller calls each answer must still be the bits of a field that never answered before.
+    let mut rng = nerf_core::rng(8, 0);
+    let n = 20_000; // > one query chunk
+    let pos: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.5..1.5)).collect();
+    let dirs: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let ask = |f: &FreqNerf<f32>, a: usize, b: usize| {
+        let (mut s, mut c, mut d) = (vec![f32::NAN; b - a], vec![f32::NAN; 3 * (b - a)], vec![f32::NAN; b - a]);
+        f.query(&pos[3 * a..3 * b], &dirs[3 * a..3 * b], &mut s, &mut c);
+        f.density(&pos[3 * a..3 * b], &mut d);
+        (s, c, d)
+    };
+    let f = FreqNerf::<f32>::new(small(), 6).unwrap();
+    for (a, b) in [(0, n), (0, 50), (3, 4_003), (0, n), (n - 1, n)] {
+        assert!(ask(&f, a, b) == ask(&FreqNerf::<f32>::new(small(), 6).unwrap(), a, b), "samples {a}..{b}");
+    }
+}

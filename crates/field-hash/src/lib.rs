@@ -13,7 +13,7 @@
 
 pub mod gpu;
 
-use nerf_core::Real;
+use nerf_core::{grown, Real, ScratchPool};
 use nerf_encoding::{Encoding, HashGrid, HashGridConfig, ShConfig, SphericalHarmonics};
 use nerf_field::{config_from_json, FieldContext, FieldError, ParamGroupMut, RadianceField};
 use nerf_mlp::{Activation, Mlp, MlpConfig, MlpScratch, MlpTape};
@@ -249,6 +249,10 @@ pub struct HashNerf<T: Real> {
     color: Mlp<T>,
     tape: Tape<T>,
     density_pass: DensityPass<T>,
+    /// Inference buffers of [`RadianceField::query`] / [`RadianceField::density`], which take
+    /// `&self` and run on several threads at once while rendering: rendering's rounds allocate
+    /// and zero nothing once every thread has had a set.
+    query_scratch: ScratchPool<Scratch<T>>,
 }
 
 /// Samples per inference chunk of [`RadianceField::query`] / [`RadianceField::density`].
@@ -328,6 +332,7 @@ impl<T: Real> HashNerf<T> {
             color,
             tape: Tape::default(),
             density_pass: DensityPass::default(),
+            query_scratch: ScratchPool::new(),
         })
     }
 
@@ -546,37 +551,34 @@ impl<T: Real> HashNerf<T> {
             self.normalise(&positions[3 * c0..3 * c1], &mut s.xn);
             let enc = match keep_enc.as_deref_mut() {
                 Some(e) => &mut e[c0 * enc_dim..c1 * enc_dim],
-                None => {
-                    s.enc.resize(m * enc_dim, T::zero());
-                    &mut s.enc[..]
-                }
+                None => grown(&mut s.enc, m * enc_dim),
             };
             self.grid.forward(&s.xn, enc);
-            s.dout.resize(m * dd, T::zero());
-            self.density.infer(m, enc, &mut s.mlp, &mut s.dout);
+            let dout = grown(&mut s.dout, m * dd);
+            self.density.infer(m, enc, &mut s.mlp, dout);
             for k in 0..m {
-                sigma[c0 + k] = (s.dout[k * dd] + bias).min(T::c(MAX_LOG_DENSITY)).exp();
+                sigma[c0 + k] = (dout[k * dd] + bias).min(T::c(MAX_LOG_DENSITY)).exp();
             }
             if let (Some(dirs), Some(rgb)) = (dirs, rgb.as_deref_mut()) {
-                s.sh.resize(m * sh_dim, T::zero());
-                self.sh.forward(&dirs[3 * c0..3 * c1], &mut s.sh);
-                s.color_in.resize(m * w, T::zero());
+                let sh = grown(&mut s.sh, m * sh_dim);
+                self.sh.forward(&dirs[3 * c0..3 * c1], sh);
+                let color_in = grown(&mut s.color_in, m * w);
                 for k in 0..m {
-                    color_input_row(&s.dout[k * dd..(k + 1) * dd], fs, &s.sh[k * sh_dim..(k + 1) * sh_dim], &mut s.color_in[k * w..(k + 1) * w]);
+                    color_input_row(&dout[k * dd..(k + 1) * dd], fs, &sh[k * sh_dim..(k + 1) * sh_dim], &mut color_in[k * w..(k + 1) * w]);
                 }
-                self.color.infer(m, &s.color_in, &mut s.mlp, &mut rgb[3 * c0..3 * c1]);
+                self.color.infer(m, color_in, &mut s.mlp, &mut rgb[3 * c0..3 * c1]);
             }
         }
     }
 
     /// Inference: σ and rgb.
     pub fn query_t(&self, positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
-        self.infer(positions, Some(dirs), sigma, Some(rgb), None, &mut Scratch::default())
+        self.query_scratch.with(|s| self.infer(positions, Some(dirs), sigma, Some(rgb), None, s))
     }
 
     /// Density only.
     pub fn density_t(&self, positions: &[T], sigma: &mut [T]) {
-        self.infer(positions, None, sigma, None, None, &mut Scratch::default())
+        self.query_scratch.with(|s| self.infer(positions, None, sigma, None, None, s))
     }
 }
 

@@ -324,6 +324,44 @@ fn query_density_and_forward_agree_and_groups_have_the_right_decay() {
     assert_eq!(names, vec![("hash_grid", 2e-6), ("density_mlp", 3e-6), ("color_mlp", 3e-6)]);
 }
 
+#[test]
+fn queries_reusing_their_buffers_equal_those_of_a_fresh_field() {
+    use rayon::prelude::*;
+    // `query` and `density` keep their inference buffers in a pool between calls (rendering's
+    // rounds call them with ever-changing sizes, from several threads at once). Each answer must
+    // be the bits a field with an empty pool gives for the same input.
+    let ctx = FieldContext { aabb_min: [-1.5; 3], aabb_max: [1.5; 3], seed: 4, scene_scale: 1.0 };
+    let cfg = serde_json::json!({"grid": {"log2_hashmap_size": 14}});
+    let mut rng = nerf_core::rng(11, 0);
+    let n = 40_000; // > one inference chunk
+    let pos: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.6..1.6)).collect();
+    let dirs: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let fresh = |a: usize, b: usize| {
+        let f = nerf_field_hash::build(&cfg, &ctx).unwrap();
+        let (mut s, mut c, mut d) = (vec![f32::NAN; b - a], vec![f32::NAN; 3 * (b - a)], vec![f32::NAN; b - a]);
+        f.query(&pos[3 * a..3 * b], &dirs[3 * a..3 * b], &mut s, &mut c);
+        f.density(&pos[3 * a..3 * b], &mut d);
+        (s, c, d)
+    };
+    let f = nerf_field_hash::build(&cfg, &ctx).unwrap();
+    let ask = |a: usize, b: usize| {
+        let (mut s, mut c, mut d) = (vec![f32::NAN; b - a], vec![f32::NAN; 3 * (b - a)], vec![f32::NAN; b - a]);
+        f.query(&pos[3 * a..3 * b], &dirs[3 * a..3 * b], &mut s, &mut c);
+        f.density(&pos[3 * a..3 * b], &mut d);
+        (s, c, d)
+    };
+    // Large, small, large again, and a range whose buffers were last filled by other samples.
+    for (a, b) in [(0, n), (0, 100), (5, 5_005), (0, n), (7_000, 7_300), (n - 1, n)] {
+        assert!(ask(a, b) == fresh(a, b), "samples {a}..{b}");
+    }
+    // Several threads at once, each chunk its own size.
+    let bounds: Vec<(usize, usize)> = (0..24).map(|i| (i * 1_500, i * 1_500 + 97 * (i + 1))).collect();
+    let pooled: Vec<_> = bounds.par_iter().map(|&(a, b)| ask(a, b)).collect();
+    for (&(a, b), got) in bounds.iter().zip(&pooled) {
+        assert!(*got == fresh(a, b), "concurrent samples {a}..{b}");
+    }
+}
+
 /// σ, rgb and gradients of a field's training forward and backward on `pos`/`dirs`, run either
 /// directly or as rows of an earlier density pass over `all` (`rows` index `all`).
 fn train_pass(f: &mut dyn RadianceField, rows: Option<(&[u32], &[f32])>, pos: &[f32], dirs: &[f32], d: &[f32]) -> Vec<Vec<f32>> {

@@ -634,8 +634,8 @@ impl<T: Real> Mlp<T> {
         );
         let (params, input) = self.operands(input, &mut scratch.w16, &mut scratch.x16);
         if nl > 1 {
-            ensure(&mut a, n * w);
-            ensure(&mut b, n * w);
+            nerf_core::grown(&mut a, n * w);
+            nerf_core::grown(&mut b, n * w);
         }
         for i in 0..nl {
             let width = self.layers[i].out;
@@ -724,8 +724,8 @@ impl<T: Real> Mlp<T> {
         let par = Parallelism::Rayon(0);
         let w = self.max_width();
         let (mut dz, mut dh) = (std::mem::take(&mut tape.dz), std::mem::take(&mut tape.dh));
-        ensure(&mut dz, n * w);
-        ensure(&mut dh, n * w);
+        nerf_core::grown(&mut dz, n * w);
+        nerf_core::grown(&mut dh, n * w);
         // Under f16 arithmetic the products read the weights and the input as the forward did, and
         // the parameter gradients go to `dw` (scaled by S) to be rounded before they are added.
         let (w16, x16, mut dw) = (std::mem::take(&mut tape.w16), std::mem::take(&mut tape.x16), std::mem::take(&mut tape.dw));
