@@ -287,15 +287,12 @@ impl<T: Real> FreqNerf<T> {
     /// Inference without a tape, chunked to bound memory.
     pub fn query_t(&self, positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
         let n = positions.len() / 3;
-        let (pd, dd, w) = (self.pos_dim(), self.dir_dim(), self.config.width);
+        let (dd, w) = (self.dir_dim(), self.config.width);
         self.query_scratch.with(|s| {
             for c0 in (0..n).step_by(QUERY_CHUNK) {
                 let c1 = (c0 + QUERY_CHUNK).min(n);
                 let m = c1 - c0;
-                let pos_enc = grown(&mut s.pos_enc, m * pd);
-                self.pos_enc.forward(&positions[3 * c0..3 * c1], pos_enc);
-                let head = grown(&mut s.head, m * (1 + w));
-                self.trunk.infer(m, pos_enc, &mut s.mlp, head);
+                let head = self.trunk_head(&positions[3 * c0..3 * c1], &mut s.pos_enc, &mut s.head, &mut s.mlp);
                 let dir_enc = grown(&mut s.dir_enc, m * dd);
                 self.dir_enc.forward(&dirs[3 * c0..3 * c1], dir_enc);
                 let color_in = grown(&mut s.color_in, m * (w + dd));
@@ -311,18 +308,26 @@ impl<T: Real> FreqNerf<T> {
         })
     }
 
+    /// The trunk's inference on one chunk of positions: `m·(1 + width)` rows of raw σ and
+    /// features, in `head` (grown to fit).
+    fn trunk_head<'h>(&self, positions: &[T], pos_enc: &mut Vec<T>, head: &'h mut Vec<T>, mlp: &mut MlpScratch<T>) -> &'h [T] {
+        let m = positions.len() / 3;
+        let pos_enc = grown(pos_enc, m * self.pos_dim());
+        self.pos_enc.forward(positions, pos_enc);
+        let head = grown(head, m * (1 + self.config.width));
+        self.trunk.infer(m, pos_enc, mlp, head);
+        head
+    }
+
     /// Density only, chunked.
     pub fn density_t(&self, positions: &[T], sigma: &mut [T]) {
         let n = positions.len() / 3;
-        let (pd, w) = (self.pos_dim(), self.config.width);
+        let w = self.config.width;
         self.query_scratch.with(|s| {
             for c0 in (0..n).step_by(QUERY_CHUNK) {
                 let c1 = (c0 + QUERY_CHUNK).min(n);
                 let m = c1 - c0;
-                let pos_enc = grown(&mut s.pos_enc, m * pd);
-                self.pos_enc.forward(&positions[3 * c0..3 * c1], pos_enc);
-                let head = grown(&mut s.head, m * (1 + w));
-                self.trunk.infer(m, pos_enc, &mut s.mlp, head);
+                let head = self.trunk_head(&positions[3 * c0..3 * c1], &mut s.pos_enc, &mut s.head, &mut s.mlp);
                 for k in 0..m {
                     sigma[c0 + k] = head[k * (1 + w)].max(T::zero());
                 }
