@@ -1,12 +1,14 @@
 // Glue between the parts of a field of the form "density network → (σ, features) → colour network
-// on [features, direction encoding]" — the Instant-NGP field (crates/field-hash) and the paper's
-// field (crates/field-freq). One invocation per sample, n = counters[1]. CPU twins: the fields'
+// on [features, direction encoding]" — the Instant-NGP field (crates/field-hash), the paper's
+// field (crates/field-freq) and the voxel field (crates/field-voxel, whose "density network" is
+// its two grids). One invocation per sample, n = counters[1]. CPU twins: the fields'
 // forward_t / backward_t / query_t (each GPU field is compared with its CPU field in its crate).
 //
 //   x = dout[k·dd]  (the density network's first output)
 //   σ = exp(min(x + b, 80))        (act = 0, Instant-NGP; backward: exp(min(x + b, 15)), truncated
 //                                   exp; b = bias, 0 by default, nerfacc's example: −1)
 //   σ = max(x, 0)                  (act = 1, the paper)
+//   σ = s·softplus(x + b)          (act = 2, DVGO; s = scale; backward: s·sigmoid(x + b))
 //   colour input = [dout[feat_start .. dd], dir_enc[0 .. dir_dim]]
 //   backward: d_dout[j] = d_color_in[j − feat_start] for j ≥ feat_start, else 0; d_dout[0] += dσ·σ'(x)
 
@@ -17,8 +19,8 @@ struct GlueParams {
     feat_start: u32,
     act: u32,
     bias: f32,
-    _pad1: u32,
-    _pad2: u32,
+    scale: f32,
+    _pad: u32,
 }
 
 @group(0) @binding(0) var<uniform> gp: GlueParams;
@@ -35,9 +37,26 @@ fn n_samples() -> u32 {
     return min(counters[1], gp.capacity);
 }
 
+// ln(1 + e) for e in [0, 1]: the series where 1 + e would lose e's digits (and where log's
+// absolute error bound, 2^-21 near 1 in Vulkan, would swamp a small result), else log.
+fn log1p_small(e: f32) -> f32 {
+    if (e < 0.01) {
+        return e * (1.0 - e * (0.5 - e * (1.0 / 3.0 - 0.25 * e)));
+    }
+    return log(1.0 + e);
+}
+
+// softplus(z) = max(z, 0) + ln(1 + exp(−|z|)), the CPU's form.
+fn softplus(z: f32) -> f32 {
+    return max(z, 0.0) + log1p_small(exp(-abs(z)));
+}
+
 fn activate(x: f32) -> f32 {
     if (gp.act == 0u) {
         return exp(min(x + gp.bias, 80.0));
+    }
+    if (gp.act == 2u) {
+        return gp.scale * softplus(x + gp.bias);
     }
     return max(x, 0.0);
 }
@@ -45,6 +64,9 @@ fn activate(x: f32) -> f32 {
 fn activation_grad(x: f32) -> f32 {
     if (gp.act == 0u) {
         return exp(min(x + gp.bias, 15.0));
+    }
+    if (gp.act == 2u) {
+        return gp.scale / (1.0 + exp(-(x + gp.bias)));
     }
     return select(0.0, 1.0, x > 0.0);
 }

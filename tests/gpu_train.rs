@@ -390,3 +390,68 @@ fn a_step_larger_than_the_adapters_binding_limit_is_fitted_to_it() {
     let note = summary.metrics["device_note"].as_str().unwrap();
     assert!(note.contains(&format!("batch_rays = {rays} instead of {}", config.batch_rays)), "{note}");
 }
+
+/// A field without a GPU twin (the trait's default `to_gpu`): the voxel field behind a wrapper
+/// that forwards everything else.
+struct CpuOnly(Box<dyn nerf::field::RadianceField>);
+
+impl nerf::field::RadianceField for CpuOnly {
+    fn kind(&self) -> &'static str {
+        "cpu_only"
+    }
+    fn config(&self) -> serde_json::Value {
+        self.0.config()
+    }
+    fn n_params(&self) -> usize {
+        self.0.n_params()
+    }
+    fn density(&self, positions: &[f32], sigma: &mut [f32]) {
+        self.0.density(positions, sigma)
+    }
+    fn query(&self, positions: &[f32], dirs: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
+        self.0.query(positions, dirs, sigma, rgb)
+    }
+    fn forward(&mut self, positions: &[f32], dirs: &[f32], sigma: &mut [f32], rgb: &mut [f32]) {
+        self.0.forward(positions, dirs, sigma, rgb)
+    }
+    fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]) {
+        self.0.backward(d_sigma, d_rgb)
+    }
+    fn zero_grad(&mut self) {
+        self.0.zero_grad()
+    }
+    fn param_groups(&mut self) -> Vec<nerf::field::ParamGroupMut<'_>> {
+        self.0.param_groups()
+    }
+    fn export_params(&self) -> Vec<(String, Vec<f32>)> {
+        self.0.export_params()
+    }
+}
+
+/// `gpu` refuses a field without a twin with an error naming it and the way out; the CPU trains
+/// it as before.
+#[test]
+fn a_field_without_a_gpu_twin_is_refused_on_the_gpu_and_trains_on_the_cpu() {
+    let Some(ctx) = device() else { return };
+    let mut registry = nerf::field::Registry::new();
+    registry.register(nerf::field::RegistryEntry {
+        name: "cpu_only",
+        description: "the voxel field without its GPU twin",
+        default_config: || serde_json::json!({"resolution": 16, "hidden": 16}),
+        train_preset: nerf::field_voxel::train_preset,
+        build: |cfg, ctx| Ok(Box::new(CpuOnly(nerf::field_voxel::build(cfg, ctx)?))),
+    });
+    let train = load(Split::Train, ViewSelection::First(5));
+    let mut config = small_hash_config(2);
+    config.field = "cpu_only".into();
+    config.field_config = serde_json::json!({"resolution": 16, "hidden": 16});
+    let bounds = SceneBounds::of(&train);
+    let e = match Trainer::new_on(config.clone(), &registry, bounds, Some(ctx)) {
+        Ok(_) => panic!("a field without a GPU twin trained on the GPU"),
+        Err(e) => e.to_string(),
+    };
+    assert!(e.contains("cpu_only") && e.contains("no GPU implementation") && e.contains("--device cpu"), "{e}");
+    let mut t = Trainer::new_on(config, &registry, bounds, None).unwrap();
+    t.step(&train).unwrap();
+    assert_eq!((t.device(), t.fields()[0].kind()), ("cpu", "cpu_only"));
+}

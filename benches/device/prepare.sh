@@ -5,7 +5,9 @@
 #   .bin/   nerf.xz: the stripped release binary; COMMIT: the commit it was built from
 #   .bint/  tests3.tar.xz: the stripped GPU test executables named in $DEVICE_TESTS (default
 #           "mlp_coop linear kernels-bench": what device_all.sh and device_check.sh run; the
-#           tool's 64 MiB do not hold all eleven beside .data) and the kernel bench
+#           tool's 64 MiB do not hold all thirteen beside .data; dense_grid and voxel_gpu
+#           check the voxel field's twin, run `voxel_gpu --skip training` there: its training
+#           test reads the in-repo scene) and the kernel bench
 #           (DEVICE_TESTS=all packs every one, for h100_coop.sh without .data)
 #   .data/  lego: ../shared's lego scene, all train views and every 8th test view (h100_lego.sh,
 #           h100_final.sh, h100_render.sh, h100_coop.sh)
@@ -50,15 +52,17 @@ for line in sys.stdin:
         print(m["target"]["name"] + "\t" + m["package_id"].split("#")[0].rstrip("/").split("/")[-1] + "\t" + m["executable"])'
   }
   {
-    executables test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --test compact --test encoding --test mlp --no-run
+    executables test --release -p nerf-gpu --test mlp_coop --test sampling --test linear --test optim --test profile --test compact --test encoding --test mlp --test dense_grid --no-run
     executables test --release -p nerf-field-hash --test gpu --no-run
     executables test --release -p nerf-field-freq --test gpu --no-run
+    executables test --release -p nerf-field-voxel --test gpu --no-run
     executables bench -p nerf-gpu --bench kernels --no-run
   } | while IFS=$'\t' read -r name pkg exe; do
     case "$pkg:$name" in
       *kernels) out=kernels-bench ;;
       *freq*:gpu) out=freq_gpu ;;
       *hash*:gpu) out=hash_gpu ;;
+      *voxel*:gpu) out=voxel_gpu ;;
       *) out=$name ;;
     esac
     case " ${DEVICE_TESTS:-mlp_coop linear kernels-bench} " in

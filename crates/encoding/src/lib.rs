@@ -1,6 +1,7 @@
 //! Input encodings as reusable parts: NeRF's frequency (positional) encoding, Instant-NGP's
-//! multiresolution hash grid ([`HashGrid`]) and the spherical-harmonics direction encoding
-//! ([`SphericalHarmonics`]).
+//! multiresolution hash grid ([`HashGrid`]), the spherical-harmonics direction encoding
+//! ([`SphericalHarmonics`]) and a dense trilinear grid ([`DenseGrid`], DVGO's voxel grids;
+//! tiny-cuda-nn's `DenseGrid` encoding).
 //!
 //! An [`Encoding`] maps `input_dim` floats per sample to `output_dim` floats per sample, with a
 //! hand-written backward pass. Batches are row-major: sample `k`'s input is
@@ -13,9 +14,11 @@ use nerf_core::Real;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+pub mod dense_grid;
 pub mod hash_grid;
 pub mod sh;
 
+pub use dense_grid::{DenseGrid, DenseGridError};
 pub use hash_grid::{spatial_hash, GridAlign, HashGrid, HashGridConfig, HashGridConfigError, Precision};
 pub use sh::{ShConfig, ShConfigError, SphericalHarmonics};
 

@@ -17,9 +17,9 @@
 //! Positions are normalised to `[0,1]³` with the [`FieldContext`] box and clamped. Everything is
 //! generic over [`Real`] so the whole field is finite-difference checked in `f64`.
 
-pub mod grid;
+pub mod gpu;
 
-pub use grid::{DenseGrid, GridError};
+pub use nerf_encoding::{DenseGrid, DenseGridError};
 
 use nerf_core::Real;
 use nerf_encoding::{Encoding, FrequencyEncoding, FrequencyEncodingConfig};
@@ -387,6 +387,13 @@ impl RadianceField for VoxelNerf<f32> {
     }
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]) {
         self.backward_t(d_sigma, d_rgb)
+    }
+    fn to_gpu(
+        &self,
+        ctx: &nerf_field::GpuContext,
+        capacity: usize,
+    ) -> Option<Result<Box<dyn nerf_field::GpuRadianceField>, FieldError>> {
+        Some(gpu::GpuVoxelNerf::new(self, ctx, capacity).map(|f| Box::new(f) as Box<dyn nerf_field::GpuRadianceField>))
     }
     fn zero_grad(&mut self) {
         use rayon::prelude::*;

@@ -1,7 +1,7 @@
 //! Input encodings on the GPU: Instant-NGP's multiresolution hash grid (forward, parameter
-//! backward and the gradient w.r.t. the positions), the spherical-harmonics direction encoding
-//! (forward and the gradient w.r.t. the directions) and NeRF's frequency encoding (forward
-//! only). Each matches its CPU twin in `nerf-encoding` (same layouts, formulas and summation
+//! backward and the gradient w.r.t. the positions), a dense trilinear grid (DVGO's voxel grids:
+//! forward and parameter backward), the spherical-harmonics direction encoding (forward and the
+//! gradient w.r.t. the directions) and NeRF's frequency encoding (forward only). Each matches its CPU twin in `nerf-encoding` (same layouts, formulas and summation
 //! order; the tests compare them on random inputs).
 //!
 //! Every wrapper compiles its pipelines once in `new` and only RECORDS dispatches into the
@@ -14,7 +14,7 @@ use crate::dispatch::Launch;
 use crate::kernel::{groups_1d, Bound, Kernel};
 use crate::{shaders, GpuContext, GpuError};
 use nerf_encoding::{FrequencyEncodingConfig, HashGrid, HashGridConfig, Precision, ShConfig};
-pub use crate::layout::{HashGridParams};
+pub use crate::layout::{DenseGridParams, HashGridParams};
 
 /// Largest number of levels the hash-grid uniform holds (`HashGridConfig::validate` allows 64).
 pub const MAX_HASH_LEVELS: usize = 64;
@@ -101,7 +101,7 @@ fn inv_extent(aabb_min: [f32; 3], aabb_max: [f32; 3]) -> Result<[f32; 3], GpuErr
 /// `src` without the lines between `//#begin NAME` and `//#end NAME`.
 fn strip_section(src: &str, name: &str) -> String {
     let (begin, end) = (format!("//#begin {name}"), format!("//#end {name}"));
-    assert!(src.contains(&begin) && src.contains(&end), "hash_grid.wgsl lost its `{name}` section");
+    assert!(src.contains(&begin) && src.contains(&end), "a WGSL source lost its `{name}` section");
     let mut out = String::with_capacity(src.len());
     let mut skipping = false;
     for line in src.lines() {
@@ -410,6 +410,157 @@ impl GpuHashGrid {
         assert!(params.size() >= 4 * self.n_params() as u64, "GpuHashGrid: params hold fewer than {} floats", self.n_params());
         let b = [(0, &self.uniform), (1, counters), (2, positions), (5, d_enc), (10, params), (11, d_positions)];
         launch.record(&self.input_grad, ctx, enc, &b, 1, HASH_WG, 1);
+    }
+}
+
+/// Workgroup size of the dense-grid kernels.
+const DENSE_WG: u32 = 128;
+
+/// A dense trilinear grid on the GPU (`shaders/dense_grid.wgsl`), twin of
+/// [`nerf_encoding::DenseGrid`] read at world positions normalised to the scene box as
+/// `nerf-field-voxel` does (`clamp((p − aabb_min)·inv_extent, 0, 1)`, NaN → 0). Its values, times
+/// a constant `scale`, go to columns `col .. col + C` of output rows of `stride` floats, so the
+/// grids of a field can fill the columns of one buffer; the backward reads its gradient from the
+/// same columns and adds `scale ·` it to the parameters' gradient.
+pub struct GpuDenseGrid {
+    params: DenseGridParams,
+    uniform: wgpu::Buffer,
+    forward: Kernel,
+    backward: Kernel,
+    float_atomics: bool,
+}
+
+impl GpuDenseGrid {
+    /// The pipelines for a grid of `resolution` cells per axis and `channels` values per vertex
+    /// over the box at `aabb_min` with `1/extent` = `inv_extent`, writing `scale ·` its values to
+    /// columns `col..col + channels` of rows of `stride` floats (`(stride, col)`). The backward adds
+    /// with float atomics when the adapter has them (unless `mode` is
+    /// [`AtomicMode::CompareExchange`]; there are no subgroup sums here, so `SubgroupSums` is
+    /// `Auto`).
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        ctx: &GpuContext,
+        resolution: usize,
+        channels: usize,
+        aabb_min: [f32; 3],
+        inv_extent: [f32; 3],
+        scale: f32,
+        (stride, col): (usize, usize),
+        mode: AtomicMode,
+    ) -> Result<Self, GpuError> {
+        let bad = |m: String| Err(GpuError::Unsupported(format!("dense grid: {m}")));
+        let grid = nerf_encoding::DenseGrid::<f32>::zeros(resolution, channels);
+        if let Err(e) = grid {
+            return bad(e.to_string());
+        }
+        if col + channels > stride {
+            return bad(format!("columns {col}..{} do not fit rows of {stride} floats", col + channels));
+        }
+        if !(aabb_min.iter().chain(&inv_extent).all(|v| v.is_finite()) && inv_extent.iter().all(|&v| v > 0.0)) {
+            return bad(format!("scene box at {aabb_min:?} with 1/extent {inv_extent:?} (need finite values and 1/extent > 0)"));
+        }
+        if !scale.is_finite() {
+            return bad(format!("scale {scale} is not finite"));
+        }
+        let n_vertices = (resolution + 1).pow(3);
+        let n_params = n_vertices * channels;
+        let max_binding = ctx.device.limits().max_storage_buffer_binding_size;
+        if n_params as u64 * 4 > max_binding || n_params > u32::MAX as usize {
+            return bad(format!(
+                "{n_params} parameters ({} MiB) exceed the adapter's largest storage binding ({} MiB); lower the resolution",
+                (n_params * 4) >> 20,
+                max_binding >> 20
+            ));
+        }
+        let params = DenseGridParams {
+            aabb_min,
+            res: resolution as u32,
+            inv_extent,
+            channels: channels as u32,
+            stride: stride as u32,
+            col: col as u32,
+            scale,
+            n_vertices: n_vertices as u32,
+        };
+        let float_atomics = mode != AtomicMode::CompareExchange && ctx.features.float32_atomics;
+        let mut src = shaders::DENSE_GRID.to_string();
+        if !float_atomics {
+            src = strip_section(&src, "f32-atomics");
+        }
+        let module = ctx.shader_module("dense_grid.wgsl", &shaders::with_common(&src));
+        let constants = [("WG", DENSE_WG as f64)];
+        let backward_entry = if float_atomics { "dense_backward_atomic" } else { "dense_backward_cas" };
+        Ok(Self {
+            uniform: ctx.uniform("dense_grid_params", &params),
+            params,
+            forward: Kernel::from_module(ctx, &module, "dense_forward", &constants),
+            backward: Kernel::from_module(ctx, &module, backward_entry, &constants),
+            float_atomics,
+        })
+    }
+
+    /// The uniform the kernels read.
+    pub fn params(&self) -> &DenseGridParams {
+        &self.params
+    }
+
+    /// Number of `f32` parameters, `C·(R+1)³` (the length of the params and grads buffers).
+    pub fn n_params(&self) -> usize {
+        self.params.n_vertices as usize * self.params.channels as usize
+    }
+
+    /// Whether the backward adds with `atomic<f32>` (else the compare-and-swap loop).
+    pub fn uses_float_atomics(&self) -> bool {
+        self.float_atomics
+    }
+
+    fn check(&self, what: &str, positions: &wgpu::Buffer, rows: &wgpu::Buffer, params: &wgpu::Buffer, launch: &Launch<'_>) {
+        let capacity = launch.capacity();
+        let stride = self.params.stride as usize;
+        assert!(positions.size() >= 12 * capacity as u64, "GpuDenseGrid: positions hold fewer than {capacity} samples");
+        assert!(rows.size() >= 4 * (capacity * stride) as u64, "GpuDenseGrid: {what} holds fewer than {capacity}·{stride} floats");
+        assert!(params.size() >= 4 * self.n_params() as u64, "GpuDenseGrid: params hold fewer than {} floats", self.n_params());
+    }
+
+    /// Records the forward for the `n = counters[1]` samples of `positions` (`[n][3]`, world
+    /// units): `out[i·stride + col + c] = scale · (interpolation of channel c)`, reading `params`
+    /// (`n_params()` f32, [`nerf_encoding::DenseGrid::params`]' layout); the rows' other columns
+    /// are left as they are. Buffers hold at least `launch.capacity()` samples.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_forward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        params: &wgpu::Buffer,
+        out: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        self.check("out", positions, out, params, &launch);
+        let b = [(0, &self.uniform), (1, counters), (2, positions), (3, params), (4, out)];
+        launch.record(&self.forward, ctx, enc, &b, 1, DENSE_WG, 1);
+    }
+
+    /// Records the backward: ADDS `scale · w · d_out[i·stride + col + c]` to the gradient of every
+    /// corner `w` of sample `i`'s cell in channel `c` (`grads`: the params' layout) for the
+    /// `n = counters[1]` samples of `positions`. No gradient w.r.t. the positions. The order of
+    /// the atomic additions is unspecified, so sums differ from the CPU's in the last bits.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_backward(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        positions: &wgpu::Buffer,
+        d_out: &wgpu::Buffer,
+        grads: &wgpu::Buffer,
+        launch: Launch<'_>,
+    ) {
+        self.check("d_out", positions, d_out, grads, &launch);
+        let slot = if self.float_atomics { 7 } else { 6 };
+        let b = [(0, &self.uniform), (1, counters), (2, positions), (5, d_out), (slot, grads)];
+        launch.record(&self.backward, ctx, enc, &b, 1, DENSE_WG, 1);
     }
 }
 

@@ -1,5 +1,5 @@
 //! [`FieldGlue`]: the kernels of `shaders/field_glue.wgsl` that join a field's density network, its
-//! σ activation and its colour network (used by the hash-grid and the paper's field).
+//! σ activation and its colour network (used by the hash-grid, the paper's and the voxel field).
 
 use crate::dispatch::Launch;
 use crate::kernel::{Bound, Kernel};
@@ -17,6 +17,15 @@ pub enum SigmaActivation {
     },
     /// `σ = max(x, 0)` (the paper).
     Relu,
+    /// `σ = scale · softplus(x + shift)`, gradient `scale · sigmoid(x + shift)` (DVGO's density
+    /// activation; the voxel field's `shift` starts it almost empty, its `scale` is
+    /// `1 / voxel_size`).
+    Softplus {
+        /// Added to `x` before the softplus.
+        shift: f32,
+        /// Factor on the softplus.
+        scale: f32,
+    },
 }
 
 /// The glue kernels for one field shape.
@@ -36,9 +45,10 @@ impl FieldGlue {
     pub fn new(ctx: &GpuContext, dd: usize, dir_dim: usize, feat_start: usize, act: SigmaActivation, capacity: usize) -> Self {
         assert!(feat_start < dd.max(1) || dd == 0);
         let module = ctx.shader_module("field_glue.wgsl", &shaders::with_common(shaders::FIELD_GLUE));
-        let (act, bias) = match act {
-            SigmaActivation::TruncExp { bias } => (0, bias),
-            SigmaActivation::Relu => (1, 0.0),
+        let (act, bias, scale) = match act {
+            SigmaActivation::TruncExp { bias } => (0, bias, 1.0),
+            SigmaActivation::Relu => (1, 0.0, 1.0),
+            SigmaActivation::Softplus { shift, scale } => (2, shift, scale),
         };
         let p = GlueParams {
             dd: dd as u32,
@@ -47,7 +57,8 @@ impl FieldGlue {
             feat_start: feat_start as u32,
             act,
             bias,
-            _pad: [0; 2],
+            scale,
+            _pad: 0,
         };
         Self {
             assemble: Kernel::from_module(ctx, &module, "assemble", &[]),

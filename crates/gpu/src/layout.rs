@@ -79,6 +79,28 @@ pub struct HashGridParams {
     pub scales: [[f32; 4]; crate::encoding::MAX_HASH_LEVELS / 4],
 }
 
+/// `Params` of `shaders/dense_grid.wgsl` (uniform; 48 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct DenseGridParams {
+    /// Lower corner of the scene box (world units).
+    pub aabb_min: [f32; 3],
+    /// Cells per axis `R`.
+    pub res: u32,
+    /// `1 / (aabb_max − aabb_min)` per axis (the field's own, as it normalises on the CPU).
+    pub inv_extent: [f32; 3],
+    /// Values per vertex `C`.
+    pub channels: u32,
+    /// Floats per row of the output (and of its gradient).
+    pub stride: u32,
+    /// Column of channel 0 in those rows.
+    pub col: u32,
+    /// Factor on the interpolated values and on their gradient.
+    pub scale: f32,
+    /// Vertices `(R+1)³` (one channel's length in the parameters).
+    pub n_vertices: u32,
+}
+
 // ---- glue.rs ----
 /// `GlueParams` of `shaders/field_glue.wgsl`.
 #[repr(C)]
@@ -92,12 +114,14 @@ pub struct GlueParams {
     pub capacity: u32,
     /// First density output that feeds the colour network (0: all of them, 1: all but σ's).
     pub feat_start: u32,
-    /// 0 = truncated exp, 1 = ReLU.
+    /// 0 = truncated exp, 1 = ReLU, 2 = scaled softplus.
     pub act: u32,
-    /// Added to the density output before the truncated exp (0 for ReLU).
+    /// Added to the density output before the truncated exp or the softplus (0 for ReLU).
     pub bias: f32,
+    /// Factor on the softplus (1 for the others, which do not read it).
+    pub scale: f32,
     /// Padding.
-    pub _pad: [u32; 2],
+    pub _pad: u32,
 }
 
 // ---- linear.rs ----

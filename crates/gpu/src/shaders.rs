@@ -24,6 +24,8 @@ pub const SCAN: &str = wgsl!("scan.wgsl");
 pub const OCCUPANCY: &str = wgsl!("occupancy.wgsl");
 /// Multiresolution hash encoding forward/backward.
 pub const HASH_GRID: &str = wgsl!("hash_grid.wgsl");
+/// Dense trilinear grid (DVGO's voxel grids) forward/backward; CPU twin `nerf_encoding::DenseGrid`.
+pub const DENSE_GRID: &str = wgsl!("dense_grid.wgsl");
 /// Spherical-harmonics direction encoding.
 pub const SH: &str = wgsl!("sh.wgsl");
 /// Frequency (positional) encoding.
@@ -62,6 +64,7 @@ pub const ALL: &[(&str, &str)] = &[
     ("compact.wgsl", COMPACT),
     ("occupancy.wgsl", OCCUPANCY),
     ("hash_grid.wgsl", HASH_GRID),
+    ("dense_grid.wgsl", DENSE_GRID),
     ("sh.wgsl", SH),
     ("frequency.wgsl", FREQUENCY),
     ("mlp_fused.wgsl", MLP_FUSED),

@@ -26,6 +26,11 @@ fn sigma_of(act: SigmaActivation, x: f32) -> f32 {
     match act {
         SigmaActivation::TruncExp { bias } => (x + bias).min(80.0).exp(),
         SigmaActivation::Relu => x.max(0.0),
+        // In f64: the reference for the kernel's ln(1 + e) series at small e.
+        SigmaActivation::Softplus { shift, scale } => {
+            let z = x as f64 + shift as f64;
+            (scale as f64 * (z.max(0.0) + (-z.abs()).exp().ln_1p())) as f32
+        }
     }
 }
 
@@ -33,6 +38,7 @@ fn sigma_grad(act: SigmaActivation, x: f32) -> f32 {
     match act {
         SigmaActivation::TruncExp { bias } => (x + bias).min(15.0).exp(),
         SigmaActivation::Relu => (x > 0.0) as u32 as f32,
+        SigmaActivation::Softplus { shift, scale } => scale / (1.0 + (-(x + shift)).exp()),
     }
 }
 
@@ -91,6 +97,12 @@ fn check(ctx: &GpuContext, s: &Shape, capacity: usize, n: usize, indirect: bool,
             "sigma",
             k,
         );
+        if live && matches!(s.act, SigmaActivation::Softplus { .. }) {
+            // Relative as well: the voxel field starts with σ ≈ 1e-5 everywhere, where an
+            // absolute bound says nothing.
+            let want = sigma_of(s.act, x);
+            assert!((sigma[k] - want).abs() <= 1e-4 * want.abs(), "{what}: sigma[{k}] = {}, expected {want}", sigma[k]);
+        }
         for j in 0..w {
             let want = match (live, j < s.dd - s.feat_start) {
                 (false, _) => POISON,
@@ -150,6 +162,21 @@ fn glue_matches_its_cpu_twin() {
             dir_dim: 7,
             feat_start: 0,
             act: SigmaActivation::TruncExp { bias: -1.0 },
+        },
+        // The voxel field: σ from its density grid (column 0), 12 features from its feature grid,
+        // 27 direction encodings; DVGO's shift for alpha_init 1e-6 (σ ≈ 1e-5: the ln(1 + e)
+        // series) and a shift near 0 (the log).
+        Shape {
+            dd: 13,
+            dir_dim: 27,
+            feat_start: 1,
+            act: SigmaActivation::Softplus { shift: -13.8155, scale: 42.7 },
+        },
+        Shape {
+            dd: 3,
+            dir_dim: 2,
+            feat_start: 1,
+            act: SigmaActivation::Softplus { shift: 0.5, scale: 0.75 },
         },
     ];
     let mut seed = 10;

@@ -15,7 +15,7 @@ const CHUNK: usize = 4096;
 
 /// Errors raised when a [`DenseGrid`] is built.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
-pub enum GridError {
+pub enum DenseGridError {
     /// The resolution is zero or the lattice would not fit in memory.
     #[error("dense grid: resolution must be in 1..=1024, got {0}")]
     Resolution(usize),
@@ -44,12 +44,12 @@ struct Cell<T> {
 
 impl<T: Real> DenseGrid<T> {
     /// A grid of `resolution` cells per axis (`resolution + 1` vertices) with every value zero.
-    pub fn zeros(resolution: usize, channels: usize) -> Result<Self, GridError> {
+    pub fn zeros(resolution: usize, channels: usize) -> Result<Self, DenseGridError> {
         if !(1..=1024).contains(&resolution) {
-            return Err(GridError::Resolution(resolution));
+            return Err(DenseGridError::Resolution(resolution));
         }
         if channels == 0 {
-            return Err(GridError::Channels(channels));
+            return Err(DenseGridError::Channels(channels));
         }
         let v = (resolution + 1).pow(3);
         Ok(Self { resolution, channels, params: vec![T::zero(); v * channels] })
@@ -61,7 +61,7 @@ impl<T: Real> DenseGrid<T> {
         channels: usize,
         scale: f64,
         rng: &mut nerf_core::Rng,
-    ) -> Result<Self, GridError> {
+    ) -> Result<Self, DenseGridError> {
         use rand::Rng as _;
         let mut g = Self::zeros(resolution, channels)?;
         for p in &mut g.params {
@@ -267,5 +267,127 @@ impl<T: Real> DenseGrid<T> {
             assert_eq!(d_in.len(), 3 * n, "DenseGrid::backward: d_input length");
             self.input_grad_chunk(input, d_out, d_in);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::needless_range_loop)] // index loops read best in finite-difference checks
+
+    use super::*;
+    use rand::Rng as _;
+
+    /// Points in `[0,1]³` whose fractional cell coordinates stay ≥ 0.05 from every face, so a
+    /// finite-difference step never crosses a cell boundary (where trilinear interpolation has a kink).
+    fn interior_points(n: usize, res: usize, rng: &mut nerf_core::Rng) -> Vec<f64> {
+        let mut out = Vec::new();
+        while out.len() < 3 * n {
+            let p: [f64; 3] = [rng.gen_range(0.0..1.0), rng.gen_range(0.0..1.0), rng.gen_range(0.0..1.0)];
+            if p.iter().all(|&x| (0.05..0.95).contains(&(x * res as f64).fract())) {
+                out.extend_from_slice(&p);
+            }
+        }
+        out
+    }
+
+    fn check(fd: f64, g: f64, what: &str) {
+        assert!((fd - g).abs() <= 1e-7 + 1e-5 * fd.abs().max(g.abs()), "{what}: fd {fd} vs analytic {g}");
+    }
+
+    #[test]
+    fn grid_returns_stored_values_at_vertices_and_clamps() {
+        let mut rng = nerf_core::rng(1, 0);
+        let g = DenseGrid::<f64>::uniform(5, 3, 1.0, &mut rng).unwrap();
+        let mut pts = Vec::new();
+        let mut want = Vec::new();
+        for z in 0..=5 {
+            for y in [0, 2, 5] {
+                for x in [0, 1, 4, 5] {
+                    pts.extend([x as f64 / 5.0, y as f64 / 5.0, z as f64 / 5.0]);
+                    want.extend((0..3).map(|c| g.params()[g.index(c, [x, y, z])]));
+                }
+            }
+        }
+        let mut out = vec![0.0; want.len()];
+        g.forward(&pts, &mut out);
+        for (o, w) in out.iter().zip(&want) {
+            assert!((o - w).abs() < 1e-12, "{o} vs {w}");
+        }
+        // Outside the box the value of the nearest face point is returned.
+        let (mut a, mut b) = ([0.0; 3], [0.0; 3]);
+        g.forward(&[-0.5, 0.3, 1.7], &mut a);
+        g.forward(&[0.0, 0.3, 1.0], &mut b);
+        assert_eq!(a, b);
+        // Midpoint of an edge = mean of its two vertices.
+        let mut m = [0.0; 3];
+        g.forward(&[0.3, 0.4, 0.6], &mut m);
+        for c in 0..3 {
+            let v = 0.5 * (g.params()[g.index(c, [1, 2, 3])] + g.params()[g.index(c, [2, 2, 3])]);
+            assert!((m[c] - v).abs() < 1e-12);
+        }
+        assert!(DenseGrid::<f32>::zeros(0, 1).is_err() && DenseGrid::<f32>::zeros(4, 0).is_err());
+    }
+
+    #[test]
+    fn grid_backward_matches_finite_differences_f64() {
+        let mut rng = nerf_core::rng(2, 0);
+        let (res, ch, n) = (3, 2, 6);
+        let mut g = DenseGrid::<f64>::uniform(res, ch, 1.0, &mut rng).unwrap();
+        let x = interior_points(n, res, &mut rng);
+        let w: Vec<f64> = (0..n * ch).map(|_| rng.gen_range(-1.0..1.0)).collect();
+        let loss = |g: &DenseGrid<f64>, x: &[f64]| {
+            let mut o = vec![0.0; n * ch];
+            g.forward(x, &mut o);
+            o.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let mut dp = vec![0.0; g.params().len()];
+        let mut dx = vec![0.0; 3 * n];
+        g.backward(&x, &w, &mut dp, Some(&mut dx));
+        let h = 1e-6;
+        let mut touched = 0;
+        for i in 0..dp.len() {
+            let orig = g.params()[i];
+            g.params_mut()[i] = orig + h;
+            let lp = loss(&g, &x);
+            g.params_mut()[i] = orig - h;
+            let lm = loss(&g, &x);
+            g.params_mut()[i] = orig;
+            check((lp - lm) / (2.0 * h), dp[i], &format!("param {i}"));
+            touched += (dp[i] != 0.0) as usize;
+        }
+        assert!(touched >= 16, "only {touched} vertices received gradient");
+        for i in 0..3 * n {
+            let mut xp = x.clone();
+            xp[i] += h;
+            let mut xm = x.clone();
+            xm[i] -= h;
+            check((loss(&g, &xp) - loss(&g, &xm)) / (2.0 * h), dx[i], &format!("input {i}"));
+        }
+        assert!(dx.iter().all(|v| v.abs() > 1e-9), "input gradient vanished");
+    }
+
+    #[test]
+    fn grid_parallel_equals_serial_bit_identically() {
+        let mut rng = nerf_core::rng(3, 0);
+        let g = DenseGrid::<f32>::uniform(8, 5, 1.0, &mut rng).unwrap();
+        let n = 20_000; // several parallel chunks
+        let x: Vec<f32> = (0..3 * n).map(|_| rng.gen_range(-0.1..1.1)).collect();
+        let d: Vec<f32> = (0..5 * n).map(|_| rng.gen_range(-1.0..1.0)).collect();
+        let (mut o1, mut o2) = (vec![0.0; 5 * n], vec![1.0; 5 * n]);
+        g.forward(&x, &mut o1);
+        g.forward_serial(&x, &mut o2);
+        assert_eq!(o1, o2);
+        let (mut p1, mut p2) = (vec![0.5f32; g.params().len()], vec![0.5f32; g.params().len()]);
+        let (mut x1, mut x2) = (vec![0.0; 3 * n], vec![1.0; 3 * n]);
+        g.backward(&x, &d, &mut p1, Some(&mut x1));
+        g.backward_serial(&x, &d, &mut p2, Some(&mut x2));
+        assert!(p1.iter().zip(&p2).all(|(a, b)| a.to_bits() == b.to_bits()), "parameter gradients differ");
+        assert!(x1.iter().zip(&x2).all(|(a, b)| a.to_bits() == b.to_bits()), "input gradients differ");
+        assert!(p1.iter().filter(|&&v| v != 0.5).count() > 1000, "backward accumulated nothing");
+        // Accumulates: a second call doubles the increment.
+        let mut p3 = p1.clone();
+        g.backward(&x, &d, &mut p3, None);
+        let i = p1.iter().position(|&v| (v - 0.5).abs() > 1e-2).unwrap();
+        assert!(((p3[i] - 0.5) - 2.0 * (p1[i] - 0.5)).abs() < 1e-3 * (p1[i] - 0.5).abs().max(1.0));
     }
 }
