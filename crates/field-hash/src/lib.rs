@@ -699,40 +699,23 @@ pub fn default_config() -> serde_json::Value {
     serde_json::to_value(HashNerfConfig::default()).expect("config serialises")
 }
 
-/// The training recipe of instant-ngp, adapted to a CPU: a JSON patch over the trainer's config.
+/// The training recipe of instant-ngp, adapted to a CPU: a JSON patch over the trainer's config,
+/// the grid fields' [`nerf_field::grid_field_preset`] (occupancy-grid marching, 2^16 samples per
+/// step, random training backgrounds, Adam 1e-2 with instant-ngp's β and ε, step decay over 20k
+/// steps, early ray termination) and two keys of its own:
 ///
-/// - sampler: occupancy grid 128³ (EMA decay 0.95, threshold 0.01, update every 16 steps, 256 warm-up
-///   steps), marching step √3·3/1024 ≈ 5e-3 for the 3-unit Blender box, at most 1024 samples per ray;
-/// - batch: rays per step adapt to 2^16 samples per step (instant-ngp uses 2^18 on a GPU; on 2 CPU
-///   cores 2^16 gives ~4x more optimiser steps per minute, which matters more early on);
-/// - random background colour per training ray, white for evaluation;
-/// - Adam lr 1e-2, β = (0.9, 0.99), ε = 1e-15; step decay ×0.33 at 50 %, 75 % and 90 % of 20k steps;
 /// - rendering with an exponential moving average of the weights (decay 0.95, tiny-cuda-nn's `Ema`:
 ///   +0.4 dB on the in-repo scene after ~800 CPU steps, docs/results.md);
-/// - compositing stops once transmittance falls below 1e-4, and training runs on compacted samples
-///   (`compact_samples`: a density pass over every marched sample, forward and backward only on
-///   those before that stop, the 2^16 target counting these): +0.51 / +0.42 dB on lego at 400×400
-///   after 5 CPU minutes (2 seeds, docs/results.md);
-/// - the MSE loss: instant-ngp's Huber loss (`loss = { kind = "huber", delta = 0.1 }`) helped on
-///   the in-repo scene but cost 0.43 dB on lego at 400×400 after 5 CPU minutes (docs/results.md).
+/// - training on compacted samples (`compact_samples`: a density pass over every marched sample,
+///   forward and backward only on those before the early stop at transmittance 1e-4, the 2^16
+///   target counting these): +0.51 / +0.42 dB on lego at 400×400 after 5 CPU minutes (2 seeds,
+///   docs/results.md).
+///
+/// The loss stays the MSE: instant-ngp's Huber loss (`loss = { kind = "huber", delta = 0.1 }`)
+/// helped on the in-repo scene but cost 0.43 dB on lego at 400×400 after 5 CPU minutes
+/// (docs/results.md).
 pub fn train_preset() -> serde_json::Value {
-    serde_json::json!({
-        "sampler": {
-            "kind": "occupancy",
-            "grid": { "resolution": 128, "decay": 0.95, "threshold": 0.01, "update_every": 16, "warmup_steps": 256 },
-            "step_size": 0.005,
-            "max_samples_per_ray": 1024
-        },
-        "target_samples_per_step": 65536,
-        "iters": 20000,
-        "train_background": "random",
-        "eval_background": "white",
-        "transmittance_threshold": 1e-4,
-        "compact_samples": true,
-        "adam": { "beta1": 0.9, "beta2": 0.99, "eps": 1e-15 },
-        "ema_decay": 0.95,
-        "lr": { "kind": "step", "lr0": 1e-2, "gamma": 0.33, "milestones": [10000, 15000, 18000] },
-        "log_every": 100,
-        "checkpoint_every": 2000
-    })
+    let mut preset = nerf_field::grid_field_preset();
+    nerf_field::merge_json(&mut preset, &serde_json::json!({ "compact_samples": true, "ema_decay": 0.95 }));
+    preset
 }

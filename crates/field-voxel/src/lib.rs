@@ -440,30 +440,12 @@ pub fn default_config() -> serde_json::Value {
     serde_json::to_value(VoxelNerfConfig::default()).expect("config serialises")
 }
 
-/// Training recipe: the same as the hash field's (instant-ngp's, adapted to a CPU), as a JSON
-/// patch over the trainer's config — occupancy-grid marching (128³, EMA 0.95, threshold 0.01,
-/// update every 16 steps, 256 warm-up steps, step 5e-3, ≤ 1024 samples per ray), 2^16 samples per
-/// step, random training background, white for evaluation, Adam lr 1e-2 with β = (0.9, 0.99),
-/// ε = 1e-15 and step decay ×0.33 at 50 %, 75 % and 90 % of 20k steps, early ray termination at
-/// transmittance 1e-4.
+/// Training recipe: the grid fields' ([`nerf_field::grid_field_preset`], instant-ngp's adapted to a
+/// CPU) as it is — occupancy-grid marching, 2^16 samples per step, random training backgrounds,
+/// Adam 1e-2 with step decay over 20k steps, early ray termination — without the hash field's
+/// moving average and compacted samples.
 pub fn train_preset() -> serde_json::Value {
-    serde_json::json!({
-        "sampler": {
-            "kind": "occupancy",
-            "grid": { "resolution": 128, "decay": 0.95, "threshold": 0.01, "update_every": 16, "warmup_steps": 256 },
-            "step_size": 0.005,
-            "max_samples_per_ray": 1024
-        },
-        "target_samples_per_step": 65536,
-        "iters": 20000,
-        "train_background": "random",
-        "eval_background": "white",
-        "transmittance_threshold": 1e-4,
-        "adam": { "beta1": 0.9, "beta2": 0.99, "eps": 1e-15 },
-        "lr": { "kind": "step", "lr0": 1e-2, "gamma": 0.33, "milestones": [10000, 15000, 18000] },
-        "log_every": 100,
-        "checkpoint_every": 2000
-    })
+    nerf_field::grid_field_preset()
 }
 
 /// The registry entry (`"voxel"`), for a program's `nerf_field::Registry`.

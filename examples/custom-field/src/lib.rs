@@ -287,25 +287,12 @@ pub fn default_config() -> serde_json::Value {
     serde_json::to_value(PlenoxelsConfig::default()).expect("config serialises")
 }
 
-/// The training recipe, a JSON patch over the trainer's config: the grid fields' (occupancy-grid
-/// marching at step 5e-3, 2^16 samples per step, random training backgrounds, Adam 1e-2 with
-/// β = (0.9, 0.99), ε = 1e-15, early ray termination).
+/// The training recipe, a JSON patch over the trainer's config: the one nerf-rs's grid fields share
+/// ([`nerf::field::grid_field_preset`]: occupancy-grid marching at step 5e-3, 2^16 samples per
+/// step, random training backgrounds, Adam 1e-2 with β = (0.9, 0.99), ε = 1e-15, early ray
+/// termination).
 pub fn train_preset() -> serde_json::Value {
-    serde_json::json!({
-        "sampler": {
-            "kind": "occupancy",
-            "grid": { "resolution": 128, "decay": 0.95, "threshold": 0.01, "update_every": 16, "warmup_steps": 256 },
-            "step_size": 0.005,
-            "max_samples_per_ray": 1024
-        },
-        "target_samples_per_step": 65536,
-        "iters": 20000,
-        "train_background": "random",
-        "eval_background": "white",
-        "transmittance_threshold": 1e-4,
-        "adam": { "beta1": 0.9, "beta2": 0.99, "eps": 1e-15 },
-        "lr": { "kind": "step", "lr0": 1e-2, "gamma": 0.33, "milestones": [10000, 15000, 18000] }
-    })
+    nerf::field::grid_field_preset()
 }
 
 /// The registry entry: `registry.register(nerf_plenoxels::registry_entry())`.
