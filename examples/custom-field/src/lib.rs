@@ -18,6 +18,12 @@
 //!
 //! What it leaves out of Plenoxels: the sparse grid and its coarse-to-fine pruning (this grid is
 //! dense, so memory grows as `resolution³`), the total-variation and sparsity losses, and RMSProp.
+//!
+//! It trains and renders on a GPU too: [`gpu::GpuPlenoxels`] composes nerf-rs's public GPU parts
+//! with one WGSL file of this crate's (`shaders/plenoxels.wgsl`), returned by
+//! [`RadianceField::to_gpu`].
+
+pub mod gpu;
 
 use nerf::core::Real;
 use nerf::encoding::{DenseGrid, Encoding, ShConfig, SphericalHarmonics};
@@ -257,6 +263,9 @@ impl RadianceField for Plenoxels<f32> {
     }
     fn backward(&mut self, d_sigma: &[f32], d_rgb: &[f32]) {
         self.backward_t(d_sigma, d_rgb)
+    }
+    fn to_gpu(&self, ctx: &nerf::field::GpuContext, capacity: usize) -> Option<Result<Box<dyn nerf::field::GpuRadianceField>, FieldError>> {
+        Some(gpu::GpuPlenoxels::new(self, ctx, capacity).map(|f| Box::new(f) as Box<dyn nerf::field::GpuRadianceField>))
     }
     fn zero_grad(&mut self) {
         self.density_grad.fill(0.0);
