@@ -7,7 +7,9 @@
 #           "mlp_coop linear kernels-bench": what device_all.sh and device_check.sh run; the
 #           tool's 64 MiB do not hold all thirteen beside .data; dense_grid and voxel_gpu
 #           check the voxel field's twin, run `voxel_gpu --skip training` there: its training
-#           test reads the in-repo scene) and the kernel bench
+#           test reads the in-repo scene; plenoxels_gpu the out-of-tree field's, run
+#           `plenoxels_gpu --skip training` there: its training test runs its binary) and the
+#           kernel bench
 #           (DEVICE_TESTS=all packs every one, for h100_coop.sh without .data)
 #   .data/  lego: ../shared's lego scene, all train views and every 8th test view (h100_lego.sh,
 #           h100_final.sh, h100_render.sh, h100_coop.sh)
@@ -56,6 +58,7 @@ for line in sys.stdin:
     executables test --release -p nerf-field-hash --test gpu --no-run
     executables test --release -p nerf-field-freq --test gpu --no-run
     executables test --release -p nerf-field-voxel --test gpu --no-run
+    executables test --release -p nerf-plenoxels --test gpu --no-run
     executables bench -p nerf-gpu --bench kernels --no-run
   } | while IFS=$'\t' read -r name pkg exe; do
     case "$pkg:$name" in
@@ -63,6 +66,7 @@ for line in sys.stdin:
       *freq*:gpu) out=freq_gpu ;;
       *hash*:gpu) out=hash_gpu ;;
       *voxel*:gpu) out=voxel_gpu ;;
+      *custom-field*:gpu) out=plenoxels_gpu ;;
       *) out=$name ;;
     esac
     case " ${DEVICE_TESTS:-mlp_coop linear kernels-bench} " in
