@@ -88,6 +88,8 @@ pub struct Plenoxels<T: Real> {
     sh_grid: DenseGrid<T>,
     sh_grad: Vec<T>,
     tape: Tape<T>,
+    /// Tapes for `&self` queries (rendering calls them thousands of times per view).
+    query_tapes: nerf::core::ScratchPool<Tape<T>>,
 }
 
 fn softplus<T: Real>(z: T) -> T {
@@ -142,6 +144,7 @@ impl<T: Real> Plenoxels<T> {
             density_grid,
             sh_grid,
             tape: Tape::default(),
+            query_tapes: nerf::core::ScratchPool::new(),
             config,
         })
     }
@@ -233,12 +236,12 @@ impl<T: Real> Plenoxels<T> {
 
     /// Inference: σ and rgb, no tape kept.
     pub fn query_t(&self, positions: &[T], dirs: &[T], sigma: &mut [T], rgb: &mut [T]) {
-        self.eval(positions, Some(dirs), &mut Tape::default(), sigma, Some(rgb));
+        self.query_tapes.with(|t| self.eval(positions, Some(dirs), t, sigma, Some(rgb)));
     }
 
     /// Inference: σ only.
     pub fn density_t(&self, positions: &[T], sigma: &mut [T]) {
-        self.eval(positions, None, &mut Tape::default(), sigma, None);
+        self.query_tapes.with(|t| self.eval(positions, None, t, sigma, None));
     }
 }
 

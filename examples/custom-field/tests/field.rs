@@ -97,6 +97,12 @@ fn inference_equals_the_training_forward_and_density_equals_its_sigma() {
     assert_eq!(s1, s2);
     assert_eq!(c1, c2);
     assert_eq!(s1, s3);
+    // Queries reuse their scratch tapes: a smaller batch after a larger one reads no stale rows.
+    let m = 37;
+    let (mut s4, mut c4) = (vec![-1.0; m], vec![-1.0; 3 * m]);
+    f.query(&pos[3 * (n - m)..], &dirs[3 * (n - m)..], &mut s4, &mut c4);
+    assert_eq!(s4, s1[n - m..]);
+    assert_eq!(c4, c1[3 * (n - m)..]);
     assert!(s1.iter().all(|&s| s.is_finite() && s >= 0.0));
     assert!(c1.iter().all(|&c| (0.0..=1.0).contains(&c)));
 }
