@@ -289,6 +289,17 @@ fn the_example_ablations_parse_and_plan() {
     assert!(same.adam.is_sparse("field/hash_grid") && !same.adam.is_sparse("field/color_mlp"));
     same.adam.sparse_groups.clear();
     assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&pair[0].config).unwrap());
+    // Its 5-minute file, for an H100: the twin's plan with no step cap, as the pair's files are.
+    let sparse5 = Ablation::load(&dir.join("h100_lego_batch19_res1024_sparse.toml")).unwrap();
+    assert!(sparse5.spec.checkpoints);
+    assert_eq!((sparse5.spec.budget.iters, sparse5.spec.budget.seconds), (None, Some(300.0)));
+    assert_eq!((sparse5.spec.eval.every_iters, sparse5.spec.eval.every_seconds), (None, Some(60.0)));
+    let sparse5 = sparse5.plan(&nerf::registry()).unwrap();
+    assert_eq!(sparse5.len(), 1);
+    let mut same = sparse5[0].config.clone();
+    assert_eq!((same.iters, sparse[0].config.iters), (u64::MAX, 21_832));
+    same.iters = sparse[0].config.iters;
+    assert_eq!(serde_json::to_value(&same).unwrap(), serde_json::to_value(&sparse[0].config).unwrap());
     // The density pass in place against its copies: the pair's field and batch, two runs that
     // differ in `gpu_density_in_place` alone (and each trains the field the pair trains).
     let ab = Ablation::load(&dir.join("h100_density_in_place.toml")).unwrap().plan(&nerf::registry()).unwrap();
