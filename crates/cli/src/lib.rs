@@ -77,8 +77,9 @@ struct AblateArgs {
 #[derive(Args)]
 struct TrainArgs {
     /// Scene folder: Blender format (transforms_train.json, transforms_test.json), instant-ngp /
-    /// nerfstudio (one transforms.json; every 8th frame is a test view) or LLFF
-    /// (poses_bounds.npy, images_K/; every 8th image is a test view).
+    /// nerfstudio (one transforms.json; every 8th frame is a test view), COLMAP (images/ and a
+    /// sparse model in sparse/0/ or colmap/sparse/0/; every 8th image by name is a test view) or
+    /// LLFF (poses_bounds.npy, images_K/; every 8th image is a test view).
     scene: PathBuf,
     /// Field to train (see `nerf fields`).
     #[arg(long)]
@@ -406,7 +407,7 @@ enum PathKind {
 
 #[derive(Args)]
 struct ExportArgs {
-    /// Source scene (Blender, instant-ngp / nerfstudio, or LLFF: written with Euclidean rays and
+    /// Source scene (Blender, instant-ngp / nerfstudio, COLMAP, or LLFF: written with Euclidean rays and
     /// the instant-ngp box around its scene bounds).
     src: PathBuf,
     /// Destination folder.
@@ -608,11 +609,19 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
     let test = load(Split::Test, &config.test_views)?;
     if let Some(n) = &train.normalization {
         eprintln!(
-            "note: {}: a nerfstudio capture: poses normalised as nerfstudio does (scale {:.4}; see docs/formats.md), \
+            "note: {}: a {}: poses normalised as nerfstudio does (scale {:.4}; see docs/formats.md), \
              trained in the box [-{s}, {s}]^3 about the cameras{}",
             a.scene.display(),
+            if nerf::data::is_colmap(&a.scene) { "COLMAP model" } else { "nerfstudio capture" },
             n.scale,
-            if train.ngp.is_some_and(|b| b.aabb_scale > 1.0) { "" } else { "; for content past the cameras add \"aabb_scale\" (e.g. 16) to the file" },
+            if train.ngp.is_some_and(|b| b.aabb_scale > 1.0) {
+                ""
+            } else if nerf::data::is_colmap(&a.scene) {
+                "; for content past the cameras write it as transforms files (`nerf export-scene SCENE DST --downscale 1 \
+                 --test-views all`) and add \"aabb_scale\" (e.g. 16) to them"
+            } else {
+                "; for content past the cameras add \"aabb_scale\" (e.g. 16) to the file"
+            },
             s = train.ngp.map_or(1.0, |b| b.aabb_scale),
         );
     }

@@ -762,6 +762,52 @@ fn a_nerfstudio_capture_run_writes_its_dataparser_transforms() {
     assert!(blender.join("metrics.json").is_file() && !blender.join("dataparser_transforms.json").exists());
 }
 
+/// A COLMAP scene folder (`images/` + `sparse/0/*.txt`) trains as nerfstudio's `colmap`
+/// dataparser would (normalised poses, `dataparser_transforms.json`), says what it is, and
+/// `export-scene` writes it as transforms files that load again.
+#[test]
+fn a_colmap_scene_trains_and_exports() {
+    let d = tempfile::tempdir().unwrap();
+    let lego = repo().join("scenes/lego_100");
+    let tr: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(lego.join("transforms_train.json")).unwrap()).unwrap();
+    let scene = d.path().join("capture");
+    std::fs::create_dir_all(scene.join("images")).unwrap();
+    std::fs::create_dir_all(scene.join("sparse/0")).unwrap();
+    // Ten training views, COLMAP's world = lego's: R = (c2w·diag(1, −1, −1))ᵀ, t = −R·c. For
+    // these rotations (w ≥ 1e-3) the quaternion is (w, (R21 − R12)/4w, (R02 − R20)/4w, (R10 − R01)/4w).
+    let mut lines = String::from("# IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME\n");
+    for (i, f) in tr["frames"].as_array().unwrap()[..10].iter().enumerate() {
+        let m = |r: usize, c: usize| f["transform_matrix"][r][c].as_f64().unwrap();
+        let r: [[f64; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|b| m(b, a) * if a == 0 { 1.0 } else { -1.0 }));
+        let t: [f64; 3] = std::array::from_fn(|a| -(0..3).map(|b| r[a][b] * m(b, 3)).sum::<f64>());
+        let w = 0.5 * (1.0 + r[0][0] + r[1][1] + r[2][2]).max(0.0).sqrt();
+        assert!(w > 1e-3, "view {i}: pick another formula");
+        let q = [w, (r[2][1] - r[1][2]) / (4.0 * w), (r[0][2] - r[2][0]) / (4.0 * w), (r[1][0] - r[0][1]) / (4.0 * w)];
+        let name = format!("{i:02}.png");
+        let rel = f["file_path"].as_str().unwrap().trim_start_matches("./");
+        std::fs::copy(lego.join(format!("{rel}.png")), scene.join("images").join(&name)).unwrap();
+        lines += &format!("{} {} {} {} {} {} {} {} 1 {name}\n\n", i + 1, q[0], q[1], q[2], q[3], t[0], t[1], t[2]);
+    }
+    std::fs::write(scene.join("sparse/0/images.txt"), lines).unwrap();
+    let f = 0.5 * 100.0 / (0.5 * tr["camera_angle_x"].as_f64().unwrap()).tan();
+    std::fs::write(scene.join("sparse/0/cameras.txt"), format!("1 PINHOLE 100 100 {f} {f} 50 50\n")).unwrap();
+    let run = d.path().join("run");
+    let o = train_tiny(&scene, &run, &["--iters", "1", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e = stderr(&o);
+    assert!(e.contains("a COLMAP model") && e.contains("nerf export-scene") && e.contains("(8 train views, 1 test views"), "{e}");
+    assert!(run.join("dataparser_transforms.json").is_file());
+    let out = d.path().join("exported");
+    let o = nerf().arg("export-scene").arg(&scene).arg(&out).args(["--downscale", "1", "--test-views", "all"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = train_tiny(&out, &d.path().join("run2"), &["--iters", "1", "--device", "cpu"]);
+    assert!(o.status.success() && stderr(&o).contains("(8 train views, 1 test views"), "{}", stderr(&o));
+    // A broken model: the error names the file and the line.
+    std::fs::write(scene.join("sparse/0/cameras.txt"), "1 PINHOLE 100 100 nope 1 50 50\n").unwrap();
+    let o = train_tiny(&scene, &d.path().join("run3"), &["--iters", "1", "--device", "cpu"]);
+    assert_clean_failure(&o, &["cameras.txt", "COLMAP model", "line 1: `nope` is not a number"]);
+}
+
 /// Ctrl-C stops a render after the frame being rendered: exit code 130, the frames so far and
 /// the json files kept, render.json counting them, no GIF (not even a partial one).
 #[cfg(unix)]

@@ -1,6 +1,7 @@
-//! Datasets: the Blender (NeRF synthetic), instant-ngp / nerfstudio (captured scenes, [`ngp`]) and
-//! LLFF (real forward-facing, [`llff`]) formats, image loading and downscaling, backgrounds,
-//! random ray batches. [`load_scene`] tells them apart.
+//! Datasets: the Blender (NeRF synthetic), instant-ngp / nerfstudio (captured scenes, [`ngp`]),
+//! COLMAP (a sparse model beside the photos, [`colmap`]) and LLFF (real forward-facing,
+//! [`llff`]) formats, image loading and downscaling, backgrounds, random ray batches.
+//! [`load_scene`] tells them apart.
 //!
 //! The Blender format is a scene folder with `transforms_{train,val,test}.json`, each holding
 //! `camera_angle_x` (horizontal field of view, radians) and `frames[]` of
@@ -24,6 +25,8 @@ use nerf_rays::glam::Vec3;
 use nerf_rays::{Aabb, Camera, Ndc, PixelConvention, Ray};
 
 pub mod camera_path;
+pub mod colmap;
+pub use colmap::is_colmap;
 pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, CameraPath};
 pub mod llff;
 pub use llff::{is_llff, load_llff};
@@ -163,6 +166,14 @@ pub enum DataError {
         /// The factor.
         k: u32,
         /// What is wrong.
+        reason: String,
+    },
+    /// A COLMAP model file ([`colmap`]) is truncated, malformed or names something unsupported.
+    #[error("{}: COLMAP model: {reason}", .path.display())]
+    Colmap {
+        /// The model file (`cameras.bin`, `images.txt`, …) or folder.
+        path: PathBuf,
+        /// What is wrong, with the camera or image it concerns.
         reason: String,
     },
 }
@@ -941,13 +952,31 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
 }
 
 /// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
-/// `poses_bounds.npy`, else Blender or instant-ngp / nerfstudio ([`load_blender`]).
+/// `poses_bounds.npy`, COLMAP ([`load_colmap`]) where it holds a sparse model and no transforms
+/// file, else Blender or instant-ngp / nerfstudio ([`load_blender`]).
 pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
     if is_llff(root) {
         load_llff(root, split, opts)
+    } else if is_colmap(root) {
+        load_colmap(root, split, opts)
     } else {
         load_blender(root, split, opts)
     }
+}
+
+/// Loads one split of a COLMAP scene folder ([`colmap`]: `images/` and a sparse model): the
+/// model read as the nerfstudio `transforms.json` that `ns-process-data` would write for it
+/// ([`colmap::transforms_json`]), then loaded as [`load_blender`] loads that file. Errors name
+/// the model's files.
+pub fn load_colmap(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
+    let dir = colmap::find_model(root).ok_or_else(|| DataError::Colmap {
+        path: root.to_path_buf(),
+        reason: format!("no model in {}", colmap::MODEL_DIRS.join(", ")),
+    })?;
+    let model = colmap::read_model(&dir)?;
+    let (cameras, images) = colmap::model_files(&dir).expect("read_model found them");
+    let json = colmap::transforms_json(&cameras, &model)?;
+    load_transforms(root, split, opts, images, &json, true)
 }
 
 /// Loads one split of a Blender-format scene, or of an instant-ngp / nerfstudio scene (the same
@@ -982,6 +1011,13 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
         path: tpath.clone(),
         source,
     })?;
+    load_transforms(root, split, opts, tpath, &json, one_file)
+}
+
+/// [`load_blender`] after reading the transforms file `tpath`: `json` is its content, `one_file`
+/// whether it is a single `transforms.json` (its frames split by [`ngp::split_filenames`] or
+/// every 8th) rather than a split's own file.
+fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf, json: &Value, one_file: bool) -> Result<Dataset, DataError> {
     let missing = |key: String| DataError::MissingKey {
         path: tpath.clone(),
         key,
@@ -994,12 +1030,12 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
     if !json.is_object() {
         return Err(invalid(
             "<top level>".into(),
-            format!("expected an object, got {}", json_kind(&json)),
+            format!("expected an object, got {}", json_kind(json)),
         ));
     }
-    ngp::Lens::parse(&tpath, &json, None)?;
-    let parsed_box = ngp::NgpBox::parse(&tpath, &json)?;
-    let nerfstudio = one_file && ngp::is_nerfstudio(&json);
+    ngp::Lens::parse(&tpath, json, None)?;
+    let parsed_box = ngp::NgpBox::parse(&tpath, json)?;
+    let nerfstudio = one_file && ngp::is_nerfstudio(json);
     let frames_v = json.get("frames").ok_or_else(|| missing("frames".into()))?;
     let frames_json = frames_v.as_array().ok_or_else(|| {
         invalid(
@@ -1015,7 +1051,7 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
     }
     let mut frames = Vec::with_capacity(frames_json.len());
     for (i, f) in frames_json.iter().enumerate() {
-        let lens = ngp::Lens::parse(&tpath, &json, Some((i, f)))?;
+        let lens = ngp::Lens::parse(&tpath, json, Some((i, f)))?;
         if lens.focal_x.is_none() {
             return Err(missing("camera_angle_x` or `fl_x".into()));
         }
@@ -1041,7 +1077,7 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
     }
     // The split's frames: all of a split file; every 8th (test, val) or the others (train) of one file.
     let in_split: Vec<usize> = if one_file {
-        match ngp::split_filenames(&tpath, &json, split)? {
+        match ngp::split_filenames(&tpath, json, split)? {
             // nerfstudio's explicit lists: the frames whose image is named there.
             Some(names) => {
                 let wanted: Vec<PathBuf> = names.iter().map(|n| image_path(root, n)).collect();

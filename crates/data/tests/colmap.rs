@@ -1,0 +1,334 @@
+//! COLMAP scene folders (`images/` + a sparse model): the model read in both of COLMAP's formats,
+//! its cameras checked against COLMAP's own projection, and its errors. The fixture is the in-repo
+//! scene `scenes/lego_100` written as a COLMAP model would hold it, in an arbitrary world frame
+//! (COLMAP's reconstructions have no preferred position, orientation or scale).
+
+use std::path::{Path, PathBuf};
+
+use glam::{DMat3, DVec3};
+use nerf_data::colmap::{self, ColmapCamera, ColmapImage, ColmapModel};
+use nerf_data::{load_blender, load_scene, DataError, Dataset, LoadOptions, Split};
+
+fn lego_100() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/lego_100")
+}
+
+/// A unit quaternion `(w, x, y, z)` of a rotation matrix (Shepperd's method).
+fn quaternion(r: DMat3) -> [f64; 4] {
+    let m = |i: usize, j: usize| r.col(j)[i];
+    let tr = m(0, 0) + m(1, 1) + m(2, 2);
+    let q = if tr > 0.0 {
+        let s = (tr + 1.0).sqrt() * 2.0;
+        [0.25 * s, (m(2, 1) - m(1, 2)) / s, (m(0, 2) - m(2, 0)) / s, (m(1, 0) - m(0, 1)) / s]
+    } else if m(0, 0) > m(1, 1) && m(0, 0) > m(2, 2) {
+        let s = (1.0 + m(0, 0) - m(1, 1) - m(2, 2)).sqrt() * 2.0;
+        [(m(2, 1) - m(1, 2)) / s, 0.25 * s, (m(0, 1) + m(1, 0)) / s, (m(0, 2) + m(2, 0)) / s]
+    } else if m(1, 1) > m(2, 2) {
+        let s = (1.0 + m(1, 1) - m(0, 0) - m(2, 2)).sqrt() * 2.0;
+        [(m(0, 2) - m(2, 0)) / s, (m(0, 1) + m(1, 0)) / s, 0.25 * s, (m(1, 2) + m(2, 1)) / s]
+    } else {
+        let s = (1.0 + m(2, 2) - m(0, 0) - m(1, 1)).sqrt() * 2.0;
+        [(m(1, 0) - m(0, 1)) / s, (m(0, 2) + m(2, 0)) / s, (m(1, 2) + m(2, 1)) / s, 0.25 * s]
+    };
+    // COLMAP keeps w ≥ 0; either sign is the same rotation.
+    if q[0] < 0.0 {
+        q.map(|v| -v)
+    } else {
+        q
+    }
+}
+
+/// The similarity from lego's (Blender) world into the fixture's COLMAP world: `s·Q·p + d`.
+struct Similarity {
+    s: f64,
+    q: DMat3,
+    d: DVec3,
+}
+
+impl Similarity {
+    fn apply(&self, p: DVec3) -> DVec3 {
+        self.s * (self.q * p) + self.d
+    }
+}
+
+fn arbitrary_frame() -> Similarity {
+    Similarity { s: 3.7, q: DMat3::from_euler(glam::EulerRot::XYZ, 0.3, -1.1, 2.4), d: DVec3::new(-5.0, 12.0, 0.5) }
+}
+
+/// lego_100's train and test frames as one COLMAP model (image `view_NNN.png`, the frames in the
+/// order train then test), in the world `sim` maps lego's into; its images copied beside it.
+fn lego_model(root: &Path, sim: &Similarity) -> ColmapModel {
+    let lego = lego_100();
+    let blender = load_blender(&lego, Split::Train, &LoadOptions::default()).unwrap();
+    let f = blender.cameras[0].intrinsics.fx as f64;
+    std::fs::create_dir_all(root.join("images")).unwrap();
+    let mut images = Vec::new();
+    for split in ["train", "test"] {
+        let t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(lego.join(format!("transforms_{split}.json"))).unwrap()).unwrap();
+        for fr in t["frames"].as_array().unwrap() {
+            let m = |r: usize, c: usize| fr["transform_matrix"][r][c].as_f64().unwrap();
+            // OpenGL camera axes → OpenCV's (y and z negated), moved into COLMAP's world.
+            let r_gl = DMat3::from_cols(DVec3::new(m(0, 0), m(1, 0), m(2, 0)), DVec3::new(m(0, 1), m(1, 1), m(2, 1)), DVec3::new(m(0, 2), m(1, 2), m(2, 2)));
+            let c2w_cv = sim.q * r_gl * DMat3::from_diagonal(DVec3::new(1.0, -1.0, -1.0));
+            let centre = sim.apply(DVec3::new(m(0, 3), m(1, 3), m(2, 3)));
+            let r = c2w_cv.transpose();
+            let t = -(r * centre);
+            let id = images.len() as u32 + 1;
+            let rel = fr["file_path"].as_str().unwrap().trim_start_matches("./");
+            let name = format!("view_{id:03}.png");
+            std::fs::copy(lego.join(format!("{rel}.png")), root.join("images").join(&name)).unwrap();
+            images.push(ColmapImage { id, qvec: quaternion(r), tvec: t.to_array(), camera_id: 7, name });
+        }
+    }
+    ColmapModel { cameras: vec![ColmapCamera { id: 7, model: "PINHOLE".into(), width: 100, height: 100, params: vec![f, f, 50.0, 50.0] }], images }
+}
+
+const MODEL_IDS: [(&str, i32); 7] =
+    [("SIMPLE_PINHOLE", 0), ("PINHOLE", 1), ("SIMPLE_RADIAL", 2), ("RADIAL", 3), ("OPENCV", 4), ("OPENCV_FISHEYE", 5), ("FULL_OPENCV", 6)];
+
+/// `cameras.bin` and `images.bin` as COLMAP writes them (`write_cameras_binary`,
+/// `write_images_binary` of its `read_write_model.py`), each image with `points` 2-D points.
+fn write_bin(dir: &Path, m: &ColmapModel, points: usize) {
+    std::fs::create_dir_all(dir).unwrap();
+    let mut c = (m.cameras.len() as u64).to_le_bytes().to_vec();
+    for cam in &m.cameras {
+        let id = MODEL_IDS.iter().find(|(n, _)| *n == cam.model).unwrap().1;
+        c.extend((cam.id as i32).to_le_bytes());
+        c.extend(id.to_le_bytes());
+        c.extend(cam.width.to_le_bytes());
+        c.extend(cam.height.to_le_bytes());
+        cam.params.iter().for_each(|p| c.extend(p.to_le_bytes()));
+    }
+    std::fs::write(dir.join("cameras.bin"), c).unwrap();
+    let mut b = (m.images.len() as u64).to_le_bytes().to_vec();
+    for im in &m.images {
+        b.extend((im.id as i32).to_le_bytes());
+        im.qvec.iter().chain(&im.tvec).for_each(|v| b.extend(v.to_le_bytes()));
+        b.extend((im.camera_id as i32).to_le_bytes());
+        b.extend(im.name.as_bytes());
+        b.push(0);
+        b.extend((points as u64).to_le_bytes());
+        for k in 0..points {
+            b.extend((k as f64).to_le_bytes());
+            b.extend((2.0 * k as f64).to_le_bytes());
+            b.extend((-1i64).to_le_bytes());
+        }
+    }
+    std::fs::write(dir.join("images.bin"), b).unwrap();
+}
+
+/// `cameras.txt` and `images.txt` as COLMAP writes them (header comments, each image's 2-D
+/// points on the line after it, empty for the odd images).
+fn write_txt(dir: &Path, m: &ColmapModel) {
+    std::fs::create_dir_all(dir).unwrap();
+    let mut c = String::from("# Camera list with one line of data per camera:\n#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
+    for cam in &m.cameras {
+        let p: Vec<String> = cam.params.iter().map(|v| format!("{v:?}")).collect();
+        c += &format!("{} {} {} {} {}\n", cam.id, cam.model, cam.width, cam.height, p.join(" "));
+    }
+    std::fs::write(dir.join("cameras.txt"), c).unwrap();
+    let mut s = String::from("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n");
+    for (k, im) in m.images.iter().enumerate() {
+        let v: Vec<String> = im.qvec.iter().chain(&im.tvec).map(|v| format!("{v:?}")).collect();
+        s += &format!("{} {} {} {}\n", im.id, v.join(" "), im.camera_id, im.name);
+        s += if k % 2 == 0 { "12.5 33.0 -1 40.25 2.0 17\n" } else { "\n" };
+    }
+    std::fs::write(dir.join("images.txt"), s).unwrap();
+}
+
+fn load(root: &Path, split: Split) -> Dataset {
+    load_scene(root, split, &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// COLMAP's projection `u = K·(R·X + t)` of a point of its world, against the loaded camera's ray
+/// through `u`: the ray must pass through the point, moved as the loader moved the poses (the
+/// `applied_transform` of nerfstudio, then its normalisation). Checked for every view of both
+/// splits, from a binary model in `sparse/0` and a text one in `colmap/sparse/0`.
+#[test]
+fn colmap_models_load_with_cameras_that_reproject_colmaps_points() {
+    let sim = arbitrary_frame();
+    for (layout, binary) in [("sparse/0", true), ("colmap/sparse/0", false)] {
+        let dir = tempfile::tempdir().unwrap();
+        let model = lego_model(dir.path(), &sim);
+        let mdir = dir.path().join(layout);
+        if binary {
+            write_bin(&mdir, &model, 3);
+        } else {
+            write_txt(&mdir, &model);
+        }
+        assert!(nerf_data::is_colmap(dir.path()) && !nerf_data::is_colmap(&lego_100()));
+        assert_eq!(colmap::find_model(dir.path()).as_deref(), Some(mdir.as_path()));
+        assert_eq!(colmap::read_model(&mdir).unwrap(), model, "{layout}: read back as written");
+        let (train, test) = (load(dir.path(), Split::Train), load(dir.path(), Split::Test));
+        let n = model.images.len();
+        assert_eq!((train.n_views(), test.n_views()), (n - n.div_ceil(8), n.div_ceil(8)), "every 8th image by name is a test view");
+        let norm = train.normalization.expect("nerfstudio's normalisation");
+        let to_loaded = |x: DVec3| -> DVec3 {
+            let a = DVec3::new(x.x, x.z, -x.y); // applied_transform
+            let d = a - DVec3::from_array(norm.center);
+            DVec3::from_array(std::array::from_fn(|i| norm.scale * DVec3::from_array(norm.rotation[i]).dot(d)))
+        };
+        let mut rng_state = 0x1234_5678u64;
+        let mut rnd = || {
+            rng_state = rng_state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (rng_state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut sorted: Vec<&ColmapImage> = model.images.iter().collect();
+        sorted.sort_by(|a, b| a.name.cmp(&b.name));
+        let (mut tr, mut te) = (train.cameras.iter(), test.cameras.iter());
+        let mut checked = 0;
+        for (i, im) in sorted.iter().enumerate() {
+            let cam = if i % 8 == 0 { te.next() } else { tr.next() }.unwrap();
+            let path = if i % 8 == 0 { &test.file_paths[i / 8] } else { &train.file_paths[i - i / 8 - 1] };
+            assert!(path.ends_with(Path::new("images").join(&im.name)), "{path:?} is {}'s image", im.name);
+            let r = colmap::rotation(im.qvec);
+            let r = DMat3::from_cols(DVec3::new(r[0][0], r[1][0], r[2][0]), DVec3::new(r[0][1], r[1][1], r[2][1]), DVec3::new(r[0][2], r[1][2], r[2][2]));
+            let [fx, fy, cx, cy] = [model.cameras[0].params[0], model.cameras[0].params[1], 50.0, 50.0];
+            for _ in 0..20 {
+                // A point near lego (within its box), in COLMAP's world.
+                let x = sim.apply(DVec3::new(rnd() * 2.0 - 1.0, rnd() * 2.0 - 1.0, rnd() * 2.0 - 1.0));
+                let xc = r * x + DVec3::from_array(im.tvec);
+                assert!(xc.z > 0.0, "in front of the camera");
+                let (u, v) = (fx * xc.x / xc.z + cx, fy * xc.y / xc.z + cy);
+                let ray = cam.ray_at(u as f32, v as f32);
+                let p = to_loaded(x);
+                let o = ray.origin.as_dvec3();
+                let d = ray.dir.as_dvec3();
+                let along = (p - o).dot(d);
+                let off = (p - o - along * d).length();
+                assert!(along > 0.0 && off < 2e-5 * along.max(1.0), "{}: the ray misses the point by {off} at depth {along}", im.name);
+                checked += 1;
+            }
+        }
+        assert_eq!(checked, 20 * n);
+        // The images are lego's own, pixel for pixel.
+        let lego_train = load_blender(&lego_100(), Split::Train, &LoadOptions::default()).unwrap();
+        assert!(train.images[0] == lego_train.images[1], "view_002 is lego's second training view");
+    }
+}
+
+/// The binary and text forms of one model give the same dataset; the camera models' parameters
+/// become nerfstudio's keys (`SIMPLE_*` share one focal length; `FULL_OPENCV` without rational
+/// terms is OPENCV with `k3`).
+#[test]
+fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = lego_model(dir.path(), &arbitrary_frame());
+    write_bin(&dir.path().join("sparse/0"), &model, 0);
+    let a = load(dir.path(), Split::Train);
+    std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
+    write_txt(&dir.path().join("sparse/0"), &model);
+    let b = load(dir.path(), Split::Train);
+    for (ca, cb) in a.cameras.iter().zip(&b.cameras) {
+        assert_eq!((ca.intrinsics, ca.position, ca.rotation), (cb.intrinsics, cb.position, cb.rotation));
+    }
+    assert!(a.images == b.images);
+
+    let keys = |model: &str, params: Vec<f64>| -> serde_json::Value {
+        let m = ColmapModel {
+            cameras: vec![ColmapCamera { id: 1, model: model.into(), width: 64, height: 48, params }],
+            images: vec![ColmapImage { id: 1, qvec: [1.0, 0.0, 0.0, 0.0], tvec: [0.0; 3], camera_id: 1, name: "a.png".into() }],
+        };
+        colmap::transforms_json(Path::new("images.bin"), &m).unwrap()["frames"][0].clone()
+    };
+    let f = keys("SIMPLE_RADIAL", vec![40.0, 31.0, 23.0, 0.1]);
+    assert_eq!((f["fl_x"].as_f64(), f["fl_y"].as_f64(), f["cx"].as_f64(), f["cy"].as_f64(), f["k1"].as_f64()), (Some(40.0), Some(40.0), Some(31.0), Some(23.0), Some(0.1)));
+    assert!(f.get("k2").is_none() && f["w"] == 64 && f["h"] == 48 && f["file_path"] == "images/a.png");
+    let f = keys("OPENCV", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.01, 0.02]);
+    assert_eq!(["k1", "k2", "p1", "p2"].map(|k| f[k].as_f64().unwrap()), [0.1, -0.2, 0.01, 0.02]);
+    assert_eq!(f["fl_y"].as_f64(), Some(41.0));
+    let f = keys("FULL_OPENCV", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.01, 0.02, 0.003, 0.0, 0.0, 0.0]);
+    assert_eq!((f["camera_model"].as_str(), f["k3"].as_f64()), (Some("OPENCV"), Some(0.003)));
+    // The identity pose: COLMAP's camera at the origin looking down +z (OpenCV) is, after
+    // nerfstudio's axes, a camera at the origin looking along +y with +z up.
+    let m = &f["transform_matrix"];
+    let col = |c: usize| [0, 1, 2].map(|r| m[r][c].as_f64().unwrap());
+    assert_eq!((col(1), col(2)), ([0.0, 0.0, 1.0], [0.0, -1.0, 0.0]), "up = +z, backwards = −y");
+}
+
+fn err_of(root: &Path) -> String {
+    match load_scene(root, Split::Train, &LoadOptions::default()) {
+        Ok(_) => panic!("{} loaded", root.display()),
+        Err(e) => e.to_string(),
+    }
+}
+
+/// Broken models are errors naming the file and the problem, never a panic or a huge allocation.
+#[test]
+fn broken_models_are_errors_naming_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = lego_model(dir.path(), &arbitrary_frame());
+    let mdir = dir.path().join("sparse/0");
+    write_bin(&mdir, &model, 2);
+    let images = std::fs::read(mdir.join("images.bin")).unwrap();
+    let cameras = std::fs::read(mdir.join("cameras.bin")).unwrap();
+    let with = |file: &str, bytes: &[u8]| {
+        std::fs::write(mdir.join(file), bytes).unwrap();
+        let e = err_of(dir.path());
+        std::fs::write(mdir.join("images.bin"), &images).unwrap();
+        std::fs::write(mdir.join("cameras.bin"), &cameras).unwrap();
+        e
+    };
+    let e = with("images.bin", &images[..images.len() - 5]);
+    assert!(e.contains("images.bin") && e.contains("truncated"), "{e}");
+    let e = with("images.bin", &[images.as_slice(), &[0u8; 3]].concat());
+    assert!(e.contains("images.bin") && e.contains("3 bytes after"), "{e}");
+    let mut huge = images.clone();
+    huge[..8].copy_from_slice(&u64::MAX.to_le_bytes());
+    let e = with("images.bin", &huge);
+    assert!(e.contains("images.bin") && e.contains("number of images"), "{e}");
+    let mut unknown = cameras.clone();
+    unknown[12..16].copy_from_slice(&99i32.to_le_bytes()); // the first camera's model id
+    let e = with("cameras.bin", &unknown);
+    assert!(e.contains("cameras.bin") && e.contains("camera 7: unknown camera model id 99"), "{e}");
+
+    // Valid files, unsupported or inconsistent content.
+    let variant = |m: &ColmapModel| -> String {
+        write_bin(&mdir, m, 0);
+        let e = err_of(dir.path());
+        write_bin(&mdir, &model, 2);
+        e
+    };
+    let mut fisheye = model.clone();
+    fisheye.cameras[0].model = "OPENCV_FISHEYE".into();
+    fisheye.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.1, 0.0, 0.0, 0.0];
+    let e = variant(&fisheye);
+    assert!(e.contains("cameras.bin") && e.contains("camera 7: camera model OPENCV_FISHEYE is not supported"), "{e}");
+    let mut rational = model.clone();
+    rational.cameras[0].model = "FULL_OPENCV".into();
+    rational.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.2, 0.0, 0.0];
+    let e = variant(&rational);
+    assert!(e.contains("rational terms k4..k6"), "{e}");
+    let mut orphan = model.clone();
+    orphan.images[3].camera_id = 8;
+    let e = variant(&orphan);
+    assert!(e.contains("images.bin") && e.contains("image 4 (`view_004.png`): camera 8 is not in"), "{e}");
+    let mut nan = model.clone();
+    nan.images[5].tvec[1] = f64::NAN;
+    let e = variant(&nan);
+    assert!(e.contains("images.bin") && e.contains("image 6 (`view_006.png`): invalid pose"), "{e}");
+    let mut zero_q = model.clone();
+    zero_q.images[0].qvec = [0.0; 4];
+    assert!(variant(&zero_q).contains("image 1 (`view_001.png`): invalid pose"));
+    let e = variant(&ColmapModel { images: vec![], ..model.clone() });
+    assert!(e.contains("images.bin") && e.contains("no registered images"), "{e}");
+
+    // Text: a bad number names its line; a wrong parameter count names the camera.
+    std::fs::remove_dir_all(&mdir).unwrap();
+    write_txt(&mdir, &model);
+    let text = std::fs::read_to_string(mdir.join("images.txt")).unwrap();
+    std::fs::write(mdir.join("images.txt"), text.replacen(" 7 view_003.png", " seven view_003.png", 1)).unwrap();
+    let e = err_of(dir.path());
+    assert!(e.contains("images.txt") && e.contains("`seven` is not a number"), "{e}");
+    std::fs::write(mdir.join("images.txt"), &text).unwrap();
+    std::fs::write(mdir.join("cameras.txt"), "7 PINHOLE 100 100 50 50 50\n").unwrap();
+    let e = err_of(dir.path());
+    assert!(e.contains("cameras.txt") && e.contains("line 1: camera 7: PINHOLE takes 4 parameters, got 3"), "{e}");
+    write_txt(&mdir, &model);
+
+    // A missing image names the image file.
+    std::fs::remove_file(dir.path().join("images/view_010.png")).unwrap();
+    let e = err_of(dir.path());
+    assert!(e.contains("view_010.png") && e.contains("not found"), "{e}");
+    assert!(matches!(load_scene(dir.path(), Split::Train, &LoadOptions::default()), Err(DataError::MissingImage { .. })));
+}
