@@ -256,8 +256,8 @@ struct RenderArgs {
     /// Frames of the path (evenly spaced) [default: 60].
     #[arg(long)]
     frames: Option<usize>,
-    /// The path: `orbit` (a turntable around the scene at the training cameras' distance and
-    /// elevation), `spiral` (nerf-pytorch's, for LLFF scenes), `interpolate` (nerfstudio's: through
+    /// The path: `orbit` (a turntable at the training cameras' distance and elevation around
+    /// the point they look at, or the scene box's centre), `spiral` (nerf-pytorch's, for LLFF scenes), `interpolate` (nerfstudio's: through
     /// the run's test views in order, positions lerped and rotations slerped), or `auto`:
     /// spiral for LLFF scenes, orbit otherwise.
     #[arg(long, value_enum, default_value = "auto", conflicts_with = "camera_path")]
@@ -822,7 +822,12 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             };
             let k = sized(k)?;
             let frames = a.frames.unwrap_or(60);
-            let center = nerf::rays::glam::Vec3::from_array(train.aabb.center());
+            // The orbit's centre: the point the training cameras look at (a capture's object,
+            // wherever nerfstudio's normalisation left it) when it lies in the scene box, else the
+            // box's centre.
+            let center = nerf::rays::look_at_point(&train.cameras)
+                .filter(|p| train.aabb.contains(p.to_array()))
+                .unwrap_or_else(|| nerf::rays::glam::Vec3::from_array(train.aabb.center()));
             // Forward-facing captures get nerf-pytorch's spiral; object-centred ones a turntable orbit.
             let kind = match a.path {
                 PathKind::Auto if nerf::data::is_llff(&a.scene) => PathKind::Spiral,

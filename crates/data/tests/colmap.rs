@@ -201,6 +201,12 @@ fn colmap_models_load_with_cameras_that_reproject_colmaps_points() {
             }
         }
         assert_eq!(checked, 20 * n);
+        // lego's cameras look at its origin: after the normalisation, where `nerf render` centres
+        // its orbit (nerfstudio's centring puts the mean camera centre, above the object, at 0).
+        let cams: Vec<_> = train.cameras.iter().chain(&test.cameras).copied().collect();
+        let focus = nerf_rays::look_at_point(&cams).unwrap().as_dvec3();
+        let origin = to_loaded(sim.apply(DVec3::ZERO));
+        assert!((focus - origin).length() < 1e-4 && origin.length() > 0.1, "{focus} vs {origin}");
         // The images are lego's own, pixel for pixel.
         let lego_train = load_blender(&lego_100(), Split::Train, &LoadOptions::default()).unwrap();
         assert!(train.images[0] == lego_train.images[1], "view_002 is lego's second training view");

@@ -636,6 +636,33 @@ pub fn orbit(cameras: &[Camera], center: Vec3, intrinsics: Intrinsics, n: usize)
     )
 }
 
+/// The point the cameras look at: the least-squares closest point to their optical axes
+/// (`argmin_p Σ |(I − d·dᵀ)(p − o)|²`, `o` a camera's centre, `d` its viewing direction), what
+/// instant-ngp's `colmap2nerf.py` centres a capture on. For object-centred (360°) captures it
+/// is the object's centre; `None` when the axes are (near) parallel, as in forward-facing
+/// captures, or there are fewer than two cameras.
+pub fn look_at_point(cameras: &[Camera]) -> Option<Vec3> {
+    use glam::{DMat3, DVec3};
+    if cameras.len() < 2 {
+        return None;
+    }
+    let (mut a, mut b) = (DMat3::ZERO, DVec3::ZERO);
+    for c in cameras {
+        let d = (-c.rotation.z_axis).as_dvec3().try_normalize()?;
+        let m = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+        a += m;
+        b += m * c.position.as_dvec3();
+    }
+    // Each term is a projection with eigenvalues (0, 1, 1), so `a / n` has eigenvalues in [0, 2];
+    // near-parallel axes leave one of them near 0 (a determinant near 0).
+    let n = cameras.len() as f64;
+    if !((a * (1.0 / n)).determinant() > 1e-3) {
+        return None;
+    }
+    let p = a.inverse() * b;
+    p.is_finite().then(|| p.as_vec3())
+}
+
 /// nerf-pytorch's `render_path_spiral` for forward-facing captures (LLFF): `n` cameras on a
 /// spiral of two turns about the mean camera, in its image plane with a depth swing of half the
 /// rate, every one looking at a point `focus` in front of the mean camera; `intrinsics` for every
@@ -1035,6 +1062,39 @@ mod tests {
         assert!(orbit(&[], centre, k, 8).is_none());
         let at_centre = Camera { position: centre, ..ring[0] };
         assert!(orbit(&[at_centre], centre, k, 8).is_none());
+    }
+
+    #[test]
+    fn look_at_point_finds_where_the_axes_meet_and_refuses_parallel_axes() {
+        let k = Intrinsics::from_fov_x(40, 30, 0.7);
+        let target = Vec3::new(0.3, -1.2, 0.7);
+        // Cameras on the upper half of a sphere about `target`, looking at it (the mean camera
+        // centre lies above it), one axis nudged off.
+        let look = |position: Vec3, at: Vec3| {
+            let z = (position - at).normalize();
+            let x = Vec3::Z.cross(z).normalize();
+            Camera { intrinsics: k, rotation: Mat3::from_cols(x, z.cross(x), z), position }
+        };
+        let cams: Vec<Camera> = (0..20)
+            .map(|j| {
+                let (phi, el) = (2.4 * j as f32, (10.0 + 3.5 * j as f32).to_radians());
+                target + 3.0 * Vec3::new(el.cos() * phi.cos(), el.cos() * phi.sin(), el.sin())
+            })
+            .map(|p| look(p, target))
+            .collect();
+        let mean = cams.iter().map(|c| c.position).sum::<Vec3>() / cams.len() as f32;
+        assert!((mean - target).length() > 1.0, "the mean centre is not the answer");
+        let p = look_at_point(&cams).unwrap();
+        assert!((p - target).length() < 1e-4, "{p} vs {target}");
+        // One axis off by 0.1 moves the point by about 0.1 / 20.
+        let mut off = cams.clone();
+        off[3] = look(off[3].position, target + Vec3::new(0.1, 0.0, 0.0));
+        let q = look_at_point(&off).unwrap();
+        assert!((q - target).length() > 1e-4 && (q - target).length() < 0.02, "{q}");
+        // Forward-facing (every camera looking down −z) and too few cameras: no point.
+        let rig: Vec<Camera> = (0..9).map(|i| Camera { intrinsics: k, rotation: Mat3::IDENTITY, position: Vec3::new(i as f32 * 0.1, 0.0, 0.0) }).collect();
+        assert!(look_at_point(&rig).is_none());
+        assert!(look_at_point(&cams[..1]).is_none());
     }
 
     #[test]
