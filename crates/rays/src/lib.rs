@@ -637,8 +637,9 @@ pub fn orbit(cameras: &[Camera], center: Vec3, intrinsics: Intrinsics, n: usize)
 }
 
 /// The point the cameras look at: the least-squares closest point to their optical axes
-/// (`argmin_p Σ |(I − d·dᵀ)(p − o)|²`, `o` a camera's centre, `d` its viewing direction), what
-/// instant-ngp's `colmap2nerf.py` centres a capture on. For object-centred (360°) captures it
+/// (`argmin_p Σ |(I − d·dᵀ)(p − o)|²`, `o` a camera's centre, `d` its viewing direction). The
+/// point instant-ngp's `colmap2nerf.py` centres a capture on is of this kind (it averages the
+/// closest points of pairs of axes instead). For object-centred (360°) captures it
 /// is the object's centre; `None` when the axes are (near) parallel, as in forward-facing
 /// captures, or there are fewer than two cameras.
 pub fn look_at_point(cameras: &[Camera]) -> Option<Vec3> {
