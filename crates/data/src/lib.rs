@@ -974,7 +974,7 @@ pub fn load_colmap(root: &Path, split: Split, opts: &LoadOptions) -> Result<Data
         reason: format!("no model in {}", colmap::MODEL_DIRS.join(", ")),
     })?;
     let model = colmap::read_model(&dir)?;
-    let (cameras, images) = colmap::model_files(&dir).expect("read_model found them");
+    let (cameras, images) = colmap::model_files(&dir).ok_or_else(|| DataError::Colmap { path: dir.clone(), reason: "the model files went away while it was read".into() })?;
     let json = colmap::transforms_json(&cameras, &model)?;
     load_transforms(root, split, opts, images, &json, true)
 }
