@@ -266,9 +266,11 @@ pub fn read_cameras_txt(path: &Path, text: &str) -> Result<Vec<ColmapCamera>, Da
     Ok(out)
 }
 
-/// `images.txt`: per image a line `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME` and the next line
-/// its 2-D points (skipped; empty for an image without any), as COLMAP's `read_write_model.py`
-/// reads them. Comment lines (`#`) and blank lines are skipped where an image line is expected.
+/// `images.txt`: per image a line `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME` (the name is
+/// the rest of the line) and the next line its 2-D points as `X Y POINT3D_ID` triples (empty for
+/// an image without any), as COLMAP's `read_write_model.py` reads them. Comment lines (`#`) and
+/// blank lines are skipped where an image line is expected. A points line that is not triples of
+/// numbers is an error: a file with one line per image would otherwise lose every other image.
 pub fn read_images_txt(path: &Path, text: &str) -> Result<Vec<ColmapImage>, DataError> {
     let mut out = Vec::new();
     let mut lines = text.lines().enumerate();
@@ -277,20 +279,37 @@ pub fn read_images_txt(path: &Path, text: &str) -> Result<Vec<ColmapImage>, Data
         if line.is_empty() || line.starts_with('#') {
             continue;
         }
-        let f: Vec<&str> = line.splitn(10, char::is_whitespace).collect();
-        if f.len() < 10 {
+        // Nine whitespace-separated fields, then the name.
+        let (mut f, mut rest) = (Vec::with_capacity(9), line);
+        for _ in 0..9 {
+            rest = rest.trim_start();
+            let end = rest.find(char::is_whitespace).unwrap_or(rest.len());
+            f.push(&rest[..end]);
+            rest = &rest[end..];
+        }
+        let name = rest.trim();
+        if name.is_empty() {
             return Err(bad(path, format!("line {}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, got `{line}`", i + 1)));
         }
         let ids = numbers::<i64>(path, i + 1, &[f[0], f[8]])?;
         let v = numbers::<f64>(path, i + 1, &f[1..8])?;
+        let id = camera_id(path, ids[0], "image id")?;
+        if let Some((j, points)) = lines.next() {
+            let p: Vec<&str> = points.split_whitespace().collect();
+            if p.len() % 3 != 0 || p.iter().any(|x| x.parse::<f64>().is_err()) {
+                return Err(bad(
+                    path,
+                    format!("line {}: expected image {id}'s 2-D points (X Y POINT3D_ID triples, or an empty line) after its line", j + 1),
+                ));
+            }
+        }
         out.push(ColmapImage {
-            id: camera_id(path, ids[0], "image id")?,
+            id,
             qvec: [v[0], v[1], v[2], v[3]],
             tvec: [v[4], v[5], v[6]],
             camera_id: camera_id(path, ids[1], "camera id")?,
-            name: f[9].trim().to_string(),
+            name: name.to_string(),
         });
-        lines.next(); // the image's 2-D points
     }
     Ok(out)
 }

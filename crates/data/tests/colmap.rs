@@ -326,6 +326,19 @@ fn broken_models_are_errors_naming_the_file() {
     std::fs::write(mdir.join("images.txt"), text.replacen(" 7 view_003.png", " seven view_003.png", 1)).unwrap();
     let e = err_of(dir.path());
     assert!(e.contains("images.txt") && e.contains("`seven` is not a number"), "{e}");
+    // One line per image (no points lines): an error, not every other image lost.
+    let one_line: String = text.lines().filter(|l| l.starts_with('#') || l.ends_with(".png")).map(|l| format!("{l}\n")).collect();
+    std::fs::write(mdir.join("images.txt"), one_line).unwrap();
+    let e = err_of(dir.path());
+    assert!(e.contains("images.txt") && e.contains("line 5: expected image 1's 2-D points"), "{e}");
+    // Names may hold spaces; fields may be separated by several.
+    let spaced = text.replacen("view_001.png", "view 001.png", 1).replacen(" 7 view_002.png", "   7   view_002.png", 1);
+    std::fs::write(mdir.join("images.txt"), spaced).unwrap();
+    std::fs::rename(dir.path().join("images/view_001.png"), dir.path().join("images/view 001.png")).unwrap();
+    let names: Vec<String> = colmap::read_model(&mdir).unwrap().images.iter().take(2).map(|i| i.name.clone()).collect();
+    assert_eq!(names, ["view 001.png", "view_002.png"]);
+    assert_eq!(load(dir.path(), Split::Train).n_views(), model.images.len() - model.images.len().div_ceil(8));
+    std::fs::rename(dir.path().join("images/view 001.png"), dir.path().join("images/view_001.png")).unwrap();
     std::fs::write(mdir.join("images.txt"), &text).unwrap();
     std::fs::write(mdir.join("cameras.txt"), "7 PINHOLE 100 100 50 50 50\n").unwrap();
     let e = err_of(dir.path());
