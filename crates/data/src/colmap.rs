@@ -296,7 +296,7 @@ pub fn read_images_txt(path: &Path, text: &str) -> Result<Vec<ColmapImage>, Data
         let id = camera_id(path, ids[0], "image id")?;
         if let Some((j, points)) = lines.next() {
             let p: Vec<&str> = points.split_whitespace().collect();
-            if p.len() % 3 != 0 || p.iter().any(|x| x.parse::<f64>().is_err()) {
+            if !p.len().is_multiple_of(3) || p.iter().any(|x| x.parse::<f64>().is_err()) {
                 return Err(bad(
                     path,
                     format!("line {}: expected image {id}'s 2-D points (X Y POINT3D_ID triples, or an empty line) after its line", j + 1),
