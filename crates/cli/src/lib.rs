@@ -608,15 +608,16 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
     if let Some(n) = &train.normalization {
+        let colmap = nerf::data::is_colmap(&a.scene);
         eprintln!(
             "note: {}: a {}: poses normalised as nerfstudio does (scale {:.4}; see docs/formats.md), \
              trained in the box [-{s}, {s}]^3 about the cameras{}",
             a.scene.display(),
-            if nerf::data::is_colmap(&a.scene) { "COLMAP model" } else { "nerfstudio capture" },
+            if colmap { "COLMAP model" } else { "nerfstudio capture" },
             n.scale,
             if train.ngp.is_some_and(|b| b.aabb_scale > 1.0) {
                 ""
-            } else if nerf::data::is_colmap(&a.scene) {
+            } else if colmap {
                 "; for content past the cameras write it as transforms files (`nerf export-scene SCENE DST --downscale 1 \
                  --test-views all`) and add \"aabb_scale\" (e.g. 16) to them"
             } else {

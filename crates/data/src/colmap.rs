@@ -94,8 +94,10 @@ pub fn find_model(root: &Path) -> Option<PathBuf> {
 
 /// Whether `root` is a COLMAP scene folder: no `transforms*.json` there and a model below it.
 pub fn is_colmap(root: &Path) -> bool {
-    let transforms = ["transforms.json", "transforms_train.json", "transforms_test.json", "transforms_val.json"];
-    !transforms.iter().any(|t| root.join(t).is_file()) && find_model(root).is_some()
+    use crate::Split;
+    let split_files = [Split::Train, Split::Val, Split::Test].map(Split::transforms_file);
+    let transforms = std::iter::once(crate::ngp::NGP_TRANSFORMS).chain(split_files.iter().map(String::as_str));
+    !transforms.into_iter().any(|t| root.join(t).is_file()) && find_model(root).is_some()
 }
 
 /// `(cameras, images)` files of the model folder `dir`, binary if both exist, else text.
