@@ -164,7 +164,7 @@ fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {
         println!("{}: gains vs learnt diagonals r = {corr:.3}", t.device());
         r.push(corr);
         // Renders: corrected by the mean.
-        let test = load(Split::Test, ViewSelection::First(1));
+        let test = common::thumbnails(Split::Test, 1);
         let mut rays = nerf::data::RayBatch::default();
         test.view_rays(0, nerf::data::Background::White, c.pixel_convention, &mut rays);
         let n = rays.len();

@@ -17,7 +17,8 @@ fn small_hash_config(iters: u64, ema: Option<f32>) -> TrainConfig {
     TrainConfig { ema_decay: ema, ..common::small_hash_config(iters, 4, 8) }
 }
 
-/// Renders the first view of `test` (colours, then opacities), outputs poisoned beforehand.
+/// Renders the first view of `test` (colours, then opacities), outputs poisoned beforehand (the
+/// tests pass [`common::thumbnails`]).
 fn render(t: &Trainer, test: &Dataset) -> Vec<f32> {
     let mut batch = RayBatch::default();
     test.view_rays(0, t.config().eval_background, t.config().pixel_convention, &mut batch);
@@ -95,7 +96,7 @@ fn without_ema(state: &[(String, Vec<f32>)]) -> Vec<(String, Vec<f32>)> {
 #[test]
 fn cpu_trainer_averages_every_step_and_renders_with_the_average() {
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let decay = 0.8;
@@ -167,7 +168,7 @@ fn checkpoint_of(t: &Trainer) -> Checkpoint {
 #[test]
 fn checkpoints_carry_the_average() {
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let config = small_hash_config(8, Some(0.9));
@@ -227,7 +228,7 @@ fn checkpoints_carry_the_average() {
 #[test]
 fn a_render_only_copy_renders_what_the_full_checkpoint_renders() {
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let config = small_hash_config(8, Some(0.9));
@@ -265,7 +266,7 @@ fn device() -> Option<Arc<GpuContext>> {
 fn gpu_average_matches_the_direct_sum_and_renders_the_same_on_the_cpu() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let decay = 0.8;

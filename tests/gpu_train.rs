@@ -51,7 +51,8 @@ fn gpu_and_cpu_training_reach_the_same_psnr() {
     assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
 }
 
-/// The first view of `test` rendered by `t`: colours, opacities and depths.
+/// The first view of `test` rendered by `t`: colours, opacities and depths (the tests pass
+/// [`common::thumbnails`]).
 fn render_first_view(t: &Trainer, test: &Dataset, config: &TrainConfig) -> [Vec<f32>; 3] {
     let mut batch = nerf::data::RayBatch::default();
     test.view_rays(0, config.eval_background, config.pixel_convention, &mut batch);
@@ -67,7 +68,7 @@ fn render_first_view(t: &Trainer, test: &Dataset, config: &TrainConfig) -> [Vec<
 /// flips at a cell face). Returns (max, mean) |Δ| of the colours.
 fn gpu_checkpoint_renders_the_same_on_the_cpu(ctx: Arc<GpuContext>, config: &TrainConfig) -> (f32, f32) {
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let mut gpu = Trainer::new_on(config.clone(), &registry, bounds, Some(ctx)).unwrap();
@@ -185,7 +186,7 @@ fn gpu_checkpoints_render_the_same_on_the_cpu_with_every_sampler() {
 fn training_marches_at_its_own_step_after_a_finer_render() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let config = TrainConfig { log_every: 1, compact_samples: false, ..small_hash_config(6) };
     let mut gpu = Trainer::new_on(config.clone(), &nerf::registry(), SceneBounds::of(&train), Some(ctx)).unwrap();
     let per_ray = |s: nerf::train::StepStats| s.n_marched as f64 / s.n_rays.max(1) as f64;
@@ -211,7 +212,7 @@ fn shader_runtime_checks_change_no_result() {
     unchecked.shader_checks = false;
     let (checked, unchecked) = (Arc::new(checked), Arc::new(unchecked));
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let paper = TrainConfig {
@@ -304,7 +305,7 @@ fn a_gpu_run_writes_its_profile() {
         return;
     }
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     for (iters, start, steps, expect) in [(20u64, 15u64, 3u64, 3u64), (17, 15, 5, 2)] {
         let dir = tempfile::tempdir().unwrap();
@@ -343,7 +344,7 @@ fn a_gpu_run_writes_its_profile() {
 fn a_step_larger_than_the_adapters_binding_limit_is_fitted_to_it() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::First(10));
-    let test = load(Split::Test, ViewSelection::First(1));
+    let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
     let mut config = small_hash_config(2);
     // The colour network's tape holds `fps` floats for each of the 2·target samples a step has

@@ -42,10 +42,12 @@ fn config() -> TrainConfig {
     }
 }
 
-/// The in-repo scene's first test view (what `nerf::train::run` evaluates at its end).
+/// The in-repo scene's first test view at a quarter of its resolution (what `nerf::train::run`
+/// evaluates at its end; 25×25: lavapipe renders a field still warming up its occupancy grid
+/// slowly, ~50 s for the 100×100 view).
 fn load_test_view() -> Dataset {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, Split::Test, &LoadOptions { downscale: 1, views: ViewSelection::First(1), ..Default::default() }).unwrap()
+    load_blender(&scene, Split::Test, &LoadOptions { downscale: 4, views: ViewSelection::First(1), ..Default::default() }).unwrap()
 }
 
 /// Options of a `nerf::train::run` into `out` on `device`, without progress bar or renders.
@@ -169,7 +171,7 @@ fn the_distortion_loss_is_counted_and_gathers_the_weights() {
     let _device = take_device();
     let train = load();
     let gpu = GpuContext::for_tests().map(Arc::new);
-    // Mean distortion per ray, (loss − mse)/λ, over the last 10 of `steps` steps with λ.
+    // Mean distortion per ray, (loss − mse)/λ, over the last 10 (or all) of `steps` steps with λ.
     let measure_with = |dev: Option<Arc<GpuContext>>, lambda: f32, steps: usize, compact: bool| -> f64 {
         let name = if dev.is_some() { "gpu" } else { "cpu" };
         let threshold = if compact { 1e-4 } else { config().transmittance_threshold };
@@ -192,11 +194,13 @@ fn the_distortion_loss_is_counted_and_gathers_the_weights() {
         let mut t = Trainer::new_on(c, &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
         let s = t.step(&train).unwrap();
         assert_eq!(s.loss, s.mse, "{name}: without the distortion loss the loss is the photometric one");
-        let d = measure(dev.clone(), 1.0, 10);
+        // Four steps: an untrained field's step marches ~300 samples per ray, which lavapipe
+        // takes seconds over.
+        let d = measure(dev.clone(), 1.0, 4);
         assert!(d > 0.0 && d < 1.0, "{name}: mean distortion {d}");
         // On compacted samples (the hash preset's default, where the last stage holds each ray's
         // kept samples only) the loss is counted the same way.
-        let d = measure_with(dev, 1.0, 10, true);
+        let d = measure_with(dev, 1.0, 4, true);
         assert!(d > 0.0 && d < 1.0, "{name}, compacted: mean distortion {d}");
     }
     // The untrained field is a haze through the whole box (distortion ~0.16 per ray); measured
@@ -275,8 +279,11 @@ fn supersampled_evaluation_scores_the_mean_of_its_renders() {
     let (train, test) = (load(), load_test_view());
     let devices = [None, GpuContext::for_tests().map(Arc::new)];
     for dev in devices.iter().enumerate().filter(|(i, d)| *i == 0 || d.is_some()).map(|(_, d)| d.clone()) {
-        let mut t = Trainer::new_on(config(), &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
-        for _ in 0..30 {
+        // A few small steps: the untrained field's steps march ~300 samples per ray (lavapipe
+        // takes seconds over each); any field that is not uniform tells the renders apart.
+        let c = TrainConfig { batch_rays: 128, ..config() };
+        let mut t = Trainer::new_on(c, &nerf::registry(), SceneBounds::of(&train), dev.clone()).unwrap();
+        for _ in 0..10 {
             t.step(&train).unwrap();
         }
         let one = nerf::train::evaluate(&t, &test, None, |_, _| ()).unwrap();

@@ -13,6 +13,15 @@ pub fn load(split: Split, views: ViewSelection) -> Dataset {
     load_blender(&scene, split, &LoadOptions { downscale: 1, views, ..Default::default() }).unwrap()
 }
 
+/// The in-repo scene's first `n` views of `split` at a quarter of its resolution (25×25): for
+/// tests that compare renders or need a run's evaluation to happen, not to score it. A 100×100
+/// view of a field whose occupancy grid is still warming up marches every ray through the whole
+/// box; on lavapipe that render took ~50 s, this one ~3 s.
+pub fn thumbnails(split: Split, n: usize) -> Dataset {
+    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
+    load_blender(&scene, split, &LoadOptions { downscale: 4, views: ViewSelection::First(n), ..Default::default() }).unwrap()
+}
+
 /// The hash field's registry preset scaled down: a 2^13-sample batch, a 2^15 table and a 32³
 /// occupancy grid refreshed every `update_every` steps after `warmup_steps` warm-up steps.
 pub fn small_hash_config(iters: u64, update_every: u64, warmup_steps: u64) -> TrainConfig {
