@@ -6,11 +6,13 @@
 //! step does to the parameters, on the CPU and (where an adapter exists) on the GPU, and
 //! switching it off again reproduces the default run exactly.
 
-use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
+use nerf::data::{Dataset, Split, ViewSelection};
 use nerf::gpu::GpuContext;
 use nerf::train::{LossConfig, SamplerConfig, SceneBounds, TrainConfig, TrainError, Trainer};
 use std::path::Path;
 use std::sync::Arc;
+
+mod common;
 
 /// The tests of this file take turns on the device: the reproducibility check below compares two
 /// GPU runs bit for bit, and the hash grid's backward sums with float atomics, whose order
@@ -22,8 +24,7 @@ fn take_device() -> std::sync::MutexGuard<'static, ()> {
 }
 
 fn load() -> Dataset {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, Split::Train, &LoadOptions { downscale: 1, views: ViewSelection::First(10), ..Default::default() }).unwrap()
+    common::load(Split::Train, ViewSelection::First(10))
 }
 
 fn config() -> TrainConfig {
@@ -42,12 +43,10 @@ fn config() -> TrainConfig {
     }
 }
 
-/// The in-repo scene's first test view at a quarter of its resolution (what `nerf::train::run`
-/// evaluates at its end; 25×25: lavapipe renders a field still warming up its occupancy grid
-/// slowly, ~50 s for the 100×100 view).
+/// The in-repo scene's first test view as a 25×25 thumbnail (what `nerf::train::run` evaluates
+/// at its end).
 fn load_test_view() -> Dataset {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, Split::Test, &LoadOptions { downscale: 4, views: ViewSelection::First(1), ..Default::default() }).unwrap()
+    common::thumbnails(Split::Test, 1)
 }
 
 /// Options of a `nerf::train::run` into `out` on `device`, without progress bar or renders.

@@ -9,8 +9,12 @@ use std::path::Path;
 
 /// The in-repo scene (`scenes/lego_100`, 100×100).
 pub fn load(split: Split, views: ViewSelection) -> Dataset {
+    load_downscaled(split, views, 1)
+}
+
+fn load_downscaled(split: Split, views: ViewSelection, downscale: u32) -> Dataset {
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, split, &LoadOptions { downscale: 1, views, ..Default::default() }).unwrap()
+    load_blender(&scene, split, &LoadOptions { downscale, views, ..Default::default() }).unwrap()
 }
 
 /// The in-repo scene's first `n` views of `split` at a quarter of its resolution (25×25): for
@@ -18,8 +22,7 @@ pub fn load(split: Split, views: ViewSelection) -> Dataset {
 /// view of a field whose occupancy grid is still warming up marches every ray through the whole
 /// box; on lavapipe that render took ~50 s, this one ~3 s.
 pub fn thumbnails(split: Split, n: usize) -> Dataset {
-    let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/lego_100");
-    load_blender(&scene, split, &LoadOptions { downscale: 4, views: ViewSelection::First(n), ..Default::default() }).unwrap()
+    load_downscaled(split, ViewSelection::First(n), 4)
 }
 
 /// The hash field's registry preset scaled down: a 2^13-sample batch, a 2^15 table and a 32³
