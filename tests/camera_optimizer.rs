@@ -23,6 +23,11 @@ fn config(iters: u64, pose: bool) -> TrainConfig {
     TrainConfig { camera_optimizer: pose.then(CameraOptimizerConfig::default), ..small_hash_config(iters, 16, 64) }
 }
 
+/// [`config`] on [`common::light_hash_config`], for the test that takes 150 GPU steps.
+fn light_config(iters: u64, pose: bool) -> TrainConfig {
+    TrainConfig { camera_optimizer: pose.then(CameraOptimizerConfig::default), ..common::light_hash_config(iters) }
+}
+
 fn train(c: &TrainConfig, data: &Dataset) -> Trainer {
     let mut t = Trainer::new(c.clone(), &nerf::registry(), SceneBounds::of(data)).unwrap();
     for _ in 0..c.iters {
@@ -212,9 +217,9 @@ fn the_gpu_corrects_moved_cameras() {
     let (data, noise) = perturbed(ViewSelection::First(10));
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&data);
-    let pre = train(&config(PRE_STEPS, false), &data);
+    let pre = train(&light_config(PRE_STEPS, false), &data);
     let (fields, adam, sampler) = (pre.export_fields().unwrap(), pre.adam_state().unwrap(), pre.sampler_state().unwrap());
-    let c = TrainConfig { camera_optimizer: Some(CameraOptimizerConfig { lr: 1e-3, lr_final: 1e-4, ..Default::default() }), ..config(PRE_STEPS + GPU_STEPS, true) };
+    let c = TrainConfig { camera_optimizer: Some(CameraOptimizerConfig { lr: 1e-3, lr_final: 1e-4, ..Default::default() }), ..light_config(PRE_STEPS + GPU_STEPS, true) };
     let mut t = Trainer::new_on(c.clone(), &registry, bounds, Some(ctx.clone())).unwrap();
     assert_eq!(t.device(), "gpu");
     t.restore(PRE_STEPS, &fields, adam, &sampler).unwrap();
@@ -227,6 +232,9 @@ fn the_gpu_corrects_moved_cameras() {
     let r = rotation_correlation(&params, &noise);
     println!("gpu: rotation error {:.3}° → {:.3}°; rotations r = {r:.3}", before.to_degrees(), after.to_degrees());
     assert!(params.iter().all(|p| p.is_finite()));
+    // Measured (lavapipe, 2 cores): 1.496° → 1.037°, r = 0.78 after 150 GPU steps from a 300-step
+    // field (100 steps: 1.181°, r = 0.63; 100 steps from a 600-step field, where the rate has
+    // decayed further: 1.253°, r = 0.58).
     assert!(after < 0.85 * before, "the rotations come back: {before} → {after}");
     assert!(r > 0.5, "learnt rotations follow the opposite of the moves: r = {r}");
 
@@ -252,7 +260,7 @@ fn the_gpu_corrects_moved_cameras() {
 }
 
 const PRE_STEPS: u64 = 300;
-const GPU_STEPS: u64 = 100;
+const GPU_STEPS: u64 = 150;
 
 /// One step on identical rays gives the same pose gradient on both devices: a field trained for
 /// a while (so that the gradients in the rays' origins are not the noise of a blank field), its

@@ -146,8 +146,9 @@ fn colour_corrections_survive_checkpoints_on_both_devices() {
     }
 }
 
-/// On the GPU the corrections reach the step: training on the exposed views learns gains that
-/// follow the true ones, as on the CPU; and renders use their mean (a render equals the
+/// On the GPU the corrections reach the step: from a field trained for a while on the exposed
+/// views without corrections (on the CPU, which is quicker here), training with them learns gains
+/// that follow the true ones, as on the CPU from the same checkpoint; and renders use their mean (a render equals the
 /// uncorrected render — the same checkpoint restored with identity corrections — corrected by
 /// `mean_color_correction`), or one view's with `set_render_appearance`.
 #[test]
@@ -155,10 +156,17 @@ fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {
     let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
     let g = gains(10);
     let data = exposed(load(Split::Train, ViewSelection::First(10)), &g);
-    let c = TrainConfig { color_correction: Some(ColorCorrectionConfig { lr: 1e-2 }), ..config(STEPS, true) };
+    let c = TrainConfig { color_correction: Some(ColorCorrectionConfig { lr: 1e-2 }), ..common::light_hash_config(PRE_STEPS + STEPS) };
+    let pre = train(&TrainConfig { color_correction: None, iters: PRE_STEPS, ..c.clone() }, &data, None);
+    let (fields, adam, sampler) = (pre.export_fields().unwrap(), pre.adam_state().unwrap(), pre.sampler_state().unwrap());
     let mut r = Vec::new();
     for dev in [None, Some(ctx.clone())] {
-        let t = train(&c, &data, dev);
+        let mut t = Trainer::new_on(c.clone(), &nerf::registry(), SceneBounds::of(&data), dev).unwrap();
+        t.restore(PRE_STEPS, &fields, adam.clone(), &sampler).unwrap();
+        for _ in 0..STEPS {
+            t.step(&data).unwrap();
+        }
+        t.finish().unwrap();
         let params = t.color_params().unwrap().unwrap();
         let corr = diagonal_correlation(&params, &g);
         println!("{}: gains vs learnt diagonals r = {corr:.3}", t.device());
@@ -185,7 +193,6 @@ fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {
         assert!(max < 1e-5, "{}: render vs the mean correction of the raw render: max |Δ| {max}", t.device());
         assert!(rgb.iter().zip(&raw_rgb).any(|(a, b)| (a - b).abs() > 1e-3), "{}: the mean changed nothing", t.device());
         // One training view's appearance instead of the mean: that view's correction.
-        let mut t = t;
         t.set_render_appearance(Some(3)).unwrap();
         let (rgb3, _) = render(&t);
         color_correct_forward(None, &params[36..48], &raw_rgb, &raw_op, &rays.background, &mut want);
@@ -198,11 +205,14 @@ fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {
         plain_run.set_render_appearance(None).unwrap();
     }
     // The two devices draw different rays, so they are two samples of the same training.
-    // Measured (lavapipe, 2 cores): r = 0.773 on the CPU, 0.807 on the GPU after 200 steps;
+    // Measured (lavapipe, 2 cores): r = 0.693 on the CPU, 0.686 on the GPU after 80 steps from
+    // the same 200-step field (0.773 and 0.807 after 200 steps with corrections from the start,
+    // at the preset's 64-wide nets and 2^13 samples, a test three times as long);
     // identity corrections would give no correlation (NaN), wrong gradients a negative or an
     // unrelated one.
     assert!(r.iter().all(|&x| x > 0.5), "{r:?}");
     assert!((r[0] - r[1]).abs() < 0.2, "{r:?}");
 }
 
-const STEPS: u64 = 200;
+const PRE_STEPS: u64 = 200;
+const STEPS: u64 = 80;

@@ -15,16 +15,17 @@ fn device() -> Option<Arc<GpuContext>> {
     GpuContext::for_tests().map(Arc::new)
 }
 
-/// The hash field's preset scaled down: a 32³ occupancy grid warmed up for 64 steps.
+/// The hash field's preset scaled down to what lavapipe trains in a fraction of a second a step
+/// ([`common::light_hash_config`]): a 32³ occupancy grid warmed up for 64 steps.
 fn small_hash_config(iters: u64) -> TrainConfig {
-    common::small_hash_config(iters, 16, 64)
+    common::light_hash_config(iters)
 }
 
 #[test]
 fn gpu_and_cpu_training_reach_the_same_psnr() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::All);
-    let test = load(Split::Test, ViewSelection::Every(5));
+    let test = load(Split::Test, ViewSelection::Every(10));
     let config = small_hash_config(250);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
@@ -43,11 +44,12 @@ fn gpu_and_cpu_training_reach_the_same_psnr() {
     }
     // The two paths draw different random rays and jitter (rayon's streams vs the kernels' PCG
     // hash) and sum in a different order, so they are two samples of the same training, not the
-    // same numbers. Measured on lavapipe: CPU 20.18 dB, GPU 20.72 dB after 250 steps with
-    // tiny-cuda-nn's MLP init (19.56 and 20.11 dB with PyTorch's; 22.30 vs 22.08 dB after 300
-    // steps of 2^14 samples). 1.5 dB of tolerance still catches a broken
-    // kernel, which stays near the 9.7 dB background-only image.
-    assert!(psnr[0] > 18.0, "CPU PSNR {:.2}", psnr[0]);
+    // same numbers. Measured on lavapipe: CPU 19.08 dB, GPU 19.25 dB after 250 steps of this
+    // light config on every 10th test view (on every 5th: 18.84 and 19.20 dB; with the preset's
+    // 64-wide nets and 2^13 samples, 20.18 and 20.72 dB, a test twice as long; 22.30 vs 22.08 dB
+    // after 300 steps of 2^14 samples). 1.5 dB of tolerance still catches a broken kernel, which
+    // stays near the 9.7 dB background-only image.
+    assert!(psnr[0] > 17.0, "CPU PSNR {:.2}", psnr[0]);
     assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
 }
 
@@ -346,7 +348,8 @@ fn a_step_larger_than_the_adapters_binding_limit_is_fitted_to_it() {
     let train = load(Split::Train, ViewSelection::First(10));
     let test = common::thumbnails(Split::Test, 1);
     let registry = nerf::registry();
-    let mut config = small_hash_config(2);
+    // The preset's 64-wide nets, whose tapes this test sizes.
+    let mut config = common::small_hash_config(2, 16, 64);
     // The colour network's tape holds `fps` floats for each of the 2·target samples a step has
     // room for (at least 64: one hidden layer); this target needs ≥ twice the limit.
     let limit = ctx.max_storage_bytes();

@@ -27,7 +27,7 @@ fn demo_config() -> TrainConfig {
 #[test]
 fn paper_field_learns_the_small_lego_scene() {
     let train = load(Split::Train, ViewSelection::All);
-    let test = load(Split::Test, ViewSelection::Every(3));
+    let test = load(Split::Test, ViewSelection::Every(6));
     let mut config = demo_config();
     config.iters = 200;
     let mut trainer = Trainer::new(config.clone(), &nerf::registry(), SceneBounds::of(&train)).unwrap();
@@ -46,7 +46,8 @@ fn paper_field_learns_the_small_lego_scene() {
         .sum::<f64>()
         / test.n_views() as f64;
     println!("test PSNR {:.2} dB (SSIM {:.3}) vs background-only {:.2} dB", report.psnr, report.ssim, baseline);
-    // Threshold: this run measured 18.1 dB / SSIM 0.63 (x86-64, 2 cores). Requiring 16 dB — over
+    // Threshold: this run measured 18.6 dB / SSIM 0.67 on every 6th test view (x86-64, 2 cores;
+    // 18.1 dB / SSIM 0.63 on every 3rd). Requiring 16 dB — over
     // 6 dB above the background-only image, i.e. a 4x lower MSE — leaves 2 dB of margin for seed
     // and platform differences (summation order in the GEMM), while a broken gradient, sampler or
     // compositor stays near the baseline and fails.
@@ -68,7 +69,7 @@ fn hash_config() -> TrainConfig {
 #[test]
 fn hash_field_learns_the_small_lego_scene() {
     let train = load(Split::Train, ViewSelection::All);
-    let test = load(Split::Test, ViewSelection::Every(3));
+    let test = load(Split::Test, ViewSelection::Every(6));
     let mut config = hash_config();
     config.iters = 200;
     let mut trainer = Trainer::new(config.clone(), &nerf::registry(), SceneBounds::of(&train)).unwrap();
@@ -78,7 +79,8 @@ fn hash_field_learns_the_small_lego_scene() {
     let occupied = trainer.occupancy_grid().unwrap().occupied_fraction();
     let report = evaluate(&trainer, &test, None, |_, _| {}).unwrap();
     println!("hash: test PSNR {:.2} dB (SSIM {:.3}), occupied cells {:.3}", report.psnr, report.ssim, occupied);
-    // Measured: 24.8 dB / SSIM 0.88 in this test (PyTorch's MLP init: 22.2 dB / SSIM 0.82 after
+    // Measured: 25.1 dB / SSIM 0.88 in this test on every 6th test view (24.8 dB on every 3rd;
+    // PyTorch's MLP init: 22.2 dB / SSIM 0.82 after
     // 200 steps of `nerf train scenes/lego_100 --field hash --iters 200`). 20 dB leaves 2 dB of margin and is still far above the 9.7 dB
     // background-only image and above what the paper's field reaches in 200 steps (18 dB).
     assert!(report.psnr > 20.0, "PSNR {:.2}", report.psnr);

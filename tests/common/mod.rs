@@ -46,6 +46,18 @@ pub fn small_hash_config(iters: u64, update_every: u64, warmup_steps: u64) -> Tr
     c
 }
 
+/// [`small_hash_config`] lightened for tests that take hundreds of GPU steps: 2^12 samples per
+/// step, 32-wide MLPs and a 2^14 table. On lavapipe the fused MLP kernels are most of a step
+/// (2^13 samples, 64 wide: ≈ 1.4 s a step, 1.1 s of it the MLPs; Adam over the 2^15 table ≈ 90 ms);
+/// this step takes ≈ 0.4 s. The GPU kernels at the preset's widths are checked against the CPU in
+/// crates/gpu and crates/field-hash; these tests check what a training run does with them.
+pub fn light_hash_config(iters: u64) -> TrainConfig {
+    let mut c = small_hash_config(iters, 16, 64);
+    c.target_samples_per_step = Some(1 << 12);
+    c.field_config = serde_json::json!({"grid": {"log2_hashmap_size": 14}, "density_hidden": 32, "color_hidden": 32});
+    c
+}
+
 /// PSNR over every `stride`th pixel of the views of `ds` (white background), rendered by `t`.
 pub fn sparse_psnr(t: &nerf::train::Trainer, ds: &Dataset, stride: usize) -> f64 {
     let mut rays = nerf::data::RayBatch::default();

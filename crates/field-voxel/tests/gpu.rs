@@ -62,7 +62,7 @@ fn gpu_and_cpu_voxel_training_reach_the_same_psnr() {
     let ctx = Arc::new(ctx);
     let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/lego_100");
     let load = |split, views| load_blender(&scene, split, &LoadOptions { downscale: 1, views, ..Default::default() }).unwrap();
-    let (train, test) = (load(Split::Train, ViewSelection::All), load(Split::Test, ViewSelection::Every(5)));
+    let (train, test) = (load(Split::Train, ViewSelection::All), load(Split::Test, ViewSelection::Every(10)));
     let mut registry = Registry::new();
     registry.register(nerf_field_voxel::registry_entry());
     let mut v = serde_json::to_value(TrainConfig::default()).unwrap();
@@ -93,7 +93,8 @@ fn gpu_and_cpu_voxel_training_reach_the_same_psnr() {
         psnr.push(r.psnr);
     }
     // Two samples of the same training (different random rays and summation orders), as for the
-    // hash field (tests/gpu_train.rs). Measured: CPU 18.27 dB, lavapipe 18.48 dB (250 steps
+    // hash field (tests/gpu_train.rs). Measured: CPU 18.48 dB, lavapipe 18.33 dB on every 10th
+    // test view (18.27 and 18.48 dB on every 5th, a longer evaluation; 250 steps
     // and every 3rd view with `nerf train`: 19.50 and 20.08 dB); a broken kernel stays near the 9.7 dB background-only image.
     assert!(psnr[0] > 17.0, "CPU PSNR {:.2}", psnr[0]);
     assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
