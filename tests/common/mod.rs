@@ -48,9 +48,10 @@ pub fn small_hash_config(iters: u64, update_every: u64, warmup_steps: u64) -> Tr
 
 /// [`small_hash_config`] lightened for tests that take hundreds of GPU steps: 2^12 samples per
 /// step, 32-wide MLPs and a 2^14 table. On lavapipe the fused MLP kernels are most of a step
-/// (2^13 samples, 64 wide: ≈ 1.4 s a step, 1.1 s of it the MLPs; Adam over the 2^15 table ≈ 90 ms);
-/// this step takes ≈ 0.4 s. The GPU kernels at the preset's widths are checked against the CPU in
-/// crates/gpu and crates/field-hash; these tests check what a training run does with them.
+/// (`gpu_profile`, another test running beside it: 2^13 samples and 64-wide nets take 1.46 s a
+/// step, 1.30 s of it the MLP kernels and 87 ms Adam over the 2^15 table; this config 0.44 s).
+/// The GPU kernels at the preset's widths are checked against the CPU in crates/gpu and
+/// crates/field-hash; these tests check what a training run does with them.
 pub fn light_hash_config(iters: u64) -> TrainConfig {
     let mut c = small_hash_config(iters, 16, 64);
     c.target_samples_per_step = Some(1 << 12);
