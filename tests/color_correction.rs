@@ -148,8 +148,8 @@ fn colour_corrections_survive_checkpoints_on_both_devices() {
 
 /// On the GPU the corrections reach the step: from a field trained for a while on the exposed
 /// views without corrections (on the CPU, which is quicker here), training with them learns gains
-/// that follow the true ones, as on the CPU from the same checkpoint; and renders use their mean (a render equals the
-/// uncorrected render — the same checkpoint restored with identity corrections — corrected by
+/// that follow the true ones, as on the CPU from the same checkpoint; and renders use their mean
+/// (a render equals the uncorrected render — the same checkpoint restored with identity corrections — corrected by
 /// `mean_color_correction`), or one view's with `set_render_appearance`.
 #[test]
 fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {

@@ -9,16 +9,10 @@ use nerf::train::{evaluate, SamplerConfig, SceneBounds, TrainConfig, Trainer};
 use std::sync::Arc;
 
 mod common;
-use common::load;
+use common::{light_hash_config, load};
 
 fn device() -> Option<Arc<GpuContext>> {
     GpuContext::for_tests().map(Arc::new)
-}
-
-/// The hash field's preset scaled down to what lavapipe trains in a fraction of a second a step
-/// ([`common::light_hash_config`]): a 32³ occupancy grid warmed up for 64 steps.
-fn small_hash_config(iters: u64) -> TrainConfig {
-    common::light_hash_config(iters)
 }
 
 #[test]
@@ -26,7 +20,7 @@ fn gpu_and_cpu_training_reach_the_same_psnr() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::All);
     let test = load(Split::Test, ViewSelection::Every(10));
-    let config = small_hash_config(250);
+    let config = light_hash_config(250);
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let mut psnr = Vec::new();
@@ -158,7 +152,7 @@ fn gpu_checkpoint_renders_the_same_on_the_cpu(ctx: Arc<GpuContext>, config: &Tra
 fn gpu_checkpoints_render_the_same_on_the_cpu_with_every_sampler() {
     let Some(ctx) = device() else { return };
     // The hash field with occupancy marching.
-    let (max, mean) = gpu_checkpoint_renders_the_same_on_the_cpu(ctx.clone(), &small_hash_config(40));
+    let (max, mean) = gpu_checkpoint_renders_the_same_on_the_cpu(ctx.clone(), &light_hash_config(40));
     println!("occupancy: max |Δ| {max:.2e}, mean {mean:.2e}");
     assert!(mean < 1e-3 && max < 0.05, "occupancy: max {max}, mean {mean}");
     // The paper's field (small) with stratified, then hierarchical sampling.
@@ -189,7 +183,7 @@ fn training_marches_at_its_own_step_after_a_finer_render() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::First(10));
     let test = common::thumbnails(Split::Test, 1);
-    let config = TrainConfig { log_every: 1, compact_samples: false, ..small_hash_config(6) };
+    let config = TrainConfig { log_every: 1, compact_samples: false, ..light_hash_config(6) };
     let mut gpu = Trainer::new_on(config.clone(), &nerf::registry(), SceneBounds::of(&train), Some(ctx)).unwrap();
     let per_ray = |s: nerf::train::StepStats| s.n_marched as f64 / s.n_rays.max(1) as f64;
     let before = (0..3).map(|_| per_ray(gpu.step(&train).unwrap())).last().unwrap();
@@ -224,7 +218,7 @@ fn shader_runtime_checks_change_no_result() {
         sampler: SamplerConfig::Hierarchical { n_coarse: 16, n_fine: 16 },
         ..TrainConfig::default()
     };
-    for (name, config) in [("hash", small_hash_config(40)), ("paper", paper)] {
+    for (name, config) in [("hash", light_hash_config(40)), ("paper", paper)] {
         let mut a = Trainer::new_on(config.clone(), &registry, bounds, Some(checked.clone())).unwrap();
         for _ in 0..config.iters {
             a.step(&train).unwrap();
@@ -261,7 +255,7 @@ fn shader_runtime_checks_change_no_result() {
 fn a_gpu_run_resumes_from_a_gpu_or_a_cpu_checkpoint() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::First(10));
-    let mut config = small_hash_config(30);
+    let mut config = light_hash_config(30);
     config.log_every = 5;
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
@@ -311,7 +305,7 @@ fn a_gpu_run_writes_its_profile() {
     let registry = nerf::registry();
     for (iters, start, steps, expect) in [(20u64, 15u64, 3u64, 3u64), (17, 15, 5, 2)] {
         let dir = tempfile::tempdir().unwrap();
-        let mut config = small_hash_config(iters);
+        let mut config = light_hash_config(iters);
         config.gpu_profile = Some(nerf::train::ProfileWindow { start, steps });
         let opts = nerf::train::RunOptions {
             progress: false,
@@ -446,7 +440,7 @@ fn a_field_without_a_gpu_twin_is_refused_on_the_gpu_and_trains_on_the_cpu() {
         build: |cfg, ctx| Ok(Box::new(CpuOnly(nerf::field_voxel::build(cfg, ctx)?))),
     });
     let train = load(Split::Train, ViewSelection::First(5));
-    let mut config = small_hash_config(2);
+    let mut config = light_hash_config(2);
     config.field = "cpu_only".into();
     config.field_config = serde_json::json!({"resolution": 16, "hidden": 16});
     let bounds = SceneBounds::of(&train);
