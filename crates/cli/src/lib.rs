@@ -932,20 +932,25 @@ fn cmd_export_points(a: PointsArgs, registry: &Registry) -> Result<()> {
     }
     let LoadedRun { config, train, trainer, .. } = load_run(registry, &a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"), false)?;
     let out = a.out.unwrap_or_else(|| a.run.join("points.ply"));
-    let batch = 1 << 16;
-    let max_rays = 20 * a.points.max(batch);
+    // Batches start at twice the points asked for (at least 1024 rays) and double up to 2^16
+    // while too few rays stop: a small cloud does not render 65 536 rays.
+    let max_batch = 1 << 16;
+    let mut batch = (2 * a.points).clamp(1 << 10, max_batch);
+    let max_rays = 20 * a.points.max(max_batch);
     let mut rng = nerf::core::rng(a.seed, 0x706f_696e_7473); // "points"
     let mut rays = nerf::data::RayBatch::default();
-    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * batch], vec![0.0; batch], vec![0.0; batch]);
+    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * max_batch], vec![0.0; max_batch], vec![0.0; max_batch]);
     let mut points = Vec::with_capacity(a.points);
     let pb = progress(a.quiet, a.points, "points {bar:30} {pos}/{len}");
     let mut cast = 0;
     while points.len() < a.points && cast < max_rays {
         train.sample_camera_rays(batch, config.eval_background, config.pixel_convention, false, &mut rng, &mut rays);
-        trainer.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut opacity, &mut depth)?;
+        let (rgb, opacity, depth) = (&mut rgb[..3 * batch], &mut opacity[..batch], &mut depth[..batch]);
+        trainer.render_rays(&rays.origins, &rays.dirs, &rays.background, rgb, opacity, depth)?;
         let bounds = (train.aabb.min, train.aabb.max);
-        nerf::render::surface_points(&rays.origins, &rays.dirs, &rgb, &opacity, &depth, &rays.background, a.min_opacity, bounds, &mut points);
+        nerf::render::surface_points(&rays.origins, &rays.dirs, rgb, opacity, depth, &rays.background, a.min_opacity, bounds, &mut points);
         cast += batch;
+        batch = (2 * batch).min(max_batch);
         pb.set_position(points.len().min(a.points) as u64);
     }
     pb.finish_and_clear();
