@@ -146,11 +146,15 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
         return;
     };
     let d = tempfile::tempdir().unwrap();
-    // images_8 box-averaged by 6: 84×63; two hash steps, one test view.
+    // images_8 box-averaged by 6: 84×63; two small hash steps, one test view. The untrained field
+    // is opaque nowhere, so every render marches whole rays: 0.02 steps on a 32³ grid (the
+    // preset's 0.005 steps made this test 3× as long).
+    let cfg = d.path().join("small.toml");
+    std::fs::write(&cfg, "target_samples_per_step = 4096\n[sampler]\nkind = \"occupancy\"\nstep_size = 0.02\nmax_samples_per_ray = 256\n[sampler.grid]\nresolution = 32\n").unwrap();
     for (flag, space) in [(None, "ndc"), (Some("--no-ndc"), "euclidean")] {
         let run = d.path().join(space);
         let mut cmd = nerf();
-        cmd.arg("train").arg(&fern).args(["--field", "hash", "--iters", "2", "--downscale", "48", "--test-views", "first:1"]);
+        cmd.arg("train").arg(&fern).args(["--field", "hash", "--iters", "2", "--downscale", "48", "--test-views", "first:1", "--config"]).arg(&cfg);
         cmd.args(["--device", "cpu", "--quiet", "--no-renders"]).arg("--out").arg(&run).args(flag);
         let o = cmd.output().unwrap();
         assert!(o.status.success(), "{}", stderr(&o));
@@ -189,7 +193,7 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
     }
     // Resuming in the other ray space is refused, naming the checkpoint.
     let run = d.path().join("ndc");
-    let o = nerf().arg("train").arg(&fern).args(["--field", "hash", "--iters", "3", "--downscale", "48", "--test-views", "first:1"])
+    let o = nerf().arg("train").arg(&fern).args(["--field", "hash", "--iters", "3", "--downscale", "48", "--test-views", "first:1", "--config"]).arg(&cfg)
         .args(["--device", "cpu", "--quiet", "--no-renders", "--resume", "--no-ndc"]).arg("--out").arg(&run).output().unwrap();
     assert_clean_failure(&o, &["checkpoint.bin", "NDC rays", "without --no-ndc"]);
 }
@@ -301,7 +305,7 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
 fn eval_renders_an_occupancy_run_with_another_marching_step() {
     let d = tempfile::tempdir().unwrap();
     let s = small_scene(d.path());
-    let base_cfg = "field = \"hash\"\nbatch_rays = 256\n[field_config.grid]\nlog2_hashmap_size = 12\n\
+    let base_cfg = "field = \"hash\"\nbatch_rays = 256\ntarget_samples_per_step = 4096\n[field_config.grid]\nlog2_hashmap_size = 12\n\
         [sampler]\nkind = \"occupancy\"\nstep_size = 0.02\nmax_samples_per_ray = 256\n";
     let train = |name: &str, cfg_text: &str| -> PathBuf {
         let (run, cfg) = (d.path().join(name), d.path().join(format!("{name}.toml")));
@@ -363,8 +367,11 @@ fn slim_writes_a_render_only_copy_that_scores_what_the_run_scores() {
     let d = tempfile::tempdir().unwrap();
     let s = small_scene(d.path());
     let (run, cfg) = (d.path().join("run"), d.path().join("run.toml"));
-    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 256\nema_decay = 0.9\n[field_config.grid]\nlog2_hashmap_size = 12\n\
-        [sampler]\nkind = \"occupancy\"\nstep_size = 0.02\nmax_samples_per_ray = 256\n").unwrap();
+    // 16-wide nets, 0.05 steps and 4 096 samples a step: the GPU evaluations below (lavapipe in
+    // CI) took 12 s each with the preset's 64-wide nets at 0.02 steps, 3 s with these.
+    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 256\ntarget_samples_per_step = 4096\nema_decay = 0.9\n\
+        [field_config]\ndensity_hidden = 16\ncolor_hidden = 16\n[field_config.grid]\nlog2_hashmap_size = 12\n\
+        [sampler]\nkind = \"occupancy\"\nstep_size = 0.05\nmax_samples_per_ray = 64\n").unwrap();
     let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
         .args(["--quiet", "--no-renders", "--iters", "20", "--device", "cpu"]).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
@@ -1139,7 +1146,8 @@ fn export_scene_moves_cameras_and_camera_optimizer_trains_on_it() {
     assert_eq!(frames(plain.join("transforms_test.json")), frames(s.join("transforms_test.json")), "test cameras are unchanged");
     // A run with the optimizer on this scene writes the corrected poses.
     let cfg = d.path().join("pose.toml");
-    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 64\ncompact_samples = false\n[camera_optimizer]\nlr = 0.001\n[field_config.grid]\nlog2_hashmap_size = 12\n\
+    // 1 024 samples a step (the preset's 2^16 made the 4 GPU steps 25 s on lavapipe, 2 s now).
+    std::fs::write(&cfg, "field = \"hash\"\nbatch_rays = 64\ntarget_samples_per_step = 1024\ncompact_samples = false\n[camera_optimizer]\nlr = 0.001\n[field_config.grid]\nlog2_hashmap_size = 12\n\
         [sampler]\nkind = \"stratified\"\nn_samples = 16\n").unwrap();
     let run = d.path().join("run");
     let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run)
