@@ -1,11 +1,12 @@
 //! The parameters' exponential moving average (`TrainConfig::ema_decay`, instant-ngp's `Ema`):
 //! the trainer keeps the debiased average of every step's parameters, renders with it (and only
-//! rendering does), checkpoints carry it, and the GPU path keeps the same average as the CPU.
-//! GPU tests print a notice and return where no adapter exists.
+//! rendering does), checkpoints carry it, and the GPU path keeps the same average as the CPU
+//! (step by step here; tests/gpu_train.rs scores a whole GPU training of the hash preset, which
+//! keeps the average, against the CPU's). GPU tests print a notice and return where no adapter exists.
 
 use nerf::data::{Dataset, RayBatch, Split, ViewSelection};
 use nerf::gpu::GpuContext;
-use nerf::train::{evaluate, Checkpoint, FieldParams, SceneBounds, TrainConfig, Trainer};
+use nerf::train::{Checkpoint, FieldParams, SceneBounds, TrainConfig, Trainer};
 use std::sync::Arc;
 
 mod common;
@@ -308,35 +309,4 @@ fn gpu_average_matches_the_direct_sum_and_renders_the_same_on_the_cpu() {
     assert_eq!(back.ema_state().unwrap(), cpu.ema_state().unwrap());
     let d_back = mean_abs_diff(&render(&back, &test), &c_ema);
     assert!(d_back < 1e-3, "CPU average rendered on the GPU: mean |Δ| {d_back}");
-}
-
-#[test]
-fn gpu_and_cpu_ema_training_reach_the_same_psnr() {
-    let Some(ctx) = device() else { return };
-    let train = load(Split::Train, ViewSelection::All);
-    let test = load(Split::Test, ViewSelection::Every(20));
-    let config = TrainConfig { ema_decay: Some(0.95), ..common::light_hash_config(100) };
-    let registry = nerf::registry();
-    let bounds = SceneBounds::of(&train);
-    let mut psnr = Vec::new();
-    for dev in [None, Some(ctx)] {
-        let t0 = std::time::Instant::now();
-        let mut t = Trainer::new_on(config.clone(), &registry, bounds, dev).unwrap();
-        for _ in 0..config.iters {
-            t.step(&train).unwrap();
-        }
-        t.finish().unwrap();
-        assert_eq!(t.ema_state().unwrap().unwrap().step, config.iters);
-        let r = evaluate(&t, &test, None, |_, _| {}).unwrap();
-        eprintln!("{}: {:.2} dB in {:.1} s", t.device(), r.psnr, t0.elapsed().as_secs_f64());
-        psnr.push(r.psnr);
-    }
-    // Two samples of the same training (different random streams, see tests/gpu_train.rs, whose
-    // 1.5 dB tolerance this keeps). Measured on lavapipe: CPU 15.76 dB, GPU 15.81 dB after 100
-    // steps of the light config on every 20th test view (the preset's 64-wide nets and 2^13
-    // samples, every 10th view: 16.69 / 16.83 dB, a test twice as long). 13 dB is
-    // 3.3 dB above the background-only image (9.7 dB), where a broken average (zeros, stale
-    // initial weights, NaN) stays.
-    assert!(psnr[0] > 13.0, "CPU PSNR {:.2}", psnr[0]);
-    assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
 }

@@ -15,12 +15,18 @@ fn device() -> Option<Arc<GpuContext>> {
     GpuContext::for_tests().map(Arc::new)
 }
 
+/// GPU and CPU training of one config reach the same PSNR. The hash preset keeps the parameters'
+/// average (`ema_decay = 0.95`, as instant-ngp) and the runs are scored with it, so the GPU's
+/// average is checked over a whole training here too (tests/ema.rs checks it step by step against
+/// the direct sum); the average only reads the trained parameters, so a broken training step
+/// fails here all the same.
 #[test]
 fn gpu_and_cpu_training_reach_the_same_psnr() {
     let Some(ctx) = device() else { return };
     let train = load(Split::Train, ViewSelection::All);
     let test = load(Split::Test, ViewSelection::Every(10));
-    let config = light_hash_config(250);
+    let config = light_hash_config(150);
+    assert_eq!(config.ema_decay, Some(0.95), "the hash preset's average");
     let registry = nerf::registry();
     let bounds = SceneBounds::of(&train);
     let mut psnr = Vec::new();
@@ -31,6 +37,7 @@ fn gpu_and_cpu_training_reach_the_same_psnr() {
             t.step(&train).unwrap();
         }
         t.finish().unwrap();
+        assert_eq!(t.ema_state().unwrap().unwrap().step, config.iters);
         eprintln!("{}: trained in {:.1} s", t.device(), t0.elapsed().as_secs_f64());
         let r = evaluate(&t, &test, None, |_, _| {}).unwrap();
         println!("{}: {:.2} dB, SSIM {:.3}, {} samples", t.device(), r.psnr, r.ssim, t.samples_seen().unwrap());
@@ -38,12 +45,12 @@ fn gpu_and_cpu_training_reach_the_same_psnr() {
     }
     // The two paths draw different random rays and jitter (rayon's streams vs the kernels' PCG
     // hash) and sum in a different order, so they are two samples of the same training, not the
-    // same numbers. Measured on lavapipe: CPU 19.08 dB, GPU 19.25 dB after 250 steps of this
-    // light config on every 10th test view (on every 5th: 18.84 and 19.20 dB; with the preset's
-    // 64-wide nets and 2^13 samples, 20.18 and 20.72 dB, a test twice as long; 22.30 vs 22.08 dB
-    // after 300 steps of 2^14 samples). 1.5 dB of tolerance still catches a broken kernel, which
-    // stays near the 9.7 dB background-only image.
-    assert!(psnr[0] > 17.0, "CPU PSNR {:.2}", psnr[0]);
+    // same numbers. Measured on lavapipe: CPU 16.60 dB, GPU 16.60 dB after 150 steps of this
+    // light config on every 10th test view (after 250 steps: 19.08 and 19.25 dB, a test 1.4×
+    // as long; the preset's 64-wide nets and 2^13 samples, 20.18 and 20.72 dB, twice as long
+    // again). 1.5 dB of tolerance still catches a broken kernel, which stays near the 9.7 dB
+    // background-only image.
+    assert!(psnr[0] > 15.0, "CPU PSNR {:.2}", psnr[0]);
     assert!((psnr[1] - psnr[0]).abs() < 1.5, "GPU {:.2} dB vs CPU {:.2} dB", psnr[1], psnr[0]);
 }
 
@@ -152,7 +159,7 @@ fn gpu_checkpoint_renders_the_same_on_the_cpu(ctx: Arc<GpuContext>, config: &Tra
 fn gpu_checkpoints_render_the_same_on_the_cpu_with_every_sampler() {
     let Some(ctx) = device() else { return };
     // The hash field with occupancy marching.
-    let (max, mean) = gpu_checkpoint_renders_the_same_on_the_cpu(ctx.clone(), &light_hash_config(40));
+    let (max, mean) = gpu_checkpoint_renders_the_same_on_the_cpu(ctx.clone(), &light_hash_config(20));
     println!("occupancy: max |Δ| {max:.2e}, mean {mean:.2e}");
     assert!(mean < 1e-3 && max < 0.05, "occupancy: max {max}, mean {mean}");
     // The paper's field (small) with stratified, then hierarchical sampling.
@@ -218,7 +225,7 @@ fn shader_runtime_checks_change_no_result() {
         sampler: SamplerConfig::Hierarchical { n_coarse: 16, n_fine: 16 },
         ..TrainConfig::default()
     };
-    for (name, config) in [("hash", light_hash_config(40)), ("paper", paper)] {
+    for (name, config) in [("hash", light_hash_config(20)), ("paper", paper)] {
         let mut a = Trainer::new_on(config.clone(), &registry, bounds, Some(checked.clone())).unwrap();
         for _ in 0..config.iters {
             a.step(&train).unwrap();
