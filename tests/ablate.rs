@@ -726,7 +726,7 @@ fn a_run_fitted_to_the_adapter_says_so_in_the_results() {
 scenes = ["lego_tiny"]
 test_views = "all"
 [budget]
-iters = 2
+iters = 1
 [base]
 field = "hash"
 field_config = {{ grid = {{ log2_hashmap_size = 12, n_levels = 4 }} }}

@@ -29,7 +29,7 @@ fn paper_field_learns_the_small_lego_scene() {
     let train = load(Split::Train, ViewSelection::All);
     let test = load(Split::Test, ViewSelection::Every(6));
     let mut config = demo_config();
-    config.iters = 200;
+    config.iters = 150;
     let mut trainer = Trainer::new(config.clone(), &nerf::registry(), SceneBounds::of(&train)).unwrap();
     for _ in 0..config.iters {
         trainer.step(&train).unwrap();
@@ -46,11 +46,11 @@ fn paper_field_learns_the_small_lego_scene() {
         .sum::<f64>()
         / test.n_views() as f64;
     println!("test PSNR {:.2} dB (SSIM {:.3}) vs background-only {:.2} dB", report.psnr, report.ssim, baseline);
-    // Threshold: this run measured 18.6 dB / SSIM 0.67 on every 6th test view (x86-64, 2 cores;
-    // 18.1 dB / SSIM 0.63 on every 3rd). Requiring 16 dB — over
-    // 6 dB above the background-only image, i.e. a 4x lower MSE — leaves 2 dB of margin for seed
-    // and platform differences (summation order in the GEMM), while a broken gradient, sampler or
-    // compositor stays near the baseline and fails.
+    // Threshold: this run measured 17.57 dB / SSIM 0.61 on every 6th test view after 150 steps
+    // (x86-64, 2 cores; 18.6 dB / SSIM 0.67 after 200, a test 1.3× as long). Requiring 16 dB and
+    // 6 dB above the background-only image (9.93 dB here), i.e. a 4x lower MSE, leaves 1.6 dB of
+    // margin for seed and platform differences (summation order in the GEMM), while a broken
+    // gradient, sampler or compositor stays near the baseline and fails.
     assert!(report.psnr > 16.0, "PSNR {:.2} below 16 dB (background-only: {baseline:.2})", report.psnr);
     assert!(report.psnr > baseline + 6.0, "PSNR {:.2} not 6 dB above baseline {baseline:.2}", report.psnr);
     assert!(report.ssim > 0.5, "SSIM {:.3}", report.ssim);
