@@ -935,8 +935,8 @@ fn cmd_export_points(a: PointsArgs, registry: &Registry) -> Result<()> {
     // Batches start at twice the points asked for (at least 1024 rays) and double up to 2^16
     // while too few rays stop: a small cloud does not render 65 536 rays.
     let max_batch = 1 << 16;
-    let mut batch = (2 * a.points).clamp(1 << 10, max_batch);
-    let max_rays = 20 * a.points.max(max_batch);
+    let mut batch = a.points.saturating_mul(2).clamp(1 << 10, max_batch);
+    let max_rays = a.points.max(max_batch).saturating_mul(20);
     let mut rng = nerf::core::rng(a.seed, 0x706f_696e_7473); // "points"
     let mut rays = nerf::data::RayBatch::default();
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * max_batch], vec![0.0; max_batch], vec![0.0; max_batch]);
