@@ -132,6 +132,18 @@ pub enum DataError {
         /// Index of the frame in the transforms file.
         frame: usize,
     },
+    /// A frame's pose cannot place a camera: its rotation block is degenerate
+    /// ([`nerf_rays::RayError::DegeneratePose`]).
+    #[error("{}: frame {frame}: {source}", .path.display())]
+    BadPose {
+        /// The transforms (or poses) file.
+        path: PathBuf,
+        /// Index of the frame in that file.
+        frame: usize,
+        /// What is wrong with the pose.
+        #[source]
+        source: nerf_rays::RayError,
+    },
     /// A frame's `transform_matrix` is not a 4×4 or 3×4 array of numbers.
     #[error("{}: frame {frame}: transform_matrix must be a 4x4 or 3x4 array of numbers, got {shape}", .path.display())]
     BadMatrix {
@@ -783,6 +795,17 @@ fn parse_matrix(path: &Path, frame: usize, v: &Value) -> Result<Vec<[f32; 4]>, D
     Ok(m)
 }
 
+impl DataError {
+    /// The error for frame `frame` of `path` whose matrix [`Camera::from_c2w`] refused.
+    pub(crate) fn pose(path: &Path, frame: usize, e: nerf_rays::RayError) -> Self {
+        let path = path.to_path_buf();
+        match e {
+            nerf_rays::RayError::NonFinitePose => DataError::NonFinitePose { path, frame },
+            source => DataError::BadPose { path, frame, source },
+        }
+    }
+}
+
 fn json_kind(v: &Value) -> &'static str {
     match v {
         Value::Null => "null",
@@ -1153,10 +1176,7 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         .iter()
         .map(|f| {
             let intr = f.lens.intrinsics(&tpath, &f.image, w0, h0)?.downscaled(k);
-            Camera::from_c2w(intr, &f.c2w).map_err(|_| DataError::NonFinitePose {
-                path: tpath.clone(),
-                frame: f.index,
-            })
+            Camera::from_c2w(intr, &f.c2w).map_err(|e| DataError::pose(&tpath, f.index, e))
         })
         .collect::<Result<Vec<_>, _>>()?;
     let (near, far, aabb) = match &ngp_box {

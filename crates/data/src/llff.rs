@@ -269,7 +269,7 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
             let c2w: Vec<[f32; 4]> = (0..3)
                 .map(|r| [p.r.x_axis[r] as f32, p.r.y_axis[r] as f32, p.r.z_axis[r] as f32, p.t[r] as f32])
                 .collect();
-            Camera::from_c2w(intr, &c2w).map_err(|_| DataError::NonFinitePose { path: poses_path.clone(), frame: i })
+            Camera::from_c2w(intr, &c2w).map_err(|e| DataError::pose(&poses_path, i, e))
         })
         .collect::<Result<Vec<_>, _>>()?;
     let cameras: Vec<Camera> = selected.iter().map(|&i| all_cameras[i]).collect();

@@ -593,6 +593,29 @@ fn error_non_finite_pose() {
 }
 
 #[test]
+fn error_degenerate_pose() {
+    let dir = tempfile::tempdir().unwrap();
+    good_scene(dir.path(), 2, 4, 4);
+    // A zeroed rotation block: every pixel's ray would have no direction.
+    let mut frames = frames_json(2);
+    frames[1]["transform_matrix"] = json!([[0, 0, 0, 1], [0, 0, 0, 2], [0, 0, 0, 3], [0, 0, 0, 1]]);
+    set_transforms(
+        dir.path(),
+        &json!({"camera_angle_x": ANGLE, "frames": frames}),
+    );
+    let e = load_err(dir.path(), &LoadOptions::default());
+    assert!(
+        matches!(e, DataError::BadPose { frame: 1, .. }),
+        "{e}"
+    );
+    let msg = e.to_string();
+    assert!(
+        msg.contains("transforms_train.json") && msg.contains("frame 1") && msg.contains("degenerate"),
+        "{msg}"
+    );
+}
+
+#[test]
 fn error_bad_matrix_shape() {
     let dir = tempfile::tempdir().unwrap();
     good_scene(dir.path(), 2, 4, 4);

@@ -36,6 +36,18 @@ pub enum RayError {
         /// Number of rows that were given.
         rows: usize,
     },
+    /// The camera-to-world matrix's rotation block is degenerate: an axis of (near) zero length, or
+    /// three axes that do not span 3-D space, so that pixels would have no ray direction.
+    #[error(
+        "degenerate camera pose: its rotation block has axis lengths {lengths:?} and determinant {det:.3e}; \
+         the three axes must span 3-D space"
+    )]
+    DegeneratePose {
+        /// Lengths of the three axes (columns of the rotation block).
+        lengths: [f32; 3],
+        /// Determinant of the rotation block.
+        det: f32,
+    },
     /// Intrinsics that cannot describe a pinhole camera (zero size, non-positive or non-finite focal).
     #[error("invalid camera intrinsics: {0}")]
     BadIntrinsics(String),
@@ -405,10 +417,18 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The smallest `|det R| / (|x|·|y|·|z|)` [`Camera::from_c2w`] accepts for a rotation block
+    /// `R` with axes `x, y, z`: the volume spanned by the unit axes (1 when they are orthogonal,
+    /// 0 when they are coplanar). 10⁻³ lets through any pose a real exporter writes (rounding,
+    /// a uniform scale) and rejects a zero or collapsed block, whose rays would have no direction.
+    pub const MIN_AXIS_VOLUME: f32 = 1e-3;
+
     /// From the Blender/nerfstudio 4×4 (or top 3×4) row-major camera-to-world matrix
     /// (`transform_matrix`): rotation = the top-left 3×3 block, position = the last column.
     /// `Err(RayError::NonFinitePose)` if any value is not finite, `Err(RayError::BadPoseShape)`
-    /// if there are not 3 or 4 rows. The bottom row of a 4×4 matrix is not used.
+    /// if there are not 3 or 4 rows, `Err(RayError::DegeneratePose)` if the rotation block's axes
+    /// do not span space (see [`Camera::MIN_AXIS_VOLUME`]). The bottom row of a 4×4 matrix is not
+    /// used.
     pub fn from_c2w(intrinsics: Intrinsics, c2w: &[[f32; 4]]) -> Result<Self, RayError> {
         if c2w.len() != 3 && c2w.len() != 4 {
             return Err(RayError::BadPoseShape { rows: c2w.len() });
@@ -423,6 +443,15 @@ impl Camera {
             Vec3::new(m(0, 2), m(1, 2), m(2, 2)),
         );
         let position = Vec3::new(m(0, 3), m(1, 3), m(2, 3));
+        // A rotation may carry a uniform scale (some exporters write one); what must hold is
+        // that the axes span space. |det| / (|x|·|y|·|z|) is the volume of the parallelepiped
+        // of the unit axes: 1 for orthogonal axes, 0 for coplanar ones.
+        let lengths = [rotation.x_axis.length(), rotation.y_axis.length(), rotation.z_axis.length()];
+        let det = rotation.determinant();
+        let volume = lengths.iter().product::<f32>();
+        if !(volume > 0.0 && volume.is_finite() && det.abs() >= Self::MIN_AXIS_VOLUME * volume) {
+            return Err(RayError::DegeneratePose { lengths, det });
+        }
         Ok(Self {
             intrinsics,
             rotation,
@@ -979,6 +1008,29 @@ mod tests {
             Camera::from_c2w(cam.intrinsics, &m[..2]),
             Err(RayError::BadPoseShape { rows: 2 })
         ));
+        // A uniformly scaled rotation is a pose; a zeroed or collapsed rotation block is not.
+        let mut scaled = m;
+        for row in scaled.iter_mut().take(3) {
+            for v in row.iter_mut().take(3) {
+                *v *= 0.01;
+            }
+        }
+        assert!(Camera::from_c2w(cam.intrinsics, &scaled).is_ok());
+        let mut zero = m;
+        for row in zero.iter_mut().take(3) {
+            row[..3].fill(0.0);
+        }
+        assert!(matches!(
+            Camera::from_c2w(cam.intrinsics, &zero),
+            Err(RayError::DegeneratePose { det, .. }) if det == 0.0
+        ));
+        let mut coplanar = m; // third axis = first axis
+        for row in coplanar.iter_mut().take(3) {
+            row[2] = row[0];
+        }
+        let e = Camera::from_c2w(cam.intrinsics, &coplanar).unwrap_err();
+        assert!(matches!(e, RayError::DegeneratePose { .. }), "{e}");
+        assert!(e.to_string().contains("span 3-D space"), "{e}");
     }
 
     #[test]
