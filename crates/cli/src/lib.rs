@@ -578,7 +578,10 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     if let Some(x) = a.batch_rays {
         c.batch_rays = x;
     }
-    c.validate().map_err(anyhow::Error::msg)?;
+    c.validate().map_err(|e| match &a.config {
+        Some(p) => anyhow::anyhow!("invalid training config ({} and the command-line flags): {e}", p.display()),
+        None => anyhow::anyhow!("invalid training config: {e}"),
+    })?;
     Ok(c)
 }
 
@@ -685,7 +688,7 @@ fn cmd_eval(a: EvalArgs, registry: &Registry) -> Result<()> {
         config.validate().map_err(|e| anyhow::anyhow!("--step-size {s}: {e}"))?;
     }
     let mut trainer = make_trainer(&config, registry, SceneBounds::of(&test), a.device)?;
-    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+    trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler).map_err(|e| e.in_checkpoint(&ck_path))?;
     let out = a.out.unwrap_or_else(|| a.run.join("eval"));
     let pb = progress(a.quiet, test.n_views(), "eval {bar:30} {pos}/{len} views");
     let report = nerf::train::evaluate(&trainer, &test, Some(&out), |i, _| pb.set_position(i as u64))?;
@@ -760,14 +763,15 @@ struct LoadedRun {
 /// `pixels` the split's photos are not decoded (its cameras and box are all that rendering and
 /// mesh export need; [`LoadOptions::cameras_only`]).
 fn load_run(registry: &Registry, run: &Path, scene: &Path, device: nerf::gpu::DevicePreference, euclidean_for: Option<&str>, pixels: bool) -> Result<LoadedRun> {
-    let Checkpoint { step, config, fields, adam, sampler, .. } = Checkpoint::load(&run.join("checkpoint.bin"))?;
+    let ck_path = run.join("checkpoint.bin");
+    let Checkpoint { step, config, fields, adam, sampler, .. } = Checkpoint::load(&ck_path)?;
     let opts = LoadOptions { downscale: config.downscale, views: ViewSelection::All, ndc: config.ndc, cameras_only: !pixels };
     let train = load_scene(scene, Split::Train, &opts)?;
     if let (Some(what), Some(_)) = (euclidean_for, &train.ndc) {
         bail!("{}: the run was trained in NDC space, not the scene's: {what} needs a run trained with --no-ndc", run.display());
     }
     let mut trainer = make_trainer(&config.for_rendering(), registry, SceneBounds::of(&train), device)?;
-    trainer.restore(step, &fields, adam, &sampler)?;
+    trainer.restore(step, &fields, adam, &sampler).map_err(|e| e.in_checkpoint(&ck_path))?;
     Ok(LoadedRun { config, step, train, trainer })
 }
 

@@ -2,7 +2,9 @@
 //! (temporary file, fsync, rename) so a crash or Ctrl-C never leaves a torn checkpoint.
 //!
 //! Layout: `b"NERFCKPT"`, `u64` header length (LE), header JSON, then every tensor's values in
-//! header order.
+//! header order, then (header `"crc32": true`) the CRC-32 of every byte before it as a `u32` (LE),
+//! so that a corrupted file is refused by name instead of loading wrong weights. Checkpoints
+//! written before the checksum (no `crc32` key) load without the check.
 
 use crate::config::TrainConfig;
 use crate::TrainError;
@@ -62,6 +64,28 @@ struct Header {
     /// [`Checkpoint::render_only`]; absent (false) in a full checkpoint.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     render_only: bool,
+    /// A CRC-32 of the file's preceding bytes follows the tensors; absent (false) in checkpoints
+    /// written before it was added.
+    #[serde(default)]
+    crc32: bool,
+}
+
+/// A writer that keeps the CRC-32 of everything written through it.
+struct Crc32Writer<W> {
+    inner: W,
+    hasher: crc32fast::Hasher,
+}
+
+impl<W: Write> Write for Crc32Writer<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
 }
 
 fn ck_err(path: &Path, message: impl Into<String>) -> TrainError {
@@ -89,12 +113,13 @@ impl Checkpoint {
             sampler: self.sampler.iter().map(|(n, v)| (n.clone(), v.len())).collect(),
             adam_steps: self.adam.steps.iter().map(|(n, k)| (n.clone(), k.len())).collect(),
             render_only: self.render_only,
+            crc32: true,
         };
         let json = serde_json::to_vec(&header).map_err(|e| ck_err(path, e.to_string()))?;
         let tmp = path.with_extension("tmp");
         let io = |e: std::io::Error| TrainError::Io { path: tmp.clone(), source: e };
         let file = std::fs::File::create(&tmp).map_err(io)?;
-        let mut w = std::io::BufWriter::new(file);
+        let mut w = Crc32Writer { inner: std::io::BufWriter::new(file), hasher: crc32fast::Hasher::new() };
         w.write_all(MAGIC).map_err(io)?;
         w.write_all(&(json.len() as u64).to_le_bytes()).map_err(io)?;
         w.write_all(&json).map_err(io)?;
@@ -123,6 +148,9 @@ impl Checkpoint {
                 w.write_all(&bytes).map_err(io)?;
             }
         }
+        let crc = w.hasher.finalize();
+        let mut w = w.inner;
+        w.write_all(&crc.to_le_bytes()).map_err(io)?;
         let file = w.into_inner().map_err(|e| io(e.into_error()))?;
         file.sync_all().map_err(io)?;
         drop(file);
@@ -136,10 +164,13 @@ impl Checkpoint {
         let mut bytes = Vec::new();
         f.read_to_end(&mut bytes).map_err(|e| TrainError::Io { path: path.to_path_buf(), source: e })?;
         let (h, hlen) = parse_header(path, &bytes)?;
+        // With a checksum, the tensors end 4 bytes before the file does.
+        let data_end = if h.crc32 { bytes.len().checked_sub(4).filter(|&e| e >= 16 + hlen) } else { Some(bytes.len()) };
+        let data = &bytes[..data_end.ok_or_else(|| ck_err(path, "truncated tensor data"))?];
         let mut pos = 16 + hlen;
         let mut take = |len: usize| -> Result<Vec<f32>, TrainError> {
-            let end = pos + 4 * len;
-            let raw = bytes.get(pos..end).ok_or_else(|| ck_err(path, "truncated tensor data"))?;
+            let end = len.checked_mul(4).and_then(|n| n.checked_add(pos)).ok_or_else(|| ck_err(path, "truncated tensor data"))?;
+            let raw = data.get(pos..end).ok_or_else(|| ck_err(path, "truncated tensor data"))?;
             pos = end;
             Ok(raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect())
         };
@@ -163,8 +194,18 @@ impl Checkpoint {
             // The same 4-byte little-endian words, read as u32.
             steps.push((name.clone(), take(*len)?.into_iter().map(f32::to_bits).collect()));
         }
-        if pos != bytes.len() {
+        if pos != data.len() {
             return Err(ck_err(path, "trailing bytes after tensor data"));
+        }
+        if h.crc32 {
+            let stored = u32::from_le_bytes(bytes[data.len()..].try_into().expect("4 bytes"));
+            let computed = crc32fast::hash(data);
+            if stored != computed {
+                return Err(ck_err(
+                    path,
+                    format!("checksum mismatch (stored CRC-32 {stored:08x}, computed {computed:08x}): the file is corrupted"),
+                ));
+            }
         }
         Ok(Self {
             step: h.step,
@@ -298,6 +339,34 @@ mod tests {
         assert_eq!(back.adam.step, 7);
         assert_eq!(back.sampler, ck.sampler);
         assert!(!back.render_only);
+        // One flipped bit anywhere — header or tensors — is refused, naming the file.
+        let bytes = std::fs::read(&p).unwrap();
+        for at in [20, bytes.len() - 30, bytes.len() - 6, bytes.len() - 1] {
+            let mut bad = bytes.clone();
+            bad[at] ^= 0x10;
+            std::fs::write(&p, &bad).unwrap();
+            match Checkpoint::load(&p) {
+                Err(e) => {
+                    let e = e.to_string();
+                    assert!(e.contains("c.bin") && (e.contains("checksum mismatch") || e.contains("bad header")), "byte {at}: {e}");
+                }
+                Ok(_) => panic!("a flipped bit at byte {at} of {} was not noticed", bytes.len()),
+            }
+        }
+        // A checkpoint written before the checksum (no `crc32` key, no trailer) still loads.
+        let hlen = u64::from_le_bytes(bytes[8..16].try_into().unwrap()) as usize;
+        let mut header: serde_json::Value = serde_json::from_slice(&bytes[16..16 + hlen]).unwrap();
+        assert_eq!(header["crc32"], serde_json::Value::Bool(true));
+        header.as_object_mut().unwrap().remove("crc32");
+        let json = serde_json::to_vec(&header).unwrap();
+        let mut old = MAGIC.to_vec();
+        old.extend((json.len() as u64).to_le_bytes());
+        old.extend(&json);
+        old.extend(&bytes[16 + hlen..bytes.len() - 4]);
+        std::fs::write(&p, &old).unwrap();
+        let back = Checkpoint::load(&p).unwrap();
+        assert_eq!((back.fields, back.adam.groups), (ck.fields.clone(), ck.adam.groups.clone()));
+        std::fs::write(&p, &bytes).unwrap();
         // Truncate: the error names the file.
         let bytes = std::fs::read(&p).unwrap();
         std::fs::write(&p, &bytes[..bytes.len() - 3]).unwrap();

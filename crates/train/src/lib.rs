@@ -113,3 +113,36 @@ pub enum TrainError {
         checkpoint: PathBuf,
     },
 }
+
+impl TrainError {
+    /// This error, raised while restoring the state read from the checkpoint `path`
+    /// ([`Trainer::restore`]), as an error about that checkpoint: the state does not fit the run
+    /// (a group of another length, non-finite optimiser moments, an unknown sampler entry). GPU
+    /// and I/O errors are not about the file's content and pass through.
+    pub fn in_checkpoint(self, path: &std::path::Path) -> TrainError {
+        let message = match self {
+            TrainError::Gpu(_) | TrainError::GpuCapacity { .. } | TrainError::Io { .. } | TrainError::Checkpoint { .. } => {
+                return self
+            }
+            TrainError::Config(m) => m,
+            e => e.to_string(),
+        };
+        TrainError::Checkpoint { path: path.to_path_buf(), message }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::TrainError;
+    use std::path::Path;
+
+    #[test]
+    fn restore_errors_name_the_checkpoint() {
+        let p = Path::new("run/checkpoint.bin");
+        let e = TrainError::Config("Adam state: group \"g\" has non-finite or negative moments".into()).in_checkpoint(p);
+        assert!(matches!(e, TrainError::Checkpoint { .. }), "{e}");
+        assert_eq!(e.to_string(), "checkpoint run/checkpoint.bin: Adam state: group \"g\" has non-finite or negative moments");
+        // Errors that are not about the file's content keep their own kind.
+        assert!(matches!(TrainError::Gpu("lost".into()).in_checkpoint(p), TrainError::Gpu(_)));
+    }
+}

@@ -153,7 +153,7 @@ pub fn run(
                 ),
             });
         }
-        trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler)?;
+        trainer.restore(ck.step, &ck.fields, ck.adam, &ck.sampler).map_err(|e| e.in_checkpoint(&ck_path))?;
         elapsed = ck.elapsed_secs;
         samples_seen = ck.samples_seen;
     }
