@@ -775,6 +775,10 @@ fn load_run(registry: &Registry, run: &Path, scene: &Path, device: nerf::gpu::De
     Ok(LoadedRun { config, step, train, trainer })
 }
 
+/// The most pixels `nerf render` renders in one frame (8192², e.g. an 8K panorama): a frame's
+/// rays, colours and depths are held in memory at once, about 56 bytes a pixel (3.8 GB here).
+const MAX_RENDER_PIXELS: u64 = 1 << 26;
+
 fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     if a.frames == Some(0) {
         bail!("--frames must be at least 1");
@@ -797,6 +801,15 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             None => k,
         };
         k.validate().map_err(|e| anyhow::anyhow!("--width {}: {e}", k.width))?;
+        let pixels = u64::from(k.width) * u64::from(k.height);
+        if pixels > MAX_RENDER_PIXELS {
+            bail!(
+                "a {}x{} frame is {pixels} pixels, more than the {MAX_RENDER_PIXELS} (8192x8192) a frame may have \
+                 (each pixel holds its ray and colour in memory, about 56 bytes); lower --width or the camera path's size",
+                k.width,
+                k.height
+            );
+        }
         Ok(k)
     };
     let projection = match (&user_path, a.camera_type) {
@@ -862,7 +875,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let video_fps = a.gif.map(f64::from).or(path_fps).unwrap_or(30.0);
     let out = a.out.unwrap_or_else(|| a.run.join("render"));
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;
-    let n = (k.width * k.height) as usize;
+    let n = k.width as usize * k.height as usize;
     let bg: Vec<f32> = config.eval_background.fixed_rgb().repeat(n);
     let (mut o, mut d) = (Vec::new(), Vec::new());
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);

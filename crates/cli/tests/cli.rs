@@ -217,6 +217,23 @@ fn unknown_field_and_bad_config_are_errors() {
     std::fs::write(&cfg, "iterz = 3\n").unwrap();
     let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).output().unwrap();
     assert_clean_failure(&o, &["bad.toml", "iterz"]);
+    // A value the config's own checks refuse: the message names the file it may come from.
+    std::fs::write(&cfg, "batch_rays = 0\n").unwrap();
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).output().unwrap();
+    assert_clean_failure(&o, &["bad.toml", "batch_rays must be positive"]);
+}
+
+#[test]
+fn degenerate_pose_names_the_file_and_frame() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let p = s.join("transforms_train.json");
+    let mut j: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    // A zeroed rotation block: it used to train to NaN ("training diverged") instead.
+    j["frames"][1]["transform_matrix"] = serde_json::json!([[0, 0, 0, 1], [0, 0, 0, 2], [0, 0, 0, 3], [0, 0, 0, 1]]);
+    std::fs::write(&p, serde_json::to_string(&j).unwrap()).unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["transforms_train.json", "frame 1", "degenerate camera pose"]);
 }
 
 #[test]
@@ -646,6 +663,10 @@ fn render_writes_an_orbit_of_novel_views() {
     assert_clean_failure(&o, &["bad_path.json", "render_height"]);
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "0"]).output().unwrap();
     assert_clean_failure(&o, &["--frames"]);
+    // A frame too large to hold is refused before anything is allocated (100 000² pixels also
+    // overflow a u32 count).
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--width", "100000", "--out"]).arg(d.path().join("huge")).output().unwrap();
+    assert_clean_failure(&o, &["100000x100000", "--width"]);
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--device", "cpu", "--gif", "0", "--out"]).arg(d.path().join("g")).output().unwrap();
     assert_clean_failure(&o, &["render.gif", "frames/s"]);
     let o = nerf().arg("render").arg(d.path().join("nope")).arg(&s).output().unwrap();
