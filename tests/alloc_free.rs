@@ -1,10 +1,11 @@
-//! The CPU training step allocates nothing per sample: every buffer a step uses is sized once and
-//! reused. A counting global allocator records each allocation made during a few steps (after
-//! warm-up steps that size the buffers) with its call stack; what the `gemm` crate allocates for
-//! its packing panels (it takes no caller-provided workspace; bounded by its cache blocking, not
-//! by the batch) is set aside, and what remains must be a few small per-step lists, not buffers.
+//! The CPU training step and the CPU render allocate nothing per sample: every buffer they use is
+//! sized once and reused. A recording global allocator takes the call stack of each allocation
+//! made during a few steps (after warm-up steps that size the buffers) or a second render of the
+//! same rays; what the `gemm` crate allocates for its packing panels (it takes no caller-provided
+//! workspace; bounded by its cache blocking, not by the batch) is set aside, and what remains must
+//! be a few small per-step lists, not buffers.
 //!
-//! The steps run in a one-thread rayon pool so that every allocation happens on the thread that
+//! The work runs in a one-thread rayon pool so that every allocation happens on the thread that
 //! makes it, in order, and the call stack says whose it is.
 
 mod common;
@@ -66,8 +67,16 @@ unsafe impl GlobalAlloc for Recording {
 #[global_allocator]
 static ALLOCATOR: Recording = Recording;
 
-/// Allocations per step outside gemm, for `steps` steps after `warmup` steps of `config`.
-fn step_allocations_not_in_gemm(config: TrainConfig, warmup: usize, steps: usize) -> Vec<(usize, String)> {
+/// What a trainer does while the allocator records.
+enum Work {
+    /// `n` training steps.
+    Steps(usize),
+    /// A render of the first training view's rays (after one unrecorded render of them).
+    Render,
+}
+
+/// Allocations outside gemm made by `work`, after `warmup` training steps of `config`.
+fn allocations_not_in_gemm(config: TrainConfig, warmup: usize, work: Work) -> Vec<(usize, String)> {
     let _alone = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let train = common::load(Split::Train, ViewSelection::All);
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
@@ -76,10 +85,25 @@ fn step_allocations_not_in_gemm(config: TrainConfig, warmup: usize, steps: usize
         for _ in 0..warmup {
             t.step(&train).unwrap();
         }
-        SEEN.lock().unwrap().clear();
-        RECORDING.store(true, SeqCst);
-        for _ in 0..steps {
-            t.step(&train).unwrap();
+        match work {
+            Work::Steps(n) => {
+                SEEN.lock().unwrap().clear();
+                RECORDING.store(true, SeqCst);
+                for _ in 0..n {
+                    t.step(&train).unwrap();
+                }
+            }
+            Work::Render => {
+                let mut rays = nerf::data::RayBatch::default();
+                train.view_rays(0, nerf::data::Background::White, t.config().pixel_convention, &mut rays);
+                let n = rays.len();
+                let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
+                let bg = vec![1.0; 3 * n];
+                t.render_rays(&rays.origins, &rays.dirs, &bg, &mut rgb, &mut opacity, &mut depth).unwrap();
+                SEEN.lock().unwrap().clear();
+                RECORDING.store(true, SeqCst);
+                t.render_rays(&rays.origins, &rays.dirs, &bg, &mut rgb, &mut opacity, &mut depth).unwrap();
+            }
         }
         RECORDING.store(false, SeqCst);
     });
@@ -116,7 +140,7 @@ fn our_frames(stack: &str) -> String {
 
 fn check(name: &str, config: TrainConfig) {
     const STEPS: usize = 3;
-    let ours = step_allocations_not_in_gemm(config, 20, STEPS);
+    let ours = allocations_not_in_gemm(config, 20, Work::Steps(STEPS));
     let bytes: usize = ours.iter().map(|(b, _)| b).sum();
     let report: Vec<String> = ours.iter().map(|(b, s)| format!("  {b} bytes:\n    {}", our_frames(s))).collect();
     println!("{name}: {} allocations, {bytes} bytes outside gemm in {STEPS} steps", ours.len());
@@ -128,6 +152,31 @@ fn check(name: &str, config: TrainConfig) {
         ours.len(),
         report.join("\n")
     );
+}
+
+/// A second render of the same rays allocates nothing outside gemm: the rounds' ray states and
+/// sample buffers (occupancy grid) or the fields' stages (stratified + hierarchical) are kept.
+fn check_render(name: &str, config: TrainConfig) {
+    let ours = allocations_not_in_gemm(config, 4, Work::Render);
+    let report: Vec<String> = ours.iter().map(|(b, s)| format!("  {b} bytes:\n    {}", our_frames(s))).collect();
+    assert!(ours.is_empty(), "{name}: a render allocated outside gemm:\n{}", report.join("\n"));
+}
+
+fn paper_config() -> TrainConfig {
+    TrainConfig {
+        field: "freq".into(),
+        batch_rays: 512,
+        field_config: serde_json::json!({"width": 64, "depth": 4, "skips": [2], "view_width": 32}),
+        sampler: SamplerConfig::Hierarchical { n_coarse: 16, n_fine: 16 },
+        ..TrainConfig::default()
+    }
+}
+
+#[test]
+fn a_render_allocates_nothing() {
+    // The hash preset renders in rounds through the occupancy grid; the paper's field by stages.
+    check_render("hash", common::small_hash_config(100, 4, 8));
+    check_render("freq", paper_config());
 }
 
 #[test]
@@ -142,14 +191,7 @@ fn a_hash_field_step_allocates_no_buffers() {
 
 #[test]
 fn a_paper_field_step_allocates_no_buffers() {
-    let c = TrainConfig {
-        field: "freq".into(),
-        batch_rays: 512,
-        field_config: serde_json::json!({"width": 64, "depth": 4, "skips": [2], "view_width": 32}),
-        sampler: SamplerConfig::Hierarchical { n_coarse: 16, n_fine: 16 },
-        ..TrainConfig::default()
-    };
-    check("freq", c);
+    check("freq", paper_config());
 }
 
 #[test]

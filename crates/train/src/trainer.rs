@@ -13,6 +13,7 @@ use nerf_render::{
     mean_color_correction, photometric_loss_grad, CompositeOutputs, COLOR_PARAMS_PER_VIEW,
 };
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, OccupancyGridConfig, RaySamples};
+use nerf_core::ScratchPool;
 use std::sync::{Mutex, MutexGuard};
 
 /// instant-ngp's cone angle for boxes with `aabb_scale` > 1 (its `cone_angle_constant`).
@@ -214,6 +215,19 @@ pub struct Trainer {
     pose: Option<CpuPose>,
     /// The fraction of the run done, as the caller last set it ([`Trainer::set_progress`]).
     progress: Option<f64>,
+    /// Buffers of the CPU renders (`render_rays`), kept between calls: one set per chunk
+    /// rendered at once with the occupancy grid's rounds, one per call otherwise.
+    round_scratch: ScratchPool<crate::rounds::RoundScratch>,
+    stage_scratch: ScratchPool<StageScratch>,
+}
+
+/// The per-chunk buffers of a CPU render without the occupancy grid: each field's stage and the
+/// rays' near and far bounds.
+#[derive(Default)]
+struct StageScratch {
+    stages: Vec<Stage>,
+    near: Vec<f32>,
+    far: Vec<f32>,
 }
 
 /// Bounds on the adaptive number of rays per step.
@@ -293,6 +307,8 @@ impl Trainer {
             render_appearance: None,
             progress: None,
             pose,
+            round_scratch: ScratchPool::new(),
+            stage_scratch: ScratchPool::new(),
             stages: (0..n).map(|_| Stage::default()).collect(),
             marched: RaySamples::default(),
             marched_sigma: Vec::new(),
@@ -802,38 +818,61 @@ impl Trainer {
             // serial parts overlap; the image does not depend on the thread count.
             use rayon::prelude::*;
             let field = fields[0].as_ref();
+            let pool = &self.round_scratch;
             rgb.par_chunks_mut(3 * chunk)
                 .zip(opacity.par_chunks_mut(chunk))
                 .zip(depth.par_chunks_mut(chunk))
                 .enumerate()
-                .for_each_init(crate::rounds::RoundScratch::default, |scratch, (i, ((rgb, opacity), depth))| {
+                .for_each(|(i, ((rgb, opacity), depth))| {
                     let (r0, r1) = (i * chunk, (i * chunk + chunk).min(n));
-                    crate::rounds::render_in_rounds(
-                        grid,
-                        p,
-                        &origins[3 * r0..3 * r1],
-                        &dirs[3 * r0..3 * r1],
-                        &background[3 * r0..3 * r1],
-                        scratch,
-                        |pos, dir, sigma, c| field.query(pos, dir, sigma, c),
-                        rgb,
-                        opacity,
-                        depth,
-                    );
+                    pool.with(|scratch| {
+                        crate::rounds::render_in_rounds(
+                            grid,
+                            p,
+                            &origins[3 * r0..3 * r1],
+                            &dirs[3 * r0..3 * r1],
+                            &background[3 * r0..3 * r1],
+                            scratch,
+                            |pos, dir, sigma, c| field.query(pos, dir, sigma, c),
+                            rgb,
+                            opacity,
+                            depth,
+                        )
+                    });
                 });
             return Ok(());
         }
-        let mut stages: Vec<Stage> = (0..fields.len()).map(|_| Stage::default()).collect();
-        let (mut near, mut far) = (Vec::new(), Vec::new());
+        self.stage_scratch.with(|s| self.render_stages(fields, origins, dirs, background, s, rgb, opacity, depth));
+        Ok(())
+    }
+
+    /// The CPU render of [`render_rays_uncorrected`](Self::render_rays_uncorrected) without the
+    /// occupancy grid's rounds: `render_chunk_rays` rays at a time through each field's stage.
+    #[allow(clippy::too_many_arguments)]
+    fn render_stages(
+        &self,
+        fields: &[Box<dyn RadianceField>],
+        origins: &[f32],
+        dirs: &[f32],
+        background: &[f32],
+        scratch: &mut StageScratch,
+        rgb: &mut [f32],
+        opacity: &mut [f32],
+        depth: &mut [f32],
+    ) {
+        let n = origins.len() / 3;
+        let chunk = self.config.render_chunk_rays;
+        let StageScratch { stages, near, far } = scratch;
+        stages.resize_with(fields.len(), Stage::default);
         for r0 in (0..n).step_by(chunk) {
             let r1 = (r0 + chunk).min(n);
             let (o, d, bg) = (&origins[3 * r0..3 * r1], &dirs[3 * r0..3 * r1], &background[3 * r0..3 * r1]);
-            self.bounds.segments(o, d, &mut near, &mut far);
-            first_stage_samples(&self.config, &self.bounds, self.grid.as_ref(), o, d, &near, &far, None, &mut stages[0].samples);
+            self.bounds.segments(o, d, near, far);
+            first_stage_samples(&self.config, &self.bounds, self.grid.as_ref(), o, d, near, far, None, &mut stages[0].samples);
             query_stage(fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
             if let SamplerConfig::Hierarchical { n_fine, .. } = self.config.sampler {
                 let (s0, s1) = stages.split_at_mut(1);
-                hierarchical(&s0[0].samples, &s0[0].comp.weights, o, d, &far, n_fine, None, &mut s1[0].samples);
+                hierarchical(&s0[0].samples, &s0[0].comp.weights, o, d, far, n_fine, None, &mut s1[0].samples);
                 query_stage(fields[1].as_ref(), &mut s1[0], bg, self.config.transmittance_threshold);
             }
             let last = stages.last().unwrap();
@@ -841,7 +880,6 @@ impl Trainer {
             opacity[r0..r1].copy_from_slice(&last.comp.opacity);
             depth[r0..r1].copy_from_slice(&last.comp.depth);
         }
-        Ok(())
     }
 
     /// Density σ of the rendering field (the last: NeRF's fine network) at `positions` (`3·n`
