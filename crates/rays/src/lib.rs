@@ -577,7 +577,7 @@ impl Camera {
     /// (rotated into the world and normalised).
     fn camera_rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3) {
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
-        let n = (w * h) as usize;
+        let n = w as usize * h as usize;
         origins.clear();
         dirs.clear();
         origins.reserve(3 * n);
