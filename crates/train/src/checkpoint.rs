@@ -164,9 +164,36 @@ impl Checkpoint {
         let mut bytes = Vec::new();
         f.read_to_end(&mut bytes).map_err(|e| TrainError::Io { path: path.to_path_buf(), source: e })?;
         let (h, hlen) = parse_header(path, &bytes)?;
-        // With a checksum, the tensors end 4 bytes before the file does.
-        let data_end = if h.crc32 { bytes.len().checked_sub(4).filter(|&e| e >= 16 + hlen) } else { Some(bytes.len()) };
-        let data = &bytes[..data_end.ok_or_else(|| ck_err(path, "truncated tensor data"))?];
+        // The file's size must be what the header's tensor lengths say (checked before any of them
+        // sizes an allocation), then the checksum must match.
+        let words = h
+            .fields
+            .iter()
+            .map(|(_, _, n)| Some(*n))
+            .chain(h.adam.iter().map(|(_, n)| n.checked_mul(2)))
+            .chain(h.sampler.iter().chain(&h.adam_steps).map(|(_, n)| Some(*n)))
+            .try_fold(0usize, |acc, n| acc.checked_add(n?));
+        let expected = words
+            .and_then(|w| w.checked_mul(4))
+            .and_then(|b| b.checked_add(16 + hlen + if h.crc32 { 4 } else { 0 }))
+            .ok_or_else(|| ck_err(path, "bad header: tensor lengths overflow"))?;
+        if bytes.len() < expected {
+            return Err(ck_err(path, format!("truncated tensor data ({} of {expected} bytes)", bytes.len())));
+        }
+        if bytes.len() > expected {
+            return Err(ck_err(path, format!("trailing bytes after tensor data ({} bytes, {expected} expected)", bytes.len())));
+        }
+        let data = &bytes[..expected - if h.crc32 { 4 } else { 0 }];
+        if h.crc32 {
+            let stored = u32::from_le_bytes(bytes[data.len()..].try_into().expect("4 bytes"));
+            let computed = crc32fast::hash(data);
+            if stored != computed {
+                return Err(ck_err(
+                    path,
+                    format!("checksum mismatch (stored CRC-32 {stored:08x}, computed {computed:08x}): the file is corrupted"),
+                ));
+            }
+        }
         let mut pos = 16 + hlen;
         let mut take = |len: usize| -> Result<Vec<f32>, TrainError> {
             let end = len.checked_mul(4).and_then(|n| n.checked_add(pos)).ok_or_else(|| ck_err(path, "truncated tensor data"))?;
@@ -174,7 +201,10 @@ impl Checkpoint {
             pos = end;
             Ok(raw.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect())
         };
-        let n_fields = h.fields.iter().map(|(i, _, _)| i + 1).max().unwrap_or(0);
+        let n_fields = h.fields.iter().map(|(i, _, _)| i.saturating_add(1)).max().unwrap_or(0);
+        if n_fields > h.fields.len() {
+            return Err(ck_err(path, format!("bad header: field instance {} of {} tensor groups", n_fields - 1, h.fields.len())));
+        }
         let mut fields = vec![Vec::new(); n_fields];
         for (i, name, len) in &h.fields {
             fields[*i].push((name.clone(), take(*len)?));
@@ -196,16 +226,6 @@ impl Checkpoint {
         }
         if pos != data.len() {
             return Err(ck_err(path, "trailing bytes after tensor data"));
-        }
-        if h.crc32 {
-            let stored = u32::from_le_bytes(bytes[data.len()..].try_into().expect("4 bytes"));
-            let computed = crc32fast::hash(data);
-            if stored != computed {
-                return Err(ck_err(
-                    path,
-                    format!("checksum mismatch (stored CRC-32 {stored:08x}, computed {computed:08x}): the file is corrupted"),
-                ));
-            }
         }
         Ok(Self {
             step: h.step,
@@ -366,6 +386,19 @@ mod tests {
         std::fs::write(&p, &old).unwrap();
         let back = Checkpoint::load(&p).unwrap();
         assert_eq!((back.fields, back.adam.groups), (ck.fields.clone(), ck.adam.groups.clone()));
+        // A header whose lengths do not fit the file (here one tensor of 2^60 values) is refused
+        // before it sizes anything.
+        for (len, needle) in [(1u64 << 60, "truncated"), (u64::MAX / 2, "overflow")] {
+            header["fields"][0][2] = serde_json::json!(len);
+            let json = serde_json::to_vec(&header).unwrap();
+            let mut huge = MAGIC.to_vec();
+            huge.extend((json.len() as u64).to_le_bytes());
+            huge.extend(&json);
+            huge.extend(&bytes[16 + hlen..]);
+            std::fs::write(&p, &huge).unwrap();
+            let e = Checkpoint::load(&p).unwrap_err().to_string();
+            assert!(e.contains("c.bin") && e.contains(needle), "{e}");
+        }
         std::fs::write(&p, &bytes).unwrap();
         // Truncate: the error names the file.
         let bytes = std::fs::read(&p).unwrap();
