@@ -201,6 +201,59 @@ fn training_marches_at_its_own_step_after_a_finer_render() {
     assert!(before > 10.0 && (after / before - 1.0).abs() < 0.25, "samples per ray {before:.1} before the render, {after:.1} after");
 }
 
+/// A frame of more rays than one part of the GPU renderer's buffers (at most 2^22 rays, fewer on an
+/// adapter with smaller buffers) renders in parts, each ray as it renders alone: 2^22 + 2^10
+/// rays that miss the scene box (they leave in their first round) with rays of a test view placed
+/// at the start and around ray 2^22, where the first part ends. The step's sample capacity (the
+/// rounds' window) is raised so that the missing rays take a few rounds, not hundreds.
+#[test]
+fn a_frame_larger_than_the_renderers_buffers_renders_in_parts() {
+    let Some(ctx) = device() else { return };
+    let train = load(Split::Train, ViewSelection::First(10));
+    let test = common::thumbnails(Split::Test, 1);
+    let config = TrainConfig { target_samples_per_step: Some(1 << 18), ..light_hash_config(0) };
+    let gpu = Trainer::new_on(config.clone(), &nerf::registry(), SceneBounds::of(&train), Some(ctx)).unwrap();
+    // 16 rays through the middle of the view.
+    let mut batch = nerf::data::RayBatch::default();
+    test.view_rays(0, config.eval_background, config.pixel_convention, &mut batch);
+    let (w, h) = (test.width as usize, test.height as usize);
+    let (k, first) = (16, (h / 2) * w + w / 2 - 8);
+    let (vo, vd, vbg) = (&batch.origins[3 * first..3 * (first + k)], &batch.dirs[3 * first..3 * (first + k)], &batch.background[3 * first..3 * (first + k)]);
+    let (mut view_rgb, mut view_op, mut view_depth) = (vec![f32::NAN; 3 * k], vec![f32::NAN; k], vec![f32::NAN; k]);
+    gpu.render_rays(vo, vd, vbg, &mut view_rgb, &mut view_op, &mut view_depth).unwrap();
+    assert!(view_op.iter().all(|&a| a > 0.0), "the view's rays cross the box: {view_op:?}");
+
+    let n = (1 << 22) + (1 << 10);
+    let (mut o, mut d) = (vec![0.0f32; 3 * n], vec![0.0f32; 3 * n]);
+    for r in 0..n {
+        o[3 * r..3 * r + 3].copy_from_slice(&[10.0, 10.0, 10.0]);
+        d[3 * r..3 * r + 3].copy_from_slice(&[1.0, 0.0, 0.0]); // away from the box
+    }
+    let mut bg: Vec<f32> = [0.2f32, 0.4, 0.6].repeat(n);
+    let starts = [0, (1 << 22) - k / 2];
+    for &s in &starts {
+        o[3 * s..3 * (s + k)].copy_from_slice(vo);
+        d[3 * s..3 * (s + k)].copy_from_slice(vd);
+        bg[3 * s..3 * (s + k)].copy_from_slice(vbg);
+    }
+    let (mut rgb, mut op, mut depth) = (vec![f32::NAN; 3 * n], vec![f32::NAN; n], vec![f32::NAN; n]);
+    gpu.render_rays(&o, &d, &bg, &mut rgb, &mut op, &mut depth).unwrap();
+    for &s in &starts {
+        assert_eq!(&rgb[3 * s..3 * (s + k)], &view_rgb[..], "rays {s}..: colours");
+        assert_eq!(&op[s..s + k], &view_op[..], "rays {s}..: opacities");
+        assert_eq!(&depth[s..s + k], &view_depth[..], "rays {s}..: depths");
+    }
+    let in_view = |r: usize| starts.iter().any(|&s| (s..s + k).contains(&r));
+    for r in (0..n).filter(|&r| !in_view(r)) {
+        assert!(
+            op[r] == 0.0 && rgb[3 * r..3 * r + 3] == [0.2, 0.4, 0.6],
+            "ray {r} misses the box: opacity {}, colour {:?}",
+            op[r],
+            &rgb[3 * r..3 * r + 3]
+        );
+    }
+}
+
 /// `NERF_GPU_CHECKS=off` builds the kernels without wgpu's runtime checks (index clamps, loop
 /// counters; `GpuContext::shader_module`). That must change no value: the fields trained on a
 /// checked device, restored on an unchecked one, render the same first test view bit for bit

@@ -731,6 +731,10 @@ impl GpuMarcher {
 
     // ---- rendering in rounds ----------------------------------------------------------------
 
+    /// Bytes of per-ray state a [`RoundFrame`] holds (its largest per-ray buffer): a frame of
+    /// `max_rays` rays needs a buffer and a storage binding of `max_rays` times this.
+    pub const ROUND_BYTES_PER_RAY: usize = std::mem::size_of::<RoundRayState>();
+
     /// Buffers for rendering frames of up to `max_rays` rays in rounds of at most `cap_window`
     /// rays (clamped to `1..=capacity_samples`: a round evaluates at most `capacity_samples`
     /// samples, the size of the [`GpuSamples`] the rounds write).

@@ -140,6 +140,18 @@ struct Frame {
     depth: wgpu::Buffer,
 }
 
+/// The most rays one frame's buffers hold, whatever the adapter allows: 2^22 (a 2048² frame,
+/// ~330 MB of buffers; an 800×800 view is 640 000 rays).
+pub(crate) const MAX_FRAME_RAYS: usize = 1 << 22;
+
+/// The rays of one part of a GPU render on an adapter whose largest storage buffer (and binding)
+/// is `max_storage_bytes`: as many as the rounds' per-ray state fits, at most
+/// [`MAX_FRAME_RAYS`], at least 1.
+fn frame_part_rays(max_storage_bytes: u64) -> usize {
+    let rays = max_storage_bytes / nerf_gpu::sampling::GpuMarcher::ROUND_BYTES_PER_RAY as u64;
+    (rays.min(MAX_FRAME_RAYS as u64) as usize).max(1)
+}
+
 impl Frame {
     fn new(ctx: &GpuContext, n: usize, sampler: &Sampler, capacity_samples: usize) -> Self {
         Self {
@@ -800,11 +812,37 @@ impl GpuEngine {
         if swap {
             self.record_ema_swap(true);
         }
-        let r = self.render_rays_with_current(cfg, origins, dirs, background, rgb, opacity, depth);
+        // A frame larger than the adapter's buffers hold (an 8192² render: 3 GiB of ray state)
+        // renders in parts; rays are independent, so the image is the same.
+        let n = origins.len() / 3;
+        let part = self.max_frame_rays();
+        let mut r = Ok(());
+        for r0 in (0..n).step_by(part) {
+            let r1 = (r0 + part).min(n);
+            r = self.render_rays_with_current(
+                cfg,
+                &origins[3 * r0..3 * r1],
+                &dirs[3 * r0..3 * r1],
+                &background[3 * r0..3 * r1],
+                &mut rgb[3 * r0..3 * r1],
+                &mut opacity[r0..r1],
+                &mut depth[r0..r1],
+            );
+            if r.is_err() {
+                break;
+            }
+        }
         if swap {
             self.record_ema_swap(false);
         }
         r
+    }
+
+    /// The most rays [`render_rays`](Self::render_rays) gives one frame's buffers: as many as the
+    /// adapter's largest buffer and storage binding hold of the rounds' per-ray state, and at most
+    /// [`MAX_FRAME_RAYS`] (the frame's buffers are kept between calls).
+    pub(crate) fn max_frame_rays(&self) -> usize {
+        frame_part_rays(self.ctx.max_storage_bytes())
     }
 
     /// The rendering field's (the last) density, and colour when `dirs` and `rgb` are given, at
@@ -1313,6 +1351,21 @@ mod tests {
     use super::*;
 
     const MIB: u64 = 1 << 20;
+
+    #[test]
+    fn a_render_part_fits_the_adapters_largest_buffer() {
+        let per_ray = nerf_gpu::sampling::GpuMarcher::ROUND_BYTES_PER_RAY as u64;
+        // lavapipe's 2 GiB − 1 and WebGPU's default 128 MiB binding; an 8192² frame (2^26 rays)
+        // needs 3 GiB of round state, which wgpu refused with a panic before frames were parted.
+        for limit in [(1u64 << 31) - 1, 128 * MIB, 1000, 1] {
+            let part = frame_part_rays(limit) as u64;
+            assert!(part >= 1 && part <= MAX_FRAME_RAYS as u64, "{limit}: {part}");
+            assert!(part * per_ray <= limit || part == 1, "{part} rays of {per_ray} bytes exceed {limit} bytes");
+            assert!(part == MAX_FRAME_RAYS as u64 || (part + 1) * per_ray > limit || limit < per_ray, "{limit}: {part} rays is not the most that fit");
+        }
+        assert_eq!(frame_part_rays(128 * MIB), (128 * MIB / per_ray) as usize);
+        assert_eq!(frame_part_rays(1 << 40), MAX_FRAME_RAYS);
+    }
 
     #[test]
     fn a_step_is_fitted_by_the_overshoot_of_its_largest_buffer() {
