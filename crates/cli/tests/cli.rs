@@ -223,6 +223,26 @@ fn unknown_field_and_bad_config_are_errors() {
     assert_clean_failure(&o, &["bad.toml", "batch_rays must be positive"]);
 }
 
+/// A checkpoint with one flipped bit is refused by `eval` and by `train --resume`, naming the file
+/// (it carries a CRC-32), instead of rendering or training on from wrong weights.
+#[test]
+fn a_corrupted_checkpoint_is_refused_by_name() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let ck = run.join("checkpoint.bin");
+    let mut bytes = std::fs::read(&ck).unwrap();
+    let at = bytes.len() / 2; // inside the tensors
+    bytes[at] ^= 0x04;
+    std::fs::write(&ck, &bytes).unwrap();
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet"]).output().unwrap();
+    assert_clean_failure(&o, &["checkpoint.bin", "checksum mismatch", "corrupted"]);
+    let o = train_tiny(&s, &run, &["--iters", "4", "--device", "cpu", "--resume"]);
+    assert_clean_failure(&o, &["checkpoint.bin", "checksum mismatch"]);
+}
+
 #[test]
 fn degenerate_pose_names_the_file_and_frame() {
     let d = tempfile::tempdir().unwrap();
