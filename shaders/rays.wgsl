@@ -6,6 +6,8 @@
 // common.wgsl (streams = the RAY_STREAM_* constants of sampling.rs):
 //   view = rand_u32(seed, 0x52410001, r) % n_views
 //   col  = rand_u32(seed, 0x52410002, r) % width,  row = rand_u32(seed, 0x52410003, r) % height
+// or, with training masks (I.n_kept > 0), one of the kept pixels:
+//   g = kept[rand_u32(seed, 0x52410001, r) % n_kept],  view = g / (W·H),  row·W + col = g % (W·H)
 //   (u, v) = (col + off, row + off), off = 0.5 (pixel centres) or 0 (integer convention);
 //   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
 // Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays).
@@ -35,8 +37,8 @@ struct ImagesInfo {
     ndc_near: f32,     // near plane distance n
     ndc_sx: f32,       // 2·fx / W
     ndc_sy: f32,       // 2·fy / H
-    _p0: u32,
-    _p1: u32,
+    n_kept: u32,       // kept pixels of the training masks (0: no masks)
+    view_pixels: u32,  // W·H
 }
 
 // Camera-to-world 3×4 rows (rotation row a, then position a), intrinsics and size.
@@ -58,6 +60,7 @@ struct Cam {
 @group(0) @binding(7) var<storage, read_write> out_target: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_background: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_view: array<u32>;
+@group(0) @binding(10) var<storage, read> kept: array<u32>;          // n_kept, view·W·H + row·W + col
 
 // nerf_rays::Ndc::ray_or_miss: (origin, unit direction) of the NDC ray.
 fn ndc_ray(o_in: vec3<f32>, d: vec3<f32>) -> array<vec3<f32>, 2> {
@@ -89,12 +92,22 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
     if (r >= n) {
         return;
     }
-    let view = rand_u32(P.seed, 0x52410001u, r) % I.n_views;
+    var view: u32;
+    var col: u32;
+    var row: u32;
+    if (I.n_kept == 0u) {
+        view = rand_u32(P.seed, 0x52410001u, r) % I.n_views;
+        col = rand_u32(P.seed, 0x52410002u, r) % cams[view].size.x;
+        row = rand_u32(P.seed, 0x52410003u, r) % cams[view].size.y;
+    } else {
+        let g = kept[rand_u32(P.seed, 0x52410001u, r) % I.n_kept];
+        view = g / I.view_pixels;
+        let p = g - view * I.view_pixels;
+        col = p % cams[view].size.x;
+        row = p / cams[view].size.x;
+    }
     let cam = cams[view];
     let w = cam.size.x;
-    let h = cam.size.y;
-    let col = rand_u32(P.seed, 0x52410002u, r) % w;
-    let row = rand_u32(P.seed, 0x52410003u, r) % h;
     var u = f32(col) + P.pixel_offset;
     var v = f32(row) + P.pixel_offset;
     if (P.jitter != 0u) {

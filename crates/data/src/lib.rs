@@ -15,7 +15,8 @@
 //!
 //! Ray batches ([`RayBatch`]) are flat `f32` arrays (`3·n` per quantity) refilled in place, so the
 //! training loop does not allocate: [`Dataset::sample_rays`] for training (uniform over all pixels
-//! of all views, optional jitter and random backgrounds), [`Dataset::view_rays`] for evaluation.
+//! of all views, or over those the views' masks keep ([`mask`]); optional jitter and random
+//! backgrounds), [`Dataset::view_rays`] for evaluation.
 //! Forward-facing scenes give their rays in NDC ([`Dataset::ndc`], [`Dataset::warp`]).
 //! Camera paths to render along are read and written in nerfstudio's format ([`camera_path`]).
 
@@ -30,6 +31,8 @@ pub use colmap::is_colmap;
 pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, CameraPath};
 pub mod llff;
 pub use llff::{is_llff, load_llff};
+pub mod mask;
+pub use mask::PixelMasks;
 pub mod ngp;
 pub use ngp::{Distortion, Focal, Lens, NerfstudioNormalization, NgpBox};
 use rand::Rng as _;
@@ -177,6 +180,16 @@ pub enum DataError {
         path: PathBuf,
         /// The factor.
         k: u32,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A frame's training mask ([`mask`]) is missing or does not fit its image.
+    #[error("{}: mask of frame {frame}: {reason}", .path.display())]
+    BadMask {
+        /// The mask image.
+        path: PathBuf,
+        /// Index of the frame in `frames`.
+        frame: usize,
         /// What is wrong.
         reason: String,
     },
@@ -379,6 +392,10 @@ pub struct Dataset {
     pub images: Vec<Vec<f32>>,
     /// Per view: the image file it was loaded from.
     pub file_paths: Vec<PathBuf>,
+    /// The pixels training may draw, one mask per view ([`mask`]: nerfstudio's `mask_path`);
+    /// `None`: every pixel. When set it holds one entry per view: a dataset made from a
+    /// selection of another's views takes [`PixelMasks::select`] of its masks.
+    pub masks: Option<PixelMasks>,
     /// Near bound of the ray segment (Blender: 2).
     pub near: f32,
     /// Far bound of the ray segment (Blender: 6).
@@ -559,7 +576,8 @@ impl Dataset {
     }
 
     /// Fills `out` (reusing its allocations) with `n` rays drawn uniformly over all pixels of all
-    /// views: random view, random pixel, optional sub-pixel jitter (`u, v` uniform over the
+    /// views (random view, random pixel), or over the pixels the views' masks keep when
+    /// [`Dataset::masks`] is set (random kept pixel: [`PixelMasks::pick`]); optional sub-pixel jitter (`u, v` uniform over the
     /// pixel's square instead of its position under `conv`; with [`PixelConvention::Integer`]
     /// the square of pixel `i` is `[i − ½, i + ½)`); target = rgb·a + (1−a)·bg with bg from
     /// `background` (Random: uniform per ray). Draws one `u64` from `rng` and derives a
@@ -614,6 +632,10 @@ impl Dataset {
         with_targets: bool,
     ) {
         assert!(self.n_views() > 0, "sampling rays from a dataset without views");
+        if let Some(m) = &self.masks {
+            assert_eq!(m.n_views(), self.n_views(), "masks of {} views for a dataset of {}", m.n_views(), self.n_views());
+            assert!(m.total() > 0, "sampling rays where every pixel is masked out");
+        }
         out.resize(n);
         let seed: u64 = rng.gen();
         let (w, h) = (self.width, self.height);
@@ -633,9 +655,13 @@ impl Dataset {
             .for_each(|(chunk, (o, d, t, b, vi, pi))| {
                 let mut r = nerf_core::rng(seed, chunk as u64);
                 for k in 0..vi.len() {
-                    let view = r.gen_range(0..n_views);
-                    let col = r.gen_range(0..w);
-                    let row = r.gen_range(0..h);
+                    let (view, col, row) = match &self.masks {
+                        None => (r.gen_range(0..n_views), r.gen_range(0..w), r.gen_range(0..h)),
+                        Some(m) => {
+                            let (view, pix) = m.pick(r.gen_range(0..m.total()));
+                            (view, pix % w, pix / w)
+                        }
+                    };
                     let (u, v) = if jitter {
                         (
                             col as f32 + off - 0.5 + r.gen::<f32>(),
@@ -744,6 +770,8 @@ impl Dataset {
 struct Frame {
     index: usize,
     image: PathBuf,
+    /// nerfstudio's `mask_path`, resolved as `file_path` is.
+    mask: Option<PathBuf>,
     c2w: Vec<[f32; 4]>,
     lens: ngp::Lens,
 }
@@ -974,6 +1002,38 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
     Ok((w, h, images))
 }
 
+/// The training masks of `frames` ([`mask`]) from the images at `paths`: each must be the size of
+/// the frames' images (`size`, before downscaling). A pixel is kept where the mask's value (grey,
+/// or any colour channel) is not 0. The masks go through the images' lens resampling (`fix`) and
+/// `k`× downscaling, and a resulting pixel is kept only where every mask pixel it draws on is:
+/// training never reads a masked-out pixel, even in part.
+fn decode_masks(frames: &[&Frame], paths: &[&Path], size: (u32, u32), k: u32, fix: &ImageFix) -> Result<PixelMasks, DataError> {
+    for (f, p) in frames.iter().zip(paths) {
+        if !p.is_file() {
+            return Err(DataError::BadMask { path: p.to_path_buf(), frame: f.index, reason: "file not found".into() });
+        }
+    }
+    let binary = |i: usize, path: &Path, w: u32, h: u32, mut px: Vec<f32>| {
+        if (w, h) != size {
+            return Err(DataError::BadMask {
+                path: path.to_path_buf(),
+                frame: frames[i].index,
+                reason: format!("it is {w}x{h}, its image {} is {}x{}", frames[i].image.display(), size.0, size.1),
+            });
+        }
+        for p in px.chunks_exact_mut(4) {
+            let keep = if p[..3].iter().any(|&v| v > 0.0) { 1.0 } else { 0.0 };
+            p.fill(keep);
+        }
+        fix(i, path, w, h, px)
+    };
+    let (_, _, masks) = decode_views_with(paths, k, &binary, false)?;
+    // Bilinear resampling and box averages of 1s give 1 up to rounding; a value mixed with a 0 is
+    // at most 1 − 1/k² (box) or 1 − w for the 0's bilinear weight w (kept only for w < 10⁻⁶).
+    let flags: Vec<Vec<bool>> = masks.iter().map(|m| m.chunks_exact(4).map(|p| p[0] >= 1.0 - 1e-6).collect()).collect();
+    Ok(PixelMasks::from_flags(flags.iter().map(|f| &f[..])))
+}
+
 /// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
 /// `poses_bounds.npy`, COLMAP ([`load_colmap`]) where it holds a sparse model and no transforms
 /// file, else Blender or instant-ngp / nerfstudio ([`load_blender`]).
@@ -1091,12 +1151,26 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
             .get("transform_matrix")
             .ok_or_else(|| missing(format!("frames[{i}].transform_matrix")))?;
         let c2w = parse_matrix(&tpath, i, m)?;
+        let mask = match f.get("mask_path") {
+            None | Some(Value::Null) => None,
+            Some(Value::String(p)) => Some(image_path(root, p)),
+            Some(v) => return Err(invalid(format!("frames[{i}].mask_path"), format!("expected a string, got {}", json_kind(v)))),
+        };
         frames.push(Frame {
             index: i,
             image: image_path(root, fp),
+            mask,
             c2w,
             lens,
         });
+    }
+    // nerfstudio's rule: a mask for every frame or for none.
+    if let Some(f) = frames.iter().find(|f| f.mask.is_some() != frames[0].mask.is_some()) {
+        let (with, without) = if f.mask.is_some() { (f.index, 0) } else { (0, f.index) };
+        return Err(invalid(
+            format!("frames[{}].mask_path", f.index),
+            format!("frame {with} has a mask_path and frame {without} none: give every frame a mask or none"),
+        ));
     }
     // The split's frames: all of a split file; every 8th (test, val) or the others (train) of one file.
     let in_split: Vec<usize> = if one_file {
@@ -1172,6 +1246,16 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
     };
     let (w0, h0, images) = decode_views_with(&paths, k, &undistort, opts.cameras_only)?;
+    let masks = match frames.iter().map(|f| f.mask.as_deref()).collect::<Option<Vec<&Path>>>() {
+        Some(mask_paths) if !opts.cameras_only => {
+            let masks = decode_masks(&frames, &mask_paths, (w0, h0), k, &undistort)?;
+            if masks.total() == 0 {
+                return Err(DataError::EmptySplit { path: tpath.clone(), reason: "every pixel of every mask is 0: nothing to train on".into() });
+            }
+            Some(masks)
+        }
+        _ => None,
+    };
     let cameras = frames
         .iter()
         .map(|f| {
@@ -1207,6 +1291,7 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         cameras,
         images,
         file_paths: frames.iter().map(|f| f.image.clone()).collect(),
+        masks,
         near,
         far,
         aabb,
@@ -1519,8 +1604,9 @@ pub fn pose_noise(n_views: usize, rot_deg: f32, trans: f32, seed: u64) -> Vec<[f
 /// `camera_angle_x` recomputed for the dataset's width (from the first camera's `fx`),
 /// `frames[k] = { "file_path": "./<split>/r_<k>", "transform_matrix": 4×4 }`, and RGBA 8-bit PNGs
 /// `out_root/<split>/r_<k>.png` (written in parallel). `attribution`, when given, becomes a
-/// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones.
-/// Intrinsics that the field of view does not capture (`fy != fx`, a principal point off the
+/// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones. A dataset
+/// with training masks ([`Dataset::masks`]) writes them too: `"mask_path": "./<split>/mask_<k>.png"`,
+/// 8-bit grey, 255 kept and 0 masked out. Intrinsics that the field of view does not capture (`fy != fx`, a principal point off the
 /// image centre, views that differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
 /// `h` (top level: the first view's; a frame whose camera differs carries its own), and an
 /// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`; a scene with
@@ -1583,6 +1669,9 @@ pub fn write_blender(
                 "file_path": format!("./{split}/r_{k}"),
                 "transform_matrix": rows,
             });
+            if ds.masks.is_some() {
+                f.as_object_mut().expect("a JSON object").insert("mask_path".into(), Value::from(format!("./{split}/mask_{k}.png")));
+            }
             if pixel_intrinsics && cam.intrinsics != first.intrinsics {
                 let o = f.as_object_mut().expect("a JSON object");
                 for (key, v) in focal_keys(&cam.intrinsics) {
@@ -1632,7 +1721,17 @@ pub fn write_blender(
                 h,
                 &bytes,
                 image::ExtendedColorType::Rgba8,
-            )
+            )?;
+            match &ds.masks {
+                Some(m) => write_png(
+                    &img_dir.join(format!("mask_{k}.png")),
+                    w,
+                    h,
+                    &m.view_bytes(k, (w * h) as usize),
+                    image::ExtendedColorType::L8,
+                ),
+                None => Ok(()),
+            }
         })
         .collect::<Vec<_>>()
         .into_iter()

@@ -316,6 +316,7 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         cameras,
         images,
         file_paths: selected.iter().map(|&i| files[i].clone()).collect(),
+        masks: None,
         near,
         far,
         aabb,

@@ -5,8 +5,8 @@ use std::path::{Path, PathBuf};
 
 use glam::{Mat3, Vec3};
 use nerf_data::{
-    load_blender, save_png, write_blender, Background, DataError, Dataset, LoadOptions, RayBatch,
-    Split, ViewSelection,
+    load_blender, save_png, write_blender, Background, DataError, Dataset, LoadOptions, PixelMasks,
+    RayBatch, Split, ViewSelection,
 };
 use nerf_rays::{Aabb, Camera, Intrinsics, PixelConvention};
 use rand::{Rng, SeedableRng};
@@ -58,6 +58,7 @@ fn synthetic(n: usize, w: u32, h: u32, seed: u64) -> Dataset {
             .collect(),
         images: random_images(n, w, h, seed),
         file_paths: vec![],
+        masks: None,
         near: 2.0,
         far: 6.0,
         aabb: Aabb::cube(1.5),
@@ -785,4 +786,127 @@ fn reading_pixels_of_a_cameras_only_load_is_a_clear_panic() {
     let cams = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
     let mut rng = nerf_core::rng(1, 0);
     cams.sample_rays(4, Background::White, PixelConvention::Center, false, &mut rng, &mut RayBatch::default());
+}
+
+/// Random keep flags for `n` views of `w·h` pixels; view 1 keeps every pixel.
+fn random_flags(n: usize, w: u32, h: u32, seed: u64) -> Vec<Vec<bool>> {
+    let mut r = rand::rngs::StdRng::seed_from_u64(seed);
+    (0..n).map(|v| (0..w * h).map(|_| v == 1 || r.gen_bool(0.4)).collect()).collect()
+}
+
+/// Training masks (nerfstudio's `mask_path`) are written beside the images, read back as they
+/// were, and training rays come from kept pixels only, every kept pixel in turn.
+#[test]
+fn masks_round_trip_and_training_rays_draw_only_kept_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut ds = synthetic(3, 8, 6, 2);
+    let flags = random_flags(3, 8, 6, 3);
+    ds.masks = Some(PixelMasks::from_flags(flags.iter().map(|f| &f[..])));
+    write_blender(&ds, dir.path(), None).unwrap();
+    let json: Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("transforms_train.json")).unwrap()).unwrap();
+    assert_eq!(json["frames"][2]["mask_path"], "./train/mask_2.png");
+    let mask = image::open(dir.path().join("train/mask_0.png")).unwrap();
+    assert_eq!(mask.color(), image::ColorType::L8);
+    let back = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    assert_eq!(back.masks, ds.masks);
+    let kept = back.masks.as_ref().unwrap().total() as usize;
+    let mut rng = nerf_core::rng(5, 0);
+    let mut batch = RayBatch::default();
+    back.sample_rays(4000, Background::Black, PixelConvention::Center, false, &mut rng, &mut batch);
+    let mut drawn = std::collections::HashSet::new();
+    for (k, (&v, &p)) in batch.view_ids.iter().zip(&batch.pixel_ids).enumerate() {
+        assert!(flags[v as usize][p as usize], "ray {k}: masked-out pixel {p} of view {v} drawn");
+        let px = &back.images[v as usize][4 * p as usize..4 * p as usize + 4];
+        let want: Vec<f32> = (0..3).map(|c| px[c] * px[3]).collect();
+        assert_eq!(&batch.target[3 * k..3 * k + 3], &want[..], "ray {k}: target of another pixel");
+        drawn.insert((v, p));
+    }
+    assert_eq!(drawn.len(), kept, "every kept pixel is drawn in 4000 rays of {kept}");
+    // Uniform over kept pixels, not over views: view 1 keeps all 48 pixels, the others ~40 %.
+    let from_1 = batch.view_ids.iter().filter(|&&v| v == 1).count() as f64 / 4000.0;
+    let share_1 = 48.0 / kept as f64;
+    assert!((from_1 - share_1).abs() < 0.04, "view 1 gave {from_1:.3} of the rays, keeps {share_1:.3} of the pixels");
+    // A selection of views takes its views' masks.
+    let sel = load_blender(dir.path(), Split::Train, &opts(1, ViewSelection::Every(2))).unwrap();
+    assert_eq!(sel.masks, Some(ds.masks.as_ref().unwrap().select(&[0, 2])));
+    // A load without pixels has no masks (its rays are cast from every pixel).
+    let cams = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
+    assert!(cams.masks.is_none());
+}
+
+/// Downscaled, a pixel is kept only where all the k×k mask pixels it averages are; any non-zero
+/// grey (here 1 of 255) or colour keeps a pixel.
+#[test]
+fn downscaled_masks_keep_only_wholly_kept_blocks() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (8u32, 6u32);
+    good_scene(dir.path(), 2, w, h);
+    let flags = random_flags(2, w, h, 7);
+    let mut frames = frames_json(2);
+    for (i, f) in flags.iter().enumerate() {
+        frames[i]["mask_path"] = json!(format!("masks/m{i}.png"));
+        std::fs::create_dir_all(dir.path().join("masks")).unwrap();
+        // View 0: grey 1 keeps; view 1: an RGB mask, kept where red or blue is non-zero.
+        if i == 0 {
+            image::GrayImage::from_fn(w, h, |x, y| image::Luma([f[(y * w + x) as usize] as u8])).save(dir.path().join("masks/m0.png")).unwrap();
+        } else {
+            image::RgbImage::from_fn(w, h, |x, y| {
+                let k = f[(y * w + x) as usize];
+                image::Rgb([(k && x % 2 == 0) as u8 * 200, 0, (k && x % 2 == 1) as u8 * 3])
+            })
+            .save(dir.path().join("masks/m1.png"))
+            .unwrap();
+        }
+    }
+    set_transforms(dir.path(), &json!({"camera_angle_x": ANGLE, "frames": frames}));
+    let full = load_blender(dir.path(), Split::Train, &opts(1, ViewSelection::All)).unwrap();
+    assert_eq!(full.masks, Some(PixelMasks::from_flags(flags.iter().map(|f| &f[..]))));
+    let half = load_blender(dir.path(), Split::Train, &opts(2, ViewSelection::All)).unwrap();
+    let m = half.masks.unwrap();
+    for (v, f) in flags.iter().enumerate() {
+        for (y, x) in (0..h / 2).flat_map(|y| (0..w / 2).map(move |x| (y, x))) {
+            let all = (0..4).all(|d| f[((2 * y + d / 2) * w + 2 * x + d % 2) as usize]);
+            assert_eq!(m.is_kept(v, y * (w / 2) + x), all, "view {v}, pixel ({x}, {y})");
+        }
+    }
+}
+
+#[test]
+fn error_bad_masks() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    good_scene(root, 2, 4, 3);
+    let with_masks = |paths: [Value; 2]| {
+        let mut frames = frames_json(2);
+        for (i, p) in paths.into_iter().enumerate() {
+            if !p.is_null() {
+                frames[i]["mask_path"] = p;
+            }
+        }
+        set_transforms(root, &json!({"camera_angle_x": ANGLE, "frames": frames}));
+    };
+    let gray = |name: &str, w: u32, h: u32, v: u8| image::GrayImage::from_pixel(w, h, image::Luma([v])).save(root.join(name)).unwrap();
+    gray("train/m0.png", 4, 3, 255);
+    // A missing mask file: named, with its frame.
+    with_masks([json!("train/m0.png"), json!("train/m1.png")]);
+    let e = load_err(root, &LoadOptions::default());
+    assert!(matches!(e, DataError::BadMask { frame: 1, .. }), "{e:?}");
+    assert!(e.to_string().contains("m1.png") && e.to_string().contains("not found"), "{e}");
+    // A mask of another size than its image.
+    gray("train/m1.png", 3, 4, 255);
+    let e = load_err(root, &LoadOptions::default()).to_string();
+    assert!(e.contains("m1.png") && e.contains("mask of frame 1") && e.contains("3x4") && e.contains("4x3"), "{e}");
+    // A mask for some frames only, or a mask_path that is not a string.
+    with_masks([json!("train/m0.png"), Value::Null]);
+    let e = load_err(root, &LoadOptions::default()).to_string();
+    assert!(e.contains("frames[1].mask_path") && e.contains("every frame a mask or none"), "{e}");
+    with_masks([json!("train/m0.png"), json!(7)]);
+    let e = load_err(root, &LoadOptions::default()).to_string();
+    assert!(e.contains("frames[1].mask_path") && e.contains("expected a string"), "{e}");
+    // Masks that keep nothing.
+    gray("train/m0.png", 4, 3, 0);
+    gray("train/m1.png", 4, 3, 0);
+    with_masks([json!("train/m0.png"), json!("train/m1.png")]);
+    let e = load_err(root, &LoadOptions::default());
+    assert!(matches!(e, DataError::EmptySplit { .. }) && e.to_string().contains("nothing to train on"), "{e}");
 }

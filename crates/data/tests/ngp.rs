@@ -296,7 +296,15 @@ fn distorted_photos_are_resampled_to_the_pinhole_camera() {
             .unwrap()
             .save(dir.path().join("photo.png"))
             .unwrap();
-        let frame = json!({"file_path": "photo.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]});
+        // Its mask, taken through the same lens: kept where the scene point lies right of x = 0.5.
+        let edge = 0.5;
+        let mask = image::GrayImage::from_fn(k.width, k.height, |i, j| {
+            let xd = (i as f64 + 0.5 - k.cx as f64) / k.fx as f64;
+            let yd = (j as f64 + 0.5 - k.cy as f64) / k.fy as f64;
+            image::Luma([if undistort_point(&d, xd, yd).0 > edge { 255 } else { 0 }])
+        });
+        mask.save(dir.path().join("mask.png")).unwrap();
+        let frame = json!({"file_path": "photo.png", "mask_path": "mask.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]});
         write_json(
             &dir.path().join("transforms.json"),
             &json!({
@@ -307,6 +315,24 @@ fn distorted_photos_are_resampled_to_the_pinhole_camera() {
         let test = load(dir.path(), Split::Test);
         assert_eq!(test.cameras[0].intrinsics, k);
         assert!(max_error(&test.images[0], &k, 4) < 3e-3);
+        // The mask is resampled with the photo: kept right of the edge, dropped left of it (a pixel
+        // either side of the edge may go either way).
+        let masks = test.masks.as_ref().expect("the mask is loaded");
+        let (mut kept, mut dropped) = (0, 0);
+        for j in 0..k.height {
+            for i in 0..k.width {
+                let x = (i as f64 + 0.5 - k.cx as f64) / k.fx as f64;
+                let is = masks.is_kept(0, j * k.width + i);
+                if x > edge + 1.0 / k.fx as f64 {
+                    assert!(is, "pixel ({i}, {j}) right of the edge dropped");
+                    kept += 1;
+                } else if x < edge - 1.0 / k.fx as f64 {
+                    assert!(!is, "pixel ({i}, {j}) left of the edge kept");
+                    dropped += 1;
+                }
+            }
+        }
+        assert!(kept > 200 && dropped > 1000, "{kept} kept, {dropped} dropped");
         let half = load_blender(dir.path(), Split::Test, &LoadOptions { downscale: 2, ..Default::default() }).unwrap();
         let k2 = k.downscaled(2);
         assert!(max_error(&half.images[0], &k2, 2) < 1e-2, "{}", max_error(&half.images[0], &k2, 2));

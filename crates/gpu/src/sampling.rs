@@ -6,8 +6,8 @@
 //!   value of the dataset is exactly `k/255` (8-bit PNGs, what `nerf_data` loads: lossless), else
 //!   RGBA16 (two `u32` per pixel, `r | g<<16`, `b | a<<16`, value/65535: lossless for 16-bit PNGs,
 //!   a 1/65535 quantisation for anything else).
-//! * [`GpuRayGen`]: a batch of training rays ([`GpuRays`]) drawn on the device; CPU twin
-//!   [`ray_batch_cpu`].
+//! * [`GpuRayGen`]: a batch of training rays ([`GpuRays`]) drawn on the device, over every pixel
+//!   or over the pixels the training masks keep; CPU twin [`ray_batch_cpu`].
 //! * [`GpuScan`]: exclusive prefix sum of `u32` (1024 values per workgroup, multi-level).
 //! * [`GpuMarcher`]: Instant-NGP marching through an occupancy bitfield into the packed layout
 //!   ([`GpuSamples`]); CPU twin [`nerf_sampling::march`].
@@ -69,15 +69,19 @@ pub struct GpuImages {
     pub pixels: wgpu::Buffer,
     /// One [`GpuCamera`] per view.
     pub cameras: wgpu::Buffer,
+    /// The training masks' kept pixels (`view·W·H + row·W + col`, ascending), or one unused
+    /// word for a dataset without masks.
+    pub kept: wgpu::Buffer,
     info: wgpu::Buffer,
     n_views: usize,
     format: PixelFormat,
 }
 
 impl GpuImages {
-    /// Uploads `dataset`'s images (RGBA8 when every value is exactly `k/255`, else RGBA16) and
-    /// cameras. Errors when the dataset has no views, an image does not hold `4·W·H` values, or
-    /// the pixels exceed the device's largest storage binding.
+    /// Uploads `dataset`'s images (RGBA8 when every value is exactly `k/255`, else RGBA16),
+    /// cameras and training masks ([`Dataset::masks`]: the kept pixels, 4 bytes each). Errors
+    /// when the dataset has no views, an image does not hold `4·W·H` values, the masks do not
+    /// match the views, or the pixels exceed the device's largest storage binding.
     pub fn new(ctx: &GpuContext, dataset: &Dataset) -> Result<Self, GpuError> {
         let name = dataset.root.display();
         let n_views = dataset.n_views();
@@ -142,6 +146,25 @@ impl GpuImages {
                 }
             })
             .collect();
+        let kept: Vec<u32> = match &dataset.masks {
+            None => vec![0],
+            Some(m) => {
+                if m.n_views() != n_views || m.total() == 0 {
+                    return Err(GpuError::Unsupported(format!(
+                        "dataset {name}: masks of {} views keep {} pixels, for {n_views} views",
+                        m.n_views(),
+                        m.total()
+                    )));
+                }
+                if (n_views * w * h) as u64 > u32::MAX as u64 || 4 * m.total() > limit {
+                    return Err(GpuError::Unsupported(format!(
+                        "dataset {name}: the masks of {n_views} images of {w}x{h} keep {} pixels, too many to index on the device; downscale the images",
+                        m.total()
+                    )));
+                }
+                (0..n_views).flat_map(|v| m.view(v).iter().map(move |&p| (v * w * h) as u32 + p)).collect()
+            }
+        };
         let ndc = dataset.ndc.unwrap_or(nerf_rays::Ndc { scale_x: 0.0, scale_y: 0.0, near: 0.0 });
         let info = ImagesInfo {
             n_views: n_views as u32,
@@ -150,11 +173,13 @@ impl GpuImages {
             ndc_near: ndc.near,
             ndc_scale_x: ndc.scale_x,
             ndc_scale_y: ndc.scale_y,
-            _pad: [0; 2],
+            n_kept: if dataset.masks.is_some() { kept.len() as u32 } else { 0 },
+            view_pixels: (w * h) as u32,
         };
         Ok(Self {
             pixels: ctx.upload("images", &words),
             cameras: ctx.upload("cameras", &cams),
+            kept: ctx.upload("kept_pixels", &kept),
             info: ctx.uniform("images_info", &info),
             n_views,
             format,
@@ -252,13 +277,15 @@ impl GpuRayGen {
                 (7, &rays.target),
                 (8, &rays.background),
                 (9, &rays.views),
+                (10, &images.kept),
             ],
             groups_1d(rays.capacity, WG),
         );
     }
 }
 
-/// CPU twin of [`GpuRayGen`]: `n_rays` rays drawn with [`crate::rng`] on the same streams, each
+/// CPU twin of [`GpuRayGen`]: `n_rays` rays drawn with [`crate::rng`] on the same streams (with
+/// [`Dataset::masks`]: the `k`-th kept pixel, [`nerf_data::PixelMasks::pick`]), each
 /// built with [`nerf_rays::Camera::ray_at`] (then [`Dataset::warp`]: NDC scenes) and composited with `nerf_data`'s rule
 /// `rgb·a + (1 − a)·bg` (straight alpha). Fills `view_ids` and `pixel_ids` too.
 ///
@@ -270,9 +297,17 @@ pub fn ray_batch_cpu(dataset: &Dataset, seed: u32, n_rays: usize, background: Ba
     let off = conv.offset();
     let mut b = RayBatch::default();
     for r in 0..n_rays as u32 {
-        let view = rng::rand_u32(seed, RAY_STREAM_VIEW, r) % dataset.n_views() as u32;
-        let col = rng::rand_u32(seed, RAY_STREAM_COL, r) % w;
-        let row = rng::rand_u32(seed, RAY_STREAM_ROW, r) % h;
+        let (view, col, row) = match &dataset.masks {
+            None => (
+                rng::rand_u32(seed, RAY_STREAM_VIEW, r) % dataset.n_views() as u32,
+                rng::rand_u32(seed, RAY_STREAM_COL, r) % w,
+                rng::rand_u32(seed, RAY_STREAM_ROW, r) % h,
+            ),
+            Some(m) => {
+                let (view, pix) = m.pick((rng::rand_u32(seed, RAY_STREAM_VIEW, r) as u64) % m.total());
+                (view, pix % w, pix / w)
+            }
+        };
         let (mut u, mut v) = (col as f32 + off, row as f32 + off);
         if jitter {
             u = u - 0.5 + rng::rand_f32(seed, RAY_STREAM_JITTER_U, r);

@@ -4,7 +4,7 @@
 
 use std::path::PathBuf;
 
-use nerf_data::{Background, Dataset, Split};
+use nerf_data::{Background, Dataset, PixelMasks, Split};
 use nerf_gpu::rng::rand_f32;
 use nerf_gpu::sampling::{
     ray_batch_cpu, GpuImages, GpuMarcher, GpuRayGen, GpuRays, GpuSamples, GpuScan, MarchConfig, PixelFormat, MARCH_STREAM_U,
@@ -130,6 +130,7 @@ fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset 
         cameras,
         images,
         file_paths: vec![],
+        masks: None,
         near: 2.0,
         far: 6.0,
         aabb: Aabb::cube(1.5),
@@ -210,6 +211,67 @@ fn ray_generation_matches_its_cpu_twin() {
             }
         }
     }
+}
+
+/// With training masks the kernel draws only kept pixels, the same ones as its twin: random masks
+/// (a view keeping nothing, one keeping a single pixel), targets where the masked-out pixels of
+/// the images are NaN (a masked pixel read on either side fails the comparison).
+#[test]
+fn masked_ray_generation_matches_its_cpu_twin_and_draws_only_kept_pixels() {
+    let Some(ctx) = context() else { return };
+    let cap = 3000;
+    for (seed, jitter) in [(31u32, false), (32, true)] {
+        let mut ds = dataset(seed as u64, 4, 19, 9, false);
+        let mut rng = nerf_core::rng(seed as u64, 2);
+        let n_pix = 19 * 9;
+        let flags: Vec<Vec<bool>> = (0..4)
+            .map(|v| match v {
+                1 => vec![false; n_pix],
+                2 => (0..n_pix).map(|p| p == 77).collect(),
+                _ => (0..n_pix).map(|_| rng.gen_bool(0.3)).collect(),
+            })
+            .collect();
+        ds.masks = Some(PixelMasks::from_flags(flags.iter().map(|f| &f[..])));
+        let kept = ds.masks.as_ref().unwrap().total() as usize;
+        let images = GpuImages::new(&ctx, &ds).unwrap();
+        // NaN can't be packed to RGBA8: poison the twin's images after the upload instead, so
+        // a masked-out pixel read on the CPU side shows.
+        for (img, f) in ds.images.iter_mut().zip(&flags) {
+            for (px, &k) in img.chunks_exact_mut(4).zip(f) {
+                if !k {
+                    px.fill(f32::NAN);
+                }
+            }
+        }
+        let gen = GpuRayGen::new(&ctx, Background::Random, PixelConvention::Center, jitter);
+        let rays = poisoned_rays(&ctx, cap);
+        let counters = ctx.upload("counters", &[cap as u32, 0]);
+        gen.set_seed(&ctx, seed);
+        let mut enc = ctx.encoder("rays");
+        gen.record(&ctx, &mut enc, &counters, &images, &rays);
+        submit(&ctx, enc);
+        let cpu = ray_batch_cpu(&ds, seed, cap, Background::Random, PixelConvention::Center, jitter);
+        let (o, d, t) = (
+            ctx.read_f32(&rays.origins, 3 * cap).unwrap(),
+            ctx.read_f32(&rays.dirs, 3 * cap).unwrap(),
+            ctx.read_f32(&rays.target, 3 * cap).unwrap(),
+        );
+        assert_eq!(ctx.read_u32(&rays.views, cap).unwrap(), cpu.view_ids, "seed {seed}: views");
+        for i in 0..3 * cap {
+            assert_eq!(o[i], cpu.origins[i], "seed {seed}: origin {i}");
+            assert!((d[i] - cpu.dirs[i]).abs() <= 4e-6, "seed {seed}: dir {i}: {} vs {}", d[i], cpu.dirs[i]);
+            assert!((t[i] - cpu.target[i]).abs() <= 2e-6, "seed {seed}: target {i}: {} vs {}", t[i], cpu.target[i]);
+        }
+        // Only kept pixels, and (3000 draws of ~110 kept pixels) every one of them.
+        let drawn: std::collections::HashSet<(u32, u32)> = cpu.view_ids.iter().copied().zip(cpu.pixel_ids.iter().copied()).collect();
+        assert!(drawn.iter().all(|&(v, p)| flags[v as usize][p as usize]), "seed {seed}: a masked-out pixel drawn");
+        assert_eq!(drawn.len(), kept, "seed {seed}: kept pixels never drawn");
+    }
+    // Masks that do not match the views are refused.
+    let mut ds = dataset(33, 2, 5, 4, false);
+    ds.masks = Some(PixelMasks::new(vec![vec![1]]));
+    let e = GpuImages::new(&ctx, &ds).err().expect("masks of 1 view for 2 accepted").to_string();
+    assert!(e.contains("masks of 1 views"), "{e}");
 }
 
 #[test]

@@ -1,0 +1,113 @@
+//! Training masks end to end (nerfstudio's `mask_path`, [`nerf::data::mask`]): photos with a
+//! transient occluder — a magenta square at a random place in every training view, as a passer-by
+//! would be — train the field it must not learn unless the occluder is masked out. The masks
+//! travel through the scene files (written with `write_blender`, read back by the loader) and
+//! train on the CPU and, where an adapter exists, on the GPU.
+
+use nerf::data::{load_blender, write_blender, Dataset, LoadOptions, PixelMasks, Split, ViewSelection};
+use nerf::gpu::GpuContext;
+use nerf::train::{SceneBounds, TrainConfig, Trainer};
+use rand::Rng;
+use std::sync::Arc;
+
+mod common;
+use common::{light_hash_config, load, sparse_psnr};
+
+/// `clean` with a `side`² opaque magenta square at a random place in every view, and the masks
+/// that drop exactly those pixels.
+fn occluded(clean: &Dataset, side: u32, seed: u64) -> (Dataset, PixelMasks) {
+    let (w, h) = (clean.width, clean.height);
+    let mut rng = nerf::core::rng(seed, 0);
+    let mut ds = clean.clone();
+    let mut flags = Vec::new();
+    for img in &mut ds.images {
+        let (x0, y0) = (rng.gen_range(0..=w - side), rng.gen_range(0..=h - side));
+        let mut keep = vec![true; (w * h) as usize];
+        for y in y0..y0 + side {
+            for x in x0..x0 + side {
+                let p = (y * w + x) as usize;
+                img[4 * p..4 * p + 4].copy_from_slice(&[1.0, 0.0, 1.0, 1.0]);
+                keep[p] = false;
+            }
+        }
+        flags.push(keep);
+    }
+    (ds, PixelMasks::from_flags(flags.iter().map(|f| &f[..])))
+}
+
+fn train(config: &TrainConfig, data: &Dataset, device: Option<Arc<GpuContext>>) -> Trainer {
+    let registry = nerf::registry();
+    let mut t = Trainer::new_on(config.clone(), &registry, SceneBounds::of(data), device).unwrap();
+    for _ in 0..config.iters {
+        t.step(data).unwrap();
+    }
+    t.finish().unwrap();
+    t
+}
+
+#[test]
+fn a_masked_out_occluder_stays_out_of_the_field() {
+    let clean = load(Split::Train, ViewSelection::All);
+    let test = load(Split::Test, ViewSelection::Every(10));
+    let (photos, masks) = occluded(&clean, 30, 7);
+    // Through the files: the scene as a user would hand it over, masks beside the photos.
+    let dir = tempfile::tempdir().unwrap();
+    write_blender(&Dataset { masks: Some(masks.clone()), ..photos.clone() }, dir.path(), None).unwrap();
+    let masked = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    assert_eq!(masked.masks.as_ref(), Some(&masks));
+    assert_eq!(masked.images, photos.images);
+
+    let config = light_hash_config(300);
+    let mut psnr = Vec::new();
+    for (name, data) in [("occluded", &photos), ("occluded, masked", &masked)] {
+        let t0 = std::time::Instant::now();
+        let t = train(&config, data, None);
+        let p = sparse_psnr(&t, &test, 2);
+        println!("{name}: {p:.2} dB on the clean test views ({:.1} s)", t0.elapsed().as_secs_f64());
+        psnr.push(p);
+    }
+    // Measured: 17.02 dB unmasked, 19.58 dB masked (the unmasked field paints magenta haze).
+    assert!(psnr[1] > psnr[0] + 1.0, "masked {:.2} dB, unmasked {:.2} dB", psnr[1], psnr[0]);
+}
+
+/// Mean rendered opacity over the pixels of `ds`'s views that show the object (alpha > ½).
+fn object_opacity(t: &Trainer, ds: &Dataset) -> f64 {
+    let mut rays = nerf::data::RayBatch::default();
+    let (mut sum, mut n) = (0.0, 0usize);
+    for i in 0..ds.n_views() {
+        ds.view_rays(i, nerf::data::Background::White, t.config().pixel_convention, &mut rays);
+        let m = rays.len();
+        let (mut rgb, mut op, mut depth) = (vec![0.0; 3 * m], vec![0.0; m], vec![0.0; m]);
+        t.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut op, &mut depth).unwrap();
+        for (p, &o) in op.iter().enumerate() {
+            if ds.images[i][4 * p + 3] > 0.5 {
+                sum += o as f64;
+                n += 1;
+            }
+        }
+    }
+    sum / n as f64
+}
+
+/// A field trained only on the pixels around the object (masks that drop every pixel it covers)
+/// renders nothing where it stands, on either device; trained on every pixel (on the CPU: the
+/// contrast), it renders it. Measured: opacity 0.56 there trained on every pixel, 0.001 on the
+/// CPU and on lavapipe trained around it.
+#[test]
+fn masks_that_drop_the_object_leave_an_empty_field_on_both_devices() {
+    let clean = load(Split::Train, ViewSelection::All);
+    let test = common::thumbnails(Split::Test, 3);
+    let flags: Vec<Vec<bool>> = clean.images.iter().map(|img| img.chunks_exact(4).map(|p| p[3] == 0.0).collect()).collect();
+    let empty = Dataset { masks: Some(PixelMasks::from_flags(flags.iter().map(|f| &f[..]))), ..clean.clone() };
+    let config = light_hash_config(80);
+    let o = object_opacity(&train(&config, &clean, None), &test);
+    assert!(o > 0.3, "cpu: trained on every pixel, opacity {o:.3} where the object stands");
+    let mut devices = vec![None];
+    devices.extend(GpuContext::for_tests().map(Arc::new).map(Some));
+    for dev in devices {
+        let t = train(&config, &empty, dev);
+        let o = object_opacity(&t, &test);
+        println!("{}, the object masked out: mean opacity {o:.3} over its pixels", t.device());
+        assert!(o < 0.1, "{}: trained around the object, opacity {o:.3} where it stands", t.device());
+    }
+}
