@@ -104,6 +104,29 @@ fn missing_image_names_the_image() {
     assert_clean_failure(&o, &["r_1.png"]);
 }
 
+/// A scene whose frames name training masks (nerfstudio's `mask_path`) trains, saying how much
+/// the masks keep; a missing mask is named with its frame.
+#[test]
+fn a_scene_with_masks_trains_and_a_missing_mask_is_named() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let p = s.join("transforms_train.json");
+    let mut t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    for (i, f) in t["frames"].as_array_mut().unwrap().iter_mut().enumerate() {
+        f["mask_path"] = serde_json::json!(format!("masks/{i}.png"));
+        std::fs::create_dir_all(s.join("masks")).unwrap();
+        // The left half of each 50×50 view kept.
+        image::GrayImage::from_fn(50, 50, |x, _| image::Luma([if x < 25 { 255 } else { 0 }])).save(s.join(format!("masks/{i}.png"))).unwrap();
+    }
+    std::fs::write(&p, serde_json::to_string(&t).unwrap()).unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("training masks (mask_path) keep 50.0 % of the training views' pixels"), "{}", stderr(&o));
+    std::fs::remove_file(s.join("masks/1.png")).unwrap();
+    let o = train_tiny(&s, &d.path().join("run2"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["masks/1.png", "mask of frame 1", "not found"]);
+}
+
 #[test]
 fn wrong_image_size_names_the_image() {
     let d = tempfile::tempdir().unwrap();
