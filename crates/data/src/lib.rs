@@ -1006,32 +1006,39 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
 /// the frames' images (`size`, before downscaling). A pixel is kept where the mask's value (grey,
 /// or any colour channel) is not 0. The masks go through the images' lens resampling (`fix`) and
 /// `k`× downscaling, and a resulting pixel is kept only where every mask pixel it draws on is:
-/// training never reads a masked-out pixel, even in part.
+/// training never reads a masked-out pixel, even in part. An error names the first failing mask
+/// in order.
 fn decode_masks(frames: &[&Frame], paths: &[&Path], size: (u32, u32), k: u32, fix: &ImageFix) -> Result<PixelMasks, DataError> {
     for (f, p) in frames.iter().zip(paths) {
         if !p.is_file() {
             return Err(DataError::BadMask { path: p.to_path_buf(), frame: f.index, reason: "file not found".into() });
         }
     }
-    let binary = |i: usize, path: &Path, w: u32, h: u32, mut px: Vec<f32>| {
-        if (w, h) != size {
-            return Err(DataError::BadMask {
-                path: path.to_path_buf(),
-                frame: frames[i].index,
-                reason: format!("it is {w}x{h}, its image {} is {}x{}", frames[i].image.display(), size.0, size.1),
-            });
-        }
-        for p in px.chunks_exact_mut(4) {
-            let keep = if p[..3].iter().any(|&v| v > 0.0) { 1.0 } else { 0.0 };
-            p.fill(keep);
-        }
-        fix(i, path, w, h, px)
-    };
-    let (_, _, masks) = decode_views_with(paths, k, &binary, false)?;
-    // Bilinear resampling and box averages of 1s give 1 up to rounding; a value mixed with a 0 is
-    // at most 1 − 1/k² (box) or 1 − w for the 0's bilinear weight w (kept only for w < 10⁻⁶).
-    let flags: Vec<Vec<bool>> = masks.iter().map(|m| m.chunks_exact(4).map(|p| p[0] >= 1.0 - 1e-6).collect()).collect();
-    Ok(PixelMasks::from_flags(flags.iter().map(|f| &f[..])))
+    // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels.
+    let kept: Vec<Result<Vec<u32>, DataError>> = paths
+        .par_iter()
+        .enumerate()
+        .map(|(i, &path)| {
+            let (w, h, mut px) = decode_rgba(path)?;
+            if (w, h) != size {
+                return Err(DataError::BadMask {
+                    path: path.to_path_buf(),
+                    frame: frames[i].index,
+                    reason: format!("it is {w}x{h}, its image {} is {}x{}", frames[i].image.display(), size.0, size.1),
+                });
+            }
+            for p in px.chunks_exact_mut(4) {
+                let keep = if p[..3].iter().any(|&v| v > 0.0) { 1.0 } else { 0.0 };
+                p.fill(keep);
+            }
+            let px = downscale_rgba(&fix(i, path, w, h, px)?, w as usize, h as usize, k as usize);
+            // Bilinear resampling and box averages of 1s give 1 up to rounding; a value mixed
+            // with a 0 is at most 1 − 1/k² (box) or 1 − w for the 0's bilinear weight w (kept
+            // only for w < 10⁻⁶).
+            Ok(px.chunks_exact(4).enumerate().filter(|(_, p)| p[0] >= 1.0 - 1e-6).map(|(j, _)| j as u32).collect())
+        })
+        .collect();
+    Ok(PixelMasks::new(kept.into_iter().collect::<Result<Vec<_>, _>>()?))
 }
 
 /// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
@@ -1604,10 +1611,10 @@ pub fn pose_noise(n_views: usize, rot_deg: f32, trans: f32, seed: u64) -> Vec<[f
 /// `camera_angle_x` recomputed for the dataset's width (from the first camera's `fx`),
 /// `frames[k] = { "file_path": "./<split>/r_<k>", "transform_matrix": 4×4 }`, and RGBA 8-bit PNGs
 /// `out_root/<split>/r_<k>.png` (written in parallel). `attribution`, when given, becomes a
-/// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones. A dataset
-/// with training masks ([`Dataset::masks`]) writes them too: `"mask_path": "./<split>/mask_<k>.png"`,
-/// 8-bit grey, 255 kept and 0 masked out. Intrinsics that the field of view does not capture (`fy != fx`, a principal point off the
-/// image centre, views that differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
+/// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones. A
+/// dataset with training masks ([`Dataset::masks`]) writes them too: `"mask_path":
+/// "./<split>/mask_<k>.png"`, 8-bit grey, 255 kept and 0 masked out. Intrinsics that the field
+/// of view does not capture (`fy != fx`, a principal point off the image centre, views that differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
 /// `h` (top level: the first view's; a frame whose camera differs carries its own), and an
 /// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`; a scene with
 /// other bounds than NeRF's Blender ones (LLFF with Euclidean rays) gets the instant-ngp box that
@@ -1628,6 +1635,13 @@ pub fn write_blender(
     }
     let split = ds.split.as_str();
     let tpath = out_root.join(ds.split.transforms_file());
+    if let Some(m) = ds.masks.as_ref().filter(|m| m.n_views() != ds.n_views()) {
+        return Err(DataError::InvalidValue {
+            path: ds.root.clone(),
+            key: "masks".into(),
+            reason: format!("masks of {} views for {} views", m.n_views(), ds.n_views()),
+        });
+    }
     if ds.ndc.is_some() {
         return Err(DataError::InvalidValue {
             path: tpath,

@@ -832,6 +832,10 @@ fn masks_round_trip_and_training_rays_draw_only_kept_pixels() {
     // A load without pixels has no masks (its rays are cast from every pixel).
     let cams = load_blender(dir.path(), Split::Train, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
     assert!(cams.masks.is_none());
+    // Masks that do not match the views are not written.
+    let bad = Dataset { masks: Some(ds.masks.as_ref().unwrap().select(&[0])), ..ds.clone() };
+    let e = write_blender(&bad, &dir.path().join("bad"), None).unwrap_err().to_string();
+    assert!(e.contains("masks of 1 views for 3 views"), "{e}");
 }
 
 /// Downscaled, a pixel is kept only where all the k×k mask pixels it averages are; any non-zero
