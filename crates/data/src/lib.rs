@@ -586,7 +586,7 @@ impl Dataset {
     ///
     /// # Panics
     /// If the dataset has no views or was loaded without its pixels
-    /// ([`LoadOptions::cameras_only`]).
+    /// ([`LoadOptions::cameras_only`]), or if its masks are not one per view or keep no pixel.
     pub fn sample_rays(
         &self,
         n: usize,
@@ -606,7 +606,7 @@ impl Dataset {
     /// field from the training cameras).
     ///
     /// # Panics
-    /// If the dataset has no views.
+    /// If the dataset has no views, or if its masks are not one per view or keep no pixel.
     pub fn sample_camera_rays(
         &self,
         n: usize,
