@@ -154,6 +154,19 @@ fn poisoned_rays(ctx: &GpuContext, cap: usize) -> GpuRays {
     }
 }
 
+/// Rays drawn on the device: `n` asked for (the counter), `cap` slots poisoned beforehand.
+#[allow(clippy::too_many_arguments)]
+fn draw_on_device(ctx: &GpuContext, images: &GpuImages, bg: Background, conv: PixelConvention, jitter: bool, seed: u32, n: usize, cap: usize) -> GpuRays {
+    let gen = GpuRayGen::new(ctx, bg, conv, jitter);
+    let rays = poisoned_rays(ctx, cap);
+    let counters = ctx.upload("counters", &[n as u32, 0]);
+    gen.set_seed(ctx, seed);
+    let mut enc = ctx.encoder("rays");
+    gen.record(ctx, &mut enc, &counters, images, &rays);
+    submit(ctx, enc);
+    rays
+}
+
 #[test]
 fn ray_generation_matches_its_cpu_twin() {
     let Some(ctx) = context() else { return };
@@ -170,13 +183,7 @@ fn ray_generation_matches_its_cpu_twin() {
         let images = GpuImages::new(&ctx, &ds).unwrap();
         assert_eq!(images.n_views(), 3);
         assert_eq!(images.format(), if sixteen { PixelFormat::Rgba16 } else { PixelFormat::Rgba8 });
-        let gen = GpuRayGen::new(&ctx, bg, conv, jitter);
-        let rays = poisoned_rays(&ctx, cap);
-        let counters = ctx.upload("counters", &[n as u32, 0]);
-        gen.set_seed(&ctx, seed * 7919);
-        let mut enc = ctx.encoder("rays");
-        gen.record(&ctx, &mut enc, &counters, &images, &rays);
-        submit(&ctx, enc);
+        let rays = draw_on_device(&ctx, &images, bg, conv, jitter, seed * 7919, n, cap);
         let m = n.min(cap);
         let cpu = ray_batch_cpu(&ds, seed * 7919, m, bg, conv, jitter);
         let read = |b: &wgpu::Buffer| ctx.read_f32(b, 3 * cap).unwrap();
@@ -243,13 +250,7 @@ fn masked_ray_generation_matches_its_cpu_twin_and_draws_only_kept_pixels() {
                 }
             }
         }
-        let gen = GpuRayGen::new(&ctx, Background::Random, PixelConvention::Center, jitter);
-        let rays = poisoned_rays(&ctx, cap);
-        let counters = ctx.upload("counters", &[cap as u32, 0]);
-        gen.set_seed(&ctx, seed);
-        let mut enc = ctx.encoder("rays");
-        gen.record(&ctx, &mut enc, &counters, &images, &rays);
-        submit(&ctx, enc);
+        let rays = draw_on_device(&ctx, &images, Background::Random, PixelConvention::Center, jitter, seed, cap, cap);
         let cpu = ray_batch_cpu(&ds, seed, cap, Background::Random, PixelConvention::Center, jitter);
         let (o, d, t) = (
             ctx.read_f32(&rays.origins, 3 * cap).unwrap(),
@@ -292,13 +293,7 @@ fn ray_generation_in_ndc_matches_its_cpu_twin() {
         }
         ds.ndc = Some(Ndc::new(&ds.cameras[0].intrinsics, Ndc::NEAR_PLANE));
         let images = GpuImages::new(&ctx, &ds).unwrap();
-        let gen = GpuRayGen::new(&ctx, Background::White, PixelConvention::Center, jitter);
-        let rays = poisoned_rays(&ctx, cap);
-        let counters = ctx.upload("counters", &[cap as u32, 0]);
-        gen.set_seed(&ctx, seed);
-        let mut enc = ctx.encoder("rays");
-        gen.record(&ctx, &mut enc, &counters, &images, &rays);
-        submit(&ctx, enc);
+        let rays = draw_on_device(&ctx, &images, Background::White, PixelConvention::Center, jitter, seed, cap, cap);
         let cpu = ray_batch_cpu(&ds, seed, cap, Background::White, PixelConvention::Center, jitter);
         let (o, d) = (ctx.read_f32(&rays.origins, 3 * cap).unwrap(), ctx.read_f32(&rays.dirs, 3 * cap).unwrap());
         let (mut warped, mut missed) = (0, 0);
