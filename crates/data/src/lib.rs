@@ -776,6 +776,23 @@ struct Frame {
     lens: ngp::Lens,
 }
 
+/// Where a frame's training mask comes from ([`mask`]).
+#[derive(Clone, Copy)]
+enum MaskSource<'a> {
+    /// nerfstudio's `mask_path`: non-zero keeps a pixel.
+    Keep(&'a Path),
+    /// instant-ngp's `dynamic_mask_<name>.png` beside the photo: non-zero drops a pixel.
+    Drop(&'a Path),
+    /// A frame without a dynamic mask among frames with one: every pixel kept.
+    All,
+}
+
+/// instant-ngp's dynamic mask of the photo at `image`: `dynamic_mask_<file stem>.png` in its folder.
+fn dynamic_mask_path(image: &Path) -> PathBuf {
+    let stem = image.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+    image.with_file_name(format!("dynamic_mask_{stem}.png"))
+}
+
 fn parse_matrix(path: &Path, frame: usize, v: &Value) -> Result<Vec<[f32; 4]>, DataError> {
     let bad = |shape: String| DataError::BadMatrix {
         path: path.to_path_buf(),
@@ -1002,23 +1019,30 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
     Ok((w, h, images))
 }
 
-/// The training masks of `frames` ([`mask`]) from the images at `paths`: each must be the size of
-/// the frames' images (`size`, before downscaling). A pixel is kept where the mask's value (grey,
-/// or any colour channel) is not 0. The masks go through the images' lens resampling (`fix`) and
+/// The training masks of `frames` ([`mask`]) from `sources`: each mask must be the size of the
+/// frames' images (`size`, before downscaling). A pixel is kept where the mask's value (grey, or
+/// any colour channel) is not 0 (`mask_path`), or where it is 0 (instant-ngp's dynamic masks). The masks go through the images' lens resampling (`fix`) and
 /// `k`× downscaling, and a resulting pixel is kept only where every mask pixel it draws on is:
 /// training never reads a masked-out pixel, even in part. An error names the first failing mask
 /// in order.
-fn decode_masks(frames: &[&Frame], paths: &[&Path], size: (u32, u32), k: u32, fix: &ImageFix) -> Result<PixelMasks, DataError> {
-    for (f, p) in frames.iter().zip(paths) {
-        if !p.is_file() {
-            return Err(DataError::BadMask { path: p.to_path_buf(), frame: f.index, reason: "file not found".into() });
+fn decode_masks(frames: &[&Frame], sources: &[MaskSource], size: (u32, u32), k: u32, fix: &ImageFix) -> Result<PixelMasks, DataError> {
+    for (f, src) in frames.iter().zip(sources) {
+        if let MaskSource::Keep(p) | MaskSource::Drop(p) = src {
+            if !p.is_file() {
+                return Err(DataError::BadMask { path: p.to_path_buf(), frame: f.index, reason: "file not found".into() });
+            }
         }
     }
     // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels.
-    let kept: Vec<Result<Vec<u32>, DataError>> = paths
+    let kept: Vec<Result<Vec<u32>, DataError>> = sources
         .par_iter()
         .enumerate()
-        .map(|(i, &path)| {
+        .map(|(i, &src)| {
+            let (path, drop) = match src {
+                MaskSource::Keep(p) => (p, false),
+                MaskSource::Drop(p) => (p, true),
+                MaskSource::All => return Ok((0..(size.0 / k) * (size.1 / k)).collect()),
+            };
             let (w, h, mut px) = decode_rgba(path)?;
             if (w, h) != size {
                 return Err(DataError::BadMask {
@@ -1028,7 +1052,7 @@ fn decode_masks(frames: &[&Frame], paths: &[&Path], size: (u32, u32), k: u32, fi
                 });
             }
             for p in px.chunks_exact_mut(4) {
-                let keep = if p[..3].iter().any(|&v| v > 0.0) { 1.0 } else { 0.0 };
+                let keep = if p[..3].iter().any(|&v| v > 0.0) != drop { 1.0 } else { 0.0 };
                 p.fill(keep);
             }
             let px = downscale_rgba(&fix(i, path, w, h, px)?, w as usize, h as usize, k as usize);
@@ -1253,11 +1277,20 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
     };
     let (w0, h0, images) = decode_views_with(&paths, k, &undistort, opts.cameras_only)?;
-    let masks = match frames.iter().map(|f| f.mask.as_deref()).collect::<Option<Vec<&Path>>>() {
-        Some(mask_paths) if !opts.cameras_only => {
-            let masks = decode_masks(&frames, &mask_paths, (w0, h0), k, &undistort)?;
+    // nerfstudio's masks, else instant-ngp's dynamic masks where any of the split's photos has one.
+    let dynamic: Vec<PathBuf> = frames.iter().map(|f| dynamic_mask_path(&f.image)).collect();
+    let sources: Option<Vec<MaskSource>> = if frames[0].mask.is_some() {
+        Some(frames.iter().map(|f| MaskSource::Keep(f.mask.as_deref().expect("every frame or none"))).collect())
+    } else if dynamic.iter().any(|p| p.is_file()) {
+        Some(dynamic.iter().map(|p| if p.is_file() { MaskSource::Drop(p) } else { MaskSource::All }).collect())
+    } else {
+        None
+    };
+    let masks = match sources {
+        Some(sources) if !opts.cameras_only => {
+            let masks = decode_masks(&frames, &sources, (w0, h0), k, &undistort)?;
             if masks.total() == 0 {
-                return Err(DataError::EmptySplit { path: tpath.clone(), reason: "every pixel of every mask is 0: nothing to train on".into() });
+                return Err(DataError::EmptySplit { path: tpath.clone(), reason: "the masks keep no pixel: nothing to train on".into() });
             }
             Some(masks)
         }

@@ -1,7 +1,9 @@
 //! Training masks: which pixels of each view training may draw (nerfstudio's per-frame
-//! `mask_path`). A masked-out pixel (mask value 0: a passer-by, the photographer's shadow, a
-//! car that moved between photos) is never drawn as a training ray; the others are drawn
-//! uniformly, as nerfstudio's pixel sampler does. Evaluation scores whole images.
+//! `mask_path`, or instant-ngp's `dynamic_mask_<name>.png` beside a photo, whose non-zero
+//! pixels are the dropped ones; see docs/formats.md). A masked-out pixel (a passer-by, the
+//! photographer's shadow, a car that moved between photos) is never drawn as a training ray;
+//! the others are drawn uniformly, as nerfstudio's pixel sampler does. Evaluation scores whole
+//! images.
 //!
 //! [`PixelMasks`] keeps, per view, the sorted indices (`row·W + col`) of its kept pixels, and
 //! the running count across views, so that the `k`-th kept pixel of the whole dataset

@@ -914,3 +914,35 @@ fn error_bad_masks() {
     let e = load_err(root, &LoadOptions::default());
     assert!(matches!(e, DataError::EmptySplit { .. }) && e.to_string().contains("nothing to train on"), "{e}");
 }
+
+/// instant-ngp's dynamic masks (`dynamic_mask_<name>.png` beside a photo, non-zero where something
+/// moved) drop their non-zero pixels; a photo without one keeps all of its pixels; `mask_path`
+/// takes precedence over them.
+#[test]
+fn instant_ngp_dynamic_masks_drop_their_non_zero_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    let (w, h) = (6u32, 4u32);
+    good_scene(root, 3, w, h);
+    let moved = |x: u32, y: u32| x >= 2 && y >= 1;
+    image::GrayImage::from_fn(w, h, |x, y| image::Luma([if moved(x, y) { 255 } else { 0 }])).save(root.join("train/dynamic_mask_r_0.png")).unwrap();
+    image::GrayImage::from_pixel(w, h, image::Luma([0])).save(root.join("train/dynamic_mask_r_2.png")).unwrap();
+    let ds = load_blender(root, Split::Train, &LoadOptions::default()).unwrap();
+    let m = ds.masks.as_ref().expect("dynamic masks read");
+    let want0: Vec<u32> = (0..w * h).filter(|&p| !moved(p % w, p / w)).collect();
+    assert_eq!(m.view(0), &want0[..]);
+    assert_eq!(m.view(1).len(), (w * h) as usize, "a photo without a dynamic mask keeps every pixel");
+    assert_eq!(m.view(2).len(), (w * h) as usize);
+    // Downscaled by 2: a pixel is dropped where any of its four moved.
+    let half = load_blender(root, Split::Train, &opts(2, ViewSelection::All)).unwrap();
+    assert_eq!(half.masks.unwrap().view(0), &[0, 3][..]);
+    // nerfstudio's mask_path wins over them.
+    let mut frames = frames_json(3);
+    for i in 0..3 {
+        frames[i]["mask_path"] = json!("train/keep.png");
+    }
+    image::GrayImage::from_pixel(w, h, image::Luma([255])).save(root.join("train/keep.png")).unwrap();
+    set_transforms(root, &json!({"camera_angle_x": ANGLE, "frames": frames}));
+    let ds = load_blender(root, Split::Train, &LoadOptions::default()).unwrap();
+    assert_eq!(ds.masks.unwrap().total(), 3 * (w * h) as u64);
+}
