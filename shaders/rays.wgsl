@@ -7,7 +7,8 @@
 //   view = rand_u32(seed, 0x52410001, r) % n_views
 //   col  = rand_u32(seed, 0x52410002, r) % width,  row = rand_u32(seed, 0x52410003, r) % height
 // or, with training masks (I.n_kept > 0), one of the kept pixels:
-//   g = kept[rand_u32(seed, 0x52410001, r) % n_kept],  view = g / (W·H),  row·W + col = g % (W·H)
+//   g = kept[rand_below(seed, 0x52410001, r, n_kept)],  view = g / (W·H),  row·W + col = g % (W·H)
+// (rand_below: common.wgsl's multiply-high index, even over the range where n_kept runs to 10⁹)
 //   (u, v) = (col + off, row + off), off = 0.5 (pixel centres) or 0 (integer convention);
 //   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
 // Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays).
@@ -100,7 +101,7 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         col = rand_u32(P.seed, 0x52410002u, r) % cams[view].size.x;
         row = rand_u32(P.seed, 0x52410003u, r) % cams[view].size.y;
     } else {
-        let g = kept[rand_u32(P.seed, 0x52410001u, r) % I.n_kept];
+        let g = kept[rand_below(P.seed, 0x52410001u, r, I.n_kept)];
         view = g / I.view_pixels;
         let p = g - view * I.view_pixels;
         col = p % cams[view].size.x;

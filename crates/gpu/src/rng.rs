@@ -21,6 +21,13 @@ pub fn rand_f32(seed: u32, stream: u32, i: u32) -> f32 {
     (rand_u32(seed, stream, i) >> 8) as f32 * (1.0 / 16_777_216.0)
 }
 
+/// A random index below `n` for `(seed, stream, i)`: `⌊rand_u32 · n / 2³²⌋` (Lemire's
+/// multiply-high; WGSL's `rand_below`, which builds the 64-bit product from 16-bit halves).
+#[inline]
+pub fn rand_below(seed: u32, stream: u32, i: u32, n: u32) -> u32 {
+    ((rand_u32(seed, stream, i) as u64 * n as u64) >> 32) as u32
+}
+
 #[cfg(test)]
 mod tests {
     #[test]
@@ -35,6 +42,18 @@ mod tests {
         for b in bins {
             assert!((b as f64 - 10_000.0).abs() < 500.0, "{bins:?}");
         }
+        // Indices below n, as even at the top of the range as at the bottom (modulo is not:
+        // n = 3·2³⁰ gives indices below 2³⁰ twice the draws of the others).
+        let n3 = 3u32 << 30;
+        let (mut low, mut high) = (0, 0);
+        for i in 0..n {
+            let k = super::rand_below(7, 4, i, n3);
+            assert!(k < n3);
+            low += (k < 1 << 30) as u32;
+            high += (k >= 2 << 30) as u32;
+        }
+        assert!((low as f64 - high as f64).abs() < 1500.0, "{low} draws in the first third, {high} in the last");
+        assert_eq!(super::rand_below(7, 4, 9, 1), 0);
         assert_ne!(super::rand_u32(1, 0, 5), super::rand_u32(2, 0, 5));
         assert_ne!(super::rand_u32(1, 0, 5), super::rand_u32(1, 1, 5));
     }

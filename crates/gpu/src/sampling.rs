@@ -304,7 +304,7 @@ pub fn ray_batch_cpu(dataset: &Dataset, seed: u32, n_rays: usize, background: Ba
                 rng::rand_u32(seed, RAY_STREAM_ROW, r) % h,
             ),
             Some(m) => {
-                let (view, pix) = m.pick((rng::rand_u32(seed, RAY_STREAM_VIEW, r) as u64) % m.total());
+                let (view, pix) = m.pick(rng::rand_below(seed, RAY_STREAM_VIEW, r, m.total() as u32) as u64);
                 (view, pix % w, pix / w)
             }
         };
