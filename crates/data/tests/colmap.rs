@@ -229,6 +229,14 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
         assert_eq!((ca.intrinsics, ca.position, ca.rotation), (cb.intrinsics, cb.position, cb.rotation));
     }
     assert!(a.images == b.images);
+    // instant-ngp's dynamic mask beside a photo in images/: everything there moved.
+    assert!(a.masks.is_none());
+    let photo = &a.file_paths[0];
+    let dynamic = photo.with_file_name(format!("dynamic_mask_{}.png", photo.file_stem().unwrap().to_string_lossy()));
+    image::GrayImage::from_pixel(a.width, a.height, image::Luma([255])).save(&dynamic).unwrap();
+    let masks = load(dir.path(), Split::Train).masks.expect("the dynamic mask is read");
+    let n_pix = (a.width * a.height) as usize;
+    assert_eq!((masks.view(0).len(), masks.view(1).len()), (0, n_pix));
 
     let keys = |model: &str, params: Vec<f64>| -> serde_json::Value {
         let m = ColmapModel {
