@@ -6,9 +6,13 @@
 // common.wgsl (streams = the RAY_STREAM_* constants of sampling.rs):
 //   view = rand_u32(seed, 0x52410001, r) % n_views
 //   col  = rand_u32(seed, 0x52410002, r) % width,  row = rand_u32(seed, 0x52410003, r) % height
-// or, with training masks (I.n_kept > 0), one of the kept pixels:
-//   g = kept[rand_below(seed, 0x52410001, r, n_kept)],  view = g / (W·H),  row·W + col = g % (W·H)
-// (rand_below: common.wgsl's multiply-high index, even over the range where n_kept runs to 10⁹)
+// or, with training masks (I.n_kept > 0), the k-th kept pixel of the dataset (views in order):
+//   k = rand_below(seed, 0x52410001, r, n_kept)  (common.wgsl's multiply-high index: even over
+//   the range where n_kept runs to 10⁹), view = the last v with start[v] ≤ k (binary search),
+//   row·W + col = k − start[v] for a view that keeps every pixel, else list[k − start[v]].
+// masks: per view (start, list) — kept pixels of the views before it, and the offset in `masks`
+// of its ascending kept pixels or 0xffffffff when it keeps every pixel — then those lists
+// (nerf_data::PixelMasks::pick is the CPU twin).
 //   (u, v) = (col + off, row + off), off = 0.5 (pixel centres) or 0 (integer convention);
 //   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
 // Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays).
@@ -39,7 +43,7 @@ struct ImagesInfo {
     ndc_sx: f32,       // 2·fx / W
     ndc_sy: f32,       // 2·fy / H
     n_kept: u32,       // kept pixels of the training masks (0: no masks)
-    view_pixels: u32,  // W·H
+    _p1: u32,
 }
 
 // Camera-to-world 3×4 rows (rotation row a, then position a), intrinsics and size.
@@ -61,7 +65,7 @@ struct Cam {
 @group(0) @binding(7) var<storage, read_write> out_target: array<f32>;
 @group(0) @binding(8) var<storage, read_write> out_background: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_view: array<u32>;
-@group(0) @binding(10) var<storage, read> kept: array<u32>;          // n_kept, view·W·H + row·W + col
+@group(0) @binding(10) var<storage, read> masks: array<u32>;         // 2·n_views table, then lists
 
 // nerf_rays::Ndc::ray_or_miss: (origin, unit direction) of the NDC ray.
 fn ndc_ray(o_in: vec3<f32>, d: vec3<f32>) -> array<vec3<f32>, 2> {
@@ -101,9 +105,24 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         col = rand_u32(P.seed, 0x52410002u, r) % cams[view].size.x;
         row = rand_u32(P.seed, 0x52410003u, r) % cams[view].size.y;
     } else {
-        let g = kept[rand_below(P.seed, 0x52410001u, r, I.n_kept)];
-        view = g / I.view_pixels;
-        let p = g - view * I.view_pixels;
+        let k = rand_below(P.seed, 0x52410001u, r, I.n_kept);
+        // Invariant: start[lo] ≤ k < start[hi] (start[n_views] = n_kept).
+        var lo = 0u;
+        var hi = I.n_views;
+        while (hi - lo > 1u) {
+            let mid = (lo + hi) / 2u;
+            if (masks[2u * mid] <= k) {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        view = lo;
+        var p = k - masks[2u * lo];
+        let list = masks[2u * lo + 1u];
+        if (list != 0xffffffffu) {
+            p = masks[list + p];
+        }
         col = p % cams[view].size.x;
         row = p / cams[view].size.x;
     }

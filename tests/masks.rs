@@ -32,7 +32,7 @@ fn occluded(clean: &Dataset, side: u32, seed: u64) -> (Dataset, PixelMasks) {
         }
         flags.push(keep);
     }
-    (ds, PixelMasks::from_flags(flags.iter().map(|f| &f[..])))
+    (ds, PixelMasks::from_flags(w * h, flags.iter().map(|f| &f[..])))
 }
 
 fn train(config: &TrainConfig, data: &Dataset, device: Option<Arc<GpuContext>>) -> Trainer {
@@ -98,7 +98,7 @@ fn masks_that_drop_the_object_leave_an_empty_field_on_both_devices() {
     let clean = load(Split::Train, ViewSelection::All);
     let test = common::thumbnails(Split::Test, 3);
     let flags: Vec<Vec<bool>> = clean.images.iter().map(|img| img.chunks_exact(4).map(|p| p[3] == 0.0).collect()).collect();
-    let empty = Dataset { masks: Some(PixelMasks::from_flags(flags.iter().map(|f| &f[..]))), ..clean.clone() };
+    let empty = Dataset { masks: Some(PixelMasks::from_flags(clean.width * clean.height, flags.iter().map(|f| &f[..]))), ..clean.clone() };
     let config = light_hash_config(80);
     let o = object_opacity(&train(&config, &clean, None), &test);
     assert!(o > 0.3, "cpu: trained on every pixel, opacity {o:.3} where the object stands");

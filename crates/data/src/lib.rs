@@ -634,6 +634,7 @@ impl Dataset {
         assert!(self.n_views() > 0, "sampling rays from a dataset without views");
         if let Some(m) = &self.masks {
             assert_eq!(m.n_views(), self.n_views(), "masks of {} views for a dataset of {}", m.n_views(), self.n_views());
+            assert_eq!(m.n_pixels(), self.width * self.height, "masks of views of another size");
             assert!(m.total() > 0, "sampling rays where every pixel is masked out");
         }
         out.resize(n);
@@ -1033,15 +1034,17 @@ fn decode_masks(frames: &[&Frame], sources: &[MaskSource], size: (u32, u32), k: 
             }
         }
     }
-    // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels.
-    let kept: Vec<Result<Vec<u32>, DataError>> = sources
+    let n_pixels = (size.0 / k) * (size.1 / k);
+    // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels
+    // (a view that keeps every pixel is stored as such by `PixelMasks::new`).
+    let kept: Vec<Result<Option<Vec<u32>>, DataError>> = sources
         .par_iter()
         .enumerate()
         .map(|(i, &src)| {
             let (path, drop) = match src {
                 MaskSource::Keep(p) => (p, false),
                 MaskSource::Drop(p) => (p, true),
-                MaskSource::All => return Ok((0..(size.0 / k) * (size.1 / k)).collect()),
+                MaskSource::All => return Ok(None),
             };
             let (w, h, mut px) = decode_rgba(path)?;
             if (w, h) != size {
@@ -1059,10 +1062,10 @@ fn decode_masks(frames: &[&Frame], sources: &[MaskSource], size: (u32, u32), k: 
             // Bilinear resampling and box averages of 1s give 1 up to rounding; a value mixed
             // with a 0 is at most 1 − 1/k² (box) or 1 − w for the 0's bilinear weight w (kept
             // only for w < 10⁻⁶).
-            Ok(px.chunks_exact(4).enumerate().filter(|(_, p)| p[0] >= 1.0 - 1e-6).map(|(j, _)| j as u32).collect())
+            Ok(Some(px.chunks_exact(4).enumerate().filter(|(_, p)| p[0] >= 1.0 - 1e-6).map(|(j, _)| j as u32).collect()))
         })
         .collect();
-    Ok(PixelMasks::new(kept.into_iter().collect::<Result<Vec<_>, _>>()?))
+    Ok(PixelMasks::with_full_views(n_pixels, kept.into_iter().collect::<Result<Vec<_>, _>>()?))
 }
 
 /// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
@@ -1668,11 +1671,11 @@ pub fn write_blender(
     }
     let split = ds.split.as_str();
     let tpath = out_root.join(ds.split.transforms_file());
-    if let Some(m) = ds.masks.as_ref().filter(|m| m.n_views() != ds.n_views()) {
+    if let Some(m) = ds.masks.as_ref().filter(|m| m.n_views() != ds.n_views() || m.n_pixels() != ds.width * ds.height) {
         return Err(DataError::InvalidValue {
             path: ds.root.clone(),
             key: "masks".into(),
-            reason: format!("masks of {} views for {} views", m.n_views(), ds.n_views()),
+            reason: format!("masks of {} views of {} pixels for {} views of {}x{}", m.n_views(), m.n_pixels(), ds.n_views(), ds.width, ds.height),
         });
     }
     if ds.ndc.is_some() {
@@ -1774,7 +1777,7 @@ pub fn write_blender(
                     &img_dir.join(format!("mask_{k}.png")),
                     w,
                     h,
-                    &m.view_bytes(k, (w * h) as usize),
+                    &m.view_bytes(k),
                     image::ExtendedColorType::L8,
                 ),
                 None => Ok(()),

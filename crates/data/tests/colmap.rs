@@ -236,7 +236,7 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     image::GrayImage::from_pixel(a.width, a.height, image::Luma([255])).save(&dynamic).unwrap();
     let masks = load(dir.path(), Split::Train).masks.expect("the dynamic mask is read");
     let n_pix = (a.width * a.height) as usize;
-    assert_eq!((masks.view(0).len(), masks.view(1).len()), (0, n_pix));
+    assert_eq!((masks.kept_in(0), masks.kept_in(1), masks.view(1)), (0, n_pix as u64, None));
 
     let keys = |model: &str, params: Vec<f64>| -> serde_json::Value {
         let m = ColmapModel {

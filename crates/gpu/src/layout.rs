@@ -370,8 +370,7 @@ pub(crate) struct ImagesInfo {
     pub(crate) ndc_scale_y: f32,
     /// Kept pixels of the training masks (0: no masks, every pixel is drawn).
     pub(crate) n_kept: u32,
-    /// Pixels per view (`W·H`): a kept pixel's index is `view·W·H + row·W + col`.
-    pub(crate) view_pixels: u32,
+    pub(crate) _pad: u32,
 }
 
 // ---- sampling.rs ----

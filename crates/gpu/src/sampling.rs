@@ -69,9 +69,10 @@ pub struct GpuImages {
     pub pixels: wgpu::Buffer,
     /// One [`GpuCamera`] per view.
     pub cameras: wgpu::Buffer,
-    /// The training masks' kept pixels (`view·W·H + row·W + col`, ascending), or one unused
-    /// word for a dataset without masks.
-    pub kept: wgpu::Buffer,
+    /// The training masks: per view its first kept pixel's rank and the offset of its kept
+    /// pixels in this buffer (`0xffffffff`: every pixel), then those lists (`shaders/rays.wgsl`);
+    /// one unused word for a dataset without masks.
+    pub masks: wgpu::Buffer,
     info: wgpu::Buffer,
     n_views: usize,
     format: PixelFormat,
@@ -79,7 +80,8 @@ pub struct GpuImages {
 
 impl GpuImages {
     /// Uploads `dataset`'s images (RGBA8 when every value is exactly `k/255`, else RGBA16),
-    /// cameras and training masks ([`Dataset::masks`]: the kept pixels, 4 bytes each). Errors
+    /// cameras and training masks ([`Dataset::masks`]: 8 bytes per view and 4 per kept pixel of a
+    /// view that does not keep every pixel). Errors
     /// when the dataset has no views, an image does not hold `4·W·H` values, the masks do not
     /// match the views, or the pixels exceed the device's largest storage binding.
     pub fn new(ctx: &GpuContext, dataset: &Dataset) -> Result<Self, GpuError> {
@@ -146,23 +148,37 @@ impl GpuImages {
                 }
             })
             .collect();
-        let kept: Vec<u32> = match &dataset.masks {
+        let masks: Vec<u32> = match &dataset.masks {
             None => vec![0],
             Some(m) => {
-                if m.n_views() != n_views || m.total() == 0 {
+                if m.n_views() != n_views || m.n_pixels() as usize != w * h || m.total() == 0 {
                     return Err(GpuError::Unsupported(format!(
-                        "dataset {name}: masks of {} views keep {} pixels, for {n_views} views",
+                        "dataset {name}: masks of {} views of {} pixels keep {} pixels, for {n_views} views of {w}x{h}",
                         m.n_views(),
+                        m.n_pixels(),
                         m.total()
                     )));
                 }
-                if (n_views * w * h) as u64 > u32::MAX as u64 || 4 * m.total() > limit {
+                let listed: u64 = (0..n_views).filter_map(|v| m.view(v)).map(|l| l.len() as u64).sum();
+                let words = 2 * n_views as u64 + listed;
+                if m.total() >= u32::MAX as u64 || 4 * words > limit {
                     return Err(GpuError::Unsupported(format!(
                         "dataset {name}: the masks of {n_views} images of {w}x{h} keep {} pixels, too many to index on the device; downscale the images",
                         m.total()
                     )));
                 }
-                (0..n_views).flat_map(|v| m.view(v).iter().map(move |&p| (v * w * h) as u32 + p)).collect()
+                let mut table = Vec::with_capacity(words as usize);
+                let (mut start, mut offset) = (0u32, 2 * n_views as u32);
+                for v in 0..n_views {
+                    table.push(start);
+                    table.push(m.view(v).map_or(u32::MAX, |_| offset));
+                    start += m.kept_in(v) as u32;
+                    offset += m.view(v).map_or(0, |l| l.len() as u32);
+                }
+                for v in 0..n_views {
+                    table.extend_from_slice(m.view(v).unwrap_or(&[]));
+                }
+                table
             }
         };
         let ndc = dataset.ndc.unwrap_or(nerf_rays::Ndc { scale_x: 0.0, scale_y: 0.0, near: 0.0 });
@@ -173,13 +189,13 @@ impl GpuImages {
             ndc_near: ndc.near,
             ndc_scale_x: ndc.scale_x,
             ndc_scale_y: ndc.scale_y,
-            n_kept: if dataset.masks.is_some() { kept.len() as u32 } else { 0 },
-            view_pixels: (w * h) as u32,
+            n_kept: dataset.masks.as_ref().map_or(0, |m| m.total() as u32),
+            _pad: 0,
         };
         Ok(Self {
             pixels: ctx.upload("images", &words),
             cameras: ctx.upload("cameras", &cams),
-            kept: ctx.upload("kept_pixels", &kept),
+            masks: ctx.upload("masks", &masks),
             info: ctx.uniform("images_info", &info),
             n_views,
             format,
@@ -277,7 +293,7 @@ impl GpuRayGen {
                 (7, &rays.target),
                 (8, &rays.background),
                 (9, &rays.views),
-                (10, &images.kept),
+                (10, &images.masks),
             ],
             groups_1d(rays.capacity, WG),
         );
