@@ -81,9 +81,9 @@ pub struct GpuImages {
 impl GpuImages {
     /// Uploads `dataset`'s images (RGBA8 when every value is exactly `k/255`, else RGBA16),
     /// cameras and training masks ([`Dataset::masks`]: 8 bytes per view and 4 per kept pixel of a
-    /// view that does not keep every pixel). Errors
-    /// when the dataset has no views, an image does not hold `4·W·H` values, the masks do not
-    /// match the views, or the pixels exceed the device's largest storage binding.
+    /// view that does not keep every pixel). Errors when the dataset has no views, an image does
+    /// not hold `4·W·H` values, the masks do not match the views, or the pixels or masks exceed
+    /// the device's largest storage binding.
     pub fn new(ctx: &GpuContext, dataset: &Dataset) -> Result<Self, GpuError> {
         let name = dataset.root.display();
         let n_views = dataset.n_views();
@@ -161,7 +161,7 @@ impl GpuImages {
                 }
                 let listed: u64 = (0..n_views).filter_map(|v| m.view(v)).map(|l| l.len() as u64).sum();
                 let words = 2 * n_views as u64 + listed;
-                if m.total() >= u32::MAX as u64 || 4 * words > limit {
+                if m.total() >= u32::MAX as u64 || words > u32::MAX as u64 || 4 * words > limit {
                     return Err(GpuError::Unsupported(format!(
                         "dataset {name}: the masks of {n_views} images of {w}x{h} keep {} pixels, too many to index on the device; downscale the images",
                         m.total()
