@@ -75,10 +75,16 @@ enum Work {
     Render,
 }
 
-/// Allocations outside gemm made by `work`, after `warmup` training steps of `config`.
-fn allocations_not_in_gemm(config: TrainConfig, warmup: usize, work: Work) -> Vec<(usize, String)> {
+/// Allocations outside gemm made by `work`, after `warmup` training steps of `config`; with
+/// `masked`, the training views carry masks (every other pixel kept, the first view whole).
+fn allocations_not_in_gemm(config: TrainConfig, warmup: usize, work: Work, masked: bool) -> Vec<(usize, String)> {
     let _alone = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
-    let train = common::load(Split::Train, ViewSelection::All);
+    let mut train = common::load(Split::Train, ViewSelection::All);
+    if masked {
+        let n = train.width * train.height;
+        let flags: Vec<Vec<bool>> = (0..train.n_views()).map(|v| (0..n).map(|p| v == 0 || p % 2 == 0).collect()).collect();
+        train.masks = Some(nerf::data::PixelMasks::from_flags(n, flags.iter().map(|f| &f[..])));
+    }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     pool.install(|| {
         let mut t = Trainer::new(config, &nerf::registry(), SceneBounds::of(&train)).unwrap();
@@ -139,8 +145,12 @@ fn our_frames(stack: &str) -> String {
 }
 
 fn check(name: &str, config: TrainConfig) {
+    check_with(name, config, false)
+}
+
+fn check_with(name: &str, config: TrainConfig, masked: bool) {
     const STEPS: usize = 3;
-    let ours = allocations_not_in_gemm(config, 20, Work::Steps(STEPS));
+    let ours = allocations_not_in_gemm(config, 20, Work::Steps(STEPS), masked);
     let bytes: usize = ours.iter().map(|(b, _)| b).sum();
     let report: Vec<String> = ours.iter().map(|(b, s)| format!("  {b} bytes:\n    {}", our_frames(s))).collect();
     println!("{name}: {} allocations, {bytes} bytes outside gemm in {STEPS} steps", ours.len());
@@ -157,7 +167,7 @@ fn check(name: &str, config: TrainConfig) {
 /// A second render of the same rays allocates nothing outside gemm: the rounds' ray states and
 /// sample buffers (occupancy grid) or the fields' stages (stratified + hierarchical) are kept.
 fn check_render(name: &str, config: TrainConfig) {
-    let ours = allocations_not_in_gemm(config, 4, Work::Render);
+    let ours = allocations_not_in_gemm(config, 4, Work::Render, false);
     let report: Vec<String> = ours.iter().map(|(b, s)| format!("  {b} bytes:\n    {}", our_frames(s))).collect();
     assert!(ours.is_empty(), "{name}: a render allocated outside gemm:\n{}", report.join("\n"));
 }
@@ -187,6 +197,14 @@ fn a_hash_field_step_allocates_no_buffers() {
     c.target_samples_per_step = Some(1 << 14);
     assert!(c.ema_decay.is_some());
     check("hash", c);
+}
+
+#[test]
+fn a_masked_hash_field_step_allocates_no_buffers() {
+    // Training masks: rays drawn from the kept pixels only.
+    let mut c = common::small_hash_config(100, 4, 8);
+    c.target_samples_per_step = Some(1 << 14);
+    check_with("hash, masked", c, true);
 }
 
 #[test]
