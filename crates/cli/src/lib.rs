@@ -644,7 +644,7 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
     );
     if let Some(m) = &train.masks {
         let all = train.n_views() as f64 * train.width as f64 * train.height as f64;
-        eprintln!("training masks (mask_path) keep {:.1} % of the training views' pixels", 100.0 * m.total() as f64 / all);
+        eprintln!("training masks keep {:.1} % of the training views' pixels", 100.0 * m.total() as f64 / all);
     }
     let mut opts = RunOptions::new(&a.out);
     opts.resume = a.resume;

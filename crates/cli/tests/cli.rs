@@ -121,7 +121,7 @@ fn a_scene_with_masks_trains_and_a_missing_mask_is_named() {
     std::fs::write(&p, serde_json::to_string(&t).unwrap()).unwrap();
     let o = train_tiny(&s, &d.path().join("run"), &["--iters", "2"]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(stderr(&o).contains("training masks (mask_path) keep 50.0 % of the training views' pixels"), "{}", stderr(&o));
+    assert!(stderr(&o).contains("training masks keep 50.0 % of the training views' pixels"), "{}", stderr(&o));
     std::fs::remove_file(s.join("masks/1.png")).unwrap();
     let o = train_tiny(&s, &d.path().join("run2"), &["--iters", "1"]);
     assert_clean_failure(&o, &["masks/1.png", "mask of frame 1", "not found"]);
