@@ -577,7 +577,8 @@ impl Dataset {
 
     /// Fills `out` (reusing its allocations) with `n` rays drawn uniformly over all pixels of all
     /// views (random view, random pixel), or over the pixels the views' masks keep when
-    /// [`Dataset::masks`] is set (random kept pixel: [`PixelMasks::pick`]); optional sub-pixel jitter (`u, v` uniform over the
+    /// [`Dataset::masks`] is set (random kept pixel: [`PixelMasks::pick`]); optional sub-pixel
+    /// jitter (`u, v` uniform over the
     /// pixel's square instead of its position under `conv`; with [`PixelConvention::Integer`]
     /// the square of pixel `i` is `[i − ½, i + ½)`); target = rgb·a + (1−a)·bg with bg from
     /// `background` (Random: uniform per ray). Draws one `u64` from `rng` and derives a
@@ -1022,9 +1023,10 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
 
 /// The training masks of `frames` ([`mask`]) from `sources`: each mask must be the size of the
 /// frames' images (`size`, before downscaling). A pixel is kept where the mask's value (grey, or
-/// any colour channel) is not 0 (`mask_path`), or where it is 0 (instant-ngp's dynamic masks). The masks go through the images' lens resampling (`fix`) and
-/// `k`× downscaling, and a resulting pixel is kept only where every mask pixel it draws on is:
-/// training never reads a masked-out pixel, even in part. An error names the first failing mask
+/// any colour channel) is not 0 (`mask_path`), or where it is 0 (instant-ngp's dynamic masks).
+/// The masks go through the images' lens resampling (`fix`) and `k`× downscaling, and a
+/// resulting pixel is kept only where every mask pixel it draws on is: training never reads a
+/// masked-out pixel, even in part. An error names the first failing mask
 /// in order.
 fn decode_masks(frames: &[&Frame], sources: &[MaskSource], size: (u32, u32), k: u32, fix: &ImageFix) -> Result<PixelMasks, DataError> {
     for (f, src) in frames.iter().zip(sources) {
@@ -1036,7 +1038,7 @@ fn decode_masks(frames: &[&Frame], sources: &[MaskSource], size: (u32, u32), k: 
     }
     let n_pixels = (size.0 / k) * (size.1 / k);
     // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels
-    // (a view that keeps every pixel is stored as such by `PixelMasks::new`).
+    // (a view that keeps every pixel is stored as such by `PixelMasks::with_full_views`).
     let kept: Vec<Result<Option<Vec<u32>>, DataError>> = sources
         .par_iter()
         .enumerate()
@@ -1280,12 +1282,16 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
     };
     let (w0, h0, images) = decode_views_with(&paths, k, &undistort, opts.cameras_only)?;
-    // nerfstudio's masks, else instant-ngp's dynamic masks where any of the split's photos has one.
-    let dynamic: Vec<PathBuf> = frames.iter().map(|f| dynamic_mask_path(&f.image)).collect();
+    // nerfstudio's masks, else instant-ngp's dynamic masks where any of the split's photos has
+    // one (looked for only where pixels are loaded).
+    let dynamic: Vec<Option<PathBuf>> = match frames[0].mask {
+        None if !opts.cameras_only => frames.iter().map(|f| Some(dynamic_mask_path(&f.image)).filter(|p| p.is_file())).collect(),
+        _ => Vec::new(),
+    };
     let sources: Option<Vec<MaskSource>> = if frames[0].mask.is_some() {
         Some(frames.iter().map(|f| MaskSource::Keep(f.mask.as_deref().expect("every frame or none"))).collect())
-    } else if dynamic.iter().any(|p| p.is_file()) {
-        Some(dynamic.iter().map(|p| if p.is_file() { MaskSource::Drop(p) } else { MaskSource::All }).collect())
+    } else if dynamic.iter().any(Option::is_some) {
+        Some(dynamic.iter().map(|p| p.as_deref().map_or(MaskSource::All, MaskSource::Drop)).collect())
     } else {
         None
     };
@@ -1650,7 +1656,8 @@ pub fn pose_noise(n_views: usize, rot_deg: f32, trans: f32, seed: u64) -> Vec<[f
 /// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones. A
 /// dataset with training masks ([`Dataset::masks`]) writes them too: `"mask_path":
 /// "./<split>/mask_<k>.png"`, 8-bit grey, 255 kept and 0 masked out. Intrinsics that the field
-/// of view does not capture (`fy != fx`, a principal point off the image centre, views that differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
+/// of view does not capture (`fy != fx`, a principal point off the image centre, views that
+/// differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
 /// `h` (top level: the first view's; a frame whose camera differs carries its own), and an
 /// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`; a scene with
 /// other bounds than NeRF's Blender ones (LLFF with Euclidean rays) gets the instant-ngp box that

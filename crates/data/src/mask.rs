@@ -59,11 +59,10 @@ impl PixelMasks {
             .into_iter()
             .map(|flags| {
                 assert_eq!(flags.len(), n_pixels as usize, "a view's flags");
-                let k: Vec<u32> = flags.iter().enumerate().filter(|(_, &k)| k).map(|(i, _)| i as u32).collect();
-                (k.len() < n_pixels as usize).then_some(k)
+                flags.iter().enumerate().filter(|(_, &k)| k).map(|(i, _)| i as u32).collect()
             })
             .collect();
-        Self::from_views(n_pixels, kept)
+        Self::new(n_pixels, kept)
     }
 
     /// Per view: `None` (every pixel kept) or its sorted, distinct kept pixels.
