@@ -11,8 +11,10 @@
 //! distortion. The loader then takes it as any nerfstudio file ([`crate::load_blender`]): poses
 //! normalised as nerfstudio does, every 8th image (by name) a test view, images resampled to
 //! pinhole cameras. Camera models: `SIMPLE_PINHOLE`, `PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`,
-//! `OPENCV`, and `FULL_OPENCV` when its rational terms `k4..k6` are zero; fisheye and other
-//! models are an error naming the camera.
+//! `OPENCV`, `FULL_OPENCV` when its rational terms `k4..k6` are zero, and the fisheyes
+//! `OPENCV_FISHEYE`, `RADIAL_FISHEYE` and `SIMPLE_RADIAL_FISHEYE` (written as nerfstudio writes
+//! them, `OPENCV_FISHEYE` with `k1..k4`); `FOV` and `THIN_PRISM_FISHEYE` are an error naming the
+//! camera.
 
 use std::path::{Path, PathBuf};
 
@@ -387,6 +389,8 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
     let (f, rest, model): (_, &[f64], _) = match c.model.as_str() {
         "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" => ([p[0], p[0], p[1], p[2]], &p[3..], c.model.as_str()),
         "PINHOLE" | "OPENCV" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
+        "OPENCV_FISHEYE" => ([p[0], p[1], p[2], p[3]], &p[4..], "OPENCV_FISHEYE"),
+        "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], &p[3..], "OPENCV_FISHEYE"),
         "FULL_OPENCV" => {
             if p[9..12].iter().any(|&k| k != 0.0) {
                 return Err(bad(path, format!("camera {}: FULL_OPENCV's rational terms k4..k6 = {:?} are not supported (only zeros)", c.id, &p[9..12])));
@@ -397,8 +401,8 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
             return Err(bad(
                 path,
                 format!(
-                    "camera {}: camera model {other} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and \
-                     FULL_OPENCV without rational terms are; fisheye lenses are not)",
+                    "camera {}: camera model {other} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, \
+                     FULL_OPENCV without rational terms, OPENCV_FISHEYE, RADIAL_FISHEYE and SIMPLE_RADIAL_FISHEYE are)",
                     c.id
                 ),
             ))
@@ -416,9 +420,12 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
         "RADIAL" => &["k1", "k2"],
         "OPENCV" => &["k1", "k2", "p1", "p2"],
         "FULL_OPENCV" => &["k1", "k2", "p1", "p2", "k3"],
+        "OPENCV_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_RADIAL_FISHEYE" => &["k1", "k2", "k3", "k4"],
         _ => &[],
     };
-    for (k, v) in names.iter().zip(rest) {
+    // nerfstudio writes all four fisheye coefficients, zeros for those a model lacks.
+    let zeros = [0.0; 4];
+    for (k, v) in names.iter().zip(rest.iter().chain(&zeros)) {
         m.insert((*k).into(), json!(v));
     }
     Ok(m)

@@ -21,9 +21,10 @@
 //! Camera paths to render along are read and written in nerfstudio's format ([`camera_path`]).
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use nerf_rays::glam::Vec3;
-use nerf_rays::{Aabb, Camera, Ndc, PixelConvention, Ray};
+use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention, Ray};
 
 pub mod camera_path;
 pub mod colmap;
@@ -34,7 +35,7 @@ pub use llff::{is_llff, load_llff};
 pub mod mask;
 pub use mask::PixelMasks;
 pub mod ngp;
-pub use ngp::{Distortion, Focal, Lens, NerfstudioNormalization, NgpBox};
+pub use ngp::{Distortion, Focal, Lens, LensModel, NerfstudioNormalization, NgpBox};
 use rand::Rng as _;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -392,8 +393,9 @@ pub struct Dataset {
     pub images: Vec<Vec<f32>>,
     /// Per view: the image file it was loaded from.
     pub file_paths: Vec<PathBuf>,
-    /// The pixels training may draw, one mask per view ([`mask`]: nerfstudio's `mask_path`);
-    /// `None`: every pixel. When set it holds one entry per view: a dataset made from a
+    /// The pixels training may draw, one mask per view ([`mask`]: nerfstudio's `mask_path`,
+    /// instant-ngp's dynamic masks, and the pixels a lens's photo did not see,
+    /// [`ngp::pixels_seen`]); `None`: every pixel. When set it holds one entry per view: a dataset made from a
     /// selection of another's views takes [`PixelMasks::select`] of its masks.
     pub masks: Option<PixelMasks>,
     /// Near bound of the ray segment (Blender: 2).
@@ -785,7 +787,8 @@ enum MaskSource<'a> {
     Keep(&'a Path),
     /// instant-ngp's `dynamic_mask_<name>.png` beside the photo: non-zero drops a pixel.
     Drop(&'a Path),
-    /// A frame without a dynamic mask among frames with one: every pixel kept.
+    /// No mask file (a frame without a dynamic mask among frames with one, or a scene whose
+    /// only masks are its lenses'): every pixel kept.
     All,
 }
 
@@ -1021,14 +1024,25 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
     Ok((w, h, images))
 }
 
+/// Which pixels of a lens's pinhole images its photos saw ([`ngp::pixels_seen`]), shared by
+/// the frames of that lens.
+type Seen = Arc<Vec<bool>>;
+
 /// The training masks of `frames` ([`mask`]) from `sources`: each mask must be the size of the
 /// frames' images (`size`, before downscaling). A pixel is kept where the mask's value (grey, or
 /// any colour channel) is not 0 (`mask_path`), or where it is 0 (instant-ngp's dynamic masks).
-/// The masks go through the images' lens resampling (`fix`) and `k`× downscaling, and a
-/// resulting pixel is kept only where every mask pixel it draws on is: training never reads a
-/// masked-out pixel, even in part. An error names the first failing mask
-/// in order.
-fn decode_masks(frames: &[&Frame], sources: &[MaskSource], size: (u32, u32), k: u32, fix: &ImageFix) -> Result<PixelMasks, DataError> {
+/// The masks go through the images' lens resampling (`fix`), then drop the pixels their photo
+/// did not see (`seen`, one per frame or empty: [`ngp::pixels_seen`]), then `k`× downscaling,
+/// and a resulting pixel is kept only where every mask pixel it draws on is: training never
+/// reads a masked-out pixel, even in part. An error names the first failing mask in order.
+fn decode_masks(
+    frames: &[&Frame],
+    sources: &[MaskSource],
+    seen: &[Option<Seen>],
+    size: (u32, u32),
+    k: u32,
+    fix: &ImageFix,
+) -> Result<PixelMasks, DataError> {
     for (f, src) in frames.iter().zip(sources) {
         if let MaskSource::Keep(p) | MaskSource::Drop(p) = src {
             if !p.is_file() {
@@ -1037,37 +1051,58 @@ fn decode_masks(frames: &[&Frame], sources: &[MaskSource], size: (u32, u32), k: 
         }
     }
     let n_pixels = (size.0 / k) * (size.1 / k);
+    let (w, h) = size;
+    // A mask (1 kept, 0 dropped, in every channel) without the pixels its photo did not see,
+    // downscaled, as the indices of its kept pixels.
+    let kept_of = |mut px: Vec<f32>, seen: Option<&Vec<bool>>| -> Arc<[u32]> {
+        if let Some(seen) = seen {
+            px.chunks_exact_mut(4).zip(seen).filter(|(_, &s)| !s).for_each(|(p, _)| p.fill(0.0));
+        }
+        let px = downscale_rgba(&px, w as usize, h as usize, k as usize);
+        // Bilinear resampling and box averages of 1s give 1 up to rounding; a value mixed with a
+        // 0 is at most 1 − 1/k² (box) or 1 − w for the 0's bilinear weight w (kept only for
+        // w < 10⁻⁶).
+        px.chunks_exact(4).enumerate().filter(|(_, p)| p[0] >= 1.0 - 1e-6).map(|(j, _)| j as u32).collect()
+    };
+    // Views whose only mask is their lens's share one list per lens.
+    let mut by_lens: Vec<(&Seen, Arc<[u32]>)> = Vec::new();
+    for (src, s) in sources.iter().zip(seen) {
+        if let (MaskSource::All, Some(s)) = (src, s) {
+            if !by_lens.iter().any(|(l, _)| Arc::ptr_eq(l, s)) {
+                by_lens.push((s, kept_of(vec![1.0; 4 * (w * h) as usize], Some(s))));
+            }
+        }
+    }
     // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels
-    // (a view that keeps every pixel is stored as such by `PixelMasks::with_full_views`).
-    let kept: Vec<Result<Option<Vec<u32>>, DataError>> = sources
+    // (a view that keeps every pixel is stored as such by `PixelMasks::with_shared_views`).
+    let kept: Vec<Result<Option<Arc<[u32]>>, DataError>> = sources
         .par_iter()
         .enumerate()
         .map(|(i, &src)| {
-            let (path, drop) = match src {
-                MaskSource::Keep(p) => (p, false),
-                MaskSource::Drop(p) => (p, true),
-                MaskSource::All => return Ok(None),
+            let seen = seen.get(i).and_then(Option::as_ref);
+            let px = match src {
+                MaskSource::All => return Ok(seen.map(|s| by_lens.iter().find(|(l, _)| Arc::ptr_eq(l, s)).expect("listed above").1.clone())),
+                MaskSource::Keep(path) | MaskSource::Drop(path) => {
+                    let (mw, mh, mut px) = decode_rgba(path)?;
+                    if (mw, mh) != size {
+                        return Err(DataError::BadMask {
+                            path: path.to_path_buf(),
+                            frame: frames[i].index,
+                            reason: format!("it is {mw}x{mh}, its image {} is {w}x{h}", frames[i].image.display()),
+                        });
+                    }
+                    let drop = matches!(src, MaskSource::Drop(_));
+                    for p in px.chunks_exact_mut(4) {
+                        let keep = if p[..3].iter().any(|&v| v > 0.0) != drop { 1.0 } else { 0.0 };
+                        p.fill(keep);
+                    }
+                    fix(i, path, w, h, px)?
+                }
             };
-            let (w, h, mut px) = decode_rgba(path)?;
-            if (w, h) != size {
-                return Err(DataError::BadMask {
-                    path: path.to_path_buf(),
-                    frame: frames[i].index,
-                    reason: format!("it is {w}x{h}, its image {} is {}x{}", frames[i].image.display(), size.0, size.1),
-                });
-            }
-            for p in px.chunks_exact_mut(4) {
-                let keep = if p[..3].iter().any(|&v| v > 0.0) != drop { 1.0 } else { 0.0 };
-                p.fill(keep);
-            }
-            let px = downscale_rgba(&fix(i, path, w, h, px)?, w as usize, h as usize, k as usize);
-            // Bilinear resampling and box averages of 1s give 1 up to rounding; a value mixed
-            // with a 0 is at most 1 − 1/k² (box) or 1 − w for the 0's bilinear weight w (kept
-            // only for w < 10⁻⁶).
-            Ok(Some(px.chunks_exact(4).enumerate().filter(|(_, p)| p[0] >= 1.0 - 1e-6).map(|(j, _)| j as u32).collect()))
+            Ok(Some(kept_of(px, seen.map(|s| &**s))))
         })
         .collect();
-    Ok(PixelMasks::with_full_views(n_pixels, kept.into_iter().collect::<Result<Vec<_>, _>>()?))
+    Ok(PixelMasks::with_shared_views(n_pixels, kept.into_iter().collect::<Result<Vec<_>, _>>()?))
 }
 
 /// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
@@ -1288,16 +1323,41 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         None if !opts.cameras_only => frames.iter().map(|f| Some(dynamic_mask_path(&f.image)).filter(|p| p.is_file())).collect(),
         _ => Vec::new(),
     };
+    // Pixels of the pinhole images that their photos did not see (a lens whose pinhole image
+    // reaches past the photo), once per distinct lens.
+    let mut lenses: Vec<(Intrinsics, Distortion, Option<Seen>)> = Vec::new();
+    let mut seen = Vec::new();
+    if !opts.cameras_only {
+        for f in &frames {
+            if f.lens.distortion.is_identity() {
+                seen.push(None);
+                continue;
+            }
+            let intr = f.lens.intrinsics(&tpath, &f.image, w0, h0)?;
+            let d = f.lens.distortion;
+            let s = match lenses.iter().find(|(i, l, _)| (*i, *l) == (intr, d)) {
+                Some((_, _, s)) => s.clone(),
+                None => {
+                    let s = ngp::pixels_seen(&intr, &d).map(Arc::new);
+                    lenses.push((intr, d, s.clone()));
+                    s
+                }
+            };
+            seen.push(s);
+        }
+    }
     let sources: Option<Vec<MaskSource>> = if frames[0].mask.is_some() {
         Some(frames.iter().map(|f| MaskSource::Keep(f.mask.as_deref().expect("every frame or none"))).collect())
     } else if dynamic.iter().any(Option::is_some) {
         Some(dynamic.iter().map(|p| p.as_deref().map_or(MaskSource::All, MaskSource::Drop)).collect())
+    } else if seen.iter().any(Option::is_some) {
+        Some(vec![MaskSource::All; frames.len()])
     } else {
         None
     };
     let masks = match sources {
         Some(sources) if !opts.cameras_only => {
-            let masks = decode_masks(&frames, &sources, (w0, h0), k, &undistort)?;
+            let masks = decode_masks(&frames, &sources, &seen, (w0, h0), k, &undistort)?;
             if masks.total() == 0 {
                 return Err(DataError::EmptySplit { path: tpath.clone(), reason: "the masks keep no pixel: nothing to train on".into() });
             }

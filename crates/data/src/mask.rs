@@ -1,6 +1,7 @@
 //! Training masks: which pixels of each view training may draw (nerfstudio's per-frame
 //! `mask_path`, or instant-ngp's `dynamic_mask_<name>.png` beside a photo, whose non-zero
-//! pixels are the dropped ones; see docs/formats.md). A masked-out pixel (a passer-by, the
+//! pixels are the dropped ones; and the pixels of a resampled photo that its lens did not see,
+//! [`crate::ngp::pixels_seen`]; see docs/formats.md). A masked-out pixel (a passer-by, the
 //! photographer's shadow, a car that moved between photos) is never drawn as a training ray;
 //! the others are drawn uniformly, as nerfstudio's pixel sampler does. Evaluation scores whole
 //! images.
@@ -8,7 +9,11 @@
 //! [`PixelMasks`] keeps, per view, the sorted indices (`row·W + col`) of its kept pixels — or
 //! nothing for a view that keeps every pixel (a photo without a dynamic mask) — and the running
 //! count across views, so that the `k`-th kept pixel of the whole dataset ([`PixelMasks::pick`])
-//! is found by a binary search over views: 4 bytes per kept pixel of a masked view.
+//! is found by a binary search over views: 4 bytes per kept pixel of a masked view. Views may
+//! share one list ([`PixelMasks::with_shared_views`]: the views of one lens whose only mask is
+//! the lens's), and then it is held once, on the CPU and on the GPU.
+
+use std::sync::Arc;
 
 /// The kept pixels of every view of a dataset ([`crate::Dataset::masks`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -16,7 +21,7 @@ pub struct PixelMasks {
     /// Pixels per view (`W·H`).
     n_pixels: u32,
     /// Per view: indices `row·W + col` of its kept pixels, ascending; `None`: every pixel.
-    kept: Vec<Option<Vec<u32>>>,
+    kept: Vec<Option<Arc<[u32]>>>,
     /// `starts[v]` = kept pixels of views `0..v`; `starts[n_views]` = all of them.
     starts: Vec<u64>,
 }
@@ -44,6 +49,25 @@ impl PixelMasks {
                 k.sort_unstable();
                 k.dedup();
                 assert!(k.last().is_none_or(|&p| p < n_pixels), "kept pixel {:?} of a view of {n_pixels}", k.last());
+                (k.len() < n_pixels as usize).then(|| Arc::from(k))
+            })
+            .collect();
+        Self::from_views(n_pixels, kept)
+    }
+
+    /// Masks of views that may share their lists (one `Arc` for several views, held once):
+    /// each list strictly ascending and below `n_pixels`; `None` (or a list of every pixel) for
+    /// a view that keeps every pixel.
+    ///
+    /// # Panics
+    /// If a list is not strictly ascending or holds an index not below `n_pixels`.
+    pub fn with_shared_views(n_pixels: u32, kept: Vec<Option<Arc<[u32]>>>) -> Self {
+        let kept = kept
+            .into_iter()
+            .map(|k| {
+                let k = k?;
+                assert!(k.windows(2).all(|w| w[0] < w[1]), "a shared list of kept pixels is not strictly ascending");
+                assert!(k.last().is_none_or(|&p| p < n_pixels), "kept pixel {:?} of a view of {n_pixels}", k.last());
                 (k.len() < n_pixels as usize).then_some(k)
             })
             .collect();
@@ -66,7 +90,7 @@ impl PixelMasks {
     }
 
     /// Per view: `None` (every pixel kept) or its sorted, distinct kept pixels.
-    fn from_views(n_pixels: u32, kept: Vec<Option<Vec<u32>>>) -> Self {
+    fn from_views(n_pixels: u32, kept: Vec<Option<Arc<[u32]>>>) -> Self {
         let mut starts = Vec::with_capacity(kept.len() + 1);
         let mut total = 0u64;
         starts.push(0);
@@ -87,7 +111,8 @@ impl PixelMasks {
         self.n_pixels
     }
 
-    /// View `v`'s kept pixels, ascending; `None` when it keeps every pixel.
+    /// View `v`'s kept pixels, ascending; `None` when it keeps every pixel. Views that share a
+    /// list ([`PixelMasks::with_shared_views`]) give the same slice (`std::ptr::eq`).
     pub fn view(&self, v: usize) -> Option<&[u32]> {
         self.kept[v].as_deref()
     }
@@ -95,7 +120,7 @@ impl PixelMasks {
     /// View `v`'s kept pixels, ascending (every pixel for a view without a mask).
     pub fn kept(&self, v: usize) -> impl Iterator<Item = u32> + '_ {
         let all = self.kept[v].is_none().then_some(0..self.n_pixels);
-        self.kept[v].iter().flatten().copied().chain(all.into_iter().flatten())
+        self.kept[v].iter().flat_map(|k| k.iter()).copied().chain(all.into_iter().flatten())
     }
 
     /// Kept pixels of view `v`.
@@ -163,6 +188,25 @@ mod tests {
         assert_eq!(PixelMasks::with_full_views(8, vec![None, Some(vec![2])]).kept(0).count(), 8);
         let f = PixelMasks::from_flags(3, [&[false, true, true][..], &[true, false, false][..], &[true; 3][..]]);
         assert_eq!((f.view(0), f.view(1), f.view(2)), (Some(&[1u32, 2][..]), Some(&[0u32][..]), None));
+    }
+
+    #[test]
+    fn shared_lists_are_held_once_and_stay_shared_through_selections() {
+        let lens: Arc<[u32]> = Arc::from(vec![1, 4, 6]);
+        let m = PixelMasks::with_shared_views(8, vec![Some(lens.clone()), None, Some(Arc::from(vec![2])), Some(lens.clone()), Some(Arc::from((0..8).collect::<Vec<_>>()))]);
+        assert_eq!(Arc::strong_count(&lens), 3, "one list for views 0 and 3");
+        assert_eq!((m.total(), m.view(4)), (3 + 8 + 1 + 3 + 8, None));
+        assert!(std::ptr::eq(m.view(0).unwrap(), m.view(3).unwrap()));
+        assert_eq!(m.pick(12), (3, 1));
+        let s = m.select(&[3, 2, 0]);
+        assert!(std::ptr::eq(s.view(0).unwrap(), s.view(2).unwrap()) && std::ptr::eq(s.view(0).unwrap(), m.view(0).unwrap()));
+        assert_eq!(s, PixelMasks::new(8, vec![vec![1, 4, 6], vec![2], vec![1, 4, 6]]), "equal to the unshared masks");
+    }
+
+    #[test]
+    #[should_panic(expected = "not strictly ascending")]
+    fn shared_lists_must_be_ascending() {
+        PixelMasks::with_shared_views(8, vec![Some(Arc::from(vec![3, 3]))]);
     }
 
     #[test]

@@ -13,12 +13,13 @@
 //!   order of precedence (`x_fov`, then `fl_x`, then `camera_angle_x`); each key may also sit in
 //!   a frame, where it overrides the top level. Missing: `fl_y = fl_x` (or from `y_fov` /
 //!   `camera_angle_y`), `cx = w/2`, `cy = h/2`.
-//! - **Lens distortion**: OpenCV's radial–tangential model (COLMAP's `OPENCV`, `RADIAL`,
-//!   `SIMPLE_RADIAL`: `k1`, `k2`, `k3`, `p1`, `p2`). Each image is resampled to the pinhole camera
-//!   of the same intrinsics when it is loaded ([`undistort_rgba`], bilinear; output pixels whose
-//!   source lies outside the photo take the nearest edge pixel), so rays stay pinhole rays on
-//!   both devices. Fisheye models (`OPENCV_FISHEYE`, `is_fisheye`, a non-zero `k4`) are refused
-//!   with an error.
+//! - **Lens distortion** ([`Distortion`]): OpenCV's radial–tangential model (COLMAP's `OPENCV`,
+//!   `RADIAL`, `SIMPLE_RADIAL`: `k1`, `k2`, `k3`, `p1`, `p2`) and OpenCV's fisheye model
+//!   (nerfstudio's `camera_model: "OPENCV_FISHEYE"`, instant-ngp's `is_fisheye: true`: `k1` …
+//!   `k4`). Each image is resampled to the pinhole camera of the same intrinsics when it is
+//!   loaded ([`undistort_rgba`], bilinear), so rays stay pinhole rays on both devices. Output
+//!   pixels whose source lies outside the photo ([`pixels_seen`]) take the nearest edge pixel in
+//!   the image and are left out of training by its mask ([`crate::mask`]).
 //! - **Scene box** ([`NgpBox`]): instant-ngp maps a world point `p` (the file's axes) to
 //!   `p·scale + offset` and trains inside the cube `[0.5 − aabb_scale/2, 0.5 + aabb_scale/2]³` of
 //!   that space (defaults `scale = 0.33`, `offset = [0.5, 0.5, 0.5]`, `aabb_scale = 1`: the
@@ -64,39 +65,78 @@ pub fn split_filenames(path: &Path, top: &Value, split: crate::Split) -> Result<
     names.iter().map(|n| n.as_str().map(str::to_string).ok_or_else(bad)).collect::<Result<Vec<_>, _>>().map(Some)
 }
 
-/// OpenCV's radial–tangential lens distortion of normalised image coordinates `(x, y)`:
-/// `r² = x² + y²`, `x_d = x·(1 + k1·r² + k2·r⁴ + k3·r⁶) + 2·p1·x·y + p2·(r² + 2x²)` and
-/// `y_d = y·(1 + k1·r² + k2·r⁴ + k3·r⁶) + p1·(r² + 2y²) + 2·p2·x·y`.
+/// The lens model a [`Distortion`]'s coefficients belong to.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LensModel {
+    /// OpenCV's radial–tangential model (COLMAP's `OPENCV` and its special cases): a pinhole
+    /// camera when every coefficient is zero.
+    #[default]
+    RadialTangential,
+    /// OpenCV's fisheye model (`cv::fisheye`; COLMAP's `OPENCV_FISHEYE`, `RADIAL_FISHEYE`,
+    /// `SIMPLE_RADIAL_FISHEYE`): an equidistant fisheye when every coefficient is zero.
+    Fisheye,
+}
+
+/// A lens's distortion of normalised image coordinates `(x, y)` (the pinhole's `x/z`, `y/z`).
+///
+/// - [`LensModel::RadialTangential`], OpenCV's: `r² = x² + y²`,
+///   `x_d = x·(1 + k1·r² + k2·r⁴ + k3·r⁶) + 2·p1·x·y + p2·(r² + 2x²)` and
+///   `y_d = y·(1 + k1·r² + k2·r⁴ + k3·r⁶) + p1·(r² + 2y²) + 2·p2·x·y` (`k4` is 0).
+/// - [`LensModel::Fisheye`], OpenCV's: `θ = atan(r)`,
+///   `θ_d = θ·(1 + k1·θ² + k2·θ⁴ + k3·θ⁶ + k4·θ⁸)`, `(x_d, y_d) = (θ_d / r)·(x, y)` (`p1`, `p2`
+///   are 0): the distance from the principal point grows with the angle off the axis, not with
+///   its tangent.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Distortion {
-    /// Radial coefficient of `r²`.
+    /// Which model the coefficients are for.
+    pub model: LensModel,
+    /// Radial coefficient of `r²` (fisheye: of `θ²`).
     pub k1: f64,
-    /// Radial coefficient of `r⁴`.
+    /// Radial coefficient of `r⁴` (`θ⁴`).
     pub k2: f64,
-    /// Radial coefficient of `r⁶`.
+    /// Radial coefficient of `r⁶` (`θ⁶`).
     pub k3: f64,
-    /// First tangential coefficient.
+    /// The fisheye's coefficient of `θ⁸` (0 for the radial–tangential model).
+    pub k4: f64,
+    /// First tangential coefficient (radial–tangential only).
     pub p1: f64,
-    /// Second tangential coefficient.
+    /// Second tangential coefficient (radial–tangential only).
     pub p2: f64,
 }
 
 impl Distortion {
-    /// `true` when every coefficient is zero (a pinhole camera).
+    /// `true` for a pinhole camera: the radial–tangential model with every coefficient zero (a
+    /// fisheye is never one).
     pub fn is_identity(&self) -> bool {
-        [self.k1, self.k2, self.k3, self.p1, self.p2].iter().all(|&c| c == 0.0)
+        self.model == LensModel::RadialTangential && [self.k1, self.k2, self.k3, self.k4, self.p1, self.p2].iter().all(|&c| c == 0.0)
     }
 
     /// The distorted position of the undistorted normalised coordinates `(x, y)`.
     #[inline]
     pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-        let xy = x * y;
-        (
-            x * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * x * x),
-            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * xy,
-        )
+        match self.model {
+            LensModel::RadialTangential => {
+                let r2 = x * x + y * y;
+                let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+                let xy = x * y;
+                (
+                    x * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * x * x),
+                    y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * xy,
+                )
+            }
+            LensModel::Fisheye => {
+                let r = (x * x + y * y).sqrt();
+                // θ_d / r → 1 on the axis (θ = atan r ≈ r there).
+                if r < 1e-12 {
+                    return (x, y);
+                }
+                let theta = r.atan();
+                let t2 = theta * theta;
+                let theta_d = theta * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))));
+                let s = theta_d / r;
+                (x * s, y * s)
+            }
+        }
     }
 }
 
@@ -134,7 +174,7 @@ pub struct Lens {
     pub cx: Option<f64>,
     /// `cy`.
     pub cy: Option<f64>,
-    /// `k1`, `k2`, `k3`, `p1`, `p2`.
+    /// The lens model (`camera_model`, `is_fisheye`) and `k1`, `k2`, `k3`, `k4`, `p1`, `p2`.
     pub distortion: Distortion,
 }
 
@@ -196,29 +236,54 @@ impl Lens {
                 Some((x, name)) => Err(invalid(name, format!("{x} is not a positive whole number of pixels"))),
             }
         };
+        // nerfstudio names the model (`camera_model`), instant-ngp flags a fisheye (`is_fisheye`).
+        let mut named: Option<(LensModel, String)> = None;
         if let Some((v, name)) = lookup(top, frame, "camera_model") {
             let model = v.as_str().ok_or_else(|| invalid(name.clone(), format!("expected a string, got {}", json_kind(v))))?;
-            if !matches!(model, "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "RADIAL" | "SIMPLE_RADIAL") {
+            let m = match model {
+                "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "RADIAL" | "SIMPLE_RADIAL" => LensModel::RadialTangential,
+                "OPENCV_FISHEYE" => LensModel::Fisheye,
+                _ => {
+                    return Err(invalid(
+                        name,
+                        format!(
+                            "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL \
+                             and OPENCV_FISHEYE are; equirectangular images are not)"
+                        ),
+                    ))
+                }
+            };
+            named = Some((m, name));
+        }
+        let mut model = named.as_ref().map_or(LensModel::RadialTangential, |(m, _)| *m);
+        if let Some((v, name)) = lookup(top, frame, "is_fisheye") {
+            let fisheye = v.as_bool().ok_or_else(|| invalid(name.clone(), format!("expected a boolean, got {}", json_kind(v))))?;
+            if fisheye {
+                if let Some((LensModel::RadialTangential, model_key)) = &named {
+                    return Err(invalid(name, format!("true, but `{model_key}` names a camera model without a fisheye lens")));
+                }
+                model = LensModel::Fisheye;
+            }
+        }
+        let k4 = coefficient("k4")?;
+        let (p1, p2) = (coefficient("p1")?, coefficient("p2")?);
+        match model {
+            LensModel::RadialTangential if k4 != 0.0 => {
+                let name = lookup(top, frame, "k4").map_or_else(|| "k4".into(), |(_, n)| n);
                 return Err(invalid(
                     name,
                     format!(
-                        "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL and SIMPLE_RADIAL \
-                         are; fisheye and equirectangular images are not)"
+                        "{k4}: k4 belongs to the fisheye model (`\"camera_model\": \"OPENCV_FISHEYE\"` or \
+                         `\"is_fisheye\": true`), and this camera is not one"
                     ),
                 ));
             }
-        }
-        if let Some((v, name)) = lookup(top, frame, "is_fisheye") {
-            match v.as_bool() {
-                Some(false) => {}
-                Some(true) => return Err(invalid(name, "fisheye cameras are not supported".into())),
-                None => return Err(invalid(name, format!("expected a boolean, got {}", json_kind(v)))),
+            LensModel::Fisheye if p1 != 0.0 || p2 != 0.0 => {
+                let key = if p1 != 0.0 { "p1" } else { "p2" };
+                let name = lookup(top, frame, key).map_or_else(|| key.into(), |(_, n)| n);
+                return Err(invalid(name, format!("{}: the fisheye model has no tangential terms", if p1 != 0.0 { p1 } else { p2 })));
             }
-        }
-        if let Some((k4, name)) = number("k4")? {
-            if k4 != 0.0 {
-                return Err(invalid(name, format!("{k4}: k4 belongs to fisheye models, which are not supported")));
-            }
+            _ => {}
         }
         let size = match (pixels("w")?, pixels("h")?) {
             (Some(w), Some(h)) => Some((w, h)),
@@ -232,13 +297,7 @@ impl Lens {
             focal_y: focal("y_fov", "fl_y", "camera_angle_y")?,
             cx: number("cx")?.map(|(x, _)| x),
             cy: number("cy")?.map(|(x, _)| x),
-            distortion: Distortion {
-                k1: coefficient("k1")?,
-                k2: coefficient("k2")?,
-                k3: coefficient("k3")?,
-                p1: coefficient("p1")?,
-                p2: coefficient("p2")?,
-            },
+            distortion: Distortion { model, k1: coefficient("k1")?, k2: coefficient("k2")?, k3: coefficient("k3")?, k4, p1, p2 },
         })
     }
 
@@ -303,6 +362,34 @@ pub fn undistort_rgba(px: &[f32], intr: &Intrinsics, distortion: &Distortion) ->
         }
     });
     out
+}
+
+/// Which pixels of the pinhole image that [`undistort_rgba`] makes for `intr` and `distortion`
+/// the photo saw: pixel `(i, j)` is seen when its distorted position `(fx·x_d + cx,
+/// fy·y_d + cy)` lies in the photo, `[0, W] × [0, H]`. `None` when every pixel is (always so
+/// without distortion). A pixel that is not seen took the photo's nearest edge pixel in the
+/// resampled image, a colour from another direction: the loader leaves it out of training
+/// ([`crate::Dataset::masks`]).
+pub fn pixels_seen(intr: &Intrinsics, distortion: &Distortion) -> Option<Vec<bool>> {
+    if distortion.is_identity() {
+        return None;
+    }
+    let (w, h) = (intr.width as usize, intr.height as usize);
+    let (fx, fy, cx, cy) = (intr.fx as f64, intr.fy as f64, intr.cx as f64, intr.cy as f64);
+    let mut seen = vec![true; w * h];
+    seen.par_chunks_exact_mut(w).enumerate().for_each(|(j, row)| {
+        let y = (j as f64 + 0.5 - cy) / fy;
+        for (i, s) in row.iter_mut().enumerate() {
+            let (xd, yd) = distortion.distort((i as f64 + 0.5 - cx) / fx, y);
+            let (sx, sy) = (fx * xd + cx, fy * yd + cy);
+            *s = (0.0..=w as f64).contains(&sx) && (0.0..=h as f64).contains(&sy);
+        }
+    });
+    if seen.iter().all(|&s| s) {
+        None
+    } else {
+        Some(seen)
+    }
 }
 
 /// instant-ngp's placement of a scene in its unit cube: world point `p` ↦ `p·scale + offset`,
@@ -485,7 +572,36 @@ fn rotation_between(a: [f64; 3], b: [f64; 3]) -> Option<[[f64; 3]; 3]> {
 
 #[cfg(test)]
 mod tests {
-    use super::rotation_between;
+    use super::{rotation_between, Distortion, LensModel};
+
+    /// OpenCV's fisheye model: without terms it is the equidistant fisheye (a ray θ off the axis
+    /// lands θ focal lengths from the principal point), the one `nerf render --camera-type
+    /// fisheye` renders (`Camera::fisheye_dir` takes the pixel back to the ray); with terms,
+    /// `θ_d = θ·(1 + k1·θ² + k2·θ⁴ + k3·θ⁶ + k4·θ⁸)` (the value worked out apart, in Python).
+    #[test]
+    fn the_fisheye_model_is_opencvs() {
+        let equidistant = Distortion { model: LensModel::Fisheye, ..Default::default() };
+        assert!(!equidistant.is_identity(), "a fisheye without terms is not a pinhole");
+        let intr = nerf_rays::Intrinsics { width: 64, height: 48, fx: 20.0, fy: 21.0, cx: 31.0, cy: 24.5 };
+        let cam = nerf_rays::Camera::from_c2w(intr, &[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]).unwrap();
+        for theta in [0.05f64, 0.4, 1.0, 1.45] {
+            for phi in [0.3f64, 2.0, -2.5] {
+                // A ray in OpenCV's camera axes (z forward) and its pinhole coordinates.
+                let d = [theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()];
+                let (xd, yd) = equidistant.distort(d[0] / d[2], d[1] / d[2]);
+                assert!(((xd * xd + yd * yd).sqrt() - theta).abs() < 1e-12, "θ = {theta}");
+                assert!((yd.atan2(xd) - phi).abs() < 1e-12, "the azimuth is kept");
+                let back = cam.fisheye_dir((intr.fx as f64 * xd + intr.cx as f64) as f32, (intr.fy as f64 * yd + intr.cy as f64) as f32);
+                // OpenGL's camera axes: y up, looking down −z.
+                let want = [d[0] as f32, -d[1] as f32, -d[2] as f32];
+                assert!((0..3).all(|a| (back[a] - want[a]).abs() < 1e-5), "{back:?} against {want:?}");
+            }
+        }
+        assert_eq!(equidistant.distort(0.0, 0.0), (0.0, 0.0));
+        let d = Distortion { model: LensModel::Fisheye, k1: 0.1, k2: -0.02, k3: 0.003, k4: -0.0004, ..Default::default() };
+        let (xd, yd) = d.distort(0.3, -0.4);
+        assert!((xd - 0.28391970170193026).abs() < 1e-14 && (yd + 0.37855960226924035).abs() < 1e-14, "({xd}, {yd})");
+    }
 
     /// A rotation taking `a`'s direction onto `b`'s, for generic, parallel and opposite vectors.
     #[test]

@@ -83,8 +83,18 @@ fn lego_model(root: &Path, sim: &Similarity) -> ColmapModel {
     ColmapModel { cameras: vec![ColmapCamera { id: 7, model: "PINHOLE".into(), width: 100, height: 100, params: vec![f, f, 50.0, 50.0] }], images }
 }
 
-const MODEL_IDS: [(&str, i32); 7] =
-    [("SIMPLE_PINHOLE", 0), ("PINHOLE", 1), ("SIMPLE_RADIAL", 2), ("RADIAL", 3), ("OPENCV", 4), ("OPENCV_FISHEYE", 5), ("FULL_OPENCV", 6)];
+const MODEL_IDS: [(&str, i32); 10] = [
+    ("SIMPLE_PINHOLE", 0),
+    ("PINHOLE", 1),
+    ("SIMPLE_RADIAL", 2),
+    ("RADIAL", 3),
+    ("OPENCV", 4),
+    ("OPENCV_FISHEYE", 5),
+    ("FULL_OPENCV", 6),
+    ("SIMPLE_RADIAL_FISHEYE", 8),
+    ("RADIAL_FISHEYE", 9),
+    ("THIN_PRISM_FISHEYE", 10),
+];
 
 /// `cameras.bin` and `images.bin` as COLMAP writes them (`write_cameras_binary`,
 /// `write_images_binary` of its `read_write_model.py`), each image with `points` 2-D points.
@@ -229,6 +239,17 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
         assert_eq!((ca.intrinsics, ca.position, ca.rotation), (cb.intrinsics, cb.position, cb.rotation));
     }
     assert!(a.images == b.images);
+    // A fisheye camera of the same intrinsics: the same pinhole cameras, each photo resampled.
+    std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
+    let mut fish = model.clone();
+    fish.cameras[0].model = "OPENCV_FISHEYE".into();
+    fish.cameras[0].params.extend([0.02, -0.01, 0.0, 0.0]);
+    write_bin(&dir.path().join("sparse/0"), &fish, 0);
+    let f = load(dir.path(), Split::Train);
+    assert!(f.cameras.iter().zip(&a.cameras).all(|(x, y)| x.intrinsics == y.intrinsics && x.position == y.position));
+    assert!(f.images != a.images, "the fisheye photos are resampled");
+    std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
+    write_txt(&dir.path().join("sparse/0"), &model);
     // instant-ngp's dynamic mask beside a photo in images/: everything there moved.
     assert!(a.masks.is_none());
     let photo = &a.file_paths[0];
@@ -253,6 +274,15 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     assert_eq!(f["fl_y"].as_f64(), Some(41.0));
     let f = keys("FULL_OPENCV", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.01, 0.02, 0.003, 0.0, 0.0, 0.0]);
     assert_eq!((f["camera_model"].as_str(), f["k3"].as_f64()), (Some("OPENCV"), Some(0.003)));
+    // The fisheyes, as nerfstudio writes them: OPENCV_FISHEYE with all four terms.
+    let fisheye = |f: &serde_json::Value| (f["camera_model"].as_str().map(str::to_string), ["fl_x", "fl_y", "k1", "k2", "k3", "k4"].map(|k| f[k].as_f64().unwrap()));
+    let f = keys("OPENCV_FISHEYE", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.03, -0.004]);
+    assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 41.0, 0.1, -0.2, 0.03, -0.004]));
+    let f = keys("RADIAL_FISHEYE", vec![40.0, 31.0, 23.0, 0.1, -0.2]);
+    assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 40.0, 0.1, -0.2, 0.0, 0.0]));
+    let f = keys("SIMPLE_RADIAL_FISHEYE", vec![40.0, 31.0, 23.0, 0.1]);
+    assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 40.0, 0.1, 0.0, 0.0, 0.0]));
+    assert_eq!((f["cx"].as_f64(), f["cy"].as_f64(), f.get("p1")), (Some(31.0), Some(23.0), None));
     // The identity pose: COLMAP's camera at the origin looking down +z (OpenCV) is, after
     // nerfstudio's axes, a camera at the origin looking along +y with +z up.
     let m = &f["transform_matrix"];
@@ -303,11 +333,11 @@ fn broken_models_are_errors_naming_the_file() {
         write_bin(&mdir, &model, 2);
         e
     };
-    let mut fisheye = model.clone();
-    fisheye.cameras[0].model = "OPENCV_FISHEYE".into();
-    fisheye.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.1, 0.0, 0.0, 0.0];
-    let e = variant(&fisheye);
-    assert!(e.contains("cameras.bin") && e.contains("camera 7: camera model OPENCV_FISHEYE is not supported"), "{e}");
+    let mut prism = model.clone();
+    prism.cameras[0].model = "THIN_PRISM_FISHEYE".into();
+    prism.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+    let e = variant(&prism);
+    assert!(e.contains("cameras.bin") && e.contains("camera 7: camera model THIN_PRISM_FISHEYE is not supported"), "{e}");
     let mut rational = model.clone();
     rational.cameras[0].model = "FULL_OPENCV".into();
     rational.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.2, 0.0, 0.0];

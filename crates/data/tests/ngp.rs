@@ -5,7 +5,8 @@
 use std::path::{Path, PathBuf};
 
 use nerf_data::ngp::{undistort_rgba, NGP_NEAR};
-use nerf_data::{load_blender, load_scene, DataError, Dataset, Distortion, LoadOptions, NgpBox, Split, ViewSelection};
+use nerf_data::ngp::pixels_seen;
+use nerf_data::{load_blender, load_scene, DataError, Dataset, Distortion, LensModel, LoadOptions, NgpBox, Split, ViewSelection};
 use nerf_rays::Intrinsics;
 use serde_json::{json, Value};
 
@@ -182,14 +183,17 @@ fn box_keys_place_instant_ngps_cube_and_rays_end_past_it() {
 #[test]
 fn camera_and_box_errors_name_the_file_and_the_key() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(Value, [Value; 2], &str, &str); 9] = [
+    let cases: [(Value, [Value; 2], &str, &str); 12] = [
         (json!({"fl_x": 3.0, "w": 8, "h": 4}), [json!({}), json!({})], "`w`", "r_0.png is 4x4"),
         (json!({"fl_x": 3.0, "w": 4}), [json!({}), json!({})], "`h`", "missing key"),
         (json!({"fl_x": -3.0}), [json!({}), json!({})], "`fl_x`", "not positive"),
         (json!({"fl_x": 3.0}), [json!({}), json!({"fl_y": "tall"})], "`frames[1].fl_y`", "expected a number"),
-        (json!({"fl_x": 3.0, "camera_model": "OPENCV_FISHEYE"}), [json!({}), json!({})], "`camera_model`", "not supported"),
-        (json!({"fl_x": 3.0}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "not supported"),
-        (json!({"fl_x": 3.0, "k4": 0.1}), [json!({}), json!({})], "`k4`", "fisheye"),
+        (json!({"fl_x": 3.0, "camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({})], "`camera_model`", "not supported"),
+        (json!({"fl_x": 3.0, "camera_model": 5}), [json!({}), json!({})], "`camera_model`", "expected a string"),
+        (json!({"fl_x": 3.0, "camera_model": "OPENCV"}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "`camera_model` names a camera model without a fisheye"),
+        (json!({"fl_x": 3.0}), [json!({}), json!({"is_fisheye": "yes"})], "`frames[1].is_fisheye`", "expected a boolean"),
+        (json!({"fl_x": 3.0, "k4": 0.1}), [json!({}), json!({})], "`k4`", "belongs to the fisheye model"),
+        (json!({"fl_x": 3.0, "camera_model": "OPENCV_FISHEYE"}), [json!({}), json!({"p2": 0.01})], "`frames[1].p2`", "no tangential terms"),
         (json!({"fl_x": 3.0, "aabb_scale": 0}), [json!({}), json!({})], "`aabb_scale`", "positive"),
         (json!({"fl_x": 3.0, "offset": [0.5, 0.5]}), [json!({}), json!({})], "`offset`", "3 finite numbers"),
     ];
@@ -272,25 +276,43 @@ fn max_error(img: &[f32], k: &Intrinsics, margin: u32) -> f64 {
     worst
 }
 
+/// Whether the pinhole pixel `(i, j)` of `k` looks at a point that the photo taken through `d`
+/// saw: its distorted position lies in the photo (written out here, apart from the loader's).
+fn seen_by_photo(k: &Intrinsics, d: &Distortion, i: u32, j: u32) -> bool {
+    let x = (i as f64 + 0.5 - k.cx as f64) / k.fx as f64;
+    let y = (j as f64 + 0.5 - k.cy as f64) / k.fy as f64;
+    let (xd, yd) = d.distort(x, y);
+    let (u, v) = (k.fx as f64 * xd + k.cx as f64, k.fy as f64 * yd + k.cy as f64);
+    (0.0..=k.width as f64).contains(&u) && (0.0..=k.height as f64).contains(&v)
+}
+
 #[test]
 fn distorted_photos_are_resampled_to_the_pinhole_camera() {
     let k = Intrinsics { width: 96, height: 64, fx: 80.0, fy: 82.0, cx: 47.0, cy: 33.5 };
-    for d in [
-        Distortion { k1: -0.12, k2: 0.03, k3: 0.0, p1: 0.002, p2: -0.003 },
-        Distortion { k1: 0.08, k2: -0.01, k3: 0.004, p1: -0.001, p2: 0.002 },
-    ] {
+    let rt = |k1, k2, k3, p1, p2| Distortion { k1, k2, k3, p1, p2, ..Default::default() };
+    let fish = |k1, k2, k3, k4| Distortion { model: LensModel::Fisheye, k1, k2, k3, k4, ..Default::default() };
+    // Each lens with the keys that name it: COLMAP's OPENCV as nerfstudio writes it, OPENCV_FISHEYE
+    // as nerfstudio writes it, and instant-ngp's fisheye flag (an equidistant fisheye, no terms).
+    let opencv = |d: &Distortion| json!({"camera_model": "OPENCV", "k1": d.k1, "k2": d.k2, "k3": d.k3, "p1": d.p1, "p2": d.p2});
+    let cases = [
+        (rt(-0.12, 0.03, 0.0, 0.002, -0.003), opencv(&rt(-0.12, 0.03, 0.0, 0.002, -0.003))),
+        (rt(0.08, -0.01, 0.004, -0.001, 0.002), opencv(&rt(0.08, -0.01, 0.004, -0.001, 0.002))),
+        (fish(0.05, -0.01, 0.002, -0.0005), json!({"camera_model": "OPENCV_FISHEYE", "k1": 0.05, "k2": -0.01, "k3": 0.002, "k4": -0.0005})),
+        (fish(0.0, 0.0, 0.0, 0.0), json!({"is_fisheye": true})),
+    ];
+    for (d, keys) in cases {
         let photo = distorted_photo(&k, &d);
         let photo_f: Vec<f32> = photo.iter().map(|&v| v as f32 / 65535.0).collect();
         // The photo itself is off by far more than interpolation error; resampled, it matches.
         let before = max_error(&photo_f, &k, 4);
         let after = max_error(&undistort_rgba(&photo_f, &k, &d), &k, 4);
-        eprintln!("max error against the pinhole image: photo {before:.4}, resampled {after:.5}");
+        eprintln!("{:?}: max error against the pinhole image: photo {before:.4}, resampled {after:.5}", d.model);
         assert!(before > 0.02, "the distortion should be visible: {before}");
         assert!(after < 3e-3, "resampled photo off by {after} (before: {before})");
         // Identity distortion leaves the image as it is.
         assert_eq!(undistort_rgba(&photo_f, &k, &Distortion::default()), photo_f);
 
-        // Through the loader: OpenCV keys, a 16-bit PNG, per-view undistortion before downscaling.
+        // Through the loader: the lens keys, a 16-bit PNG, per-view undistortion before downscaling.
         let dir = tempfile::tempdir().unwrap();
         image::ImageBuffer::<image::Rgba<u16>, _>::from_raw(k.width, k.height, photo.clone())
             .unwrap()
@@ -305,25 +327,25 @@ fn distorted_photos_are_resampled_to_the_pinhole_camera() {
         });
         mask.save(dir.path().join("mask.png")).unwrap();
         let frame = json!({"file_path": "photo.png", "mask_path": "mask.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]});
-        write_json(
-            &dir.path().join("transforms.json"),
-            &json!({
-                "camera_model": "OPENCV", "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height,
-                "k1": d.k1, "k2": d.k2, "k3": d.k3, "p1": d.p1, "p2": d.p2, "frames": [frame],
-            }),
-        );
+        let mut top = json!({"fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height, "frames": [frame]});
+        top.as_object_mut().unwrap().extend(keys.as_object().unwrap().clone());
+        write_json(&dir.path().join("transforms.json"), &top);
         let test = load(dir.path(), Split::Test);
         assert_eq!(test.cameras[0].intrinsics, k);
         assert!(max_error(&test.images[0], &k, 4) < 3e-3);
-        // The mask is resampled with the photo: kept right of the edge, dropped left of it (a pixel
-        // either side of the edge may go either way).
+        // The mask is resampled with the photo: kept right of the edge where the photo saw the
+        // pixel, dropped left of it (a pixel either side of the edge may go either way), and
+        // dropped where the pinhole image reaches past the photo (the pincushion lens's corners).
         let masks = test.masks.as_ref().expect("the mask is loaded");
-        let (mut kept, mut dropped) = (0, 0);
+        let (mut kept, mut dropped, mut unseen) = (0, 0, 0);
         for j in 0..k.height {
             for i in 0..k.width {
                 let x = (i as f64 + 0.5 - k.cx as f64) / k.fx as f64;
                 let is = masks.is_kept(0, j * k.width + i);
-                if x > edge + 1.0 / k.fx as f64 {
+                if !seen_by_photo(&k, &d, i, j) {
+                    assert!(!is, "pixel ({i}, {j}), which the photo did not see, kept");
+                    unseen += 1;
+                } else if x > edge + 1.0 / k.fx as f64 {
                     assert!(is, "pixel ({i}, {j}) right of the edge dropped");
                     kept += 1;
                 } else if x < edge - 1.0 / k.fx as f64 {
@@ -332,11 +354,61 @@ fn distorted_photos_are_resampled_to_the_pinhole_camera() {
                 }
             }
         }
-        assert!(kept > 200 && dropped > 1000, "{kept} kept, {dropped} dropped");
+        eprintln!("{kept} kept, {dropped} dropped, {unseen} not seen");
+        assert!(kept > 150 && dropped > 1000, "{kept} kept, {dropped} dropped");
+        assert_eq!(unseen > 0, d.k1 > 0.0 && d.model == LensModel::RadialTangential, "only the pincushion lens reaches past its photo");
         let half = load_blender(dir.path(), Split::Test, &LoadOptions { downscale: 2, ..Default::default() }).unwrap();
         let k2 = k.downscaled(2);
         assert!(max_error(&half.images[0], &k2, 2) < 1e-2, "{}", max_error(&half.images[0], &k2, 2));
     }
+}
+
+/// A lens whose pinhole image reaches past the photo gets training masks of the pixels the photo
+/// saw even without mask files (downscaled: a pixel only where all it is made of was seen); a
+/// lens that stays inside its photo gets none.
+#[test]
+fn pixels_the_photo_did_not_see_are_not_trained_on() {
+    let k = Intrinsics { width: 40, height: 30, fx: 32.0, fy: 32.0, cx: 20.5, cy: 14.0 };
+    let pincushion = Distortion { k1: 0.15, p1: 0.01, ..Default::default() };
+    let barrel = Distortion { k1: -0.1, ..Default::default() };
+    let seen = pixels_seen(&k, &pincushion).expect("the corners reach past the photo");
+    let n_seen = seen.iter().filter(|&&s| s).count();
+    assert!(n_seen > 600 && n_seen < 1150, "{n_seen} of 1200 seen");
+    for (p, &s) in seen.iter().enumerate() {
+        assert_eq!(s, seen_by_photo(&k, &pincushion, p as u32 % k.width, p as u32 / k.width), "pixel {p}");
+    }
+    assert_eq!(pixels_seen(&k, &barrel), None);
+    assert_eq!(pixels_seen(&k, &Distortion::default()), None);
+
+    let dir = tempfile::tempdir().unwrap();
+    image::RgbImage::from_pixel(k.width, k.height, image::Rgb([90, 140, 30])).save(dir.path().join("a.png")).unwrap();
+    let scene = |lens: &Distortion| {
+        // Nine frames of one lens: the test split holds frames 0 and 8, the training split the others.
+        let frame = json!({"file_path": "a.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]});
+        let top = json!({"camera_model": "OPENCV", "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "k1": lens.k1, "p1": lens.p1, "frames": vec![frame; 9]});
+        write_json(&dir.path().join("transforms.json"), &top);
+    };
+    scene(&pincushion);
+    let full = load(dir.path(), Split::Test);
+    let m = full.masks.as_ref().expect("masks of the seen pixels");
+    assert_eq!(m.total() as usize, 2 * n_seen);
+    assert!((0..1200).all(|p| m.is_kept(0, p) == seen[p as usize] && m.is_kept(1, p) == seen[p as usize]));
+    // The views of one lens share its list.
+    let train = load(dir.path(), Split::Train);
+    let m = train.masks.as_ref().unwrap();
+    assert_eq!((m.n_views(), m.total() as usize), (7, 7 * n_seen));
+    assert!((1..7).all(|v| std::ptr::eq(m.view(v).unwrap(), m.view(0).unwrap())), "one list for the lens");
+    let half = load_blender(dir.path(), Split::Test, &LoadOptions { downscale: 2, ..Default::default() }).unwrap();
+    let m = half.masks.as_ref().unwrap();
+    for (j, i) in (0..15u32).flat_map(|j| (0..20u32).map(move |i| (j, i))) {
+        let all = (0..4).all(|q| seen[((2 * j + q / 2) * k.width + 2 * i + q % 2) as usize]);
+        assert_eq!(m.is_kept(0, j * 20 + i), all, "downscaled pixel ({i}, {j})");
+    }
+    // Camera-only loads read no pixels and make no masks.
+    let cams = load_blender(dir.path(), Split::Test, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
+    assert!(cams.masks.is_none());
+    scene(&barrel);
+    assert!(load(dir.path(), Split::Test).masks.is_none(), "a barrel lens stays inside its photo");
 }
 
 #[test]

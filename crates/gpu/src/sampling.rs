@@ -159,7 +159,21 @@ impl GpuImages {
                         m.total()
                     )));
                 }
-                let listed: u64 = (0..n_views).filter_map(|v| m.view(v)).map(|l| l.len() as u64).sum();
+                // Views that share a list (`PixelMasks::with_shared_views`) share it here too:
+                // each distinct list is uploaded once, at the offset of its first view.
+                let mut lists: Vec<&[u32]> = Vec::new();
+                let first: Vec<Option<usize>> = (0..n_views)
+                    .map(|v| {
+                        m.view(v).map(|l| match lists.iter().position(|&u| std::ptr::eq(u, l)) {
+                            Some(i) => i,
+                            None => {
+                                lists.push(l);
+                                lists.len() - 1
+                            }
+                        })
+                    })
+                    .collect();
+                let listed: u64 = lists.iter().map(|l| l.len() as u64).sum();
                 let words = 2 * n_views as u64 + listed;
                 if m.total() >= u32::MAX as u64 || words > u32::MAX as u64 || 4 * words > limit {
                     return Err(GpuError::Unsupported(format!(
@@ -167,16 +181,21 @@ impl GpuImages {
                         m.total()
                     )));
                 }
-                let mut table = Vec::with_capacity(words as usize);
-                let (mut start, mut offset) = (0u32, 2 * n_views as u32);
-                for v in 0..n_views {
-                    table.push(start);
-                    table.push(m.view(v).map_or(u32::MAX, |_| offset));
-                    start += m.kept_in(v) as u32;
-                    offset += m.view(v).map_or(0, |l| l.len() as u32);
+                let mut offsets = Vec::with_capacity(lists.len());
+                let mut offset = 2 * n_views as u32;
+                for l in &lists {
+                    offsets.push(offset);
+                    offset += l.len() as u32;
                 }
-                for v in 0..n_views {
-                    table.extend_from_slice(m.view(v).unwrap_or(&[]));
+                let mut table = Vec::with_capacity(words as usize);
+                let mut start = 0u32;
+                for (v, list) in first.iter().enumerate() {
+                    table.push(start);
+                    table.push(list.map_or(u32::MAX, |i| offsets[i]));
+                    start += m.kept_in(v) as u32;
+                }
+                for l in &lists {
+                    table.extend_from_slice(l);
                 }
                 table
             }

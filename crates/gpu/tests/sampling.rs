@@ -229,11 +229,15 @@ fn ray_generation_matches_its_cpu_twin() {
 fn masked_ray_generation_matches_its_cpu_twin_and_draws_only_kept_pixels() {
     let Some(ctx) = context() else { return };
     let cap = 3000;
-    for (seed, jitter, w, h, keep) in [(31u32, false, 19u32, 9u32, 0.3), (32, true, 19, 9, 0.3), (33, false, 320, 240, 0.6)] {
-        let mut ds = dataset(seed as u64, 4, w, h, false);
+    // The last case's views 0 and 4 share one list (a lens's mask), uploaded once.
+    for (seed, jitter, w, h, keep, shared) in
+        [(31u32, false, 19u32, 9u32, 0.3, false), (32, true, 19, 9, 0.3, false), (33, false, 320, 240, 0.6, false), (35, true, 23, 7, 0.4, true)]
+    {
+        let n_views = if shared { 5 } else { 4 };
+        let mut ds = dataset(seed as u64, n_views, w, h, false);
         let mut rng = nerf_core::rng(seed as u64, 2);
         let n_pix = (w * h) as usize;
-        let flags: Vec<Vec<bool>> = (0..4)
+        let mut flags: Vec<Vec<bool>> = (0..4)
             .map(|v| match v {
                 1 => vec![false; n_pix],
                 2 => (0..n_pix).map(|p| p == 77).collect(),
@@ -241,9 +245,20 @@ fn masked_ray_generation_matches_its_cpu_twin_and_draws_only_kept_pixels() {
                 _ => (0..n_pix).map(|_| rng.gen_bool(keep)).collect(),
             })
             .collect();
-        ds.masks = Some(PixelMasks::from_flags(w * h, flags.iter().map(|f| &f[..])));
+        let listed = if shared {
+            flags.push(flags[0].clone());
+            let list = |f: &[bool]| -> std::sync::Arc<[u32]> { (0..n_pix as u32).filter(|&p| f[p as usize]).collect() };
+            let lens = list(&flags[0]);
+            let views = vec![Some(lens.clone()), Some(list(&flags[1])), Some(list(&flags[2])), None, Some(lens.clone())];
+            ds.masks = Some(PixelMasks::with_shared_views(w * h, views));
+            lens.len() + 1
+        } else {
+            ds.masks = Some(PixelMasks::from_flags(w * h, flags.iter().map(|f| &f[..])));
+            (0..3).map(|v| flags[v].iter().filter(|&&k| k).count()).sum()
+        };
         let kept = ds.masks.as_ref().unwrap().total() as usize;
         let images = GpuImages::new(&ctx, &ds).unwrap();
+        assert_eq!(images.masks.size() as usize, 4 * (2 * n_views + listed), "seed {seed}: each list once");
         // NaN can't be packed to RGBA8: poison the twin's images after the upload instead, so
         // a masked-out pixel read on the CPU side shows.
         for (img, f) in ds.images.iter_mut().zip(&flags) {
