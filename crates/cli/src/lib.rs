@@ -646,6 +646,17 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
         let all = train.n_views() as f64 * train.width as f64 * train.height as f64;
         eprintln!("training masks keep {:.1} % of the training views' pixels", 100.0 * m.total() as f64 / all);
     }
+    if let Some(d) = &train.depths {
+        let measured = d.iter().flatten().filter(|&&t| t > 0.0).count() as f64;
+        let all = train.n_views() as f64 * train.width as f64 * train.height as f64;
+        match config.depth_loss {
+            Some(l) => eprintln!("depth maps measure {:.1} % of the training views' pixels: trained on with depth_loss = {l}", 100.0 * measured / all),
+            None => eprintln!(
+                "note: the depth maps measure {:.1} % of the training views' pixels; set depth_loss (e.g. 0.1) in the config to train on them",
+                100.0 * measured / all
+            ),
+        }
+    }
     let mut opts = RunOptions::new(&a.out);
     opts.resume = a.resume;
     opts.overwrite = a.overwrite;

@@ -28,6 +28,7 @@ use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention, Ray};
 
 pub mod camera_path;
 pub mod colmap;
+pub mod depth;
 pub use colmap::is_colmap;
 pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, CameraPath};
 pub mod llff;
@@ -188,6 +189,17 @@ pub enum DataError {
     #[error("{}: mask of frame {frame}: {reason}", .path.display())]
     BadMask {
         /// The mask image.
+        path: PathBuf,
+        /// Index of the frame in `frames`.
+        frame: usize,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A frame's depth map ([`depth`]) is missing, not an integer depth image, or does not fit
+    /// its photo.
+    #[error("{}: depth map of frame {frame}: {reason}", .path.display())]
+    BadDepth {
+        /// The depth image.
         path: PathBuf,
         /// Index of the frame in `frames`.
         frame: usize,
@@ -398,6 +410,12 @@ pub struct Dataset {
     /// [`ngp::pixels_seen`]); `None`: every pixel. When set it holds one entry per view: a dataset made from a
     /// selection of another's views takes [`PixelMasks::select`] of its masks.
     pub masks: Option<PixelMasks>,
+    /// Per view, per pixel (row-major, `W·H`): the measured distance along the pixel's unit ray
+    /// from the camera centre to the surface, in the scene's units, 0 where there is none
+    /// ([`depth`]: nerfstudio's `depth_file_path`, instant-ngp's `depth_path`; a view without a
+    /// depth map is all 0). `None`: the scene has no depth maps. Training on them is
+    /// `depth_loss`.
+    pub depths: Option<Vec<Vec<f32>>>,
     /// Near bound of the ray segment (Blender: 2).
     pub near: f32,
     /// Far bound of the ray segment (Blender: 6).
@@ -776,6 +794,9 @@ struct Frame {
     image: PathBuf,
     /// nerfstudio's `mask_path`, resolved as `file_path` is.
     mask: Option<PathBuf>,
+    /// The depth map (`depth_file_path` or `depth_path`, resolved as `file_path` is) and world
+    /// units per integer step of it ([`depth`]).
+    depth: Option<(PathBuf, f64)>,
     c2w: Vec<[f32; 4]>,
     lens: ngp::Lens,
 }
@@ -1203,6 +1224,19 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
             reason: "`frames` is empty".into(),
         });
     }
+    // Depth maps' units: nerfstudio's `depth_unit_scale_factor` (10⁻³ when absent), instant-ngp's
+    // `integer_depth_scale` (required with `depth_path`).
+    let depth_scale = |key: &str| -> Result<Option<f64>, DataError> {
+        match json.get(key) {
+            None => Ok(None),
+            Some(v) => match v.as_f64() {
+                Some(x) if x > 0.0 && x.is_finite() => Ok(Some(x)),
+                _ => Err(invalid(key.into(), format!("expected a positive number, got {v}"))),
+            },
+        }
+    };
+    let nerfstudio_depth = depth_scale("depth_unit_scale_factor")?.unwrap_or(depth::NERFSTUDIO_DEPTH_SCALE);
+    let ngp_depth = depth_scale("integer_depth_scale")?;
     let mut frames = Vec::with_capacity(frames_json.len());
     for (i, f) in frames_json.iter().enumerate() {
         let lens = ngp::Lens::parse(&tpath, json, Some((i, f)))?;
@@ -1227,10 +1261,20 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
             Some(Value::String(p)) => Some(image_path(root, p)),
             Some(v) => return Err(invalid(format!("frames[{i}].mask_path"), format!("expected a string, got {}", json_kind(v)))),
         };
+        let depth = match (f.get("depth_file_path"), f.get("depth_path")) {
+            (None | Some(Value::Null), None | Some(Value::Null)) => None,
+            (Some(Value::String(p)), _) => Some((image_path(root, p), nerfstudio_depth)),
+            (None | Some(Value::Null), Some(Value::String(p))) => {
+                Some((image_path(root, p), ngp_depth.ok_or_else(|| missing("integer_depth_scale` (the depth maps' units, beside `depth_path`".into()))?))
+            }
+            (Some(v), _) => return Err(invalid(format!("frames[{i}].depth_file_path"), format!("expected a string, got {}", json_kind(v)))),
+            (_, Some(v)) => return Err(invalid(format!("frames[{i}].depth_path"), format!("expected a string, got {}", json_kind(v)))),
+        };
         frames.push(Frame {
             index: i,
             image: image_path(root, fp),
             mask,
+            depth,
             c2w,
             lens,
         });
@@ -1365,6 +1409,25 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         }
         _ => None,
     };
+    // Depth maps, through the photos' lens resampling and downscaling, as distances along the
+    // rays in the scene's units.
+    let depths = if opts.cameras_only || frames.iter().all(|f| f.depth.is_none()) {
+        None
+    } else {
+        let units = normalization.map_or(1.0, |n| n.scale) as f32;
+        let maps: Vec<Result<Vec<f32>, DataError>> = frames
+            .par_iter()
+            .enumerate()
+            .map(|(i, f)| {
+                let Some((path, scale)) = &f.depth else { return Ok(vec![0.0; ((w0 / k) * (h0 / k)) as usize]) };
+                let px = depth::decode(depth::DepthSource { path, scale: *scale }, f.index, (w0, h0))?;
+                let px = downscale_rgba(&undistort(i, path, w0, h0, px)?, w0 as usize, h0 as usize, k as usize);
+                let intr = f.lens.intrinsics(&tpath, &f.image, w0, h0)?.downscaled(k);
+                Ok(depth::ray_distances(&px, &intr, units))
+            })
+            .collect();
+        Some(maps.into_iter().collect::<Result<Vec<_>, _>>()?)
+    };
     let cameras = frames
         .iter()
         .map(|f| {
@@ -1401,6 +1464,7 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
         images,
         file_paths: frames.iter().map(|f| f.image.clone()).collect(),
         masks,
+        depths,
         near,
         far,
         aabb,
@@ -1715,7 +1779,10 @@ pub fn pose_noise(n_views: usize, rot_deg: f32, trans: f32, seed: u64) -> Vec<[f
 /// `out_root/<split>/r_<k>.png` (written in parallel). `attribution`, when given, becomes a
 /// top-level `"attribution"` key. Used to derive small in-repo scenes from larger ones. A
 /// dataset with training masks ([`Dataset::masks`]) writes them too: `"mask_path":
-/// "./<split>/mask_<k>.png"`, 8-bit grey, 255 kept and 0 masked out. Intrinsics that the field
+/// "./<split>/mask_<k>.png"`, 8-bit grey, 255 kept and 0 masked out; one with depth maps
+/// ([`Dataset::depths`]) writes them as nerfstudio reads them: `"depth_file_path":
+/// "./<split>/depth_<k>.png"`, 16-bit grey z-depths (0: none) in steps of the top-level
+/// `depth_unit_scale_factor` (the largest depth / 65535). Intrinsics that the field
 /// of view does not capture (`fy != fx`, a principal point off the image centre, views that
 /// differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
 /// `h` (top level: the first view's; a frame whose camera differs carries its own), and an
@@ -1743,6 +1810,13 @@ pub fn write_blender(
             path: ds.root.clone(),
             key: "masks".into(),
             reason: format!("masks of {} views of {} pixels for {} views of {}x{}", m.n_views(), m.n_pixels(), ds.n_views(), ds.width, ds.height),
+        });
+    }
+    if let Some(d) = ds.depths.as_ref().filter(|d| d.len() != ds.n_views() || d.iter().any(|v| v.len() != (ds.width * ds.height) as usize)) {
+        return Err(DataError::InvalidValue {
+            path: ds.root.clone(),
+            key: "depths".into(),
+            reason: format!("depth maps of {} views for {} views of {}x{}", d.len(), ds.n_views(), ds.width, ds.height),
         });
     }
     if ds.ndc.is_some() {
@@ -1789,6 +1863,9 @@ pub fn write_blender(
             if ds.masks.is_some() {
                 f.as_object_mut().expect("a JSON object").insert("mask_path".into(), Value::from(format!("./{split}/mask_{k}.png")));
             }
+            if ds.depths.is_some() {
+                f.as_object_mut().expect("a JSON object").insert("depth_file_path".into(), Value::from(format!("./{split}/depth_{k}.png")));
+            }
             if pixel_intrinsics && cam.intrinsics != first.intrinsics {
                 let o = f.as_object_mut().expect("a JSON object");
                 for (key, v) in focal_keys(&cam.intrinsics) {
@@ -1819,6 +1896,18 @@ pub fn write_blender(
         top.insert("scale".into(), Value::from(b.scale as f64));
         top.insert("offset".into(), Value::from(b.offset.map(|o| o as f64).to_vec()));
     }
+    // Depth maps back to z-depths (the pixel ray's distance times its cosine to the axis),
+    // in 16-bit steps of the largest.
+    let z_depths: Option<Vec<Vec<f32>>> = ds.depths.as_ref().map(|d| {
+        d.par_iter()
+            .zip(&ds.cameras)
+            .map(|(t, cam)| depth::z_depths(t, &cam.intrinsics))
+            .collect()
+    });
+    let z_step = z_depths.as_ref().map(|z| z.iter().flatten().fold(0.0f32, |a, &b| a.max(b)) as f64 / 65535.0);
+    if let Some(step) = z_step {
+        top.insert("depth_unit_scale_factor".into(), Value::from(if step > 0.0 { step } else { 1.0 }));
+    }
     top.insert("frames".into(), Value::Array(frames));
     let text = serde_json::to_string_pretty(&Value::Object(top))
         .expect("serialising a JSON value cannot fail");
@@ -1839,6 +1928,15 @@ pub fn write_blender(
                 &bytes,
                 image::ExtendedColorType::Rgba8,
             )?;
+            if let (Some(z), Some(step)) = (&z_depths, z_step) {
+                // 16-bit samples in native order (the encoder writes PNG's big-endian); a measured
+                // depth is at least 1 step.
+                let bytes: Vec<u8> = z[k]
+                    .iter()
+                    .flat_map(|&v| (if v > 0.0 { ((v as f64 / step).round() as u16).max(1) } else { 0 }).to_ne_bytes())
+                    .collect();
+                write_png(&img_dir.join(format!("depth_{k}.png")), w, h, &bytes, image::ExtendedColorType::L16)?;
+            }
             match &ds.masks {
                 Some(m) => write_png(
                     &img_dir.join(format!("mask_{k}.png")),

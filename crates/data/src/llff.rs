@@ -317,6 +317,7 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         images,
         file_paths: selected.iter().map(|&i| files[i].clone()).collect(),
         masks: None,
+        depths: None,
         near,
         far,
         aabb,

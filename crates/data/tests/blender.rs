@@ -59,6 +59,7 @@ fn synthetic(n: usize, w: u32, h: u32, seed: u64) -> Dataset {
         images: random_images(n, w, h, seed),
         file_paths: vec![],
         masks: None,
+        depths: None,
         near: 2.0,
         far: 6.0,
         aabb: Aabb::cube(1.5),

@@ -131,6 +131,7 @@ fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset 
         images,
         file_paths: vec![],
         masks: None,
+        depths: None,
         near: 2.0,
         far: 6.0,
         aabb: Aabb::cube(1.5),

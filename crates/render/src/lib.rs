@@ -401,6 +401,30 @@ pub fn composite_backward<T: Real>(
     );
 }
 
+/// Depth supervision: the loss `λ · (1/n) · Σ_r |D̂_r − D_r|` over the `n` rays of a batch, where
+/// `D̂_r = Σ w_i t_i` is ray `r`'s expected depth ([`CompositeOutputs::depth`]) and `D_r` its
+/// measured distance along the ray (`target`, from a depth map; rays whose target is not
+/// positive have no measurement and add nothing). Writes `d_depth = dL/dD̂` (`λ·sign(D̂ − D)/n`,
+/// 0 without a measurement), which [`composite_backward`] takes, and returns the loss. L1: a
+/// sensor's outliers (flying pixels at silhouettes, missed returns) pull no harder than any
+/// other error. Accumulates in `f64`.
+pub fn depth_loss_grad(pred: &[f32], target: &[f32], lambda: f32, d_depth: &mut [f32]) -> f32 {
+    assert_eq!(pred.len(), target.len(), "pred and target must have the same length");
+    assert_eq!(d_depth.len(), pred.len(), "d_depth must have the same length as pred");
+    let scale = lambda / pred.len().max(1) as f32;
+    let mut sum = 0.0f64;
+    for ((d, &p), &t) in d_depth.iter_mut().zip(pred).zip(target) {
+        *d = if t > 0.0 {
+            sum += (p - t).abs() as f64;
+            // sign(0) = 0: a ray that already matches gets no push.
+            scale * if p > t { 1.0 } else if p < t { -1.0 } else { 0.0 }
+        } else {
+            0.0
+        };
+    }
+    (sum * scale as f64) as f32
+}
+
 /// Mean squared error over all values and its gradient: returns `mean((pred − target)²)` and writes
 /// `d_pred = 2 (pred − target) / len`. Accumulates in `f64`.
 pub fn mse_loss_grad(pred: &[f32], target: &[f32], d_pred: &mut [f32]) -> f32 {

@@ -471,3 +471,46 @@ fn huber_loss_gradient_and_reported_mse() {
     }
     assert!(inside > 10 && outside > 100, "{inside} / {outside}");
 }
+
+/// Depth supervision's L1 loss: its value, its gradient against central differences (away from
+/// the kink), and nothing from rays without a measurement.
+#[test]
+fn depth_loss_and_gradient() {
+    let mut g = nerf_core::rng(11, 0);
+    let n = 300;
+    let pred: Vec<f32> = (0..n).map(|_| g.gen_range(0.0..4.0)).collect();
+    // Every fifth ray has no measurement (0), one is negative (also none).
+    let mut target: Vec<f32> = (0..n).map(|k| if k % 5 == 0 { 0.0 } else { g.gen_range(0.5..4.0) }).collect();
+    target[1] = -1.0;
+    let lambda = 0.3f32;
+    let mut d = vec![f32::NAN; n];
+    let l = nerf_render::depth_loss_grad(&pred, &target, lambda, &mut d);
+    let loss = |p: &[f64]| -> f64 {
+        p.iter().zip(&target).filter(|(_, &t)| t > 0.0).map(|(&p, &t)| (p - t as f64).abs()).sum::<f64>() * lambda as f64 / n as f64
+    };
+    let p64: Vec<f64> = pred.iter().map(|&p| p as f64).collect();
+    assert!((l as f64 - loss(&p64)).abs() < 1e-6, "{l} vs {}", loss(&p64));
+    for k in 0..n {
+        if target[k] <= 0.0 {
+            assert_eq!(d[k], 0.0, "ray {k} has no measurement");
+            continue;
+        }
+        let step = 1e-4;
+        let (mut a, mut b) = (p64.clone(), p64.clone());
+        a[k] += step;
+        b[k] -= step;
+        let fd = (loss(&a) - loss(&b)) / (2.0 * step);
+        assert!((d[k] as f64 - fd).abs() < 1e-7, "d_depth[{k}] {} vs {fd}", d[k]);
+    }
+    // Through compositing: a ray whose expected depth is short of its target is pushed to put
+    // weight farther (its far sample's density up, its near one's down).
+    let offsets = [0u32, 2];
+    let (sigma, rgb, dt, t) = ([1.0f64, 1.0], [0.5f64; 6], [0.5f64, 0.5], [1.0f64, 3.0]);
+    let mut o = CompositeOutputs::new();
+    composite_forward(&offsets, &sigma, &rgb, &dt, &t, None, 0.0, &mut o);
+    let mut dd = [0.0f32];
+    nerf_render::depth_loss_grad(&[o.depth[0] as f32], &[3.0], 1.0, &mut dd);
+    let (mut d_sigma, mut d_rgb) = (vec![0.0; 2], vec![0.0; 6]);
+    composite_backward(&offsets, &sigma, &rgb, &dt, &t, None, &o, &[0.0; 3], None, Some(&[dd[0] as f64]), &mut d_sigma, &mut d_rgb);
+    assert!(d_sigma[0] > 0.0 && d_sigma[1] < 0.0, "gradient descent raises the far density: {d_sigma:?}");
+}

@@ -147,6 +147,13 @@ pub struct TrainConfig {
     /// (the default) = off. Must be positive.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub distortion_loss: Option<f32>,
+    /// Weight λ of depth supervision on every stage (`nerf_render::depth_loss_grad`): `λ · mean
+    /// over rays of |expected depth − measured depth|`, the measured depth coming from the
+    /// scene's depth maps (`Dataset::depths`: nerfstudio's `depth_file_path`, instant-ngp's
+    /// `depth_path`) where a pixel has one. Distances are in the scene's units. `None` (the
+    /// default) = off; set, the scene must have depth maps. Must be positive.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_loss: Option<f32>,
     /// Per-view affine colour correction (`[color_correction]`; `nerf_render::color_correct_forward`):
     /// a 3×3 matrix and an offset per training view, applied to what the field composited and
     /// learnt with the field, for captures whose exposure or white balance changes between photos
@@ -313,6 +320,7 @@ impl Default for TrainConfig {
             loss: LossConfig::Mse,
             ema_decay: None,
             distortion_loss: None,
+            depth_loss: None,
             color_correction: None,
             camera_optimizer: None,
             train_background: Background::White,
@@ -430,6 +438,11 @@ impl TrainConfig {
         if let Some(l) = self.distortion_loss {
             if !(l.is_finite() && l > 0.0) {
                 return Err(format!("distortion_loss must be a positive number (nerfacto: 0.002), got {l}"));
+            }
+        }
+        if let Some(l) = self.depth_loss {
+            if !(l.is_finite() && l > 0.0) {
+                return Err(format!("depth_loss must be a positive number, got {l}"));
             }
         }
         if let Some(d) = self.loss.huber_delta() {

@@ -9,7 +9,7 @@ use crate::color::{ColorState, CpuColor, COLOR_VIEWS};
 use crate::pose::{CpuPose, PoseState, POSE_VIEWS};
 use crate::views::check_views;
 use nerf_render::{
-    color_correct_backward, color_correct_forward, composite_backward, composite_forward, composited_counts, distortion_loss_grad,
+    color_correct_backward, color_correct_forward, composite_backward, composite_forward, composited_counts, depth_loss_grad, distortion_loss_grad,
     mean_color_correction, photometric_loss_grad, CompositeOutputs, COLOR_PARAMS_PER_VIEW,
 };
 use nerf_sampling::{hierarchical, march, stratified, OccupancyGrid, OccupancyGridConfig, RaySamples};
@@ -105,6 +105,8 @@ struct Stage {
     d_rgb: Vec<f32>,
     /// The distortion loss per ray (`distortion_loss`).
     ray_loss: Vec<f32>,
+    /// The depth loss's gradient per ray (`depth_loss`).
+    d_depth: Vec<f32>,
 }
 
 /// What one step did.
@@ -112,7 +114,8 @@ struct Stage {
 pub struct StepStats {
     /// Step index (0-based) that was just taken.
     pub step: u64,
-    /// Total loss (sum of the per-stage photometric losses, plus the distortion loss when on).
+    /// Total loss (sum of the per-stage photometric losses, plus the distortion and depth losses
+    /// when on).
     pub loss: f32,
     /// Photometric MSE of the final stage (the image the user sees).
     pub mse: f32,
@@ -188,6 +191,8 @@ pub struct Trainer {
     keep: Vec<u32>,
     /// The row in `marched` of each compacted sample (the field reuses its density pass's work).
     kept_rows: Vec<u32>,
+    /// The batch's measured depths (`depth_loss`; 0: none), one per ray.
+    depth_target: Vec<f32>,
     /// The occupancy grid of the `Occupancy` sampler.
     grid: Option<OccupancyGrid>,
     /// Running mean of samples per ray (sizes batches when `target_samples_per_step` is set).
@@ -314,6 +319,7 @@ impl Trainer {
             marched_sigma: Vec::new(),
             keep: Vec::new(),
             kept_rows: Vec::new(),
+            depth_target: Vec::new(),
             config,
             bounds,
             fields,
@@ -505,6 +511,23 @@ impl Trainer {
                 ));
             }
         }
+        if self.config.depth_loss.is_some() {
+            match &data.depths {
+                None => {
+                    return Err(TrainError::Config(format!(
+                        "depth_loss is set, but the scene {} has no depth maps (nerfstudio's depth_file_path, instant-ngp's depth_path)",
+                        data.root.display()
+                    )))
+                }
+                Some(d) if d.len() != data.n_views() || d.iter().any(|v| v.len() != (data.width * data.height) as usize) => {
+                    return Err(TrainError::Config(format!("depth maps of {} views for {} views of {}x{}", d.len(), data.n_views(), data.width, data.height)))
+                }
+                Some(_) if self.gpu.is_some() => {
+                    return Err(TrainError::Config("depth_loss trains on the CPU only for now: train with --device cpu".into()))
+                }
+                Some(_) => {}
+            }
+        }
         if !self.seen_marked {
             self.mark_seen(data)?;
             self.seen_marked = true;
@@ -630,6 +653,11 @@ impl Trainer {
         let (mut alive_rays, mut mse_alive) = (0, f32::NAN);
         let n_stages = self.stages.len();
         let depth_range = self.bounds.far - self.bounds.near;
+        let depth_loss = cfg.depth_loss.zip(data.depths.as_ref());
+        if let Some((_, maps)) = depth_loss {
+            self.depth_target.clear();
+            self.depth_target.extend(b.view_ids.iter().zip(&b.pixel_ids).map(|(&v, &p)| maps[v as usize][p as usize]));
+        }
         for (i, (field, st)) in self.fields.iter_mut().zip(self.stages.iter_mut()).enumerate() {
             st.d_ray_rgb.resize(3 * n_rays, 0.0);
             // With colour correction the loss sees each view's corrected pixels, and compositing's
@@ -671,6 +699,14 @@ impl Trainer {
             let n = st.samples.len();
             st.d_sigma.resize(n, 0.0);
             st.d_rgb.resize(3 * n, 0.0);
+            let d_depth = match depth_loss {
+                Some((lambda, _)) => {
+                    st.d_depth.resize(n_rays, 0.0);
+                    loss += depth_loss_grad(&st.comp.depth, &self.depth_target, lambda, &mut st.d_depth);
+                    Some(&st.d_depth[..])
+                }
+                None => None,
+            };
             composite_backward(
                 &st.samples.ray_offsets,
                 &st.sigma,
@@ -681,7 +717,7 @@ impl Trainer {
                 &st.comp,
                 d_ray_rgb,
                 d_opacity,
-                None,
+                d_depth,
                 &mut st.d_sigma,
                 &mut st.d_rgb,
             );

@@ -1,0 +1,114 @@
+//! Depth maps for depth supervision: a per-frame image of each pixel's depth, as an RGB-D
+//! capture (an iPhone's LiDAR through Polycam or Record3D, a Kinect, instant-ngp's NeRFCapture)
+//! stores it beside the photo.
+//!
+//! - nerfstudio's `depth_file_path` (depth-nerfacto's input): integer values times
+//!   `depth_unit_scale_factor` (a top-level key where the file has one, else nerfstudio's
+//!   default 10⁻³: millimetres to metres).
+//! - instant-ngp's `depth_path`: integer values times the top-level `integer_depth_scale`
+//!   (required with it).
+//!
+//! Values are z-depths (the distance along the camera's optical axis, as both tools and every
+//! RGB-D sensor store them) in the file's world units; 0 marks a pixel without a measurement.
+//! The images are single-channel 8- or 16-bit PNGs. Loading ([`crate::Dataset::depths`]) turns
+//! them into the distance along each pixel's unit ray from the camera centre, in the scene's
+//! units (nerfstudio's normalisation scales them with the poses), after the photo's lens
+//! resampling and `--downscale`; a resulting pixel has a depth only where every pixel it is made
+//! of has one.
+
+use std::path::Path;
+
+use nerf_rays::Intrinsics;
+
+use crate::DataError;
+
+/// Where a frame's depth map comes from and what one integer step of it measures.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct DepthSource<'a> {
+    /// The depth image.
+    pub path: &'a Path,
+    /// World units per integer step of the image's values.
+    pub scale: f64,
+}
+
+/// nerfstudio's default `depth_unit_scale_factor`: millimetres to metres.
+pub const NERFSTUDIO_DEPTH_SCALE: f64 = 1e-3;
+
+/// Decodes the depth image at `path` (frame `frame`, whose photo is `size`) into an RGBA-shaped
+/// buffer for the photo's resampling: per pixel `(z, 1, 0, 1)` where it has a measurement (`z`
+/// in world units) and `(0, 0, 0, 1)` where it has none. An error names the file: missing, not
+/// a single-channel 8- or 16-bit image, or of another size.
+pub(crate) fn decode(src: DepthSource<'_>, frame: usize, size: (u32, u32)) -> Result<Vec<f32>, DataError> {
+    let bad = |reason: String| DataError::BadDepth { path: src.path.to_path_buf(), frame, reason };
+    if !src.path.is_file() {
+        return Err(bad("file not found".into()));
+    }
+    let img = crate::open_image(src.path)?.decode().map_err(|source| DataError::Decode { path: src.path.to_path_buf(), source })?;
+    if (img.width(), img.height()) != size {
+        return Err(bad(format!("it is {}x{}, its photo is {}x{}", img.width(), img.height(), size.0, size.1)));
+    }
+    let values: Vec<u32> = match img {
+        image::DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(u32::from).collect(),
+        image::DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(u32::from).collect(),
+        other => {
+            return Err(bad(format!(
+                "a depth map must be a single-channel 8- or 16-bit image of integer depths, this one is {:?}",
+                other.color()
+            )))
+        }
+    };
+    Ok(values.into_iter().flat_map(|v| if v == 0 { [0.0, 0.0, 0.0, 1.0] } else { [(v as f64 * src.scale) as f32, 1.0, 0.0, 1.0] }).collect())
+}
+
+/// The depth map of a resampled, downscaled buffer from [`decode`]: per pixel the distance along
+/// its unit ray through the pixel's centre of the pinhole camera `intr` (`z·√(x² + y² + 1)`),
+/// times `scale` (the poses' normalisation), or 0 where any of the pixels it was made of had no
+/// measurement (the validity channel is below 1).
+pub(crate) fn ray_distances(px: &[f32], intr: &Intrinsics, scale: f32) -> Vec<f32> {
+    let w = intr.width as usize;
+    px.chunks_exact(4)
+        .enumerate()
+        .map(|(p, d)| {
+            if d[1] < 1.0 - 1e-6 {
+                return 0.0;
+            }
+            let x = ((p % w) as f32 + 0.5 - intr.cx) / intr.fx;
+            let y = ((p / w) as f32 + 0.5 - intr.cy) / intr.fy;
+            d[0] * (x * x + y * y + 1.0).sqrt() * scale
+        })
+        .collect()
+}
+
+/// The inverse of [`ray_distances`] (without its scale): per pixel of the pinhole camera
+/// `intr`, the z-depth `t / √(x² + y² + 1)` of a distance `t` along its ray (0 stays 0).
+pub fn z_depths(t: &[f32], intr: &Intrinsics) -> Vec<f32> {
+    let w = intr.width as usize;
+    t.iter()
+        .enumerate()
+        .map(|(p, &d)| {
+            let x = ((p % w) as f32 + 0.5 - intr.cx) / intr.fx;
+            let y = ((p / w) as f32 + 0.5 - intr.cy) / intr.fy;
+            d / (x * x + y * y + 1.0).sqrt()
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn z_depths_become_distances_along_the_pixels_rays() {
+        let intr = Intrinsics { width: 3, height: 2, fx: 2.0, fy: 4.0, cx: 1.5, cy: 1.0 };
+        // z = 2 everywhere but pixel 4, which a resampling mixed with a pixel without depth.
+        let mut px: Vec<f32> = (0..6).flat_map(|_| [2.0, 1.0, 0.0, 1.0]).collect();
+        px[4 * 4 + 1] = 0.75;
+        let t = ray_distances(&px, &intr, 0.5);
+        // Pixel (0, 0): x = (0.5 − 1.5)/2 = −0.5, y = (0.5 − 1)/4 = −0.125.
+        assert!((t[0] - 2.0 * (0.25f32 + 0.015625 + 1.0).sqrt() * 0.5).abs() < 1e-6, "{}", t[0]);
+        assert_eq!(t[4], 0.0, "no depth where a source had none");
+        // Pixel (1, 0): x = 0, y = −0.125.
+        assert!((t[1] - (1.0f32 + 0.015625).sqrt()).abs() < 1e-6, "{}", t[1]);
+        assert!(t.iter().enumerate().all(|(p, &v)| p == 4 || v >= 1.0), "{t:?}");
+    }
+}
