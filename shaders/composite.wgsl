@@ -186,3 +186,38 @@ fn distortion_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(n
     }
     ray_loss[r] = weight * loss;
 }
+
+// Depth supervision (CPU twin: nerf_render::depth_loss_grad): per ray with a measured distance
+// (depth_target[r] > 0), loss λ/N·|D̂ − D| into depth_ray_loss[r] and d_depth[r] = λ/N·sign(D̂ − D),
+// where D̂ = out_depth[r] is the forward's expected depth and N = n_rays; 0 and 0 without one.
+
+struct DepthParams {
+    lambda: f32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+@group(0) @binding(19) var<uniform> depth_params: DepthParams;
+@group(0) @binding(20) var<storage, read> depth_target: array<f32>;   // n_rays
+@group(0) @binding(21) var<storage, read_write> d_depth_out: array<f32>;   // n_rays
+@group(0) @binding(22) var<storage, read_write> depth_ray_loss: array<f32>; // n_rays
+
+@compute @workgroup_size(64)
+fn depth_loss(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let n_rays = min(counters[0], params.n_rays);
+    let r = linear_id(gid, nwg, 64u);
+    if (r >= n_rays) {
+        return;
+    }
+    let measured = depth_target[r];
+    if (measured > 0.0) {
+        let scale = depth_params.lambda / f32(max(n_rays, 1u));
+        let e = out_depth[r] - measured;
+        depth_ray_loss[r] = scale * abs(e);
+        d_depth_out[r] = scale * sign(e);
+    } else {
+        depth_ray_loss[r] = 0.0;
+        d_depth_out[r] = 0.0;
+    }
+}

@@ -24,7 +24,9 @@
 // Layouts: cameras = array<Cam> (one per view, see Cam); pixels = one u32 per pixel, RGBA8
 // (r | g<<8 | b<<16 | a<<24, value/255) when format == 1, or two u32 per pixel, RGBA16
 // (r | g<<16, b | a<<16, value/65535) when format == 2; pixel (col, row) of a view is pixel
-// `pixel_offset + row·width + col`. Outputs: origins, dirs (unit), target, background: [R][3] f32.
+// `pixel_offset + row·width + col`. Outputs: origins, dirs (unit), target, background: [R][3] f32;
+// with depth maps (I.has_depth = 1), the pixel's measured distance along its ray (0: none) in
+// out_depth_target[r] (the depth map is nerf_data::Dataset::depths, laid out as the pixels).
 
 const WG: u32 = 64u;
 
@@ -43,7 +45,7 @@ struct ImagesInfo {
     ndc_sx: f32,       // 2·fx / W
     ndc_sy: f32,       // 2·fy / H
     n_kept: u32,       // kept pixels of the training masks (0: no masks)
-    _p1: u32,
+    has_depth: u32,    // 1: depth maps, one f32 per pixel laid out as `pixels`
 }
 
 // Camera-to-world 3×4 rows (rotation row a, then position a), intrinsics and size.
@@ -66,6 +68,8 @@ struct Cam {
 @group(0) @binding(8) var<storage, read_write> out_background: array<f32>;
 @group(0) @binding(9) var<storage, read_write> out_view: array<u32>;
 @group(0) @binding(10) var<storage, read> masks: array<u32>;         // 2·n_views table, then lists
+@group(0) @binding(11) var<storage, read> depths: array<f32>;        // per pixel (has_depth)
+@group(0) @binding(12) var<storage, read_write> out_depth_target: array<f32>;
 
 // nerf_rays::Ndc::ray_or_miss: (origin, unit direction) of the NDC ray.
 fn ndc_ray(o_in: vec3<f32>, d: vec3<f32>) -> array<vec3<f32>, 2> {
@@ -163,4 +167,7 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         out_background[3u * r + c] = bg[c];
     }
     out_view[r] = view;
+    if (I.has_depth != 0u) {
+        out_depth_target[r] = depths[cam.size.z + row * w + col];
+    }
 }

@@ -5,7 +5,7 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{layout, shaders, GpuContext, GpuError};
-pub use crate::layout::{BatchParams, DistortionParams, LossParams};
+pub use crate::layout::{BatchParams, DepthParams, DistortionParams, LossParams};
 
 /// Outputs of [`Compositor::forward`], read back to the host.
 #[derive(Clone, Debug, Default)]
@@ -64,8 +64,10 @@ pub struct Compositor {
     forward: Kernel,
     backward: Kernel,
     distortion: Kernel,
+    depth: Kernel,
     params: wgpu::Buffer,
     distortion_params: wgpu::Buffer,
+    depth_params: wgpu::Buffer,
     capacity_rays: usize,
     zeros: wgpu::Buffer,
 }
@@ -85,8 +87,10 @@ impl Compositor {
             forward: Kernel::from_module(ctx, &module, "composite_forward", &[]),
             backward: Kernel::from_module(ctx, &module, "composite_backward", &[]),
             distortion: Kernel::from_module(ctx, &module, "distortion_backward", &[]),
+            depth: Kernel::from_module(ctx, &module, "depth_loss", &[]),
             params: ctx.uniform("composite params", &params),
             distortion_params: ctx.uniform("distortion params", &DistortionParams { scale: 1.0, lambda: 0.0, _pad: [0; 2] }),
+            depth_params: ctx.uniform("depth params", &DepthParams { lambda: 0.0, _pad: [0; 3] }),
             capacity_rays,
             zeros: ctx.zeros("composite zeros", 4 * capacity_rays),
         }
@@ -189,6 +193,50 @@ impl Compositor {
             ],
             groups_1d(self.capacity_rays, 64),
         );
+    }
+
+    /// Sets the weight λ of [`Compositor::record_depth_loss`] (a queued write: set it before the
+    /// steps it applies to are submitted).
+    pub fn set_depth_loss(&self, ctx: &GpuContext, lambda: f32) {
+        ctx.write(&self.depth_params, 0, &[DepthParams { lambda, _pad: [0; 3] }]);
+    }
+
+    /// Records depth supervision over the `counters[0]` rays (CPU twin:
+    /// `nerf_render::depth_loss_grad`): from the forward's expected `depth` and the measured
+    /// `target` (0: none), the loss per ray into `ray_loss` and `d_depth = dL/dD̂`, which
+    /// [`Compositor::record_backward`] takes.
+    #[allow(clippy::too_many_arguments)]
+    pub fn record_depth_loss(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        counters: &wgpu::Buffer,
+        depth: &wgpu::Buffer,
+        target: &wgpu::Buffer,
+        d_depth: &wgpu::Buffer,
+        ray_loss: &wgpu::Buffer,
+    ) {
+        self.depth.record(
+            ctx,
+            enc,
+            &[(0, &self.params), (9, depth), (16, counters), (19, &self.depth_params), (20, target), (21, d_depth), (22, ray_loss)],
+            groups_1d(self.capacity_rays, 64),
+        );
+    }
+
+    /// Depth supervision on host slices (tests): expected `depth` and measured `target` per ray;
+    /// returns `(d_depth, loss per ray)`.
+    pub fn depth_loss(&self, ctx: &GpuContext, depth: &[f32], target: &[f32], lambda: f32) -> Result<(Vec<f32>, Vec<f32>), GpuError> {
+        let n_rays = depth.len();
+        assert!(n_rays <= self.capacity_rays && target.len() == n_rays, "{n_rays} rays, {} targets", target.len());
+        let c = ctx.upload("counters", &[n_rays as u32, 0]);
+        let (d, t) = (ctx.upload("depth", depth), ctx.upload("target", target));
+        let (dd, loss) = (ctx.upload("d_depth", &vec![f32::NAN; n_rays]), ctx.upload("ray loss", &vec![f32::NAN; n_rays]));
+        self.set_depth_loss(ctx, lambda);
+        let mut enc = ctx.encoder("depth loss");
+        self.record_depth_loss(ctx, &mut enc, &c, &d, &t, &dd, &loss);
+        ctx.queue.submit([enc.finish()]);
+        Ok((ctx.read_f32(&dd, n_rays)?, ctx.read_f32(&loss, n_rays)?))
     }
 
     /// The distortion loss of a packed batch (host slices in and out: tests): `d_sigma` (`n`) is

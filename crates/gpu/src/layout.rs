@@ -26,6 +26,16 @@ pub struct DistortionParams {
     pub _pad: [u32; 2],
 }
 
+/// Uniform of the depth-loss kernel (`composite.wgsl`, `depth_loss`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct DepthParams {
+    /// λ: the loss is λ times the mean over the step's rays of |expected − measured depth|.
+    pub lambda: f32,
+    /// Padding to 16 bytes (uniform layout).
+    pub _pad: [u32; 3],
+}
+
 /// Slot of the `counters` buffer holding the number of rays of the step.
 pub const COUNTER_N_RAYS: usize = 0;
 /// Slot of the `counters` buffer holding the number of packed samples of the step.
@@ -370,7 +380,8 @@ pub(crate) struct ImagesInfo {
     pub(crate) ndc_scale_y: f32,
     /// Kept pixels of the training masks (0: no masks, every pixel is drawn).
     pub(crate) n_kept: u32,
-    pub(crate) _pad: u32,
+    /// 1: the images have depth maps (`Dataset::depths`), one f32 per pixel.
+    pub(crate) has_depth: u32,
 }
 
 // ---- sampling.rs ----

@@ -73,6 +73,9 @@ pub struct GpuImages {
     /// pixels in this buffer (`0xffffffff`: every pixel), then those lists (`shaders/rays.wgsl`);
     /// one unused word for a dataset without masks.
     pub masks: wgpu::Buffer,
+    /// The depth maps ([`Dataset::depths`]): per pixel the measured distance along its ray (0:
+    /// none), laid out as the pixels; one unused word for a dataset without depth maps.
+    pub depths: wgpu::Buffer,
     info: wgpu::Buffer,
     n_views: usize,
     format: PixelFormat,
@@ -80,8 +83,9 @@ pub struct GpuImages {
 
 impl GpuImages {
     /// Uploads `dataset`'s images (RGBA8 when every value is exactly `k/255`, else RGBA16),
-    /// cameras and training masks ([`Dataset::masks`]: 8 bytes per view and 4 per kept pixel of a
-    /// view that does not keep every pixel). Errors when the dataset has no views, an image does
+    /// cameras, training masks ([`Dataset::masks`]: 8 bytes per view and 4 per kept pixel of a
+    /// view that does not keep every pixel) and depth maps ([`Dataset::depths`]: 4 bytes per
+    /// pixel). Errors when the dataset has no views, an image does
     /// not hold `4·W·H` values, the masks do not match the views, or the pixels or masks exceed
     /// the device's largest storage binding.
     pub fn new(ctx: &GpuContext, dataset: &Dataset) -> Result<Self, GpuError> {
@@ -200,6 +204,22 @@ impl GpuImages {
                 table
             }
         };
+        let depths: Vec<f32> = match &dataset.depths {
+            None => vec![0.0],
+            Some(d) => {
+                if d.len() != n_views || d.iter().any(|v| v.len() != w * h) {
+                    return Err(GpuError::Unsupported(format!("dataset {name}: depth maps of {} views for {n_views} views of {w}x{h}", d.len())));
+                }
+                if 4 * (n_views * w * h) as u64 > limit {
+                    return Err(GpuError::Unsupported(format!(
+                        "dataset {name}: the depth maps of {n_views} images of {w}x{h} take {} MiB, more than the device's largest storage binding ({} MiB); downscale the images",
+                        (4 * (n_views * w * h) as u64) >> 20,
+                        limit >> 20
+                    )));
+                }
+                d.concat()
+            }
+        };
         let ndc = dataset.ndc.unwrap_or(nerf_rays::Ndc { scale_x: 0.0, scale_y: 0.0, near: 0.0 });
         let info = ImagesInfo {
             n_views: n_views as u32,
@@ -209,12 +229,13 @@ impl GpuImages {
             ndc_scale_x: ndc.scale_x,
             ndc_scale_y: ndc.scale_y,
             n_kept: dataset.masks.as_ref().map_or(0, |m| m.total() as u32),
-            _pad: 0,
+            has_depth: dataset.depths.is_some() as u32,
         };
         Ok(Self {
             pixels: ctx.upload("images", &words),
             cameras: ctx.upload("cameras", &cams),
             masks: ctx.upload("masks", &masks),
+            depths: ctx.upload("depths", &depths),
             info: ctx.uniform("images_info", &info),
             n_views,
             format,
@@ -247,6 +268,9 @@ pub struct GpuRays {
     pub background: wgpu::Buffer,
     /// The index of the view each ray comes from (`[capacity]` u32).
     pub views: wgpu::Buffer,
+    /// The measured distance along each ray (`[capacity]` f32; 0: none), from the depth maps
+    /// ([`GpuImages::depths`]); left as it is for images without depth maps.
+    pub depth_target: wgpu::Buffer,
     /// Rays the buffers hold.
     pub capacity: usize,
 }
@@ -261,6 +285,7 @@ impl GpuRays {
             target: b("ray_target"),
             background: b("ray_background"),
             views: ctx.zeros("ray_views", 4 * capacity),
+            depth_target: ctx.zeros("ray_depth_target", 4 * capacity),
             capacity,
         }
     }
@@ -313,6 +338,8 @@ impl GpuRayGen {
                 (8, &rays.background),
                 (9, &rays.views),
                 (10, &images.masks),
+                (11, &images.depths),
+                (12, &rays.depth_target),
             ],
             groups_1d(rays.capacity, WG),
         );

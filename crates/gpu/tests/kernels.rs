@@ -107,6 +107,31 @@ fn composite_kernel_matches_its_cpu_twin() {
     }
 }
 
+/// Depth supervision's kernel against `nerf_render::depth_loss_grad`: random expected and
+/// measured depths, a fifth of the rays without a measurement (0) and one that matches exactly,
+/// outputs poisoned; fresh seeds.
+#[test]
+fn depth_loss_kernel_matches_its_cpu_twin() {
+    let Some(ctx) = context() else { return };
+    for (seed, n_rays, lambda) in [(41u64, 700usize, 0.1f32), (42, 1, 2.0), (43, 3000, 0.01)] {
+        let mut rng = nerf_core::rng(seed, 3);
+        let depth: Vec<f32> = (0..n_rays).map(|_| rng.gen_range(0.0f32..5.0)).collect();
+        let mut target: Vec<f32> = (0..n_rays).map(|_| if rng.gen_bool(0.2) { 0.0 } else { rng.gen_range(0.5f32..5.0) }).collect();
+        if n_rays > 10 {
+            target[7] = depth[7];
+        }
+        let mut d = vec![f32::NAN; n_rays];
+        let total = nerf_render::depth_loss_grad(&depth, &target, lambda, &mut d);
+        let k = Compositor::new(&ctx, n_rays, 0.0, false);
+        let (g_d, g_loss) = k.depth_loss(&ctx, &depth, &target, lambda).unwrap();
+        assert_eq!(g_d, d, "seed {seed}: d_depth");
+        let sum: f64 = g_loss.iter().map(|&x| x as f64).sum();
+        assert!((sum - total as f64).abs() <= 1e-5 * (total as f64).abs() + 1e-9, "seed {seed}: loss {sum} vs {total}");
+        assert!(g_loss.iter().zip(&target).all(|(l, t)| l.is_finite() && (*t > 0.0 || *l == 0.0)), "seed {seed}: a loss without a measurement");
+        assert!(n_rays < 10 || d.iter().filter(|&&x| x != 0.0).count() > n_rays / 2, "seed {seed}: most rays pull");
+    }
+}
+
 #[test]
 fn distortion_kernel_matches_its_cpu_twin() {
     let Some(ctx) = context() else { return };

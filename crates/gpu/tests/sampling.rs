@@ -151,6 +151,7 @@ fn poisoned_rays(ctx: &GpuContext, cap: usize) -> GpuRays {
         target: ctx.upload("t", &nan),
         background: ctx.upload("b", &nan),
         views: ctx.upload("v", &vec![u32::MAX; cap]),
+        depth_target: ctx.upload("dt", &vec![f32::NAN; cap]),
         capacity: cap,
     }
 }
@@ -219,6 +220,40 @@ fn ray_generation_matches_its_cpu_twin() {
             }
         }
     }
+}
+
+/// With depth maps each ray carries its pixel's measured distance, the same as its twin's pixel
+/// (`Dataset::depths[view][pixel]`, 0 where there is none); without them the slot is left alone.
+#[test]
+fn rays_carry_their_pixels_depth() {
+    let Some(ctx) = context() else { return };
+    let cap = 1500;
+    for (seed, jitter, masked) in [(51u32, false, false), (52, true, true)] {
+        let mut ds = dataset(seed as u64, 3, 17, 9, false);
+        let mut rng = nerf_core::rng(seed as u64, 4);
+        let n_pix = (ds.width * ds.height) as usize;
+        ds.depths = Some((0..3).map(|_| (0..n_pix).map(|_| if rng.gen_bool(0.1) { 0.0 } else { rng.gen_range(0.5f32..6.0) }).collect()).collect());
+        if masked {
+            let flags: Vec<Vec<bool>> = (0..3).map(|_| (0..n_pix).map(|_| rng.gen_bool(0.5)).collect()).collect();
+            ds.masks = Some(PixelMasks::from_flags(ds.width * ds.height, flags.iter().map(|f| &f[..])));
+        }
+        let images = GpuImages::new(&ctx, &ds).unwrap();
+        let rays = draw_on_device(&ctx, &images, Background::Random, PixelConvention::Center, jitter, seed, cap, cap);
+        let cpu = ray_batch_cpu(&ds, seed, cap, Background::Random, PixelConvention::Center, jitter);
+        let got = ctx.read_f32(&rays.depth_target, cap).unwrap();
+        let maps = ds.depths.as_ref().unwrap();
+        let want: Vec<f32> = cpu.view_ids.iter().zip(&cpu.pixel_ids).map(|(&v, &p)| maps[v as usize][p as usize]).collect();
+        assert_eq!(got, want, "seed {seed}: depth targets");
+        assert!(want.iter().filter(|&&t| t == 0.0).count() > 50 && want.iter().filter(|&&t| t > 0.0).count() > 1000, "seed {seed}");
+    }
+    // No depth maps: the slots stay as they were (poisoned here).
+    let ds = dataset(53, 2, 5, 4, false);
+    let rays = draw_on_device(&ctx, &GpuImages::new(&ctx, &ds).unwrap(), Background::White, PixelConvention::Center, false, 53, 100, 100);
+    assert!(ctx.read_f32(&rays.depth_target, 100).unwrap().iter().all(|x| x.is_nan()));
+    // Depth maps that do not fit the views are refused.
+    let bad = Dataset { depths: Some(vec![vec![1.0; 20]]), ..ds };
+    let e = GpuImages::new(&ctx, &bad).err().expect("depth maps of 1 view for 2 accepted").to_string();
+    assert!(e.contains("depth maps of 1 views for 2 views of 5x4"), "{e}");
 }
 
 /// With training masks the kernel draws only kept pixels, the same ones as its twin: random masks

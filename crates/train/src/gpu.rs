@@ -79,6 +79,9 @@ struct Stage {
     sq_err: wgpu::Buffer,
     /// The distortion loss per ray (`distortion_loss`, last stage).
     ray_loss: wgpu::Buffer,
+    /// The depth loss per ray and its gradient w.r.t. the expected depth (`depth_loss`).
+    depth_loss: wgpu::Buffer,
+    d_depth: wgpu::Buffer,
     d_sigma: wgpu::Buffer,
     d_rgb: wgpu::Buffer,
     /// `counters` as this step used them, copied before the next batch size overwrites
@@ -101,6 +104,8 @@ impl Stage {
             d_ray_rgb: f("d ray rgb", 3 * rays),
             sq_err: f("sq err", rays),
             ray_loss: f("ray loss", rays),
+            depth_loss: f("depth loss", rays),
+            d_depth: f("d depth", rays),
             d_sigma: f("d sigma", samples),
             d_rgb: f("d rgb", 3 * samples),
             logged: f("logged counters", 4),
@@ -458,6 +463,9 @@ impl GpuEngine {
             let range = bounds.far - bounds.near;
             compositor.set_distortion(&ctx, if range > 0.0 { 1.0 / range } else { 1.0 }, lambda);
         }
+        if let Some(lambda) = config.depth_loss {
+            compositor.set_depth_loss(&ctx, lambda);
+        }
         Ok(Self {
             first_rays,
             raygen: GpuRayGen::new(&ctx, config.train_background, config.pixel_convention, config.pixel_jitter),
@@ -570,9 +578,14 @@ impl GpuEngine {
                 c.cc.record_backward(ctx, &mut enc, &color_in, &st.d_ray_rgb, &c.d_opacity);
             }
             let d_opacity = self.color.as_ref().map(|c| &c.d_opacity);
+            // Depth supervision: the expected depth against the rays' measured ones.
+            let d_depth = cfg.depth_loss.map(|_| {
+                self.compositor.record_depth_loss(ctx, &mut enc, &st.counters, &st.depth, &self.rays.depth_target, &st.d_depth, &st.depth_loss);
+                &st.d_depth
+            });
             let pb = self.packed(st);
             ctx.profile_stage("composite backward");
-            self.compositor.record_backward(ctx, &mut enc, &pb, &st.weights, &st.d_ray_rgb, d_opacity, None, &st.d_sigma, &st.d_rgb);
+            self.compositor.record_backward(ctx, &mut enc, &pb, &st.weights, &st.d_ray_rgb, d_opacity, d_depth, &st.d_sigma, &st.d_rgb);
             if cfg.distortion_loss.is_some() && i + 1 == self.stages.len() {
                 self.compositor.record_distortion(ctx, &mut enc, &pb, &st.weights, &st.d_sigma, &st.ray_loss);
             }
@@ -657,6 +670,9 @@ impl GpuEngine {
                 l += m;
                 if cfg.distortion_loss.is_some() && i == last {
                     l += ctx.read_f32(&st.ray_loss, n_rays).map_err(gerr)?.iter().map(|&x| x as f64).sum::<f64>();
+                }
+                if cfg.depth_loss.is_some() {
+                    l += ctx.read_f32(&st.depth_loss, n_rays).map_err(gerr)?.iter().map(|&x| x as f64).sum::<f64>();
                 }
                 total += c[1] as usize;
                 if i == last {

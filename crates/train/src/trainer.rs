@@ -522,9 +522,6 @@ impl Trainer {
                 Some(d) if d.len() != data.n_views() || d.iter().any(|v| v.len() != (data.width * data.height) as usize) => {
                     return Err(TrainError::Config(format!("depth maps of {} views for {} views of {}x{}", d.len(), data.n_views(), data.width, data.height)))
                 }
-                Some(_) if self.gpu.is_some() => {
-                    return Err(TrainError::Config("depth_loss trains on the CPU only for now: train with --device cpu".into()))
-                }
                 Some(_) => {}
             }
         }
