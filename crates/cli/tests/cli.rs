@@ -127,6 +127,39 @@ fn a_scene_with_masks_trains_and_a_missing_mask_is_named() {
     assert_clean_failure(&o, &["masks/1.png", "mask of frame 1", "not found"]);
 }
 
+/// A scene with depth maps (nerfstudio's `depth_file_path`, millimetres): `nerf train` says how
+/// much of the views they measure and that `depth_loss` trains on them; with it in the config the
+/// run trains on them (and says so); a missing depth map is named.
+#[test]
+fn a_scene_with_depth_maps_trains_on_them_and_a_missing_one_is_named() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let p = s.join("transforms_train.json");
+    let mut t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    std::fs::create_dir_all(s.join("depth")).unwrap();
+    for (i, f) in t["frames"].as_array_mut().unwrap().iter_mut().enumerate() {
+        f["depth_file_path"] = serde_json::json!(format!("depth/{i}.png"));
+        // 4 m on the top 10 rows of each 50×50 view, nothing below.
+        let map = image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(50, 50, |_, y| image::Luma([if y < 10 { 4000 } else { 0 }]));
+        map.save(s.join(format!("depth/{i}.png"))).unwrap();
+    }
+    std::fs::write(&p, serde_json::to_string(&t).unwrap()).unwrap();
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("the depth maps measure 20.0 % of the training views' pixels; set depth_loss"), "{}", stderr(&o));
+    let run = d.path().join("run2");
+    let cfg = run.with_extension("toml");
+    write_tiny_config(&cfg);
+    let text = std::fs::read_to_string(&cfg).unwrap();
+    std::fs::write(&cfg, format!("depth_loss = 0.1\n{text}")).unwrap();
+    let o = nerf().arg("train").arg(&s).arg("--config").arg(&cfg).arg("--out").arg(&run).args(["--quiet", "--no-renders", "--iters", "3"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("depth maps measure 20.0 % of the training views' pixels: trained on with depth_loss = 0.1"), "{}", stderr(&o));
+    std::fs::remove_file(s.join("depth/1.png")).unwrap();
+    let o = train_tiny(&s, &d.path().join("run3"), &["--iters", "1"]);
+    assert_clean_failure(&o, &["depth/1.png", "depth map of frame 1", "not found"]);
+}
+
 #[test]
 fn wrong_image_size_names_the_image() {
     let d = tempfile::tempdir().unwrap();

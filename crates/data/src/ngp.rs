@@ -23,7 +23,7 @@
 //! - **Scene box** ([`NgpBox`]): instant-ngp maps a world point `p` (the file's axes) to
 //!   `p·scale + offset` and trains inside the cube `[0.5 − aabb_scale/2, 0.5 + aabb_scale/2]³` of
 //!   that space (defaults `scale = 0.33`, `offset = [0.5, 0.5, 0.5]`, `aabb_scale = 1`: the
-//!   NeRF-synthetic cube of half-extent 1.5). A scene with any of these keys, or stored as one
+//!   NeRF-synthetic cube of half-extent 1.5; or `scale` and `offset` from an `aabb` key). A scene with any of these keys, or stored as one
 //!   `transforms.json`, gets that cube as its [`Dataset::aabb`](crate::Dataset::aabb), rays that
 //!   start [`NGP_NEAR`] (instant-ngp units) from the camera and end where they leave the cube;
 //!   split Blender scenes without the keys keep NeRF's `near = 2`, `far = 6`.
@@ -411,10 +411,14 @@ impl Default for NgpBox {
 }
 
 impl NgpBox {
-    /// Reads `scale`, `offset` and `aabb_scale` from the top level of a transforms file. `None`
-    /// when none of them is there.
+    /// Reads `scale`, `offset` and `aabb_scale` from the top level of a transforms file, or
+    /// instead of `scale` and `offset` instant-ngp's `aabb` (`[[x0, y0, z0], [x1, y1, z1]]`, the
+    /// scene's box in the file's units, as RGB-D capture tools write it): then, as instant-ngp
+    /// does, `scale` = 1 / its longest side and `offset` = `0.5 − centre·scale`, which puts that
+    /// box in the unit cube ([`NgpBox::enclosing`]; `aabb` wins over `scale` and `offset`).
+    /// `None` when none of them is there.
     pub fn parse(path: &Path, top: &Value) -> Result<Option<Self>, DataError> {
-        if ["scale", "offset", "aabb_scale"].iter().all(|k| top.get(k).is_none()) {
+        if ["scale", "offset", "aabb_scale", "aabb"].iter().all(|k| top.get(k).is_none()) {
             return Ok(None);
         }
         let invalid = |key: &str, reason: String| DataError::InvalidValue { path: path.to_path_buf(), key: key.into(), reason };
@@ -438,7 +442,25 @@ impl NgpBox {
                 <[f32; 3]>::try_from(o).map_err(|_| bad())?
             }
         };
-        Ok(Some(Self { scale: positive("scale", d.scale)?, offset, aabb_scale: positive("aabb_scale", d.aabb_scale)? }))
+        let aabb_scale = positive("aabb_scale", d.aabb_scale)?;
+        if let Some(v) = top.get("aabb") {
+            let bad = || invalid("aabb", format!("expected [[x0, y0, z0], [x1, y1, z1]] of finite numbers, a box with a side, got {v}"));
+            let corner = |c: &Value| -> Option<[f32; 3]> {
+                let a = c.as_array().filter(|a| a.len() == 3)?;
+                let x: Vec<f32> = a.iter().filter_map(Value::as_f64).map(|x| x as f32).filter(|x| x.is_finite()).collect();
+                <[f32; 3]>::try_from(x).ok()
+            };
+            let corners = v.as_array().filter(|a| a.len() == 2).ok_or_else(bad)?;
+            let (min, max) = (corner(&corners[0]).ok_or_else(bad)?, corner(&corners[1]).ok_or_else(bad)?);
+            // instant-ngp takes the sides' absolute values; a box without extent has no scale.
+            let lo: [f32; 3] = std::array::from_fn(|a| min[a].min(max[a]));
+            let hi: [f32; 3] = std::array::from_fn(|a| min[a].max(max[a]));
+            if (0..3).all(|a| hi[a] - lo[a] <= 0.0) {
+                return Err(bad());
+            }
+            return Ok(Some(Self { aabb_scale, ..Self::enclosing(&nerf_rays::Aabb { min: lo, max: hi }) }));
+        }
+        Ok(Some(Self { scale: positive("scale", d.scale)?, offset, aabb_scale }))
     }
 
     /// The smallest box of this kind (`aabb_scale = 1`) that holds `aabb`: `scale` = 1 / its
@@ -466,15 +488,15 @@ impl NgpBox {
     }
 }
 
-/// Whether a transforms file is nerfstudio's (what `ns-process-data` writes): neither of
-/// instant-ngp's `scale` and `offset`, and either `applied_transform` (written only by nerfstudio)
+/// Whether a transforms file is nerfstudio's (what `ns-process-data` writes): none of
+/// instant-ngp's `scale`, `offset` and `aabb`, and either `applied_transform` (written only by nerfstudio)
 /// or `camera_model` without `aabb_scale` (tools that write instant-ngp files with poses already
 /// scaled, as `colmap2nerf.py` does, may add `camera_model`, but always write `aabb_scale`). Such a
 /// scene gets nerfstudio's normalisation ([`NerfstudioNormalization`]) instead of instant-ngp's
 /// default placement.
 pub fn is_nerfstudio(top: &Value) -> bool {
     let has = |k: &str| top.get(k).is_some();
-    !has("scale") && !has("offset") && (has("applied_transform") || (has("camera_model") && !has("aabb_scale")))
+    !has("scale") && !has("offset") && !has("aabb") && (has("applied_transform") || (has("camera_model") && !has("aabb_scale")))
 }
 
 /// nerfstudio's normalisation of captured poses (its `nerfstudio` dataparser with the defaults

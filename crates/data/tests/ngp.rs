@@ -178,12 +178,27 @@ fn box_keys_place_instant_ngps_cube_and_rays_end_past_it() {
         }
     }
     assert!(d.far < 2.0 * 7.0, "far is the farthest corner, not arbitrarily large: {}", d.far);
+    // instant-ngp's `aabb` (the scene's box, as RGB-D capture tools write it) instead of `scale`
+    // and `offset`: scale = 1 / its longest side, its centre at 0.5; it wins over `scale`. The
+    // training cube is then the smallest cube about the box's centre that holds it.
+    for top in [
+        json!({"camera_angle_x": 0.8, "aabb": [[-1, -2, 0], [3, 1, 1]]}),
+        json!({"camera_angle_x": 0.8, "aabb": [[3, 1, 1], [-1, -2, 0]], "scale": 9.0, "applied_transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]}),
+    ] {
+        tiny_scene(dir.path(), top.clone(), [json!({}), json!({})]);
+        let d = load(dir.path(), Split::Train);
+        assert_eq!(d.ngp, Some(NgpBox { scale: 0.25, offset: [0.25, 0.625, 0.375], aabb_scale: 1.0 }), "{top}");
+        assert_eq!((d.aabb.min, d.aabb.max), ([-1.0, -2.5, -1.5], [3.0, 1.5, 2.5]), "{top}");
+        assert!(!nerf_data::ngp::is_nerfstudio(&top), "a file with `aabb` is instant-ngp's, not nerfstudio's");
+    }
 }
 
 #[test]
 fn camera_and_box_errors_name_the_file_and_the_key() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(Value, [Value; 2], &str, &str); 12] = [
+    let cases: [(Value, [Value; 2], &str, &str); 14] = [
+        (json!({"fl_x": 3.0, "aabb": [[0, 0, 0], [1, 1]]}), [json!({}), json!({})], "`aabb`", "finite numbers"),
+        (json!({"fl_x": 3.0, "aabb": [[1, 1, 1], [1, 1, 1]]}), [json!({}), json!({})], "`aabb`", "a box with a side"),
         (json!({"fl_x": 3.0, "w": 8, "h": 4}), [json!({}), json!({})], "`w`", "r_0.png is 4x4"),
         (json!({"fl_x": 3.0, "w": 4}), [json!({}), json!({})], "`h`", "missing key"),
         (json!({"fl_x": -3.0}), [json!({}), json!({})], "`fl_x`", "not positive"),
