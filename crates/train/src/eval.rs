@@ -21,6 +21,62 @@ pub struct ViewMetrics {
     /// both empty (alpha = 0) and object pixels (Blender scenes have; LLFF's photos do not).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alpha_split: Option<AlphaSplit>,
+    /// The rendered depth against the view's depth map ([`DepthError`]); `None` unless the view
+    /// has measured pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth: Option<DepthError>,
+}
+
+/// Rendered expected depth against a depth map (`Dataset::depths`: distances along the rays, in
+/// the scene's units) over the pixels it measures, as nerfstudio's depth-nerfacto reports
+/// `depth_mse`. For a set of views, each value is the mean of the views' values.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DepthError {
+    /// Mean squared difference.
+    pub mse: f64,
+    /// Mean absolute difference.
+    pub mean_abs: f64,
+    /// Share of the view's pixels with a measurement.
+    pub measured_fraction: f64,
+}
+
+impl DepthError {
+    /// The error of a rendered `depth` against the measured `target` (0: none), one value per
+    /// pixel; `None` when no pixel is measured.
+    pub fn of(depth: &[f32], target: &[f32]) -> Option<Self> {
+        let (mut sq, mut abs, mut n) = (0.0f64, 0.0f64, 0usize);
+        for (&d, &t) in depth.iter().zip(target) {
+            if t > 0.0 {
+                let e = (d - t) as f64;
+                sq += e * e;
+                abs += e.abs();
+                n += 1;
+            }
+        }
+        (n > 0).then(|| Self { mse: sq / n as f64, mean_abs: abs / n as f64, measured_fraction: n as f64 / target.len().max(1) as f64 })
+    }
+
+    /// The mean of the views' errors; `None` when no view has one.
+    pub fn mean<'a>(errors: impl Iterator<Item = &'a DepthError>) -> Option<Self> {
+        let (mut acc, mut n) = ([0.0f64; 3], 0usize);
+        for e in errors {
+            acc[0] += e.mse;
+            acc[1] += e.mean_abs;
+            acc[2] += e.measured_fraction;
+            n += 1;
+        }
+        (n > 0).then(|| Self { mse: acc[0] / n as f64, mean_abs: acc[1] / n as f64, measured_fraction: acc[2] / n as f64 })
+    }
+
+    /// One line for a report.
+    pub fn summary(&self) -> String {
+        format!(
+            "depth against the depth maps: mean |error| {:.4}, MSE {:.5} (scene units, {:.0} % of the pixels measured)",
+            self.mean_abs,
+            self.mse,
+            100.0 * self.measured_fraction
+        )
+    }
 }
 
 /// A view's error split by its ground truth's alpha ([`nerf_metrics::sse_split`]): pixels of
@@ -105,6 +161,10 @@ pub struct EvalReport {
     /// The mean of the views' error splits by ground-truth alpha ([`AlphaSplit`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alpha_split: Option<AlphaSplit>,
+    /// The mean of the views' depth errors against their depth maps ([`DepthError`]), over the
+    /// views that have measured pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth: Option<DepthError>,
     /// Seconds spent rendering and scoring.
     pub seconds: f64,
     /// Seconds spent rendering alone (ray generation excluded; on the GPU including the upload of
@@ -172,7 +232,8 @@ pub fn evaluate(
         }
         let alpha = data.images[i].chunks_exact(4).map(|p| p[3]);
         let alpha_split = AlphaSplit::of(&rgb, &opacity, gt, alpha);
-        views.push(ViewMetrics { index: i, file, psnr, ssim, alpha_split });
+        let depth = data.depths.as_ref().and_then(|d| DepthError::of(&depth, &d[i]));
+        views.push(ViewMetrics { index: i, file, psnr, ssim, alpha_split, depth });
         on_view(i + 1, data.n_views());
     }
     let n = views.len().max(1) as f64;
@@ -180,6 +241,7 @@ pub fn evaluate(
         psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
         ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
         alpha_split: AlphaSplit::mean(views.iter().filter_map(|v| v.alpha_split.as_ref())),
+        depth: DepthError::mean(views.iter().filter_map(|v| v.depth.as_ref())),
         views,
         seconds: t0.elapsed().as_secs_f64(),
         render_seconds,
@@ -188,7 +250,18 @@ pub fn evaluate(
 
 #[cfg(test)]
 mod tests {
-    use super::AlphaSplit;
+    use super::{AlphaSplit, DepthError};
+
+    #[test]
+    fn depth_error_over_the_measured_pixels() {
+        let e = DepthError::of(&[1.0, 2.0, 3.0, 9.0], &[1.5, 0.0, 2.0, 0.0]).unwrap();
+        assert!((e.mse - (0.25 + 1.0) / 2.0).abs() < 1e-12 && (e.mean_abs - 0.75).abs() < 1e-12, "{e:?}");
+        assert_eq!(e.measured_fraction, 0.5);
+        assert!(DepthError::of(&[1.0], &[0.0]).is_none(), "no measurement, no error");
+        let m = DepthError::mean([e, DepthError { mse: 0.0, mean_abs: 0.25, measured_fraction: 1.0 }].iter()).unwrap();
+        assert!((m.mean_abs - 0.5).abs() < 1e-12 && (m.measured_fraction - 0.75).abs() < 1e-12);
+        assert!(DepthError::mean(std::iter::empty()).is_none());
+    }
 
     #[test]
     fn alpha_split_of_a_small_view() {

@@ -292,6 +292,7 @@ pub fn run(
         "config": trainer.config(),
         "device_note": trainer.device_note(),
         "alpha_split": report.alpha_split,
+        "test_depth": report.depth,
         "per_view": report.views,
     });
     if let Some(c) = &corrections {
