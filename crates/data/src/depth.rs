@@ -14,7 +14,7 @@
 //! them into the distance along each pixel's unit ray from the camera centre, in the scene's
 //! units (nerfstudio's normalisation scales them with the poses), after the photo's lens
 //! resampling and `--downscale`; a resulting pixel has a depth only where every pixel it is made
-//! of has one.
+//! of has one and their depths agree ([`MAX_RELATIVE_SPREAD`]: not across a silhouette).
 
 use std::path::Path;
 
@@ -34,9 +34,15 @@ pub struct DepthSource<'a> {
 /// nerfstudio's default `depth_unit_scale_factor`: millimetres to metres.
 pub const NERFSTUDIO_DEPTH_SCALE: f64 = 1e-3;
 
+/// How far the depths a resampled pixel is made of may spread: a standard deviation above this
+/// share of their mean (a silhouette, foreground and background averaged into a depth where
+/// nothing is) leaves the pixel without a depth.
+pub const MAX_RELATIVE_SPREAD: f32 = 0.05;
+
 /// Decodes the depth image at `path` (frame `frame`, whose photo is `size`) into an RGBA-shaped
-/// buffer for the photo's resampling: per pixel `(z, 1, 0, 1)` where it has a measurement (`z`
-/// in world units) and `(0, 0, 0, 1)` where it has none. An error names the file: missing, not
+/// buffer for the photo's resampling: per pixel `(z, 1, z², 1)` where it has a measurement (`z`
+/// in world units) and `(0, 0, 0, 1)` where it has none. Resampling (bilinear, box) averages
+/// every channel, so the third keeps the second moment of what a pixel is made of. An error names the file: missing, not
 /// a single-channel 8- or 16-bit image, or of another size.
 pub(crate) fn decode(src: DepthSource<'_>, frame: usize, size: (u32, u32)) -> Result<Vec<f32>, DataError> {
     let bad = |reason: String| DataError::BadDepth { path: src.path.to_path_buf(), frame, reason };
@@ -57,19 +63,31 @@ pub(crate) fn decode(src: DepthSource<'_>, frame: usize, size: (u32, u32)) -> Re
             )))
         }
     };
-    Ok(values.into_iter().flat_map(|v| if v == 0 { [0.0, 0.0, 0.0, 1.0] } else { [(v as f64 * src.scale) as f32, 1.0, 0.0, 1.0] }).collect())
+    Ok(values
+        .into_iter()
+        .flat_map(|v| {
+            let z = (v as f64 * src.scale) as f32;
+            if v == 0 {
+                [0.0, 0.0, 0.0, 1.0]
+            } else {
+                [z, 1.0, z * z, 1.0]
+            }
+        })
+        .collect())
 }
 
 /// The depth map of a resampled, downscaled buffer from [`decode`]: per pixel the distance along
 /// its unit ray through the pixel's centre of the pinhole camera `intr` (`z·√(x² + y² + 1)`),
 /// times `scale` (the poses' normalisation), or 0 where any of the pixels it was made of had no
-/// measurement (the validity channel is below 1).
+/// measurement (the validity channel is below 1) or where their depths spread by more than
+/// [`MAX_RELATIVE_SPREAD`].
 pub(crate) fn ray_distances(px: &[f32], intr: &Intrinsics, scale: f32) -> Vec<f32> {
     let w = intr.width as usize;
     px.chunks_exact(4)
         .enumerate()
         .map(|(p, d)| {
-            if d[1] < 1.0 - 1e-6 {
+            let variance = d[2] - d[0] * d[0];
+            if d[1] < 1.0 - 1e-6 || variance > (MAX_RELATIVE_SPREAD * d[0]).powi(2) {
                 return 0.0;
             }
             let x = ((p % w) as f32 + 0.5 - intr.cx) / intr.fx;
@@ -100,15 +118,20 @@ mod tests {
     #[test]
     fn z_depths_become_distances_along_the_pixels_rays() {
         let intr = Intrinsics { width: 3, height: 2, fx: 2.0, fy: 4.0, cx: 1.5, cy: 1.0 };
-        // z = 2 everywhere but pixel 4, which a resampling mixed with a pixel without depth.
-        let mut px: Vec<f32> = (0..6).flat_map(|_| [2.0, 1.0, 0.0, 1.0]).collect();
+        // z = 2 everywhere but pixel 4, which a resampling mixed with a pixel without depth, and
+        // pixels 3 and 5, which it made of z = 1 and z = 3 (3: ¾ and ¼; 5: 2 % spread).
+        let mut px: Vec<f32> = (0..6).flat_map(|_| [2.0, 1.0, 4.0, 1.0]).collect();
         px[4 * 4 + 1] = 0.75;
+        px[4 * 3..4 * 3 + 4].copy_from_slice(&[1.5, 1.0, 0.75 + 0.25 * 9.0, 1.0]);
+        px[4 * 5..4 * 5 + 4].copy_from_slice(&[2.0, 1.0, 0.5 * (1.98f32 * 1.98 + 2.02 * 2.02), 1.0]);
         let t = ray_distances(&px, &intr, 0.5);
         // Pixel (0, 0): x = (0.5 − 1.5)/2 = −0.5, y = (0.5 − 1)/4 = −0.125.
         assert!((t[0] - 2.0 * (0.25f32 + 0.015625 + 1.0).sqrt() * 0.5).abs() < 1e-6, "{}", t[0]);
         assert_eq!(t[4], 0.0, "no depth where a source had none");
+        assert_eq!(t[3], 0.0, "no depth where the sources spread (a silhouette)");
+        assert!(t[5] > 1.0, "a 1 % spread (a slanted surface) keeps its depth");
         // Pixel (1, 0): x = 0, y = −0.125.
         assert!((t[1] - (1.0f32 + 0.015625).sqrt()).abs() < 1e-6, "{}", t[1]);
-        assert!(t.iter().enumerate().all(|(p, &v)| p == 4 || v >= 1.0), "{t:?}");
+        assert!(t.iter().enumerate().all(|(p, &v)| p == 4 || p == 3 || v >= 1.0), "{t:?}");
     }
 }

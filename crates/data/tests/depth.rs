@@ -129,3 +129,20 @@ fn bad_depth_maps_are_errors_naming_the_file() {
     });
     assert!(e.contains("frames[0].depth_path") && e.contains("expected a string"), "{e}");
 }
+
+/// Downscaling keeps no depth where a block straddles a silhouette (foreground and background
+/// averaged would put a surface where nothing is), and keeps it on either side.
+#[test]
+fn downscaled_depth_maps_drop_silhouettes() {
+    let dir = tempfile::tempdir().unwrap();
+    capture(dir.path(), "depth_path", json!({"integer_depth_scale": 0.001}));
+    // 1 m on columns 0–4, 3 m from column 5: the 2×2 blocks of columns 4–5 straddle the edge.
+    let edge = image::ImageBuffer::<image::Luma<u16>, _>::from_fn(W, H, |i, _| image::Luma([if i < 5 { 1000 } else { 3000 }]));
+    edge.save(dir.path().join("a_depth.png")).unwrap();
+    let half = load(dir.path(), 2).unwrap();
+    let t = &half.depths.as_ref().unwrap()[0];
+    for (p, &d) in t.iter().enumerate() {
+        let col = p as u32 % (W / 2);
+        assert_eq!(d == 0.0, col == 2, "pixel {p} (column {col}): {d}");
+    }
+}
