@@ -5,7 +5,7 @@ use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
 use nerf_data::{load_scene, Dataset, LoadOptions, Split};
 use nerf_field::Registry;
-use nerf_train::{evaluate, make_trainer, AlphaSplit, Checkpoint, EvalReport, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
+use nerf_train::{evaluate, make_trainer, AlphaSplit, Checkpoint, DepthError, EvalReport, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -104,6 +104,9 @@ pub struct RunMetrics {
     /// The last evaluation's error split by ground-truth alpha (scenes with empty pixels).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub alpha_split: Option<AlphaSplit>,
+    /// The last evaluation's depth error against the test views' depth maps (scenes with them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_depth: Option<DepthError>,
     /// The last evaluation's metrics per test view.
     #[serde(default)]
     pub per_view: Vec<ViewMetrics>,
@@ -370,6 +373,7 @@ pub fn train_run(
         render_fps: render_fps.get(),
         curve,
         alpha_split: report.alpha_split,
+        test_depth: report.depth,
         per_view: report.views,
         train_log,
         config_hash: plan.config_hash.clone(),
