@@ -10,7 +10,8 @@
 //!
 //! Values are z-depths (the distance along the camera's optical axis, as both tools and every
 //! RGB-D sensor store them) in the file's world units; 0 marks a pixel without a measurement.
-//! The images are single-channel 8- or 16-bit PNGs. Loading ([`crate::Dataset::depths`]) turns
+//! The images are single-channel 8- or 16-bit PNGs, of the photo's size or of its shape (a
+//! sensor's smaller map is enlarged by nearest neighbour, as nerfstudio does). Loading ([`crate::Dataset::depths`]) turns
 //! them into the distance along each pixel's unit ray from the camera centre, in the scene's
 //! units (nerfstudio's normalisation scales them with the poses), after the photo's lens
 //! resampling and `--downscale`; a resulting pixel has a depth only where every pixel it is made
@@ -42,16 +43,22 @@ pub const MAX_RELATIVE_SPREAD: f32 = 0.05;
 /// Decodes the depth image at `path` (frame `frame`, whose photo is `size`) into an RGBA-shaped
 /// buffer for the photo's resampling: per pixel `(z, 1, z², 1)` where it has a measurement (`z`
 /// in world units) and `(0, 0, 0, 1)` where it has none. Resampling (bilinear, box) averages
-/// every channel, so the third keeps the second moment of what a pixel is made of. An error names the file: missing, not
-/// a single-channel 8- or 16-bit image, or of another size.
+/// every channel, so the third keeps the second moment of what a pixel is made of. A map smaller
+/// or larger than the photo, of its shape (aspect ratios within 1 %), is first resized to it by
+/// nearest neighbour. An error names the file: missing, not a single-channel 8- or 16-bit
+/// image, or of another shape.
 pub(crate) fn decode(src: DepthSource<'_>, frame: usize, size: (u32, u32)) -> Result<Vec<f32>, DataError> {
     let bad = |reason: String| DataError::BadDepth { path: src.path.to_path_buf(), frame, reason };
     if !src.path.is_file() {
         return Err(bad("file not found".into()));
     }
     let img = crate::open_image(src.path)?.decode().map_err(|source| DataError::Decode { path: src.path.to_path_buf(), source })?;
-    if (img.width(), img.height()) != size {
-        return Err(bad(format!("it is {}x{}, its photo is {}x{}", img.width(), img.height(), size.0, size.1)));
+    let (dw, dh) = (img.width(), img.height());
+    // A depth sensor's map is often smaller than the photo (an iPhone's LiDAR: 256×192 beside a
+    // 1920×1440 photo, as Polycam and Record3D store them); of the photo's shape, it is enlarged.
+    let aspect = |w: u32, h: u32| w as f64 / h as f64;
+    if dw == 0 || dh == 0 || (aspect(dw, dh) / aspect(size.0, size.1) - 1.0).abs() > 0.01 {
+        return Err(bad(format!("it is {dw}x{dh}, its photo is {}x{}: not the photo's shape", size.0, size.1)));
     }
     let values: Vec<u32> = match img {
         image::DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(u32::from).collect(),
@@ -62,6 +69,17 @@ pub(crate) fn decode(src: DepthSource<'_>, frame: usize, size: (u32, u32)) -> Re
                 other.color()
             )))
         }
+    };
+    // Nearest neighbour to the photo's size (nerfstudio's resize of depth maps: OpenCV's
+    // INTER_NEAREST, source index ⌊i·src/dst⌋), so no depth is blended across a silhouette.
+    let values: Vec<u32> = if (dw, dh) == size {
+        values
+    } else {
+        let (w, h) = (size.0 as u64, size.1 as u64);
+        (0..h)
+            .flat_map(|j| (0..w).map(move |i| (i, j)))
+            .map(|(i, j)| values[((j * dh as u64 / h) * dw as u64 + i * dw as u64 / w) as usize])
+            .collect()
     };
     Ok(values
         .into_iter()

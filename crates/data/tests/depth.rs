@@ -121,7 +121,7 @@ fn bad_depth_maps_are_errors_naming_the_file() {
     let e = err(json!({"integer_depth_scale": 0.001}), &|d| image::RgbImage::new(W, H).save(d.join("a_depth.png")).unwrap());
     assert!(e.contains("a_depth.png") && e.contains("single-channel 8- or 16-bit"), "{e}");
     let e = err(json!({"integer_depth_scale": 0.001}), &|d| image::GrayImage::new(W, H / 2).save(d.join("a_depth.png")).unwrap());
-    assert!(e.contains("a_depth.png") && e.contains("it is 12x4, its photo is 12x8"), "{e}");
+    assert!(e.contains("a_depth.png") && e.contains("it is 12x4, its photo is 12x8: not the photo's shape"), "{e}");
     let e = err(json!({"integer_depth_scale": 0.001}), &|d| {
         let mut v: Value = serde_json::from_str(&std::fs::read_to_string(d.join("transforms.json")).unwrap()).unwrap();
         v["frames"][0]["depth_path"] = json!(7);
@@ -144,5 +144,26 @@ fn downscaled_depth_maps_drop_silhouettes() {
     for (p, &d) in t.iter().enumerate() {
         let col = p as u32 % (W / 2);
         assert_eq!(d == 0.0, col == 2, "pixel {p} (column {col}): {d}");
+    }
+}
+
+/// A depth map smaller than its photo (a phone's LiDAR beside its camera), of the photo's shape,
+/// is enlarged to it by nearest neighbour: each photo pixel takes the depth of the map's pixel
+/// that covers it.
+#[test]
+fn smaller_depth_maps_are_enlarged_to_the_photo() {
+    let dir = tempfile::tempdir().unwrap();
+    capture(dir.path(), "depth_path", json!({"integer_depth_scale": 0.001}));
+    // 3×2 map of the 12×8 photo: each map pixel covers 4×4 photo pixels; distinct z per pixel.
+    let small = image::ImageBuffer::<image::Luma<u16>, _>::from_fn(3, 2, |i, j| image::Luma([1000 + 500 * (i + 3 * j) as u16]));
+    small.save(dir.path().join("a_depth.png")).unwrap();
+    let d = load(dir.path(), 1).unwrap();
+    let k = d.cameras[0].intrinsics;
+    let t = &d.depths.as_ref().unwrap()[0];
+    for (p, &dist) in t.iter().enumerate() {
+        let (i, j) = (p as u32 % W, p as u32 / W);
+        let z = 1.0 + 0.5 * (i / 4 + 3 * (j / 4)) as f32;
+        let (x, y) = ((i as f32 + 0.5 - k.cx) / k.fx, (j as f32 + 0.5 - k.cy) / k.fy);
+        assert!((dist - z * (x * x + y * y + 1.0).sqrt()).abs() < 1e-5, "pixel ({i}, {j}): {dist} for z = {z}");
     }
 }
