@@ -10,7 +10,8 @@
 //!
 //! Values are z-depths (the distance along the camera's optical axis, as both tools and every
 //! RGB-D sensor store them) in the file's world units; 0 marks a pixel without a measurement.
-//! The images are single-channel 8- or 16-bit PNGs, of the photo's size or of its shape (a
+//! The maps are single-channel 8- or 16-bit PNGs or `.npy` arrays (nerfstudio reads both; an
+//! array's values are scaled the same way), of the photo's size or of its shape (a
 //! sensor's smaller map is enlarged by nearest neighbour, as nerfstudio does). Loading ([`crate::Dataset::depths`]) turns
 //! them into the distance along each pixel's unit ray from the camera centre, in the scene's
 //! units (nerfstudio's normalisation scales them with the poses), after the photo's lens
@@ -45,34 +46,41 @@ pub const MAX_RELATIVE_SPREAD: f32 = 0.05;
 /// in world units) and `(0, 0, 0, 1)` where it has none. Resampling (bilinear, box) averages
 /// every channel, so the third keeps the second moment of what a pixel is made of. A map smaller
 /// or larger than the photo, of its shape (aspect ratios within 1 %), is first resized to it by
-/// nearest neighbour. An error names the file: missing, not a single-channel 8- or 16-bit
-/// image, or of another shape.
+/// nearest neighbour. A `.npy` file holds the values as an array. An error names the file:
+/// missing, not a single-channel 8- or 16-bit image or a 2-D array, or of another shape.
 pub(crate) fn decode(src: DepthSource<'_>, frame: usize, size: (u32, u32)) -> Result<Vec<f32>, DataError> {
     let bad = |reason: String| DataError::BadDepth { path: src.path.to_path_buf(), frame, reason };
     if !src.path.is_file() {
         return Err(bad("file not found".into()));
     }
-    let img = crate::open_image(src.path)?.decode().map_err(|source| DataError::Decode { path: src.path.to_path_buf(), source })?;
-    let (dw, dh) = (img.width(), img.height());
+    let npy = src.path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    // Raw values (0, or not finite: no measurement) and the map's size.
+    let (dw, dh, values): (u32, u32, Vec<f64>) = if npy {
+        read_npy(src.path).map_err(bad)?
+    } else {
+        let img = crate::open_image(src.path)?.decode().map_err(|source| DataError::Decode { path: src.path.to_path_buf(), source })?;
+        let (dw, dh) = (img.width(), img.height());
+        let values = match img {
+            image::DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(f64::from).collect(),
+            image::DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(f64::from).collect(),
+            other => {
+                return Err(bad(format!(
+                    "a depth map must be a single-channel 8- or 16-bit image of integer depths (or a .npy array), this one is {:?}",
+                    other.color()
+                )))
+            }
+        };
+        (dw, dh, values)
+    };
     // A depth sensor's map is often smaller than the photo (an iPhone's LiDAR: 256×192 beside a
     // 1920×1440 photo, as Polycam and Record3D store them); of the photo's shape, it is enlarged.
     let aspect = |w: u32, h: u32| w as f64 / h as f64;
     if dw == 0 || dh == 0 || (aspect(dw, dh) / aspect(size.0, size.1) - 1.0).abs() > 0.01 {
         return Err(bad(format!("it is {dw}x{dh}, its photo is {}x{}: not the photo's shape", size.0, size.1)));
     }
-    let values: Vec<u32> = match img {
-        image::DynamicImage::ImageLuma16(b) => b.into_raw().into_iter().map(u32::from).collect(),
-        image::DynamicImage::ImageLuma8(b) => b.into_raw().into_iter().map(u32::from).collect(),
-        other => {
-            return Err(bad(format!(
-                "a depth map must be a single-channel 8- or 16-bit image of integer depths, this one is {:?}",
-                other.color()
-            )))
-        }
-    };
     // Nearest neighbour to the photo's size (nerfstudio's resize of depth maps: OpenCV's
     // INTER_NEAREST, source index ⌊i·src/dst⌋), so no depth is blended across a silhouette.
-    let values: Vec<u32> = if (dw, dh) == size {
+    let values: Vec<f64> = if (dw, dh) == size {
         values
     } else {
         let (w, h) = (size.0 as u64, size.1 as u64);
@@ -84,14 +92,40 @@ pub(crate) fn decode(src: DepthSource<'_>, frame: usize, size: (u32, u32)) -> Re
     Ok(values
         .into_iter()
         .flat_map(|v| {
-            let z = (v as f64 * src.scale) as f32;
-            if v == 0 {
-                [0.0, 0.0, 0.0, 1.0]
-            } else {
+            let z = (v * src.scale) as f32;
+            if z > 0.0 && z.is_finite() {
                 [z, 1.0, z * z, 1.0]
+            } else {
+                [0.0, 0.0, 0.0, 1.0]
             }
         })
         .collect())
+}
+
+/// A depth map stored as a NumPy array (nerfstudio reads `.npy` depth files too): `H×W` or
+/// `H×W×1`, C order, little-endian float32/float64 or unsigned 8/16/32-bit integers.
+fn read_npy(path: &Path) -> Result<(u32, u32, Vec<f64>), String> {
+    let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+    let npy = npyz::NpyFile::new(&bytes[..]).map_err(|e| format!("not a .npy array: {e}"))?;
+    let shape = npy.shape().to_vec();
+    let (h, w) = match shape[..] {
+        [h, w] | [h, w, 1] => (h, w),
+        _ => return Err(format!("expected an H×W array, got shape {shape:?}")),
+    };
+    if npy.order() != npyz::Order::C {
+        return Err("Fortran-ordered arrays are not supported".into());
+    }
+    let unreadable = |e: std::io::Error| format!("truncated or unreadable data: {e}");
+    let values: Vec<f64> = match npy.dtype().descr().trim_matches(|c| c == '\'' || c == '"') {
+        "<f4" => npy.into_vec::<f32>().map_err(unreadable)?.into_iter().map(f64::from).collect(),
+        "<f8" => npy.into_vec::<f64>().map_err(unreadable)?,
+        "<u2" => npy.into_vec::<u16>().map_err(unreadable)?.into_iter().map(f64::from).collect(),
+        "|u1" => npy.into_vec::<u8>().map_err(unreadable)?.into_iter().map(f64::from).collect(),
+        "<u4" => npy.into_vec::<u32>().map_err(unreadable)?.into_iter().map(f64::from).collect(),
+        d => return Err(format!("expected float32/64 or unsigned integer depths, got dtype {d}")),
+    };
+    let (w, h) = (u32::try_from(w).map_err(|_| "too wide")?, u32::try_from(h).map_err(|_| "too high")?);
+    Ok((w, h, values))
 }
 
 /// The depth map of a resampled, downscaled buffer from [`decode`]: per pixel the distance along

@@ -167,3 +167,37 @@ fn smaller_depth_maps_are_enlarged_to_the_photo() {
         assert!((dist - z * (x * x + y * y + 1.0).sqrt()).abs() < 1e-5, "pixel ({i}, {j}): {dist} for z = {z}");
     }
 }
+
+/// A `.npy` array of float32 values, `h×w`, as NumPy's `np.save` writes it (format 1.0).
+fn write_npy_f32(path: &Path, h: usize, w: usize, values: &[f32]) {
+    let dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({h}, {w}), }}");
+    let pad = (64 - (10 + dict.len() + 1) % 64) % 64;
+    let header = format!("{dict}{}\n", " ".repeat(pad));
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend((header.len() as u16).to_le_bytes());
+    bytes.extend(header.as_bytes());
+    values.iter().for_each(|v| bytes.extend(v.to_le_bytes()));
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// nerfstudio's `.npy` depth maps: float values times `depth_unit_scale_factor`; NaN, 0 and
+/// negative values are no measurement; a malformed array is named.
+#[test]
+fn npy_depth_maps_load_like_images() {
+    let dir = tempfile::tempdir().unwrap();
+    capture(dir.path(), "depth_path", json!({"integer_depth_scale": 0.001}));
+    let mut z = vec![3.0f32; (W * H) as usize];
+    z[(W + 2) as usize] = f32::NAN;
+    write_npy_f32(&dir.path().join("a_depth.npy"), H as usize, W as usize, &z);
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("transforms.json")).unwrap()).unwrap();
+    v["frames"][0]["depth_path"] = json!("a_depth.npy");
+    v["integer_depth_scale"] = json!(1.0);
+    write_json(&dir.path().join("transforms.json"), &v);
+    assert_on_the_plane(&load(dir.path(), 1).unwrap(), &[W + 2], 1.0);
+    write_npy_f32(&dir.path().join("a_depth.npy"), 2, (W * H / 2) as usize, &z);
+    let e = load(dir.path(), 1).unwrap_err().to_string();
+    assert!(e.contains("a_depth.npy: depth map of frame 0") && e.contains("not the photo's shape"), "{e}");
+    std::fs::write(dir.path().join("a_depth.npy"), b"not numpy").unwrap();
+    let e = load(dir.path(), 1).unwrap_err().to_string();
+    assert!(e.contains("a_depth.npy") && e.contains("not a .npy array"), "{e}");
+}
