@@ -76,7 +76,8 @@ enum Work {
 }
 
 /// Allocations outside gemm made by `work`, after `warmup` training steps of `config`; with
-/// `masked`, the training views carry masks (every other pixel kept, the first view whole).
+/// `masked`, the training views carry masks (every other pixel kept, the first view whole) and
+/// depth maps (a depth on every third pixel).
 fn allocations_not_in_gemm(config: TrainConfig, warmup: usize, work: Work, masked: bool) -> Vec<(usize, String)> {
     let _alone = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
     let mut train = common::load(Split::Train, ViewSelection::All);
@@ -84,6 +85,7 @@ fn allocations_not_in_gemm(config: TrainConfig, warmup: usize, work: Work, maske
         let n = train.width * train.height;
         let flags: Vec<Vec<bool>> = (0..train.n_views()).map(|v| (0..n).map(|p| v == 0 || p % 2 == 0).collect()).collect();
         train.masks = Some(nerf::data::PixelMasks::from_flags(n, flags.iter().map(|f| &f[..])));
+        train.depths = Some((0..train.n_views()).map(|_| (0..n).map(|p| if p % 3 == 0 { 4.0 } else { 0.0 }).collect()).collect());
     }
     let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     pool.install(|| {
@@ -200,11 +202,12 @@ fn a_hash_field_step_allocates_no_buffers() {
 }
 
 #[test]
-fn a_masked_hash_field_step_allocates_no_buffers() {
-    // Training masks: rays drawn from the kept pixels only.
+fn a_masked_depth_supervised_hash_field_step_allocates_no_buffers() {
+    // Training masks: rays drawn from the kept pixels only; depth supervision on them.
     let mut c = common::small_hash_config(100, 4, 8);
     c.target_samples_per_step = Some(1 << 14);
-    check_with("hash, masked", c, true);
+    c.depth_loss = Some(0.1);
+    check_with("hash, masked, depth-supervised", c, true);
 }
 
 #[test]
