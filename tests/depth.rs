@@ -103,15 +103,10 @@ fn train_on(config: &TrainConfig, data: &Dataset, device: Option<std::sync::Arc<
 
 /// Mean |rendered depth − true distance| over the pixels of `ds`'s views that see the ball.
 fn depth_error(t: &Trainer, ds: &Dataset) -> f64 {
-    let mut rays = nerf::data::RayBatch::default();
     let (mut sum, mut n) = (0.0, 0usize);
-    for i in 0..ds.n_views() {
-        ds.view_rays(i, nerf::data::Background::White, t.config().pixel_convention, &mut rays);
-        let m = rays.len();
-        let (mut rgb, mut op, mut depth) = (vec![0.0; 3 * m], vec![0.0; m], vec![0.0; m]);
-        t.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut op, &mut depth).unwrap();
-        for (r, &d) in depth.iter().enumerate() {
-            let (o, dir) = (Vec3::from_slice(&rays.origins[3 * r..]), Vec3::from_slice(&rays.dirs[3 * r..]));
+    for v in common::render_views(t, ds) {
+        for (r, &d) in v.depth.iter().enumerate() {
+            let (o, dir) = (Vec3::from_slice(&v.rays.origins[3 * r..]), Vec3::from_slice(&v.rays.dirs[3 * r..]));
             if let Some(truth) = hit(o, dir) {
                 sum += (d - truth).abs() as f64;
                 n += 1;

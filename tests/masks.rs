@@ -72,14 +72,9 @@ fn a_masked_out_occluder_stays_out_of_the_field() {
 
 /// Mean rendered opacity over the pixels of `ds`'s views that show the object (alpha > ½).
 fn object_opacity(t: &Trainer, ds: &Dataset) -> f64 {
-    let mut rays = nerf::data::RayBatch::default();
     let (mut sum, mut n) = (0.0, 0usize);
-    for i in 0..ds.n_views() {
-        ds.view_rays(i, nerf::data::Background::White, t.config().pixel_convention, &mut rays);
-        let m = rays.len();
-        let (mut rgb, mut op, mut depth) = (vec![0.0; 3 * m], vec![0.0; m], vec![0.0; m]);
-        t.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut op, &mut depth).unwrap();
-        for (p, &o) in op.iter().enumerate() {
+    for (i, v) in common::render_views(t, ds).iter().enumerate() {
+        for (p, &o) in v.opacity.iter().enumerate() {
             if ds.images[i][4 * p + 3] > 0.5 {
                 sum += o as f64;
                 n += 1;

@@ -77,3 +77,30 @@ pub fn sparse_psnr(t: &nerf::train::Trainer, ds: &Dataset, stride: usize) -> f64
     let mse = rgb.iter().zip(&target).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / rgb.len() as f64;
     -10.0 * mse.log10()
 }
+
+/// A field's render of every view of `ds` on white: per view its rays and the rendered
+/// `(rgb, opacity, depth)`.
+pub struct ViewRender {
+    /// The view's rays (`Dataset::view_rays`).
+    pub rays: nerf::data::RayBatch,
+    /// `3·n` composited colour.
+    pub rgb: Vec<f32>,
+    /// `n` opacities.
+    pub opacity: Vec<f32>,
+    /// `n` expected depths.
+    pub depth: Vec<f32>,
+}
+
+/// Renders every view of `ds` with `t` ([`ViewRender`] per view, in order).
+pub fn render_views(t: &nerf::train::Trainer, ds: &Dataset) -> Vec<ViewRender> {
+    (0..ds.n_views())
+        .map(|i| {
+            let mut rays = nerf::data::RayBatch::default();
+            ds.view_rays(i, nerf::data::Background::White, t.config().pixel_convention, &mut rays);
+            let m = rays.len();
+            let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * m], vec![0.0; m], vec![0.0; m]);
+            t.render_rays(&rays.origins, &rays.dirs, &rays.background, &mut rgb, &mut opacity, &mut depth).unwrap();
+            ViewRender { rays, rgb, opacity, depth }
+        })
+        .collect()
+}
