@@ -407,8 +407,9 @@ pub struct Dataset {
     pub file_paths: Vec<PathBuf>,
     /// The pixels training may draw, one mask per view ([`mask`]: nerfstudio's `mask_path`,
     /// instant-ngp's dynamic masks, and the pixels a lens's photo did not see,
-    /// [`ngp::pixels_seen`]); `None`: every pixel. When set it holds one entry per view: a dataset made from a
-    /// selection of another's views takes [`PixelMasks::select`] of its masks.
+    /// [`ngp::pixels_seen`]); `None`: every pixel. When set it holds one entry per view: a
+    /// dataset made from a selection of another's views takes [`PixelMasks::select`] of its
+    /// masks.
     pub masks: Option<PixelMasks>,
     /// Per view, per pixel (row-major, `W·H`): the measured distance along the pixel's unit ray
     /// from the camera centre to the surface, in the scene's units, 0 where there is none
