@@ -149,8 +149,9 @@ pub(crate) fn ray_distances(px: &[f32], intr: &Intrinsics, scale: f32) -> Vec<f3
         .collect()
 }
 
-/// The inverse of [`ray_distances`] (without its scale): per pixel of the pinhole camera
-/// `intr`, the z-depth `t / √(x² + y² + 1)` of a distance `t` along its ray (0 stays 0).
+/// The inverse of the loader's conversion to ray distances (without its scale): per pixel of
+/// the pinhole camera `intr`, the z-depth `t / √(x² + y² + 1)` of a distance `t` along its ray
+/// (0 stays 0).
 pub fn z_depths(t: &[f32], intr: &Intrinsics) -> Vec<f32> {
     let w = intr.width as usize;
     t.iter()
