@@ -1,7 +1,8 @@
 //! COLMAP's sparse reconstructions, read directly: a scene folder with `images/` and a model in
 //! `sparse/0/` (COLMAP's own layout) or `colmap/sparse/0/` (what nerfstudio's `ns-process-data`
 //! keeps), each model as `cameras.bin` + `images.bin` or `cameras.txt` + `images.txt`
-//! (`points3D` is not read). It is what nerfstudio's `colmap` dataparser reads.
+//! (`points3D` only for sparse depth maps, [`read_points`]). It is what nerfstudio's `colmap`
+//! dataparser reads.
 //!
 //! The model becomes the `transforms.json` that `ns-process-data` would write for it
 //! ([`transforms_json`]; nerfstudio's `colmap_utils.colmap_to_json`): per image, the
@@ -59,6 +60,24 @@ pub struct ColmapImage {
     /// The file name, relative to the images folder.
     pub name: String,
 }
+
+/// A 3-D point of the sparse reconstruction (`points3D`): where it is, its mean reprojection
+/// error and the images that observe it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ColmapPoint {
+    /// `X Y Z` in COLMAP's world.
+    pub xyz: [f64; 3],
+    /// Mean reprojection error in pixels.
+    pub error: f64,
+    /// `IMAGE_ID` of every observation (its track; an image may appear twice).
+    pub images: Vec<u32>,
+}
+
+/// nerfstudio's `create_sfm_depth` defaults: the largest reprojection error (pixels) of a point
+/// that makes depth ...
+pub const SFM_MAX_ERROR: f64 = 2.5;
+/// ... and the fewest images that must observe it.
+pub const SFM_MIN_VIEWS: usize = 2;
 
 /// A model's cameras and images, as read.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -123,6 +142,76 @@ pub fn read_model(dir: &Path) -> Result<ColmapModel, DataError> {
     };
     check(&model, &cams, &imgs)?;
     Ok(model)
+}
+
+/// The 3-D points of the model folder `dir` (`points3D.bin`, else `points3D.txt`), or `None`
+/// when it has neither. Errors name the file (truncated, malformed, non-finite coordinates).
+pub fn read_points(dir: &Path) -> Result<Option<Vec<ColmapPoint>>, DataError> {
+    let (bin, txt) = (dir.join("points3D.bin"), dir.join("points3D.txt"));
+    let read = |p: &Path| std::fs::read(p).map_err(|source| DataError::Io { path: p.to_path_buf(), source });
+    let points = if bin.is_file() {
+        read_points_bin(&bin, &read(&bin)?)?
+    } else if txt.is_file() {
+        let text = String::from_utf8(read(&txt)?).map_err(|_| bad(&txt, "not UTF-8 text"))?;
+        read_points_txt(&txt, &text)?
+    } else {
+        return Ok(None);
+    };
+    let path = if bin.is_file() { bin } else { txt };
+    if let Some(p) = points.iter().find(|p| p.xyz.iter().any(|v| !v.is_finite())) {
+        return Err(bad(&path, format!("a point at {:?}: coordinates must be finite", p.xyz)));
+    }
+    Ok(Some(points))
+}
+
+/// `points3D.bin`: `u64` count, then per point `u64` id, 3 `f64` of `X Y Z`, 3 `u8` of colour,
+/// `f64` error, `u64` track length and per observation `i32` image id, `i32` 2-D point index.
+pub fn read_points_bin(path: &Path, data: &[u8]) -> Result<Vec<ColmapPoint>, DataError> {
+    let mut b = Bytes { path, data, at: 0 };
+    let n = b.count(51, &|| "the number of points".into())?;
+    let mut out = Vec::with_capacity(n);
+    for k in 0..n {
+        let what = |s: &str| format!("point {k}'s {s}");
+        b.u64(&|| what("id"))?;
+        let mut xyz = [0.0; 3];
+        for v in &mut xyz {
+            *v = b.f64(&|| what("position"))?;
+        }
+        b.take::<3>(&|| what("colour"))?;
+        let error = b.f64(&|| what("error"))?;
+        let len = b.count(8, &|| what("track length"))?;
+        let mut images = Vec::with_capacity(len);
+        for _ in 0..len {
+            images.push(b.i32(&|| what("track"))? as u32);
+            b.i32(&|| what("track"))?;
+        }
+        out.push(ColmapPoint { xyz, error, images });
+    }
+    if b.at != data.len() {
+        return Err(bad(path, format!("{} bytes after the last of {n} points", data.len() - b.at)));
+    }
+    Ok(out)
+}
+
+/// `points3D.txt`: per line `POINT3D_ID X Y Z R G B ERROR` then `IMAGE_ID POINT2D_IDX` pairs;
+/// `#` starts a comment line.
+pub fn read_points_txt(path: &Path, text: &str) -> Result<Vec<ColmapPoint>, DataError> {
+    let mut out = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let f: Vec<&str> = line.split_whitespace().collect();
+        if f.len() < 8 || !(f.len() - 8).is_multiple_of(2) {
+            return Err(bad(path, format!("line {}: expected POINT3D_ID X Y Z R G B ERROR and IMAGE_ID POINT2D_IDX pairs, got `{line}`", i + 1)));
+        }
+        let v = numbers::<f64>(path, i + 1, &f[1..4])?;
+        let error = numbers::<f64>(path, i + 1, &f[7..8])?[0];
+        let track = numbers::<u32>(path, i + 1, &f[8..])?;
+        out.push(ColmapPoint { xyz: [v[0], v[1], v[2]], error, images: track.iter().step_by(2).copied().collect() });
+    }
+    Ok(out)
 }
 
 /// A cursor over a binary file that names the file and what it was reading when it runs out.

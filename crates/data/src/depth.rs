@@ -149,6 +149,41 @@ pub(crate) fn ray_distances(px: &[f32], intr: &Intrinsics, scale: f32) -> Vec<f3
         .collect()
 }
 
+/// A sparse depth map of the pinhole camera `cam` from 3-D points (in its world): each point in
+/// front of the camera that projects into the image sets the pixel it falls in to the distance
+/// along that pixel's ray through its centre (`z·√(x² + y² + 1)`, `z` the point's depth along the
+/// optical axis); of two points in one pixel the nearer wins; every other pixel is 0.
+pub fn sfm_depths(cam: &nerf_rays::Camera, points: impl Iterator<Item = [f64; 3]>) -> Vec<f32> {
+    let k = &cam.intrinsics;
+    let (w, h) = (k.width as usize, k.height as usize);
+    let mut out = vec![0.0f32; w * h];
+    let axis = |c: usize| cam.rotation.col(c).to_array().map(f64::from);
+    let (right, up, back) = (axis(0), axis(1), axis(2));
+    let c = cam.position.to_array().map(f64::from);
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    for p in points {
+        let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+        let z = -dot(back, d);
+        if !(z > 0.0) {
+            continue;
+        }
+        let u = k.fx as f64 * dot(right, d) / z + k.cx as f64;
+        let v = -(k.fy as f64) * dot(up, d) / z + k.cy as f64;
+        if !(u >= 0.0 && v >= 0.0 && u < w as f64 && v < h as f64) {
+            continue;
+        }
+        let (col, row) = (u.floor() as usize, v.floor() as usize);
+        let x = (col as f64 + 0.5 - k.cx as f64) / k.fx as f64;
+        let y = (row as f64 + 0.5 - k.cy as f64) / k.fy as f64;
+        let t = (z * (x * x + y * y + 1.0).sqrt()) as f32;
+        let o = &mut out[row * w + col];
+        if *o == 0.0 || t < *o {
+            *o = t;
+        }
+    }
+    out
+}
+
 /// The inverse of the loader's conversion to ray distances (without its scale): per pixel of
 /// the pinhole camera `intr`, the z-depth `t / √(x² + y² + 1)` of a distance `t` along its ray
 /// (0 stays 0).

@@ -374,16 +374,25 @@ pub struct LoadOptions {
     /// skipped. Methods that read pixels panic on such a dataset
     /// ([`Dataset::has_images`] says which it is).
     pub cameras_only: bool,
+    /// COLMAP folders ([`load_colmap`]): sparse depth maps from the reconstruction's 3-D points
+    /// (`points3D`, [`colmap::read_points`]) for depth supervision, DS-NeRF's idea and
+    /// nerfstudio's `create_sfm_depth`: each view gets the distance to the points it observes
+    /// (mean reprojection error ≤ 2.5 px, seen by at least two images), at the pixel each
+    /// projects to ([`Dataset::depths`]). Ignored where a frame has a depth map of its own, in
+    /// other formats, and with `cameras_only`.
+    #[serde(default)]
+    pub sfm_depth: bool,
 }
 
 impl Default for LoadOptions {
-    /// Full resolution, all views, NDC for forward-facing scenes.
+    /// Full resolution, all views, NDC for forward-facing scenes, no depth from the SfM points.
     fn default() -> Self {
         Self {
             downscale: 1,
             views: ViewSelection::All,
             ndc: true,
             cameras_only: false,
+            sfm_depth: false,
         }
     }
 }
@@ -1152,7 +1161,22 @@ pub fn load_colmap(root: &Path, split: Split, opts: &LoadOptions) -> Result<Data
     let model = colmap::read_model(&dir)?;
     let (cameras, images) = colmap::model_files(&dir).ok_or_else(|| DataError::Colmap { path: dir.clone(), reason: "the model files went away while it was read".into() })?;
     let json = colmap::transforms_json(&cameras, &model)?;
-    load_transforms(root, split, opts, images, &json, true)
+    // The SfM points each frame's image observes, in the frame of the transforms file.
+    let sfm = match (opts.sfm_depth && !opts.cameras_only).then(|| colmap::read_points(&dir)).transpose()?.flatten() {
+        None => None,
+        Some(points) => {
+            let mut by_image: std::collections::HashMap<u32, Vec<[f64; 3]>> = std::collections::HashMap::new();
+            for p in points.iter().filter(|p| p.error <= colmap::SFM_MAX_ERROR && p.images.len() >= colmap::SFM_MIN_VIEWS) {
+                let x: [f64; 3] = std::array::from_fn(|i| (0..3).map(|k| colmap::APPLIED_TRANSFORM[i][k] * p.xyz[k]).sum());
+                for im in &p.images {
+                    by_image.entry(*im).or_default().push(x);
+                }
+            }
+            let frames = json["frames"].as_array().expect("transforms_json writes frames");
+            Some(frames.iter().map(|f| f["colmap_im_id"].as_u64().and_then(|id| by_image.remove(&(id as u32))).unwrap_or_default()).collect::<Vec<_>>())
+        }
+    };
+    load_transforms_with(root, split, opts, images, &json, true, sfm.as_deref())
 }
 
 /// Loads one split of a Blender-format scene, or of an instant-ngp / nerfstudio scene (the same
@@ -1194,6 +1218,22 @@ pub fn load_blender(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dat
 /// whether it is a single `transforms.json` (its frames split by [`ngp::split_filenames`] or
 /// every 8th) rather than a split's own file.
 fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf, json: &Value, one_file: bool) -> Result<Dataset, DataError> {
+    load_transforms_with(root, split, opts, tpath, json, one_file, None)
+}
+
+/// [`load_transforms`] with, per frame of the file, the SfM points its image observes (in the
+/// file's frame), from which frames without a depth map get sparse ones
+/// ([`LoadOptions::sfm_depth`]).
+#[allow(clippy::too_many_arguments)]
+fn load_transforms_with(
+    root: &Path,
+    split: Split,
+    opts: &LoadOptions,
+    tpath: PathBuf,
+    json: &Value,
+    one_file: bool,
+    sfm: Option<&[Vec<[f64; 3]>]>,
+) -> Result<Dataset, DataError> {
     let missing = |key: String| DataError::MissingKey {
         path: tpath.clone(),
         key,
@@ -1436,6 +1476,21 @@ fn load_transforms(root: &Path, split: Split, opts: &LoadOptions, tpath: PathBuf
             Camera::from_c2w(intr, &f.c2w).map_err(|e| DataError::pose(&tpath, f.index, e))
         })
         .collect::<Result<Vec<_>, _>>()?;
+    // Sparse depth maps from the SfM points (COLMAP folders, `sfm_depth`), where no frame has a
+    // depth map of its own.
+    let depths = match (depths, sfm) {
+        (None, Some(points)) if !opts.cameras_only => Some(
+            frames
+                .iter()
+                .zip(&cameras)
+                .map(|(f, cam)| {
+                    let pts = points.get(f.index).map_or(&[][..], Vec::as_slice);
+                    depth::sfm_depths(cam, pts.iter().map(|&p| normalization.map_or(p, |n| n.apply_point(p))))
+                })
+                .collect(),
+        ),
+        (d, _) => d,
+    };
     let (near, far, aabb) = match &ngp_box {
         None => (2.0, 6.0, Aabb::cube(1.5)),
         Some(b) => {

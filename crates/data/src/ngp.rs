@@ -560,6 +560,12 @@ impl NerfstudioNormalization {
         serde_json::json!({ "transform": rows, "scale": self.scale })
     }
 
+    /// A point of the file's frame in the normalised one: `s·R·(p − c)`.
+    pub fn apply_point(&self, p: [f64; 3]) -> [f64; 3] {
+        let d: [f64; 3] = std::array::from_fn(|a| p[a] - self.center[a]);
+        std::array::from_fn(|i| self.scale * (0..3).map(|k| self.rotation[i][k] * d[k]).sum::<f64>())
+    }
+
     /// A camera-to-world matrix (3 or 4 rows) in the normalised frame: `R·rotation_block`,
     /// `s·R·(t − c)`; the bottom row of a 4×4 matrix is left as it is.
     pub fn apply(&self, c2w: &mut [[f32; 4]]) {

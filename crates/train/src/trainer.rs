@@ -515,7 +515,7 @@ impl Trainer {
             match &data.depths {
                 None => {
                     return Err(TrainError::Config(format!(
-                        "depth_loss is set, but the scene {} has no depth maps (nerfstudio's depth_file_path, instant-ngp's depth_path)",
+                        "depth_loss is set, but the scene {} has no depth maps (nerfstudio's depth_file_path, instant-ngp's depth_path, or a COLMAP folder's points3D)",
                         data.root.display()
                     )))
                 }
