@@ -197,18 +197,13 @@ pub fn read_points_bin(path: &Path, data: &[u8]) -> Result<Vec<ColmapPoint>, Dat
 /// `#` starts a comment line.
 pub fn read_points_txt(path: &Path, text: &str) -> Result<Vec<ColmapPoint>, DataError> {
     let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let f: Vec<&str> = line.split_whitespace().collect();
+    for (n, line, f) in data_lines(text) {
         if f.len() < 8 || !(f.len() - 8).is_multiple_of(2) {
-            return Err(bad(path, format!("line {}: expected POINT3D_ID X Y Z R G B ERROR and IMAGE_ID POINT2D_IDX pairs, got `{line}`", i + 1)));
+            return Err(bad(path, format!("line {n}: expected POINT3D_ID X Y Z R G B ERROR and IMAGE_ID POINT2D_IDX pairs, got `{line}`")));
         }
-        let v = numbers::<f64>(path, i + 1, &f[1..4])?;
-        let error = numbers::<f64>(path, i + 1, &f[7..8])?[0];
-        let track = numbers::<u32>(path, i + 1, &f[8..])?;
+        let v = numbers::<f64>(path, n, &f[1..4])?;
+        let error = numbers::<f64>(path, n, &f[7..8])?[0];
+        let track = numbers::<u32>(path, n, &f[8..])?;
         out.push(ColmapPoint { xyz: [v[0], v[1], v[2]], error, images: track.iter().step_by(2).copied().collect() });
     }
     Ok(out)
@@ -334,25 +329,29 @@ fn numbers<T: std::str::FromStr>(path: &Path, line_no: usize, fields: &[&str]) -
         .collect()
 }
 
+/// The data lines of a COLMAP text file: `(line number from 1, the trimmed line, its
+/// whitespace-separated fields)`, skipping blank lines and `#` comments.
+fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str, Vec<&str>)> {
+    text.lines().enumerate().filter_map(|(i, line)| {
+        let line = line.trim();
+        (!line.is_empty() && !line.starts_with('#')).then(|| (i + 1, line, line.split_whitespace().collect()))
+    })
+}
+
 /// `cameras.txt`: per line `CAMERA_ID MODEL WIDTH HEIGHT PARAMS...`; `#` starts a comment line.
 pub fn read_cameras_txt(path: &Path, text: &str) -> Result<Vec<ColmapCamera>, DataError> {
     let mut out = Vec::new();
-    for (i, line) in text.lines().enumerate() {
-        let line = line.trim();
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let f: Vec<&str> = line.split_whitespace().collect();
+    for (n, line, f) in data_lines(text) {
         if f.len() < 4 {
-            return Err(bad(path, format!("line {}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got `{line}`", i + 1)));
+            return Err(bad(path, format!("line {n}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS..., got `{line}`")));
         }
-        let id = numbers::<i64>(path, i + 1, &f[..1])?[0];
+        let id = numbers::<i64>(path, n, &f[..1])?[0];
         let id = camera_id(path, id, "camera id")?;
         let n_params = model_by_name(path, id, f[1])?;
-        let size = numbers::<u64>(path, i + 1, &f[2..4])?;
-        let params = numbers::<f64>(path, i + 1, &f[4..])?;
+        let size = numbers::<u64>(path, n, &f[2..4])?;
+        let params = numbers::<f64>(path, n, &f[4..])?;
         if params.len() != n_params {
-            return Err(bad(path, format!("line {}: camera {id}: {} takes {n_params} parameters, got {}", i + 1, f[1], params.len())));
+            return Err(bad(path, format!("line {n}: camera {id}: {} takes {n_params} parameters, got {}", f[1], params.len())));
         }
         out.push(ColmapCamera { id, model: f[1].into(), width: size[0], height: size[1], params });
     }
