@@ -443,6 +443,11 @@ struct ExportArgs {
     /// Seed of the `--exposure-jitter` gains and the `--pose-noise-*` changes.
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// A COLMAP folder's reconstruction points written as sparse depth maps
+    /// (`depth_file_path`, as `depth_loss` trains on them; see docs/formats.md, "Depth maps"),
+    /// for depth-nerfacto or a later `nerf train`.
+    #[arg(long = "sfm-depth")]
+    sfm_depth: bool,
 }
 
 /// Runs the command line on this process's arguments with `registry`'s fields, then returns; a
@@ -1096,6 +1101,15 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
     if a.src.canonicalize().ok() == a.dst.canonicalize().ok() {
         bail!("{}: destination must differ from the source", a.dst.display());
     }
+    if a.sfm_depth {
+        let model = nerf::data::colmap::find_model(&a.src).filter(|_| nerf::data::is_colmap(&a.src));
+        let Some(dir) = model else {
+            bail!("{}: --sfm-depth needs a COLMAP folder (images/ and a sparse model, no transforms file)", a.src.display());
+        };
+        if !dir.join("points3D.bin").is_file() && !dir.join("points3D.txt").is_file() {
+            bail!("{}: --sfm-depth: the model has no points3D.bin or points3D.txt", dir.display());
+        }
+    }
     if let Some(x) = a.exposure_jitter {
         if !(0.0..1.0).contains(&x) {
             bail!("--exposure-jitter must lie in [0, 1), got {x}");
@@ -1114,7 +1128,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
     };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: false };
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth };
         let mut ds = load_scene(&a.src, split, &opts)?;
         if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
             let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));

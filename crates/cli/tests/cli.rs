@@ -160,6 +160,85 @@ fn a_scene_with_depth_maps_trains_on_them_and_a_missing_one_is_named() {
     assert_clean_failure(&o, &["depth/1.png", "depth map of frame 1", "not found"]);
 }
 
+/// A COLMAP text model of lego_100's first 12 training views (PINHOLE, images copied beside
+/// it) with 2000 points in lego's box, each observed by the views it projects into.
+fn colmap_lego(dir: &Path) -> PathBuf {
+    let lego = repo().join("scenes/lego_100");
+    let t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(lego.join("transforms_train.json")).unwrap()).unwrap();
+    let f = 50.0 / (0.5 * t["camera_angle_x"].as_f64().unwrap()).tan();
+    let root = dir.join("colmap");
+    std::fs::create_dir_all(root.join("images")).unwrap();
+    std::fs::create_dir_all(root.join("sparse/0")).unwrap();
+    std::fs::write(root.join("sparse/0/cameras.txt"), format!("1 PINHOLE 100 100 {f} {f} 50 50\n")).unwrap();
+    // World-to-camera (OpenCV axes) of each view: R = (c2w_gl · diag(1, −1, −1))ᵀ, t = −R·c.
+    let mut views = Vec::new();
+    let mut images = String::new();
+    for (i, fr) in t["frames"].as_array().unwrap()[..12].iter().enumerate() {
+        let m = |r: usize, c: usize| fr["transform_matrix"][r][c].as_f64().unwrap();
+        let r: [[f64; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|b| m(b, a) * if a == 0 { 1.0 } else { -1.0 }));
+        let c = [m(0, 3), m(1, 3), m(2, 3)];
+        let tr: [f64; 3] = std::array::from_fn(|a| -(0..3).map(|k| r[a][k] * c[k]).sum::<f64>());
+        // The rotation's quaternion (w, x, y, z), w > 0: none of these views turns by a half turn,
+        // where this formula would not hold.
+        let w = (1.0 + r[0][0] + r[1][1] + r[2][2]).max(0.0).sqrt() / 2.0;
+        assert!(w > 1e-3, "view {i}: a half-turn rotation");
+        let q = [w, (r[2][1] - r[1][2]) / (4.0 * w), (r[0][2] - r[2][0]) / (4.0 * w), (r[1][0] - r[0][1]) / (4.0 * w)];
+        let name = format!("view_{i:03}.png");
+        let rel = fr["file_path"].as_str().unwrap().trim_start_matches("./");
+        std::fs::copy(lego.join(format!("{rel}.png")), root.join("images").join(&name)).unwrap();
+        images += &format!("{} {} {} {} {} {} {} {} 1 {name}\n\n", i + 1, q[0], q[1], q[2], q[3], tr[0], tr[1], tr[2]);
+        views.push((r, tr));
+    }
+    std::fs::write(root.join("sparse/0/images.txt"), images).unwrap();
+    let mut points = String::new();
+    let mut state = 7u64;
+    let mut rnd = || {
+        state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64 * 1.4 - 0.7
+    };
+    for k in 0..2000 {
+        let x = [rnd(), rnd(), rnd()];
+        let track: Vec<String> = views
+            .iter()
+            .enumerate()
+            .filter(|(_, (r, tr))| {
+                let xc: [f64; 3] = std::array::from_fn(|a| (0..3).map(|b| r[a][b] * x[b]).sum::<f64>() + tr[a]);
+                let (u, v) = (f * xc[0] / xc[2] + 50.0, f * xc[1] / xc[2] + 50.0);
+                xc[2] > 0.0 && (0.0..100.0).contains(&u) && (0.0..100.0).contains(&v)
+            })
+            .map(|(i, _)| format!("{} 0", i + 1))
+            .collect();
+        points += &format!("{} {} {} {} 128 128 128 0.5 {}\n", k + 1, x[0], x[1], x[2], track.join(" "));
+    }
+    std::fs::write(root.join("sparse/0/points3D.txt"), points).unwrap();
+    root
+}
+
+/// `nerf export-scene --sfm-depth` writes a COLMAP folder's points as sparse depth maps beside
+/// the images (what `nerf train` with `depth_loss` trains on, and depth-nerfacto reads); on a
+/// scene that is not a COLMAP folder it says so.
+#[test]
+fn export_scene_writes_sfm_depth_maps_of_a_colmap_folder() {
+    let d = tempfile::tempdir().unwrap();
+    let src = colmap_lego(d.path());
+    let dst = d.path().join("out");
+    let o = nerf().arg("export-scene").arg(&src).arg(&dst).args(["--downscale", "1", "--test-views", "first:1", "--sfm-depth"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dst.join("transforms_train.json")).unwrap()).unwrap();
+    assert!(t["depth_unit_scale_factor"].as_f64().is_some_and(|s| s > 0.0), "{t}");
+    let frames = t["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 10, "12 views, every 8th a test view");
+    let map = image::open(dst.join(frames[0]["depth_file_path"].as_str().unwrap())).unwrap().into_luma16();
+    let measured = map.pixels().filter(|p| p[0] > 0).count();
+    assert!(measured > 100 && measured < 5000, "{measured} measured pixels of 10 000: sparse");
+    // Without --sfm-depth: no depth maps; on a scene that is not a COLMAP folder: an error.
+    let plain = d.path().join("plain");
+    let o = nerf().arg("export-scene").arg(&src).arg(&plain).args(["--downscale", "1", "--test-views", "first:1"]).output().unwrap();
+    assert!(o.status.success() && !std::fs::read_to_string(plain.join("transforms_train.json")).unwrap().contains("depth_file_path"));
+    let o = nerf().arg("export-scene").arg(repo().join("scenes/lego_100")).arg(d.path().join("x")).arg("--sfm-depth").output().unwrap();
+    assert_clean_failure(&o, &["lego_100", "--sfm-depth needs a COLMAP folder"]);
+}
+
 #[test]
 fn wrong_image_size_names_the_image() {
     let d = tempfile::tempdir().unwrap();

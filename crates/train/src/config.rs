@@ -150,7 +150,8 @@ pub struct TrainConfig {
     /// Weight λ of depth supervision on every stage (`nerf_render::depth_loss_grad`): `λ · mean
     /// over rays of |expected depth − measured depth|`, the measured depth coming from the
     /// scene's depth maps (`Dataset::depths`: nerfstudio's `depth_file_path`, instant-ngp's
-    /// `depth_path`) where a pixel has one. Distances are in the scene's units. `None` (the
+    /// `depth_path`, or a COLMAP folder's points, `LoadOptions::sfm_depth`) where a pixel has
+    /// one. Distances are in the scene's units. `None` (the
     /// default) = off; set, the scene must have depth maps. Must be positive.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_loss: Option<f32>,
