@@ -534,6 +534,15 @@ impl Dataset {
         self.cameras.len()
     }
 
+    /// What is wrong with [`Dataset::depths`] when its maps are not one per view of `W·H`
+    /// values (`None`: they fit, or there are none).
+    pub fn depths_mismatch(&self) -> Option<String> {
+        let d = self.depths.as_ref()?;
+        let n = (self.width * self.height) as usize;
+        (d.len() != self.n_views() || d.iter().any(|v| v.len() != n))
+            .then(|| format!("depth maps of {} views for {} views of {}x{}", d.len(), self.n_views(), self.width, self.height))
+    }
+
     /// Whether the views' pixels were loaded (false after [`LoadOptions::cameras_only`]).
     pub fn has_images(&self) -> bool {
         self.images.first().is_some_and(|img| !img.is_empty())
@@ -1402,6 +1411,13 @@ fn load_transforms_with(
         Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
     };
     let (w0, h0, images) = decode_views_with(&paths, k, &undistort, opts.cameras_only)?;
+    // Each view's pinhole intrinsics at the stored size, and its camera at the loaded one.
+    let intrinsics = frames.iter().map(|f| f.lens.intrinsics(&tpath, &f.image, w0, h0)).collect::<Result<Vec<_>, _>>()?;
+    let cameras = frames
+        .iter()
+        .zip(&intrinsics)
+        .map(|(f, intr)| Camera::from_c2w(intr.downscaled(k), &f.c2w).map_err(|e| DataError::pose(&tpath, f.index, e)))
+        .collect::<Result<Vec<_>, _>>()?;
     // nerfstudio's masks, else instant-ngp's dynamic masks where any of the split's photos has
     // one (looked for only where pixels are loaded).
     let dynamic: Vec<Option<PathBuf>> = match frames[0].mask {
@@ -1413,12 +1429,11 @@ fn load_transforms_with(
     let mut lenses: Vec<(Intrinsics, Distortion, Option<Seen>)> = Vec::new();
     let mut seen = Vec::new();
     if !opts.cameras_only {
-        for f in &frames {
+        for (f, &intr) in frames.iter().zip(&intrinsics) {
             if f.lens.distortion.is_identity() {
                 seen.push(None);
                 continue;
             }
-            let intr = f.lens.intrinsics(&tpath, &f.image, w0, h0)?;
             let d = f.lens.distortion;
             let s = match lenses.iter().find(|(i, l, _)| (*i, *l) == (intr, d)) {
                 Some((_, _, s)) => s.clone(),
@@ -1463,19 +1478,11 @@ fn load_transforms_with(
                 let Some((path, scale)) = &f.depth else { return Ok(vec![0.0; ((w0 / k) * (h0 / k)) as usize]) };
                 let px = depth::decode(depth::DepthSource { path, scale: *scale }, f.index, (w0, h0))?;
                 let px = downscale_rgba(&undistort(i, path, w0, h0, px)?, w0 as usize, h0 as usize, k as usize);
-                let intr = f.lens.intrinsics(&tpath, &f.image, w0, h0)?.downscaled(k);
-                Ok(depth::ray_distances(&px, &intr, units))
+                Ok(depth::ray_distances(&px, &cameras[i].intrinsics, units))
             })
             .collect();
         Some(maps.into_iter().collect::<Result<Vec<_>, _>>()?)
     };
-    let cameras = frames
-        .iter()
-        .map(|f| {
-            let intr = f.lens.intrinsics(&tpath, &f.image, w0, h0)?.downscaled(k);
-            Camera::from_c2w(intr, &f.c2w).map_err(|e| DataError::pose(&tpath, f.index, e))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
     // Sparse depth maps from the SfM points (COLMAP folders, `sfm_depth`), where no frame has a
     // depth map of its own.
     let depths = match (depths, sfm) {
@@ -1868,12 +1875,8 @@ pub fn write_blender(
             reason: format!("masks of {} views of {} pixels for {} views of {}x{}", m.n_views(), m.n_pixels(), ds.n_views(), ds.width, ds.height),
         });
     }
-    if let Some(d) = ds.depths.as_ref().filter(|d| d.len() != ds.n_views() || d.iter().any(|v| v.len() != (ds.width * ds.height) as usize)) {
-        return Err(DataError::InvalidValue {
-            path: ds.root.clone(),
-            key: "depths".into(),
-            reason: format!("depth maps of {} views for {} views of {}x{}", d.len(), ds.n_views(), ds.width, ds.height),
-        });
+    if let Some(reason) = ds.depths_mismatch() {
+        return Err(DataError::InvalidValue { path: ds.root.clone(), key: "depths".into(), reason });
     }
     if ds.ndc.is_some() {
         return Err(DataError::InvalidValue {

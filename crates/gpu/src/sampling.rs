@@ -207,8 +207,8 @@ impl GpuImages {
         let depths: Vec<f32> = match &dataset.depths {
             None => vec![0.0],
             Some(d) => {
-                if d.len() != n_views || d.iter().any(|v| v.len() != w * h) {
-                    return Err(GpuError::Unsupported(format!("dataset {name}: depth maps of {} views for {n_views} views of {w}x{h}", d.len())));
+                if let Some(reason) = dataset.depths_mismatch() {
+                    return Err(GpuError::Unsupported(format!("dataset {name}: {reason}")));
                 }
                 if 4 * (n_views * w * h) as u64 > limit {
                     return Err(GpuError::Unsupported(format!(

@@ -519,10 +519,11 @@ impl Trainer {
                         data.root.display()
                     )))
                 }
-                Some(d) if d.len() != data.n_views() || d.iter().any(|v| v.len() != (data.width * data.height) as usize) => {
-                    return Err(TrainError::Config(format!("depth maps of {} views for {} views of {}x{}", d.len(), data.n_views(), data.width, data.height)))
+                Some(_) => {
+                    if let Some(reason) = data.depths_mismatch() {
+                        return Err(TrainError::Config(reason));
+                    }
                 }
-                Some(_) => {}
             }
         }
         if !self.seen_marked {
