@@ -638,22 +638,21 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
         eprintln!("note: {}: aabb_scale {}: {}", a.scene.display(), b.aabb_scale, large_box_note(&config, &SceneBounds::of(&train)));
     }
     eprintln!(
-        "training `{}` on {} ({} train views, {} test views, {}x{}) -> {}",
+        "training `{}` on {} ({} train views, {} test views, {}) -> {}",
         config.field,
         a.scene.display(),
         train.n_views(),
         test.n_views(),
-        train.width,
-        train.height,
+        train.size_label(),
         a.out.display()
     );
-    if let Some(m) = &train.masks {
-        let all = train.n_views() as f64 * train.width as f64 * train.height as f64;
+    // Shares of the views' own pixels (views of several sizes: not of their canvas).
+    let all = train.n_view_pixels() as f64;
+    if let Some(m) = train.masks.as_ref().filter(|m| (m.total() as f64) < all) {
         eprintln!("training masks keep {:.1} % of the training views' pixels", 100.0 * m.total() as f64 / all);
     }
     if let Some(d) = &train.depths {
         let measured = d.iter().flatten().filter(|&&t| t > 0.0).count() as f64;
-        let all = train.n_views() as f64 * train.width as f64 * train.height as f64;
         match config.depth_loss {
             Some(l) => eprintln!("depth maps measure {:.1} % of the training views' pixels: trained on with depth_loss = {l}", 100.0 * measured / all),
             None => eprintln!(
@@ -1147,7 +1146,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
             write_json("exposure_gains.json", serde_json::json!({ "amount": typed(x)?, "seed": a.seed, "gains": gains }))?;
         }
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;
-        println!("{:?}: {} views at {}x{} -> {}", split, ds.n_views(), ds.width, ds.height, a.dst.display());
+        println!("{:?}: {} views at {} -> {}", split, ds.n_views(), ds.size_label(), a.dst.display());
     }
     Ok(())
 }

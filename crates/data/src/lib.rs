@@ -404,13 +404,19 @@ pub struct Dataset {
     pub root: PathBuf,
     /// Which split this is.
     pub split: Split,
-    /// Image width (after downscaling).
+    /// Image width (after downscaling). Views of different sizes (a capture with several
+    /// cameras, portrait and landscape photos) are held on one canvas of the largest width and
+    /// height: each view's own size is its camera's ([`Dataset::view_size`]), its pixels sit in
+    /// the canvas's top-left corner, and the rest of its canvas is masked out of training
+    /// ([`Dataset::masks`]).
     pub width: u32,
-    /// Image height (after downscaling).
+    /// Image height (after downscaling; the canvas's, see [`Dataset::width`]).
     pub height: u32,
     /// One camera per view.
     pub cameras: Vec<Camera>,
-    /// Per view: RGBA, row-major, straight (not premultiplied) alpha, values in `[0, 1]` (= u8/255).
+    /// Per view: RGBA, row-major at the canvas's stride (`4·W·H` values; past a smaller view's
+    /// own width and height transparent black), straight (not premultiplied) alpha, values in
+    /// `[0, 1]` (= u8/255).
     pub images: Vec<Vec<f32>>,
     /// Per view: the image file it was loaded from.
     pub file_paths: Vec<PathBuf>,
@@ -541,6 +547,55 @@ impl Dataset {
         let n = (self.width * self.height) as usize;
         (d.len() != self.n_views() || d.iter().any(|v| v.len() != n))
             .then(|| format!("depth maps of {} views for {} views of {}x{}", d.len(), self.n_views(), self.width, self.height))
+    }
+
+    /// View `i`'s own width and height (its camera's): [`Dataset::width`] × [`Dataset::height`]
+    /// unless the views differ in size.
+    pub fn view_size(&self, i: usize) -> (u32, u32) {
+        let k = &self.cameras[i].intrinsics;
+        (k.width, k.height)
+    }
+
+    /// The views' sizes for people: `WxH`, or the distinct sizes in order of first appearance
+    /// (`300x400 and 400x300`; the first three and a count past them).
+    pub fn size_label(&self) -> String {
+        let mut sizes: Vec<(u32, u32)> = Vec::new();
+        for i in 0..self.n_views() {
+            if !sizes.contains(&self.view_size(i)) {
+                sizes.push(self.view_size(i));
+            }
+        }
+        let names: Vec<String> = sizes.iter().take(3).map(|(w, h)| format!("{w}x{h}")).collect();
+        match sizes.len() {
+            0 => format!("{}x{}", self.width, self.height),
+            1 => names[0].clone(),
+            2 => names.join(" and "),
+            3 => format!("{}, {} and {}", names[0], names[1], names[2]),
+            n => format!("{} and {} more sizes", names.join(", "), n - 3),
+        }
+    }
+
+    /// The pixels of all views at their own sizes ([`Dataset::view_size`]).
+    pub fn n_view_pixels(&self) -> u64 {
+        (0..self.n_views()).map(|i| self.view_size(i)).map(|(w, h)| u64::from(w) * u64::from(h)).sum()
+    }
+
+    /// The part of a per-pixel canvas array of view `i` (`per_pixel` values per pixel, rows at
+    /// the canvas's stride, e.g. [`Dataset::images`] with 4 or [`Dataset::depths`] with 1) that
+    /// covers the view's own pixels ([`Dataset::view_size`]), row-major at its own width;
+    /// borrowed when the view fills the canvas.
+    ///
+    /// # Panics
+    /// If `values` is not `per_pixel·W·H` long.
+    pub fn view_crop<'a, T: Clone>(&self, i: usize, per_pixel: usize, values: &'a [T]) -> std::borrow::Cow<'a, [T]> {
+        let (cw, ch) = (self.width as usize, self.height as usize);
+        assert_eq!(values.len(), per_pixel * cw * ch, "view_crop: not {per_pixel} values per pixel of a {cw}x{ch} canvas");
+        let (w, h) = self.view_size(i);
+        let (w, h) = (w as usize, h as usize);
+        if w == cw {
+            return std::borrow::Cow::Borrowed(&values[..per_pixel * w * h]);
+        }
+        std::borrow::Cow::Owned(values.chunks_exact(per_pixel * cw).take(h).flat_map(|r| r[..per_pixel * w].iter().cloned()).collect())
     }
 
     /// Whether the views' pixels were loaded (false after [`LoadOptions::cameras_only`]).
@@ -733,9 +788,9 @@ impl Dataset {
             });
     }
 
-    /// Every pixel of view `i`, row-major, composited on the given fixed background
-    /// (White/Black; Random → treated as White). Fills `out` (reusing allocations); parallel over
-    /// rows.
+    /// Every pixel of view `i` (its own size, [`Dataset::view_size`]), row-major, composited on
+    /// the given fixed background (White/Black; Random → treated as White). Fills `out` (reusing
+    /// allocations; `pixel_ids` index the canvas, `row·W + col`); parallel over rows.
     ///
     /// # Panics
     /// If `i >= n_views()`, or if the dataset was loaded without its pixels.
@@ -759,7 +814,8 @@ impl Dataset {
     pub fn view_rays_at(&self, i: usize, background: Background, offset: [f32; 2], out: &mut RayBatch) {
         assert!(i < self.n_views(), "view index {i} out of range");
         self.expect_pixels("view_rays");
-        let (w, h) = (self.width as usize, self.height as usize);
+        let (w, h) = self.view_size(i);
+        let (w, h, cw) = (w as usize, h as usize, self.width as usize);
         out.resize(w * h);
         let bg = background.fixed_rgb();
         let cam = &self.cameras[i];
@@ -777,7 +833,7 @@ impl Dataset {
             .for_each(|(row, (o, d, t, b, vi, pi))| {
                 for col in 0..w {
                     let ray = self.warp(cam.ray_at(col as f32 + offset[0], row as f32 + offset[1]));
-                    let pix = row * w + col;
+                    let pix = row * cw + col;
                     let s = 3 * col..3 * col + 3;
                     o[s.clone()].copy_from_slice(&ray.origin.to_array());
                     d[s.clone()].copy_from_slice(&ray.dir.to_array());
@@ -789,14 +845,15 @@ impl Dataset {
             });
     }
 
-    /// The view's RGB image composited on `background` (Random → White), `3·W·H` long.
+    /// The view's RGB image composited on `background` (Random → White), `3·w·h` long for its
+    /// own size `(w, h)` ([`Dataset::view_size`]).
     ///
     /// # Panics
     /// If `i >= n_views()`, or if the dataset was loaded without its pixels.
     pub fn view_rgb(&self, i: usize, background: Background) -> Vec<f32> {
         self.expect_pixels("view_rgb");
         let bg = background.fixed_rgb();
-        let img = &self.images[i];
+        let img = self.view_crop(i, 4, &self.images[i]);
         let mut out = vec![0.0f32; img.len() / 4 * 3];
         for (px, o) in img.chunks_exact(4).zip(out.chunks_exact_mut(3)) {
             composite(px, bg, o);
@@ -1013,7 +1070,31 @@ fn image_size(path: &Path) -> Result<(u32, u32), DataError> {
 /// `cameras_only` ([`LoadOptions::cameras_only`]) each image's size comes from its header, the
 /// same checks run, and every view's pixels are left empty (`fix` is not called).
 fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
-    let decoded: Vec<Result<Decoded, DataError>> = paths
+    let decoded = decode_each(paths, k, fix, cameras_only)?;
+    let (w, h, _) = decoded[0];
+    let mut images = Vec::with_capacity(decoded.len());
+    for (i, (vw, vh, px)) in decoded.into_iter().enumerate() {
+        if (vw, vh) != (w, h) {
+            return Err(DataError::SizeMismatch {
+                path: paths[i].to_path_buf(),
+                width: vw,
+                height: vh,
+                first: paths[0].to_path_buf(),
+                first_width: w,
+                first_height: h,
+            });
+        }
+        images.push(px);
+    }
+    Ok((w, h, images))
+}
+
+/// Decodes `paths` in parallel, applies `fix` and downscales each by `k`, which must divide
+/// its size: per image its size before downscaling and its pixels (empty with `cameras_only`,
+/// the size then read from the header). An error names the first failing image in order.
+fn decode_each(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool) -> Result<Vec<Decoded>, DataError> {
+    assert!(!paths.is_empty(), "decoding no images");
+    paths
         .par_iter()
         .enumerate()
         .map(|(i, &path)| {
@@ -1039,50 +1120,32 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
             let px = fix(i, path, w, h, px)?;
             Ok((w, h, downscale_rgba(&px, w as usize, h as usize, k as usize)))
         })
-        .collect();
-    let mut images = Vec::with_capacity(decoded.len());
-    let mut size: Option<(u32, u32, &Path)> = None;
-    for (&path, d) in paths.iter().zip(decoded) {
-        let (w, h, px) = d?;
-        match size {
-            None => size = Some((w, h, path)),
-            Some((fw, fh, first)) if (fw, fh) != (w, h) => {
-                return Err(DataError::SizeMismatch {
-                    path: path.to_path_buf(),
-                    width: w,
-                    height: h,
-                    first: first.to_path_buf(),
-                    first_width: fw,
-                    first_height: fh,
-                })
-            }
-            _ => {}
-        }
-        images.push(px);
-    }
-    let (w, h, _) = size.expect("at least one view");
-    Ok((w, h, images))
+        .collect::<Vec<_>>()
+        .into_iter()
+        .collect()
 }
 
 /// Which pixels of a lens's pinhole images its photos saw ([`ngp::pixels_seen`]), shared by
 /// the frames of that lens.
 type Seen = Arc<Vec<bool>>;
 
-/// The training masks of `frames` ([`mask`]) from `sources`: each mask must be the size of the
-/// frames' images (`size`, before downscaling). A pixel is kept where the mask's value (grey, or
+/// The training masks of `frames` ([`mask`]) from `sources`: each mask must be the size of its
+/// frame's image (`sizes`, before downscaling). A pixel is kept where the mask's value (grey, or
 /// any colour channel) is not 0 (`mask_path`), or where it is 0 (instant-ngp's dynamic masks).
 /// The masks go through the images' lens resampling (`fix`), then drop the pixels their photo
 /// did not see (`seen`, one per frame or empty: [`ngp::pixels_seen`]), then `k`× downscaling,
 /// and a resulting pixel is kept only where every mask pixel it draws on is: training never
-/// reads a masked-out pixel, even in part. An error names the first failing mask in order.
+/// reads a masked-out pixel, even in part. Per view, the ascending indices of its kept pixels in
+/// its own downscaled image (`None`: every pixel; views whose only mask is their lens's share
+/// one list). An error names the first failing mask in order.
 fn decode_masks(
     frames: &[&Frame],
     sources: &[MaskSource],
     seen: &[Option<Seen>],
-    size: (u32, u32),
+    sizes: &[(u32, u32)],
     k: u32,
     fix: &ImageFix,
-) -> Result<PixelMasks, DataError> {
+) -> Result<Vec<Option<Arc<[u32]>>>, DataError> {
     for (f, src) in frames.iter().zip(sources) {
         if let MaskSource::Keep(p) | MaskSource::Drop(p) = src {
             if !p.is_file() {
@@ -1090,11 +1153,9 @@ fn decode_masks(
             }
         }
     }
-    let n_pixels = (size.0 / k) * (size.1 / k);
-    let (w, h) = size;
-    // A mask (1 kept, 0 dropped, in every channel) without the pixels its photo did not see,
-    // downscaled, as the indices of its kept pixels.
-    let kept_of = |mut px: Vec<f32>, seen: Option<&Vec<bool>>| -> Arc<[u32]> {
+    // A mask (1 kept, 0 dropped, in every channel) of a `(w, h)` image without the pixels its
+    // photo did not see, downscaled, as the indices of its kept pixels (`None`: all of them).
+    let kept_of = |mut px: Vec<f32>, (w, h): (u32, u32), seen: Option<&Vec<bool>>| -> Option<Arc<[u32]>> {
         if let Some(seen) = seen {
             px.chunks_exact_mut(4).zip(seen).filter(|(_, &s)| !s).for_each(|(p, _)| p.fill(0.0));
         }
@@ -1102,29 +1163,31 @@ fn decode_masks(
         // Bilinear resampling and box averages of 1s give 1 up to rounding; a value mixed with a
         // 0 is at most 1 − 1/k² (box) or 1 − w for the 0's bilinear weight w (kept only for
         // w < 10⁻⁶).
-        px.chunks_exact(4).enumerate().filter(|(_, p)| p[0] >= 1.0 - 1e-6).map(|(j, _)| j as u32).collect()
+        let kept: Vec<u32> = px.chunks_exact(4).enumerate().filter(|(_, p)| p[0] >= 1.0 - 1e-6).map(|(j, _)| j as u32).collect();
+        (kept.len() < px.len() / 4).then(|| Arc::from(kept))
     };
-    // Views whose only mask is their lens's share one list per lens.
-    let mut by_lens: Vec<(&Seen, Arc<[u32]>)> = Vec::new();
-    for (src, s) in sources.iter().zip(seen) {
+    // Views whose only mask is their lens's share one list per lens (a lens's pixels are those
+    // of one image size).
+    let mut by_lens: Vec<(&Seen, Option<Arc<[u32]>>)> = Vec::new();
+    for ((src, s), &size) in sources.iter().zip(seen).zip(sizes) {
         if let (MaskSource::All, Some(s)) = (src, s) {
             if !by_lens.iter().any(|(l, _)| Arc::ptr_eq(l, s)) {
-                by_lens.push((s, kept_of(vec![1.0; 4 * (w * h) as usize], Some(s))));
+                by_lens.push((s, kept_of(vec![1.0; 4 * (size.0 * size.1) as usize], size, Some(s))));
             }
         }
     }
-    // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels
-    // (a view that keeps every pixel is stored as such by `PixelMasks::with_shared_views`).
+    // One mask at a time per thread, down to its kept indices: no view's mask is held as pixels.
     let kept: Vec<Result<Option<Arc<[u32]>>, DataError>> = sources
         .par_iter()
         .enumerate()
         .map(|(i, &src)| {
             let seen = seen.get(i).and_then(Option::as_ref);
+            let (w, h) = sizes[i];
             let px = match src {
-                MaskSource::All => return Ok(seen.map(|s| by_lens.iter().find(|(l, _)| Arc::ptr_eq(l, s)).expect("listed above").1.clone())),
+                MaskSource::All => return Ok(seen.and_then(|s| by_lens.iter().find(|(l, _)| Arc::ptr_eq(l, s)).expect("listed above").1.clone())),
                 MaskSource::Keep(path) | MaskSource::Drop(path) => {
                     let (mw, mh, mut px) = decode_rgba(path)?;
-                    if (mw, mh) != size {
+                    if (mw, mh) != (w, h) {
                         return Err(DataError::BadMask {
                             path: path.to_path_buf(),
                             frame: frames[i].index,
@@ -1139,10 +1202,80 @@ fn decode_masks(
                     fix(i, path, w, h, px)?
                 }
             };
-            Ok(Some(kept_of(px, seen.map(|s| &**s))))
+            Ok(kept_of(px, (w, h), seen.map(|s| &**s)))
         })
         .collect();
-    Ok(PixelMasks::with_shared_views(n_pixels, kept.into_iter().collect::<Result<Vec<_>, _>>()?))
+    kept.into_iter().collect()
+}
+
+/// Views of different sizes on one canvas ([`Dataset::width`] × [`Dataset::height`], the
+/// largest width and height): `sizes` are the views' (loaded) sizes. Each view's pixels,
+/// depth map and kept-pixel list are moved to the canvas's top-left corner, row by row; the
+/// pixels past a view's own width or height are transparent black, have no depth, and are
+/// dropped from its training mask. Returns the masks on the canvas: `masks` moved, or, where
+/// there were none, masks that keep each view's own pixels (one list per size, shared by its
+/// views).
+fn to_canvas(
+    sizes: &[(u32, u32)],
+    canvas: (u32, u32),
+    images: &mut [Vec<f32>],
+    depths: Option<&mut Vec<Vec<f32>>>,
+    masks: Option<Vec<Option<Arc<[u32]>>>>,
+) -> PixelMasks {
+    let (cw, ch) = (canvas.0 as usize, canvas.1 as usize);
+    // `values` per pixel of a `w`-wide image, its rows at the canvas's stride.
+    fn widen<T: Copy + Default>(src: &[T], w: usize, per_pixel: usize, (cw, ch): (usize, usize)) -> Vec<T> {
+        let mut out = vec![T::default(); per_pixel * cw * ch];
+        for (row, r) in src.chunks_exact(per_pixel * w).enumerate() {
+            out[per_pixel * row * cw..][..per_pixel * w].copy_from_slice(r);
+        }
+        out
+    }
+    let small = |v: usize| (sizes[v].0 as usize, sizes[v].1 as usize) != (cw, ch);
+    for (v, img) in images.iter_mut().enumerate() {
+        if small(v) && !img.is_empty() {
+            *img = widen(img, sizes[v].0 as usize, 4, (cw, ch));
+        }
+    }
+    if let Some(d) = depths {
+        for (v, map) in d.iter_mut().enumerate() {
+            if small(v) {
+                *map = widen(map, sizes[v].0 as usize, 1, (cw, ch));
+            }
+        }
+    }
+    // Lists moved once each (a shared list stays shared), and each size's list of every pixel.
+    let mut moved: Vec<(*const [u32], Arc<[u32]>)> = Vec::new();
+    let mut whole: Vec<((u32, u32), Arc<[u32]>)> = Vec::new();
+    let kept = (0..sizes.len())
+        .map(|v| {
+            let list = masks.as_ref().and_then(|m| m[v].clone());
+            if !small(v) {
+                return list;
+            }
+            let w = sizes[v].0;
+            let to_canvas = |p: u32| (p / w) * canvas.0 + p % w;
+            Some(match list {
+                Some(l) => match moved.iter().find(|(p, _)| std::ptr::eq(*p, &*l)) {
+                    Some((_, m)) => m.clone(),
+                    None => {
+                        let m: Arc<[u32]> = l.iter().map(|&p| to_canvas(p)).collect();
+                        moved.push((Arc::as_ptr(&l), m.clone()));
+                        m
+                    }
+                },
+                None => match whole.iter().find(|(s, _)| *s == sizes[v]) {
+                    Some((_, m)) => m.clone(),
+                    None => {
+                        let m: Arc<[u32]> = (0..sizes[v].0 * sizes[v].1).map(to_canvas).collect();
+                        whole.push((sizes[v], m.clone()));
+                        m
+                    }
+                },
+            })
+        })
+        .collect();
+    PixelMasks::with_shared_views(canvas.0 * canvas.1, kept)
 }
 
 /// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
@@ -1410,9 +1543,23 @@ fn load_transforms_with(
         let intr = lens.intrinsics(&tpath, path, w, h)?;
         Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
     };
-    let (w0, h0, images) = decode_views_with(&paths, k, &undistort, opts.cameras_only)?;
+    let decoded = decode_each(&paths, k, &undistort, opts.cameras_only)?;
+    // Views may differ in size where the file states each one's (`w`, `h`: a capture with
+    // several cameras); a view without a stated size has the first view's.
+    let sizes: Vec<(u32, u32)> = decoded.iter().map(|&(w, h, _)| (w, h)).collect();
+    if let Some(i) = (1..frames.len()).find(|&i| frames[i].lens.size.is_none() && sizes[i] != sizes[0]) {
+        return Err(DataError::SizeMismatch {
+            path: paths[i].to_path_buf(),
+            width: sizes[i].0,
+            height: sizes[i].1,
+            first: paths[0].to_path_buf(),
+            first_width: sizes[0].0,
+            first_height: sizes[0].1,
+        });
+    }
+    let mut images: Vec<Vec<f32>> = decoded.into_iter().map(|(_, _, px)| px).collect();
     // Each view's pinhole intrinsics at the stored size, and its camera at the loaded one.
-    let intrinsics = frames.iter().map(|f| f.lens.intrinsics(&tpath, &f.image, w0, h0)).collect::<Result<Vec<_>, _>>()?;
+    let intrinsics = frames.iter().zip(&sizes).map(|(f, &(w, h))| f.lens.intrinsics(&tpath, &f.image, w, h)).collect::<Result<Vec<_>, _>>()?;
     let cameras = frames
         .iter()
         .zip(&intrinsics)
@@ -1456,13 +1603,7 @@ fn load_transforms_with(
         None
     };
     let masks = match sources {
-        Some(sources) if !opts.cameras_only => {
-            let masks = decode_masks(&frames, &sources, &seen, (w0, h0), k, &undistort)?;
-            if masks.total() == 0 {
-                return Err(DataError::EmptySplit { path: tpath.clone(), reason: "the masks keep no pixel: nothing to train on".into() });
-            }
-            Some(masks)
-        }
+        Some(sources) if !opts.cameras_only => Some(decode_masks(&frames, &sources, &seen, &sizes, k, &undistort)?),
         _ => None,
     };
     // Depth maps, through the photos' lens resampling and downscaling, as distances along the
@@ -1475,6 +1616,7 @@ fn load_transforms_with(
             .par_iter()
             .enumerate()
             .map(|(i, f)| {
+                let (w0, h0) = sizes[i];
                 let Some((path, scale)) = &f.depth else { return Ok(vec![0.0; ((w0 / k) * (h0 / k)) as usize]) };
                 let px = depth::decode(depth::DepthSource { path, scale: *scale }, f.index, (w0, h0))?;
                 let px = downscale_rgba(&undistort(i, path, w0, h0, px)?, w0 as usize, h0 as usize, k as usize);
@@ -1498,6 +1640,19 @@ fn load_transforms_with(
         ),
         (d, _) => d,
     };
+    // Views of different sizes share the canvas of the largest width and height.
+    let mut depths = depths;
+    let loaded: Vec<(u32, u32)> = cameras.iter().map(|c| (c.intrinsics.width, c.intrinsics.height)).collect();
+    let canvas = loaded.iter().fold((0, 0), |(w, h), &(vw, vh)| (w.max(vw), h.max(vh)));
+    let n_pixels = canvas.0 * canvas.1;
+    let masks = if loaded.iter().any(|&s| s != canvas) {
+        Some(to_canvas(&loaded, canvas, &mut images, depths.as_mut(), masks))
+    } else {
+        masks.map(|m| PixelMasks::with_shared_views(n_pixels, m))
+    };
+    if masks.as_ref().is_some_and(|m| m.total() == 0) {
+        return Err(DataError::EmptySplit { path: tpath.clone(), reason: "the masks keep no pixel: nothing to train on".into() });
+    }
     let (near, far, aabb) = match &ngp_box {
         None => (2.0, 6.0, Aabb::cube(1.5)),
         Some(b) => {
@@ -1521,8 +1676,8 @@ fn load_transforms_with(
     Ok(Dataset {
         root: root.to_path_buf(),
         split,
-        width: cameras[0].intrinsics.width,
-        height: cameras[0].intrinsics.height,
+        width: canvas.0,
+        height: canvas.1,
         cameras,
         images,
         file_paths: frames.iter().map(|f| f.image.clone()).collect(),
@@ -1848,7 +2003,8 @@ pub fn pose_noise(n_views: usize, rot_deg: f32, trans: f32, seed: u64) -> Vec<[f
 /// `depth_unit_scale_factor` (the largest depth / 65535). Intrinsics that the field
 /// of view does not capture (`fy != fx`, a principal point off the image centre, views that
 /// differ) are written as instant-ngp's `fl_x`, `fl_y`, `cx`, `cy`, `w`,
-/// `h` (top level: the first view's; a frame whose camera differs carries its own), and an
+/// `h` (top level: the first view's; a frame whose camera differs carries its own, and its `w`,
+/// `h` where its size differs: views of several sizes are written at their own), and an
 /// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`; a scene with
 /// other bounds than NeRF's Blender ones (LLFF with Euclidean rays) gets the instant-ngp box that
 /// encloses its [`Dataset::aabb`] ([`NgpBox::enclosing`]; its rays then start at that box's
@@ -1900,6 +2056,14 @@ pub fn write_blender(
         path: img_dir.clone(),
         source,
     })?;
+    // Masks are written when one drops a pixel of its view (not only the canvas past a smaller
+    // view, which the file's sizes already leave out).
+    let write_masks = ds.masks.as_ref().is_some_and(|m| {
+        (0..ds.n_views()).any(|v| {
+            let (w, h) = ds.view_size(v);
+            m.kept(v).filter(|p| p % ds.width < w && p / ds.width < h).count() < (w * h) as usize
+        })
+    });
     // `camera_angle_x` alone gives `fy = fx`, the principal point at the centre, one camera model.
     let pixel_intrinsics = ds.cameras.iter().any(|c| {
         let k = &c.intrinsics;
@@ -1919,7 +2083,7 @@ pub fn write_blender(
                 "file_path": format!("./{split}/r_{k}"),
                 "transform_matrix": rows,
             });
-            if ds.masks.is_some() {
+            if write_masks {
                 f.as_object_mut().expect("a JSON object").insert("mask_path".into(), Value::from(format!("./{split}/mask_{k}.png")));
             }
             if ds.depths.is_some() {
@@ -1929,6 +2093,10 @@ pub fn write_blender(
                 let o = f.as_object_mut().expect("a JSON object");
                 for (key, v) in focal_keys(&cam.intrinsics) {
                     o.insert(key.into(), Value::from(v));
+                }
+                if (cam.intrinsics.width, cam.intrinsics.height) != (first.intrinsics.width, first.intrinsics.height) {
+                    o.insert("w".into(), Value::from(cam.intrinsics.width));
+                    o.insert("h".into(), Value::from(cam.intrinsics.height));
                 }
             }
             f
@@ -1960,7 +2128,8 @@ pub fn write_blender(
     let z_depths: Option<Vec<Vec<f32>>> = ds.depths.as_ref().map(|d| {
         d.par_iter()
             .zip(&ds.cameras)
-            .map(|(t, cam)| depth::z_depths(t, &cam.intrinsics))
+            .enumerate()
+            .map(|(v, (t, cam))| depth::z_depths(&ds.view_crop(v, 1, t), &cam.intrinsics))
             .collect()
     });
     let z_step = z_depths.as_ref().map(|z| z.iter().flatten().fold(0.0f32, |a, &b| a.max(b)) as f64 / 65535.0);
@@ -1974,12 +2143,12 @@ pub fn write_blender(
         path: tpath.clone(),
         source,
     })?;
-    let (w, h) = (ds.width, ds.height);
     ds.images
         .par_iter()
         .enumerate()
         .map(|(k, img)| {
-            let bytes: Vec<u8> = img.iter().map(|&v| to_u8(v)).collect();
+            let (w, h) = ds.view_size(k);
+            let bytes: Vec<u8> = ds.view_crop(k, 4, img).iter().map(|&v| to_u8(v)).collect();
             write_png(
                 &img_dir.join(format!("r_{k}.png")),
                 w,
@@ -1996,12 +2165,12 @@ pub fn write_blender(
                     .collect();
                 write_png(&img_dir.join(format!("depth_{k}.png")), w, h, &bytes, image::ExtendedColorType::L16)?;
             }
-            match &ds.masks {
+            match ds.masks.as_ref().filter(|_| write_masks) {
                 Some(m) => write_png(
                     &img_dir.join(format!("mask_{k}.png")),
                     w,
                     h,
-                    &m.view_bytes(k),
+                    &ds.view_crop(k, 1, &m.view_bytes(k)),
                     image::ExtendedColorType::L8,
                 ),
                 None => Ok(()),

@@ -13,6 +13,13 @@ pub struct ViewMetrics {
     pub index: usize,
     /// Ground-truth image file.
     pub file: String,
+    /// The view's width and height (views of one scene may differ: `Dataset::view_size`); 0 in
+    /// files written before they were recorded.
+    #[serde(default)]
+    pub width: u32,
+    /// See [`ViewMetrics::width`].
+    #[serde(default)]
+    pub height: u32,
     /// PSNR in dB (images in `[0, 1]`).
     pub psnr: f64,
     /// SSIM (Gaussian 11×11, σ = 1.5).
@@ -191,15 +198,23 @@ pub fn evaluate(
     // Supersampling: the mean of the renders through these points of each pixel, placed by the
     // pixel filter.
     let points = conv.sample_offsets_filtered(trainer.config().eval_spp as usize, trainer.config().eval_filter);
-    let (w, h) = (data.width as usize, data.height as usize);
     let mut batch = RayBatch::default();
-    let mut rgb = vec![0.0f32; 3 * w * h];
-    let mut opacity = vec![0.0f32; w * h];
-    let mut depth = vec![0.0f32; w * h];
-    let mut sums = (points.len() > 1).then(|| (vec![0.0f32; 3 * w * h], vec![0.0f32; w * h], vec![0.0f32; w * h]));
+    let (mut rgb, mut opacity, mut depth) = (Vec::new(), Vec::new(), Vec::new());
+    let mut sums = (points.len() > 1).then(|| (Vec::new(), Vec::new(), Vec::new()));
     let mut views = Vec::with_capacity(data.n_views());
     let mut render_seconds = 0.0;
     for i in 0..data.n_views() {
+        // The view's own size (views of several sizes: [`Dataset::view_size`]).
+        let (w, h) = data.view_size(i);
+        let (w, h) = (w as usize, h as usize);
+        for (x, n) in [(&mut rgb, 3 * w * h), (&mut opacity, w * h), (&mut depth, w * h)] {
+            x.resize(n, 0.0);
+        }
+        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
+            for (x, n) in [(s_rgb, 3 * w * h), (s_opacity, w * h), (s_depth, w * h)] {
+                x.resize(n, 0.0);
+            }
+        }
         for (j, &point) in points.iter().enumerate() {
             data.view_rays_at(i, bg, point, &mut batch);
             let t = std::time::Instant::now();
@@ -228,12 +243,13 @@ pub fn evaluate(
         if let Some(d) = out_dir {
             let stem = data.file_paths[i].file_stem().map(|s| s.to_string_lossy().into_owned());
             let path = d.join(format!("{}.png", stem.unwrap_or_else(|| format!("view_{i:03}"))));
-            save_png(&path, data.width, data.height, &rgb)?;
+            save_png(&path, w as u32, h as u32, &rgb)?;
         }
-        let alpha = data.images[i].chunks_exact(4).map(|p| p[3]);
+        let image = data.view_crop(i, 4, &data.images[i]);
+        let alpha = image.chunks_exact(4).map(|p| p[3]);
         let alpha_split = AlphaSplit::of(&rgb, &opacity, gt, alpha);
-        let depth = data.depths.as_ref().and_then(|d| DepthError::of(&depth, &d[i]));
-        views.push(ViewMetrics { index: i, file, psnr, ssim, alpha_split, depth });
+        let depth = data.depths.as_ref().and_then(|d| DepthError::of(&depth, &data.view_crop(i, 1, &d[i])));
+        views.push(ViewMetrics { index: i, file, width: w as u32, height: h as u32, psnr, ssim, alpha_split, depth });
         on_view(i + 1, data.n_views());
     }
     let n = views.len().max(1) as f64;
