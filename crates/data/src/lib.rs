@@ -1246,7 +1246,8 @@ fn to_canvas(
     }
     // Lists moved once each (a shared list stays shared), and each size's list of every pixel.
     let mut moved: Vec<(*const [u32], Arc<[u32]>)> = Vec::new();
-    let mut whole: Vec<((u32, u32), Arc<[u32]>)> = Vec::new();
+    type SizeList = ((u32, u32), Arc<[u32]>);
+    let mut whole: Vec<SizeList> = Vec::new();
     let kept = (0..sizes.len())
         .map(|v| {
             let list = masks.as_ref().and_then(|m| m[v].clone());

@@ -157,9 +157,21 @@ fn load(root: &Path, split: Split) -> Dataset {
 #[test]
 fn colmap_models_load_with_cameras_that_reproject_colmaps_points() {
     let sim = arbitrary_frame();
-    for (layout, binary) in [("sparse/0", true), ("colmap/sparse/0", false)] {
+    // The third model has a second camera: the odd images cropped to portrait 64×100 (their
+    // right 64 columns), as a capture with photos of two sizes.
+    for (layout, binary, portrait) in [("sparse/0", true, false), ("colmap/sparse/0", false, false), ("sparse/0", true, true)] {
         let dir = tempfile::tempdir().unwrap();
-        let model = lego_model(dir.path(), &sim);
+        let mut model = lego_model(dir.path(), &sim);
+        if portrait {
+            let f = model.cameras[0].params[0];
+            model.cameras.push(ColmapCamera { id: 8, model: "PINHOLE".into(), width: 64, height: 100, params: vec![f, f, 14.0, 50.0] });
+            for im in model.images.iter_mut().filter(|im| im.id % 2 == 1) {
+                im.camera_id = 8;
+                let path = dir.path().join("images").join(&im.name);
+                let img = image::open(&path).unwrap().to_rgba8();
+                image::imageops::crop_imm(&img, 36, 0, 64, 100).to_image().save(&path).unwrap();
+            }
+        }
         let mdir = dir.path().join(layout);
         if binary {
             write_bin(&mdir, &model, 3);
@@ -193,7 +205,9 @@ fn colmap_models_load_with_cameras_that_reproject_colmaps_points() {
             assert!(path.ends_with(Path::new("images").join(&im.name)), "{path:?} is {}'s image", im.name);
             let r = colmap::rotation(im.qvec);
             let r = DMat3::from_cols(DVec3::new(r[0][0], r[1][0], r[2][0]), DVec3::new(r[0][1], r[1][1], r[2][1]), DVec3::new(r[0][2], r[1][2], r[2][2]));
-            let [fx, fy, cx, cy] = [model.cameras[0].params[0], model.cameras[0].params[1], 50.0, 50.0];
+            let c = model.cameras.iter().find(|c| c.id == im.camera_id).unwrap();
+            let [fx, fy, cx, cy] = [c.params[0], c.params[1], c.params[2], c.params[3]];
+            assert_eq!((cam.intrinsics.width, cam.intrinsics.height), (c.width as u32, c.height as u32), "{}", im.name);
             for _ in 0..20 {
                 // A point near lego (within its box), in COLMAP's world.
                 let x = sim.apply(DVec3::new(rnd() * 2.0 - 1.0, rnd() * 2.0 - 1.0, rnd() * 2.0 - 1.0));
@@ -217,9 +231,16 @@ fn colmap_models_load_with_cameras_that_reproject_colmaps_points() {
         let focus = nerf_rays::look_at_point(&cams).unwrap().as_dvec3();
         let origin = to_loaded(sim.apply(DVec3::ZERO));
         assert!((focus - origin).length() < 1e-4 && origin.length() > 0.1, "{focus} vs {origin}");
-        // The images are lego's own, pixel for pixel.
+        // The images are lego's own, pixel for pixel (a portrait one on the canvas's left).
         let lego_train = load_blender(&lego_100(), Split::Train, &LoadOptions::default()).unwrap();
         assert!(train.images[0] == lego_train.images[1], "view_002 is lego's second training view");
+        if portrait {
+            assert_eq!((train.width, train.height, train.view_size(1)), (100, 100, (64, 100)), "view_003 is a portrait");
+            let whole = &lego_train.images[2];
+            let crop: Vec<f32> = (0..100).flat_map(|row| whole[4 * (row * 100 + 36)..4 * (row * 100 + 100)].iter().copied()).collect();
+            assert!(train.view_crop(1, 4, &train.images[1]).as_ref() == &crop[..], "view_003 is lego's third training view's right part");
+            assert_eq!(train.masks.as_ref().unwrap().total(), train.n_view_pixels());
+        }
     }
 }
 
