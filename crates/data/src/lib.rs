@@ -23,12 +23,13 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use nerf_rays::glam::Vec3;
+use nerf_rays::glam::{Mat3, Vec3};
 use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention, Ray};
 
 pub mod camera_path;
 pub mod colmap;
 pub mod depth;
+pub mod equirect;
 pub use colmap::is_colmap;
 pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, CameraPath};
 pub mod llff;
@@ -418,7 +419,8 @@ pub struct Dataset {
     /// own width and height transparent black), straight (not premultiplied) alpha, values in
     /// `[0, 1]` (= u8/255).
     pub images: Vec<Vec<f32>>,
-    /// Per view: the image file it was loaded from.
+    /// Per view: the image file it was loaded from (a panorama's six faces, [`equirect`], share
+    /// its file; [`Dataset::view_names`] tells them apart).
     pub file_paths: Vec<PathBuf>,
     /// The pixels training may draw, one mask per view ([`mask`]: nerfstudio's `mask_path`,
     /// instant-ngp's dynamic masks, and the pixels a lens's photo did not see,
@@ -554,6 +556,28 @@ impl Dataset {
     pub fn view_size(&self, i: usize) -> (u32, u32) {
         let k = &self.cameras[i].intrinsics;
         (k.width, k.height)
+    }
+
+    /// A name per view for files written from it (evaluation renders): its image's file stem
+    /// (`view_<i>` without a path), and where several views share a stem (a panorama's faces,
+    /// photos of one name in two folders) the stem and the view's place among them,
+    /// `<stem>_<k>` (a panorama's faces: `k` in [`equirect::FACES`] order).
+    pub fn view_names(&self) -> Vec<String> {
+        let stems: Vec<String> = (0..self.n_views())
+            .map(|i| self.file_paths.get(i).and_then(|p| p.file_stem()).map_or_else(|| format!("view_{i:03}"), |s| s.to_string_lossy().into_owned()))
+            .collect();
+        let mut seen: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+        stems
+            .iter()
+            .map(|s| {
+                if stems.iter().filter(|t| *t == s).count() == 1 {
+                    return s.clone();
+                }
+                let k = seen.entry(s).or_insert(0);
+                *k += 1;
+                format!("{s}_{}", *k - 1)
+            })
+            .collect()
     }
 
     /// The views' sizes for people: `WxH`, or the distinct sizes in order of first appearance
@@ -865,9 +889,12 @@ impl Dataset {
 // ---------------------------------------------------------------------------------------------
 // Loading
 
+#[derive(Clone)]
 struct Frame {
     index: usize,
     image: PathBuf,
+    /// A panorama's face ([`equirect::FACES`]): the frame is this face of its photo.
+    face: Option<usize>,
     /// nerfstudio's `mask_path`, resolved as `file_path` is.
     mask: Option<PathBuf>,
     /// The depth map (`depth_file_path` or `depth_path`, resolved as `file_path` is) and world
@@ -1048,32 +1075,10 @@ fn downscale_rgba(px: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
 /// size of the first, and `k` must divide it. Returns that size (before downscaling) and the
 /// images; an error names the first failing image in order.
 fn decode_views(paths: &[&Path], k: u32, cameras_only: bool) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
-    decode_views_with(paths, k, &|_, _, _, _, px| Ok(px), cameras_only)
-}
-
-/// A step between decoding an image and downscaling it: `(index, path, width, height, pixels)` →
-/// pixels of the same size (e.g. [`ngp::undistort_rgba`]).
-type ImageFix<'a> = dyn Fn(usize, &Path, u32, u32, Vec<f32>) -> Result<Vec<f32>, DataError> + Sync + 'a;
-
-/// A reader for the image at `path`: the format its first bytes show, else its extension's.
-fn open_image(path: &Path) -> Result<image::ImageReader<std::io::BufReader<std::fs::File>>, DataError> {
-    let io = |source| DataError::Io { path: path.to_path_buf(), source };
-    image::ImageReader::open(path).map_err(io)?.with_guessed_format().map_err(io)
-}
-
-/// Width and height from an image's header, without decoding its pixels.
-fn image_size(path: &Path) -> Result<(u32, u32), DataError> {
-    open_image(path)?.into_dimensions().map_err(|source| DataError::Decode { path: path.to_path_buf(), source })
-}
-
-/// [`decode_views`] with `fix` applied to each decoded image before it is downscaled. With
-/// `cameras_only` ([`LoadOptions::cameras_only`]) each image's size comes from its header, the
-/// same checks run, and every view's pixels are left empty (`fix` is not called).
-fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
-    let decoded = decode_each(paths, k, fix, cameras_only)?;
-    let (w, h, _) = decoded[0];
+    let decoded = decode_each(paths, k, &|_, _, w, h| Ok((w, h)), &|_, _, _, _, px| Ok(px), cameras_only)?;
+    let (w, h) = decoded[0].0;
     let mut images = Vec::with_capacity(decoded.len());
-    for (i, (vw, vh, px)) in decoded.into_iter().enumerate() {
+    for (i, ((vw, vh), _, px)) in decoded.into_iter().enumerate() {
         if (vw, vh) != (w, h) {
             return Err(DataError::SizeMismatch {
                 path: paths[i].to_path_buf(),
@@ -1089,10 +1094,35 @@ fn decode_views_with(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool
     Ok((w, h, images))
 }
 
-/// Decodes `paths` in parallel, applies `fix` and downscales each by `k`, which must divide
-/// its size: per image its size before downscaling and its pixels (empty with `cameras_only`,
-/// the size then read from the header). An error names the first failing image in order.
-fn decode_each(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool) -> Result<Vec<Decoded>, DataError> {
+/// A step between decoding an image and downscaling it: `(index, path, width, height, pixels)` →
+/// the view's pixels, of the size [`ViewSize`] gives (e.g. [`ngp::undistort_rgba`], the same
+/// size; [`equirect::face_rgba`], a panorama's face).
+type ImageFix<'a> = dyn Fn(usize, &Path, u32, u32, Vec<f32>) -> Result<Vec<f32>, DataError> + Sync + 'a;
+
+/// The size of the view `index` makes of its image at `path` of `width × height` pixels (before
+/// downscaling); an error where the image's size is not the one its frame states.
+type ViewSize<'a> = dyn Fn(usize, &Path, u32, u32) -> Result<(u32, u32), DataError> + Sync + 'a;
+
+/// A decoded view: its image's size, the view's size (both before downscaling) and the view's
+/// downscaled pixels.
+type DecodedView = ((u32, u32), (u32, u32), Vec<f32>);
+
+/// A reader for the image at `path`: the format its first bytes show, else its extension's.
+fn open_image(path: &Path) -> Result<image::ImageReader<std::io::BufReader<std::fs::File>>, DataError> {
+    let io = |source| DataError::Io { path: path.to_path_buf(), source };
+    image::ImageReader::open(path).map_err(io)?.with_guessed_format().map_err(io)
+}
+
+/// Width and height from an image's header, without decoding its pixels.
+fn image_size(path: &Path) -> Result<(u32, u32), DataError> {
+    open_image(path)?.into_dimensions().map_err(|source| DataError::Decode { path: path.to_path_buf(), source })
+}
+
+/// Decodes `paths` in parallel, makes each image its view (`size`, `fix`) and downscales that by
+/// `k`, which must divide the view's size. With `cameras_only` ([`LoadOptions::cameras_only`])
+/// each image's size comes from its header, the same checks run, and every view's pixels are
+/// left empty (`fix` is not called). An error names the first failing image in order.
+fn decode_each(paths: &[&Path], k: u32, size: &ViewSize, fix: &ImageFix, cameras_only: bool) -> Result<Vec<DecodedView>, DataError> {
     assert!(!paths.is_empty(), "decoding no images");
     paths
         .par_iter()
@@ -1104,21 +1134,23 @@ fn decode_each(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool) -> R
             } else {
                 decode_rgba(path)?
             };
-            if w % k != 0 || h % k != 0 {
-                return Err(DataError::BadDownscale {
-                    path: path.to_path_buf(),
-                    k,
-                    reason: format!("it does not divide the image size {w}x{h}"),
-                });
-            }
             if w == 0 || h == 0 {
                 return Err(DataError::BadDownscale { path: path.to_path_buf(), k, reason: "the image is empty".into() });
             }
+            let (vw, vh) = size(i, path, w, h)?;
+            if vw % k != 0 || vh % k != 0 {
+                return Err(DataError::BadDownscale {
+                    path: path.to_path_buf(),
+                    k,
+                    reason: format!("it does not divide the image size {vw}x{vh}"),
+                });
+            }
             if cameras_only {
-                return Ok((w, h, px));
+                return Ok(((w, h), (vw, vh), px));
             }
             let px = fix(i, path, w, h, px)?;
-            Ok((w, h, downscale_rgba(&px, w as usize, h as usize, k as usize)))
+            debug_assert_eq!(px.len(), 4 * (vw * vh) as usize, "the view's pixels");
+            Ok(((w, h), (vw, vh), downscale_rgba(&px, vw as usize, vh as usize, k as usize)))
         })
         .collect::<Vec<_>>()
         .into_iter()
@@ -1130,9 +1162,10 @@ fn decode_each(paths: &[&Path], k: u32, fix: &ImageFix, cameras_only: bool) -> R
 type Seen = Arc<Vec<bool>>;
 
 /// The training masks of `frames` ([`mask`]) from `sources`: each mask must be the size of its
-/// frame's image (`sizes`, before downscaling). A pixel is kept where the mask's value (grey, or
-/// any colour channel) is not 0 (`mask_path`), or where it is 0 (instant-ngp's dynamic masks).
-/// The masks go through the images' lens resampling (`fix`), then drop the pixels their photo
+/// frame's image (`sizes[i].0`, before downscaling; `sizes[i].1` is its view's). A pixel is kept
+/// where the mask's value (grey, or any colour channel) is not 0 (`mask_path`), or where it is 0
+/// (instant-ngp's dynamic masks). The masks go through the images' resampling to their views
+/// (`fix`: a lens, a panorama's face), then drop the pixels their photo
 /// did not see (`seen`, one per frame or empty: [`ngp::pixels_seen`]), then `k`× downscaling,
 /// and a resulting pixel is kept only where every mask pixel it draws on is: training never
 /// reads a masked-out pixel, even in part. Per view, the ascending indices of its kept pixels in
@@ -1142,7 +1175,7 @@ fn decode_masks(
     frames: &[&Frame],
     sources: &[MaskSource],
     seen: &[Option<Seen>],
-    sizes: &[(u32, u32)],
+    sizes: &[((u32, u32), (u32, u32))],
     k: u32,
     fix: &ImageFix,
 ) -> Result<Vec<Option<Arc<[u32]>>>, DataError> {
@@ -1169,7 +1202,7 @@ fn decode_masks(
     // Views whose only mask is their lens's share one list per lens (a lens's pixels are those
     // of one image size).
     let mut by_lens: Vec<(&Seen, Option<Arc<[u32]>>)> = Vec::new();
-    for ((src, s), &size) in sources.iter().zip(seen).zip(sizes) {
+    for ((src, s), &(_, size)) in sources.iter().zip(seen).zip(sizes) {
         if let (MaskSource::All, Some(s)) = (src, s) {
             if !by_lens.iter().any(|(l, _)| Arc::ptr_eq(l, s)) {
                 by_lens.push((s, kept_of(vec![1.0; 4 * (size.0 * size.1) as usize], size, Some(s))));
@@ -1182,7 +1215,7 @@ fn decode_masks(
         .enumerate()
         .map(|(i, &src)| {
             let seen = seen.get(i).and_then(Option::as_ref);
-            let (w, h) = sizes[i];
+            let ((w, h), view) = sizes[i];
             let px = match src {
                 MaskSource::All => return Ok(seen.and_then(|s| by_lens.iter().find(|(l, _)| Arc::ptr_eq(l, s)).expect("listed above").1.clone())),
                 MaskSource::Keep(path) | MaskSource::Drop(path) => {
@@ -1202,7 +1235,7 @@ fn decode_masks(
                     fix(i, path, w, h, px)?
                 }
             };
-            Ok(kept_of(px, (w, h), seen.map(|s| &**s)))
+            Ok(kept_of(px, view, seen.map(|s| &**s)))
         })
         .collect();
     kept.into_iter().collect()
@@ -1424,7 +1457,7 @@ fn load_transforms_with(
     let mut frames = Vec::with_capacity(frames_json.len());
     for (i, f) in frames_json.iter().enumerate() {
         let lens = ngp::Lens::parse(&tpath, json, Some((i, f)))?;
-        if lens.focal_x.is_none() {
+        if lens.focal_x.is_none() && !lens.equirectangular {
             return Err(missing("camera_angle_x` or `fl_x".into()));
         }
         let fp_v = f
@@ -1457,6 +1490,7 @@ fn load_transforms_with(
         frames.push(Frame {
             index: i,
             image: image_path(root, fp),
+            face: None,
             mask,
             depth,
             c2w,
@@ -1536,31 +1570,97 @@ fn load_transforms_with(
                 frame: f.index,
             });
         }
+        if let (true, Some((d, _))) = (f.lens.equirectangular, &f.depth) {
+            return Err(DataError::InvalidValue {
+                path: tpath.clone(),
+                key: format!("frames[{}]", f.index),
+                reason: format!("a depth map ({}) of an equirectangular photo: depth maps of panoramas are not supported", d.display()),
+            });
+        }
     }
+    // A panorama is six views: the faces of a cube map, from its centre ([`equirect`]).
+    let faces: Vec<Frame> = frames
+        .iter()
+        .flat_map(|&f| {
+            let n = if f.lens.equirectangular { equirect::FACES.len() } else { 1 };
+            (0..n).map(move |face| {
+                let mut v = f.clone();
+                if f.lens.equirectangular {
+                    let r = Mat3::from_cols_array_2d(&std::array::from_fn(|c| std::array::from_fn(|r| f.c2w[r][c]))) * equirect::face_rotation(face);
+                    for (row, c2w_row) in v.c2w.iter_mut().take(3).enumerate() {
+                        for col in 0..3 {
+                            c2w_row[col] = r.col(col)[row];
+                        }
+                    }
+                    v.face = Some(face);
+                }
+                v
+            })
+        })
+        .collect();
+    let frames: Vec<&Frame> = faces.iter().collect();
 
     let paths: Vec<&Path> = frames.iter().map(|f| f.image.as_path()).collect();
-    let undistort = |i: usize, path: &Path, w: u32, h: u32, px: Vec<f32>| {
-        let lens = &frames[i].lens;
-        let intr = lens.intrinsics(&tpath, path, w, h)?;
-        Ok(if lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &lens.distortion) })
+    // A view's size: its photo's, or a panorama's face's (the panorama checked against the
+    // size its frame states).
+    let view_size = |i: usize, path: &Path, w: u32, h: u32| -> Result<(u32, u32), DataError> {
+        let f = &frames[i];
+        match f.face {
+            None => Ok((w, h)),
+            Some(_) => {
+                if let Some(stated) = f.lens.size.filter(|&s| s != (w, h)) {
+                    return Err(DataError::InvalidValue {
+                        path: tpath.clone(),
+                        key: format!("frames[{}].w", f.index),
+                        reason: format!("the panorama is stated as {}x{}, but {} is {w}x{h}", stated.0, stated.1, path.display()),
+                    });
+                }
+                let s = equirect::face_size(w, k).ok_or_else(|| DataError::BadDownscale {
+                    path: path.to_path_buf(),
+                    k,
+                    reason: format!("a {w}-pixel-wide panorama's faces would be empty"),
+                })?;
+                Ok((s, s))
+            }
+        }
     };
-    let decoded = decode_each(&paths, k, &undistort, opts.cameras_only)?;
+    // An image made its view: a lens resampled to its pinhole camera, a panorama's face cut out.
+    let undistort = |i: usize, path: &Path, w: u32, h: u32, px: Vec<f32>| {
+        let f = &frames[i];
+        if let Some(face) = f.face {
+            let (s, _) = view_size(i, path, w, h)?;
+            return Ok(equirect::face_rgba(&px, w, h, face, s));
+        }
+        let intr = f.lens.intrinsics(&tpath, path, w, h)?;
+        Ok(if f.lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &f.lens.distortion) })
+    };
+    let decoded = decode_each(&paths, k, &view_size, &undistort, opts.cameras_only)?;
     // Views may differ in size where the file states each one's (`w`, `h`: a capture with
-    // several cameras); a view without a stated size has the first view's.
-    let sizes: Vec<(u32, u32)> = decoded.iter().map(|&(w, h, _)| (w, h)).collect();
-    if let Some(i) = (1..frames.len()).find(|&i| frames[i].lens.size.is_none() && sizes[i] != sizes[0]) {
+    // several cameras) and for panoramas' faces; another view has the first such view's size.
+    let both: Vec<((u32, u32), (u32, u32))> = decoded.iter().map(|&(src, view, _)| (src, view)).collect();
+    let sizes: Vec<(u32, u32)> = both.iter().map(|&(_, view)| view).collect();
+    let plain: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].face.is_none()).collect();
+    if let Some(&i) = plain.iter().find(|&&i| frames[i].lens.size.is_none() && sizes[i] != sizes[plain[0]]) {
+        let first = plain[0];
         return Err(DataError::SizeMismatch {
             path: paths[i].to_path_buf(),
             width: sizes[i].0,
             height: sizes[i].1,
-            first: paths[0].to_path_buf(),
-            first_width: sizes[0].0,
-            first_height: sizes[0].1,
+            first: paths[first].to_path_buf(),
+            first_width: sizes[first].0,
+            first_height: sizes[first].1,
         });
     }
     let mut images: Vec<Vec<f32>> = decoded.into_iter().map(|(_, _, px)| px).collect();
     // Each view's pinhole intrinsics at the stored size, and its camera at the loaded one.
-    let intrinsics = frames.iter().zip(&sizes).map(|(f, &(w, h))| f.lens.intrinsics(&tpath, &f.image, w, h)).collect::<Result<Vec<_>, _>>()?;
+    let intrinsics = frames
+        .iter()
+        .zip(&sizes)
+        .map(|(f, &(w, h))| match f.face {
+            Some(_) => Ok(equirect::face_intrinsics(w)),
+            None => f.lens.intrinsics(&tpath, &f.image, w, h),
+        })
+        .collect::<Result<Vec<_>, _>>()?;
     let cameras = frames
         .iter()
         .zip(&intrinsics)
@@ -1604,7 +1704,7 @@ fn load_transforms_with(
         None
     };
     let masks = match sources {
-        Some(sources) if !opts.cameras_only => Some(decode_masks(&frames, &sources, &seen, &sizes, k, &undistort)?),
+        Some(sources) if !opts.cameras_only => Some(decode_masks(&frames, &sources, &seen, &both, k, &undistort)?),
         _ => None,
     };
     // Depth maps, through the photos' lens resampling and downscaling, as distances along the

@@ -176,6 +176,10 @@ pub struct Lens {
     pub cy: Option<f64>,
     /// The lens model (`camera_model`, `is_fisheye`) and `k1`, `k2`, `k3`, `k4`, `p1`, `p2`.
     pub distortion: Distortion,
+    /// nerfstudio's `"camera_model": "EQUIRECTANGULAR"`: the photo is a 360° panorama
+    /// ([`crate::equirect`]; the focal keys and `cx`, `cy` are not used, distortion
+    /// coefficients are refused).
+    pub equirectangular: bool,
 }
 
 /// Reads `key` from the frame (when given) or else the top level; returns the value and the key's
@@ -238,17 +242,22 @@ impl Lens {
         };
         // nerfstudio names the model (`camera_model`), instant-ngp flags a fisheye (`is_fisheye`).
         let mut named: Option<(LensModel, String)> = None;
+        let mut equirectangular = None;
         if let Some((v, name)) = lookup(top, frame, "camera_model") {
             let model = v.as_str().ok_or_else(|| invalid(name.clone(), format!("expected a string, got {}", json_kind(v))))?;
             let m = match model {
                 "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "RADIAL" | "SIMPLE_RADIAL" => LensModel::RadialTangential,
                 "OPENCV_FISHEYE" => LensModel::Fisheye,
+                "EQUIRECTANGULAR" => {
+                    equirectangular = Some(name.clone());
+                    LensModel::RadialTangential
+                }
                 _ => {
                     return Err(invalid(
                         name,
                         format!(
-                            "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL \
-                             and OPENCV_FISHEYE are; equirectangular images are not)"
+                            "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL, \
+                             OPENCV_FISHEYE and EQUIRECTANGULAR are)"
                         ),
                     ))
                 }
@@ -260,6 +269,9 @@ impl Lens {
             let fisheye = v.as_bool().ok_or_else(|| invalid(name.clone(), format!("expected a boolean, got {}", json_kind(v))))?;
             if fisheye {
                 if let Some((LensModel::RadialTangential, model_key)) = &named {
+                    if equirectangular.is_some() {
+                        return Err(invalid(name, format!("true, but `{model_key}` names an equirectangular camera")));
+                    }
                     return Err(invalid(name, format!("true, but `{model_key}` names a camera model without a fisheye lens")));
                 }
                 model = LensModel::Fisheye;
@@ -285,6 +297,15 @@ impl Lens {
             }
             _ => {}
         }
+        // A panorama has no lens: distortion coefficients would describe some other camera.
+        if let Some(model_key) = &equirectangular {
+            for key in ["k1", "k2", "k3", "k4", "p1", "p2"] {
+                if coefficient(key)? != 0.0 {
+                    let name = lookup(top, frame, key).map_or_else(|| key.into(), |(_, n)| n);
+                    return Err(invalid(name, format!("{}: `{model_key}` names an equirectangular camera, which has no lens distortion", coefficient(key)?)));
+                }
+            }
+        }
         let size = match (pixels("w")?, pixels("h")?) {
             (Some(w), Some(h)) => Some((w, h)),
             (None, None) => None,
@@ -298,6 +319,7 @@ impl Lens {
             cx: number("cx")?.map(|(x, _)| x),
             cy: number("cy")?.map(|(x, _)| x),
             distortion: Distortion { model, k1: coefficient("k1")?, k2: coefficient("k2")?, k3: coefficient("k3")?, k4, p1, p2 },
+            equirectangular: equirectangular.is_some(),
         })
     }
 

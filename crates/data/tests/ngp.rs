@@ -196,14 +196,16 @@ fn box_keys_place_instant_ngps_cube_and_rays_end_past_it() {
 #[test]
 fn camera_and_box_errors_name_the_file_and_the_key() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(Value, [Value; 2], &str, &str); 14] = [
+    let cases: [(Value, [Value; 2], &str, &str); 16] = [
         (json!({"fl_x": 3.0, "aabb": [[0, 0, 0], [1, 1]]}), [json!({}), json!({})], "`aabb`", "finite numbers"),
         (json!({"fl_x": 3.0, "aabb": [[1, 1, 1], [1, 1, 1]]}), [json!({}), json!({})], "`aabb`", "a box with a side"),
         (json!({"fl_x": 3.0, "w": 8, "h": 4}), [json!({}), json!({})], "`w`", "r_0.png is 4x4"),
         (json!({"fl_x": 3.0, "w": 4}), [json!({}), json!({})], "`h`", "missing key"),
         (json!({"fl_x": -3.0}), [json!({}), json!({})], "`fl_x`", "not positive"),
         (json!({"fl_x": 3.0}), [json!({}), json!({"fl_y": "tall"})], "`frames[1].fl_y`", "expected a number"),
-        (json!({"fl_x": 3.0, "camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({})], "`camera_model`", "not supported"),
+        (json!({"fl_x": 3.0, "camera_model": "FOV"}), [json!({}), json!({})], "`camera_model`", "not supported"),
+        (json!({"camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({"k1": 0.1})], "`frames[1].k1`", "no lens distortion"),
+        (json!({"camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "names an equirectangular camera"),
         (json!({"fl_x": 3.0, "camera_model": 5}), [json!({}), json!({})], "`camera_model`", "expected a string"),
         (json!({"fl_x": 3.0, "camera_model": "OPENCV"}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "`camera_model` names a camera model without a fisheye"),
         (json!({"fl_x": 3.0}), [json!({}), json!({"is_fisheye": "yes"})], "`frames[1].is_fisheye`", "expected a boolean"),

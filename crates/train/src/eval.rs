@@ -181,7 +181,7 @@ pub struct EvalReport {
 }
 
 /// Renders every view of `data` with the trainer's fields on `data`'s evaluation background
-/// (`eval_spp` rays per pixel placed by `eval_filter`, averaged), scores it, and writes `<out_dir>/<stem>.png` renders when
+/// (`eval_spp` rays per pixel placed by `eval_filter`, averaged), scores it, and writes `<out_dir>/<name>.png` renders ([`Dataset::view_names`]) when
 /// `out_dir` is given.
 pub fn evaluate(
     trainer: &Trainer,
@@ -203,6 +203,7 @@ pub fn evaluate(
     let mut sums = (points.len() > 1).then(|| (Vec::new(), Vec::new(), Vec::new()));
     let mut views = Vec::with_capacity(data.n_views());
     let mut render_seconds = 0.0;
+    let names = data.view_names();
     for i in 0..data.n_views() {
         // The view's own size (views of several sizes: [`Dataset::view_size`]).
         let (w, h) = data.view_size(i);
@@ -241,8 +242,7 @@ pub fn evaluate(
         let ssim = nerf_metrics::ssim(&rgb, gt, w, h);
         let file = data.file_paths[i].display().to_string();
         if let Some(d) = out_dir {
-            let stem = data.file_paths[i].file_stem().map(|s| s.to_string_lossy().into_owned());
-            let path = d.join(format!("{}.png", stem.unwrap_or_else(|| format!("view_{i:03}"))));
+            let path = d.join(format!("{}.png", names[i]));
             save_png(&path, w as u32, h as u32, &rgb)?;
         }
         let image = data.view_crop(i, 4, &data.images[i]);
