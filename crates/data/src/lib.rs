@@ -1103,6 +1103,9 @@ type ImageFix<'a> = dyn Fn(usize, &Path, u32, u32, Vec<f32>) -> Result<Vec<f32>,
 /// downscaling); an error where the image's size is not the one its frame states.
 type ViewSize<'a> = dyn Fn(usize, &Path, u32, u32) -> Result<(u32, u32), DataError> + Sync + 'a;
 
+/// An image's size and the size of the view made of it (both before downscaling).
+type ImageAndViewSize = ((u32, u32), (u32, u32));
+
 /// A decoded view: its image's size, the view's size (both before downscaling) and the view's
 /// downscaled pixels.
 type DecodedView = ((u32, u32), (u32, u32), Vec<f32>);
@@ -1175,7 +1178,7 @@ fn decode_masks(
     frames: &[&Frame],
     sources: &[MaskSource],
     seen: &[Option<Seen>],
-    sizes: &[((u32, u32), (u32, u32))],
+    sizes: &[ImageAndViewSize],
     k: u32,
     fix: &ImageFix,
 ) -> Result<Vec<Option<Arc<[u32]>>>, DataError> {
@@ -1637,7 +1640,7 @@ fn load_transforms_with(
     let decoded = decode_each(&paths, k, &view_size, &undistort, opts.cameras_only)?;
     // Views may differ in size where the file states each one's (`w`, `h`: a capture with
     // several cameras) and for panoramas' faces; another view has the first such view's size.
-    let both: Vec<((u32, u32), (u32, u32))> = decoded.iter().map(|&(src, view, _)| (src, view)).collect();
+    let both: Vec<ImageAndViewSize> = decoded.iter().map(|&(src, view, _)| (src, view)).collect();
     let sizes: Vec<(u32, u32)> = both.iter().map(|&(_, view)| view).collect();
     let plain: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].face.is_none()).collect();
     if let Some(&i) = plain.iter().find(|&&i| frames[i].lens.size.is_none() && sizes[i] != sizes[plain[0]]) {
