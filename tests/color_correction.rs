@@ -31,14 +31,6 @@ fn config(iters: u64, color: bool) -> TrainConfig {
     TrainConfig { color_correction: color.then(ColorCorrectionConfig::default), ..small_hash_config(iters, 16, 64) }
 }
 
-fn train(c: &TrainConfig, data: &Dataset, dev: Option<Arc<GpuContext>>) -> Trainer {
-    let mut t = Trainer::new_on(c.clone(), &nerf::registry(), SceneBounds::of(data), dev).unwrap();
-    for _ in 0..c.iters {
-        t.step(data).unwrap();
-    }
-    t.finish().unwrap();
-    t
-}
 
 /// Pearson correlation of the learnt matrix diagonals with the gains, over views and channels,
 /// after dividing each channel by its mean (the field may take any scale; the corrections follow).
@@ -63,8 +55,8 @@ fn per_view_exposure_is_learnt_and_novel_views_render_better() {
     let data = exposed(train_views, &g);
     let test = load(Split::Test, ViewSelection::Every(5));
     let iters = 1000;
-    let off = train(&config(iters, false), &data, None);
-    let on = train(&config(iters, true), &data, None);
+    let off = common::train_on(&config(iters, false), &data, None);
+    let on = common::train_on(&config(iters, true), &data, None);
     let (p_off, p_on) = (sparse_psnr(&off, &test, 3), sparse_psnr(&on, &test, 3));
     let params = on.color_params().unwrap().unwrap();
     let corr = diagonal_correlation(&params, &g);
@@ -157,7 +149,7 @@ fn the_gpu_learns_the_same_gains_and_renders_with_their_mean() {
     let g = gains(10);
     let data = exposed(load(Split::Train, ViewSelection::First(10)), &g);
     let c = TrainConfig { color_correction: Some(ColorCorrectionConfig { lr: 1e-2 }), ..common::light_hash_config(PRE_STEPS + STEPS) };
-    let pre = train(&TrainConfig { color_correction: None, iters: PRE_STEPS, ..c.clone() }, &data, None);
+    let pre = common::train_on(&TrainConfig { color_correction: None, iters: PRE_STEPS, ..c.clone() }, &data, None);
     let (fields, adam, sampler) = (pre.export_fields().unwrap(), pre.adam_state().unwrap(), pre.sampler_state().unwrap());
     let mut r = Vec::new();
     for dev in [None, Some(ctx.clone())] {

@@ -87,19 +87,9 @@ fn write_capture(dir: &Path) {
 }
 
 fn train(config: &TrainConfig, data: &Dataset) -> Trainer {
-    train_on(config, data, None)
+    common::train_on(config, data, None)
 }
 
-fn train_on(config: &TrainConfig, data: &Dataset, device: Option<std::sync::Arc<nerf::gpu::GpuContext>>) -> Trainer {
-    let on_gpu = device.is_some();
-    let mut t = Trainer::new_on(config.clone(), &nerf::registry(), SceneBounds::of(data), device).unwrap();
-    assert_eq!(t.device() != "cpu", on_gpu, "the trainer runs where it was asked to");
-    for _ in 0..config.iters {
-        t.step(data).unwrap();
-    }
-    t.finish().unwrap();
-    t
-}
 
 /// Mean |rendered depth − true distance| over the pixels of `ds`'s views that see the ball.
 fn depth_error(t: &Trainer, ds: &Dataset) -> f64 {
@@ -155,7 +145,7 @@ fn depth_maps_put_the_surface_where_it_is() {
     if let Some(ctx) = nerf::gpu::GpuContext::for_tests() {
         let short = TrainConfig { iters: GPU_STEPS, ..supervised.clone() };
         let t0 = std::time::Instant::now();
-        let g = depth_error(&train_on(&short, &train_views, Some(std::sync::Arc::new(ctx))), &test_views);
+        let g = depth_error(&common::train_on(&short, &train_views, Some(std::sync::Arc::new(ctx))), &test_views);
         let secs = t0.elapsed().as_secs_f64();
         let c = depth_error(&train(&short, &train_views), &test_views);
         let p = depth_error(&train(&TrainConfig { iters: GPU_STEPS, ..plain.clone() }, &train_views), &test_views);

@@ -6,12 +6,12 @@
 
 use nerf::data::{load_blender, write_blender, Dataset, LoadOptions, PixelMasks, Split, ViewSelection};
 use nerf::gpu::GpuContext;
-use nerf::train::{SceneBounds, TrainConfig, Trainer};
+use nerf::train::Trainer;
 use rand::Rng;
 use std::sync::Arc;
 
 mod common;
-use common::{light_hash_config, load, sparse_psnr};
+use common::{light_hash_config, load, sparse_psnr, train_on};
 
 /// `clean` with a `side`² opaque magenta square at a random place in every view, and the masks
 /// that drop exactly those pixels.
@@ -35,15 +35,6 @@ fn occluded(clean: &Dataset, side: u32, seed: u64) -> (Dataset, PixelMasks) {
     (ds, PixelMasks::from_flags(w * h, flags.iter().map(|f| &f[..])))
 }
 
-fn train(config: &TrainConfig, data: &Dataset, device: Option<Arc<GpuContext>>) -> Trainer {
-    let registry = nerf::registry();
-    let mut t = Trainer::new_on(config.clone(), &registry, SceneBounds::of(data), device).unwrap();
-    for _ in 0..config.iters {
-        t.step(data).unwrap();
-    }
-    t.finish().unwrap();
-    t
-}
 
 #[test]
 fn a_masked_out_occluder_stays_out_of_the_field() {
@@ -61,7 +52,7 @@ fn a_masked_out_occluder_stays_out_of_the_field() {
     let mut psnr = Vec::new();
     for (name, data) in [("occluded", &photos), ("occluded, masked", &masked)] {
         let t0 = std::time::Instant::now();
-        let t = train(&config, data, None);
+        let t = train_on(&config, data, None);
         let p = sparse_psnr(&t, &test, 2);
         println!("{name}: {p:.2} dB on the clean test views ({:.1} s)", t0.elapsed().as_secs_f64());
         psnr.push(p);
@@ -95,12 +86,12 @@ fn masks_that_drop_the_object_leave_an_empty_field_on_both_devices() {
     let flags: Vec<Vec<bool>> = clean.images.iter().map(|img| img.chunks_exact(4).map(|p| p[3] == 0.0).collect()).collect();
     let empty = Dataset { masks: Some(PixelMasks::from_flags(clean.width * clean.height, flags.iter().map(|f| &f[..]))), ..clean.clone() };
     let config = light_hash_config(80);
-    let o = object_opacity(&train(&config, &clean, None), &test);
+    let o = object_opacity(&train_on(&config, &clean, None), &test);
     assert!(o > 0.3, "cpu: trained on every pixel, opacity {o:.3} where the object stands");
     let mut devices = vec![None];
     devices.extend(GpuContext::for_tests().map(Arc::new).map(Some));
     for dev in devices {
-        let t = train(&config, &empty, dev);
+        let t = train_on(&config, &empty, dev);
         let o = object_opacity(&t, &test);
         println!("{}, the object masked out: mean opacity {o:.3} over its pixels", t.device());
         assert!(o < 0.1, "{}: trained around the object, opacity {o:.3} where it stands", t.device());

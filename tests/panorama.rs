@@ -8,15 +8,14 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use nerf::data::{load_blender, Dataset, LoadOptions, Split};
+use nerf::data::{load_blender, LoadOptions, Split};
 use nerf::gpu::GpuContext;
 use nerf::rays::glam::{Mat3, Vec3};
 use nerf::rays::Camera;
-use nerf::train::{SceneBounds, TrainConfig, Trainer};
 use serde_json::json;
 
 mod common;
-use common::{light_hash_config, sparse_psnr};
+use common::{light_hash_config, sparse_psnr, train_on};
 
 const W: u32 = 128;
 const H: u32 = 64;
@@ -68,15 +67,6 @@ fn write_scene(dir: &Path, mirror: bool) {
     }
 }
 
-fn train(config: &TrainConfig, data: &Dataset, device: Option<Arc<GpuContext>>) -> Trainer {
-    let registry = nerf::registry();
-    let mut t = Trainer::new_on(config.clone(), &registry, SceneBounds::of(data), device).unwrap();
-    for _ in 0..config.iters {
-        t.step(data).unwrap();
-    }
-    t.finish().unwrap();
-    t
-}
 
 #[test]
 fn panoramas_from_inside_a_room_train_a_field_that_renders_it_from_elsewhere() {
@@ -93,7 +83,7 @@ fn panoramas_from_inside_a_room_train_a_field_that_renders_it_from_elsewhere() {
     let mut psnr = Vec::new();
     for (name, data) in [("panoramas", &train_views), ("mirrored panoramas", &mirrored)] {
         let t0 = std::time::Instant::now();
-        let p = sparse_psnr(&train(&config, data, None), &test, 1);
+        let p = sparse_psnr(&train_on(&config, data, None), &test, 1);
         println!("cpu, {name}: {p:.2} dB on the held-out panorama's faces ({:.1} s)", t0.elapsed().as_secs_f64());
         psnr.push(p);
     }
@@ -103,8 +93,8 @@ fn panoramas_from_inside_a_room_train_a_field_that_renders_it_from_elsewhere() {
 
     let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
     let short = light_hash_config(80);
-    let cpu = sparse_psnr(&train(&short, &train_views, None), &test, 1);
-    let gpu = sparse_psnr(&train(&short, &train_views, Some(ctx)), &test, 1);
+    let cpu = sparse_psnr(&train_on(&short, &train_views, None), &test, 1);
+    let gpu = sparse_psnr(&train_on(&short, &train_views, Some(ctx)), &test, 1);
     println!("{} steps: cpu {cpu:.2} dB, gpu {gpu:.2} dB", short.iters);
     assert!((gpu - cpu).abs() < 1.0, "cpu {cpu:.2} dB, gpu {gpu:.2} dB");
 }

@@ -11,11 +11,10 @@ use std::sync::Arc;
 
 use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
 use nerf::gpu::GpuContext;
-use nerf::train::{SceneBounds, TrainConfig, Trainer};
 use serde_json::json;
 
 mod common;
-use common::{light_hash_config, load, sparse_psnr};
+use common::{light_hash_config, load, sparse_psnr, train_on};
 
 /// View `v`'s crop: `(x0, y0, w, h)` — landscape views keep the top 64 rows, portrait views the
 /// right 64 columns (off-centre, so a lost offset moves every ray).
@@ -48,15 +47,6 @@ fn write_crops(full: &Dataset, dir: &Path, offset: bool) {
     std::fs::write(dir.join("transforms_train.json"), json!({ "frames": frames }).to_string()).unwrap();
 }
 
-fn train(config: &TrainConfig, data: &Dataset, device: Option<Arc<GpuContext>>) -> Trainer {
-    let registry = nerf::registry();
-    let mut t = Trainer::new_on(config.clone(), &registry, SceneBounds::of(data), device).unwrap();
-    for _ in 0..config.iters {
-        t.step(data).unwrap();
-    }
-    t.finish().unwrap();
-    t
-}
 
 #[test]
 fn portrait_and_landscape_crops_train_the_field_on_both_devices() {
@@ -87,7 +77,7 @@ fn portrait_and_landscape_crops_train_the_field_on_both_devices() {
     let mut trained = Vec::new();
     for (name, data) in [("whole views", &full), ("crops", &crops), ("crops, offset lost", &lost)] {
         let t0 = std::time::Instant::now();
-        let t = train(&config, data, None);
+        let t = train_on(&config, data, None);
         let p = sparse_psnr(&t, &test, 2);
         println!("cpu, {name}: {p:.2} dB on the test views ({:.1} s)", t0.elapsed().as_secs_f64());
         psnr.push(p);
@@ -112,8 +102,8 @@ fn portrait_and_landscape_crops_train_the_field_on_both_devices() {
 
     let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
     let short = light_hash_config(80);
-    let cpu = sparse_psnr(&train(&short, &crops, None), &test, 2);
-    let gpu = sparse_psnr(&train(&short, &crops, Some(ctx)), &test, 2);
+    let cpu = sparse_psnr(&train_on(&short, &crops, None), &test, 2);
+    let gpu = sparse_psnr(&train_on(&short, &crops, Some(ctx)), &test, 2);
     println!("{} steps on the crops: cpu {cpu:.2} dB, gpu {gpu:.2} dB", short.iters);
     assert!((gpu - cpu).abs() < 1.0, "cpu {cpu:.2} dB, gpu {gpu:.2} dB");
 }

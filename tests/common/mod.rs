@@ -104,3 +104,16 @@ pub fn render_views(t: &nerf::train::Trainer, ds: &Dataset) -> Vec<ViewRender> {
         })
         .collect()
 }
+
+/// A trainer of `config` on `device` (`None`: the CPU) after `config.iters` steps on `data`,
+/// finished (its averaged weights in place).
+pub fn train_on(config: &nerf::train::TrainConfig, data: &Dataset, device: Option<std::sync::Arc<nerf::gpu::GpuContext>>) -> nerf::train::Trainer {
+    let on_gpu = device.is_some();
+    let mut t = nerf::train::Trainer::new_on(config.clone(), &nerf::registry(), nerf::train::SceneBounds::of(data), device).unwrap();
+    assert_eq!(t.device() != "cpu", on_gpu, "the trainer runs where it was asked to");
+    for _ in 0..config.iters {
+        t.step(data).unwrap();
+    }
+    t.finish().unwrap();
+    t
+}
