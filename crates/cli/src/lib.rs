@@ -107,10 +107,18 @@ struct TrainArgs {
     /// Master seed.
     #[arg(long)]
     seed: Option<u64>,
-    /// Test views to evaluate: all, every:K, first:N.
+    /// Test views to evaluate: all, every:K, first:N, spread:N.
     #[arg(long = "test-views")]
     test_views: Option<ViewSelection>,
-    /// Training views to use: all, every:K, first:N.
+    /// Also score the field every N steps on a few test views (`--eval-views`; config
+    /// `[eval_every]`): PSNR and SSIM to history.jsonl and the progress bar. Not counted as
+    /// training time.
+    #[arg(long = "eval-every", value_name = "N")]
+    eval_every: Option<u64>,
+    /// The test views `--eval-every` scores, among `--test-views` (default spread:4).
+    #[arg(long = "eval-views", requires = "eval_every")]
+    eval_views: Option<ViewSelection>,
+    /// Training views to use: all, every:K, first:N, spread:N.
     #[arg(long = "train-views", default_value = "all")]
     train_views: ViewSelection,
     /// Rays per training step.
@@ -151,7 +159,7 @@ struct EvalArgs {
     run: PathBuf,
     /// Scene folder (Blender, instant-ngp / nerfstudio or LLFF format).
     scene: PathBuf,
-    /// Views of the split to score: all, every:K, first:N (default: the run's test views).
+    /// Views of the split to score: all, every:K, first:N, spread:N (default: the run's test views).
     #[arg(long = "test-views", visible_alias = "views")]
     test_views: Option<ViewSelection>,
     /// Which of the scene's splits to score: the held-out `test` views, or the `train` views the
@@ -582,6 +590,10 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     }
     if let Some(x) = a.batch_rays {
         c.batch_rays = x;
+    }
+    if let Some(steps) = a.eval_every {
+        let views = a.eval_views.clone().or_else(|| c.eval_every.as_ref().map(|e| e.views.clone())).unwrap_or(ViewSelection::Spread(4));
+        c.eval_every = Some(nerf::train::config::PeriodicEval { steps, views });
     }
     c.validate().map_err(|e| match &a.config {
         Some(p) => anyhow::anyhow!("invalid training config ({} and the command-line flags): {e}", p.display()),

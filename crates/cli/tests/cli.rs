@@ -469,6 +469,35 @@ fn train_writes_metrics_with_the_stable_keys_and_eval_reproduces_them() {
     }
 }
 
+/// `--eval-every N`: the run scores the test views every N steps (history.jsonl, not at the last
+/// step, whose evaluation is metrics.json's), and ends exactly where the same run without it ends.
+#[test]
+fn eval_every_scores_during_the_run_and_leaves_it_unchanged() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let (plain, probed) = (d.path().join("plain"), d.path().join("probed"));
+    let o = train_tiny(&s, &plain, &["--iters", "7"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = train_tiny(&s, &probed, &["--iters", "7", "--eval-every", "3", "--eval-views", "all"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let metrics = |run: &Path| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap() };
+    let (a, b) = (metrics(&plain), metrics(&probed));
+    assert_eq!(a["test_psnr"], b["test_psnr"], "scoring during the run changed it");
+    assert_eq!(b["config"]["eval_every"], serde_json::json!({"steps": 3, "views": "all"}));
+    assert!(a["config"].get("eval_every").is_none(), "absent from configs that do not set it");
+    let history = std::fs::read_to_string(probed.join("history.jsonl")).unwrap();
+    let scored: Vec<serde_json::Value> = history.lines().map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap()).filter(|v| v.get("test_psnr").is_some()).collect();
+    let steps: Vec<u64> = scored.iter().map(|v| v["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [3, 6]);
+    assert!(scored.iter().all(|v| v["test_psnr"].as_f64().unwrap().is_finite() && v["test_views"] == 1), "{scored:?}");
+    assert!(!std::fs::read_to_string(plain.join("history.jsonl")).unwrap().contains("test_psnr"));
+    // Bad settings are clear errors.
+    let o = train_tiny(&s, &d.path().join("bad"), &["--iters", "2", "--eval-every", "0"]);
+    assert_clean_failure(&o, &["eval_every.steps"]);
+    let o = train_tiny(&s, &d.path().join("bad2"), &["--iters", "2", "--eval-views", "all"]);
+    assert!(o.status.code() == Some(2) && stderr(&o).contains("--eval-every"), "{}", stderr(&o));
+}
+
 /// `nerf eval --step-size`: a run of the occupancy sampler rendered with a finer marching step
 /// records the step, scores differently from its own step, and a step that is not positive is a
 /// clear error. A run whose config sets `render_step_size` trains as the plain run does and

@@ -287,8 +287,9 @@ impl std::str::FromStr for Split {
     }
 }
 
-/// Which views of a split to use: all, every k-th (k ≥ 1, starting at view 0), or the first n.
-/// Serialised as its string form (`"all"`, `"every:8"`, `"first:5"`), as on the command line.
+/// Which views of a split to use: all, every k-th (k ≥ 1, starting at view 0), the first n, or
+/// n spread evenly over the split. Serialised as its string form (`"all"`, `"every:8"`,
+/// `"first:5"`, `"spread:4"`), as on the command line.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "String", into = "String")]
 pub enum ViewSelection {
@@ -298,16 +299,22 @@ pub enum ViewSelection {
     Every(usize),
     /// Views 0 … n−1 (fewer if the split has fewer).
     First(usize),
+    /// `n` views spread evenly over the split (n ≥ 1): of `N` views, views `⌊i·N/n⌋` for
+    /// `i = 0 … n−1` (every view if the split has at most `n`).
+    Spread(usize),
 }
 
 impl ViewSelection {
-    /// The selected indices among `n` views; `Err` for `Every(0)`.
+    /// The selected indices among `n` views; `Err` for `Every(0)` and `Spread(0)`.
     pub fn indices(&self, n: usize) -> Result<Vec<usize>, String> {
         match *self {
             ViewSelection::All => Ok((0..n).collect()),
             ViewSelection::Every(0) => Err("every:0 (k must be at least 1)".into()),
             ViewSelection::Every(k) => Ok((0..n).step_by(k).collect()),
             ViewSelection::First(m) => Ok((0..n.min(m)).collect()),
+            ViewSelection::Spread(0) => Err("spread:0 (n must be at least 1)".into()),
+            ViewSelection::Spread(m) if m >= n => Ok((0..n).collect()),
+            ViewSelection::Spread(m) => Ok((0..m).map(|i| i * n / m).collect()),
         }
     }
 }
@@ -318,16 +325,17 @@ impl std::fmt::Display for ViewSelection {
             ViewSelection::All => write!(f, "all"),
             ViewSelection::Every(k) => write!(f, "every:{k}"),
             ViewSelection::First(n) => write!(f, "first:{n}"),
+            ViewSelection::Spread(n) => write!(f, "spread:{n}"),
         }
     }
 }
 
 impl std::str::FromStr for ViewSelection {
     type Err = String;
-    /// Parses `"all"`, `"every:K"` (K ≥ 1) or `"first:N"`.
+    /// Parses `"all"`, `"every:K"` (K ≥ 1), `"first:N"` or `"spread:N"` (N ≥ 1).
     fn from_str(s: &str) -> Result<Self, String> {
         let bad = || {
-            format!("invalid view selection `{s}` (expected `all`, `every:K` with K >= 1, or `first:N`)")
+            format!("invalid view selection `{s}` (expected `all`, `every:K` with K >= 1, `first:N`, or `spread:N` with N >= 1)")
         };
         let t = s.trim();
         if t == "all" {
@@ -338,6 +346,7 @@ impl std::str::FromStr for ViewSelection {
         match kind.trim() {
             "every" if num >= 1 => Ok(ViewSelection::Every(num)),
             "first" => Ok(ViewSelection::First(num)),
+            "spread" if num >= 1 => Ok(ViewSelection::Spread(num)),
             _ => Err(bad()),
         }
     }
@@ -556,6 +565,45 @@ impl Dataset {
     pub fn view_size(&self, i: usize) -> (u32, u32) {
         let k = &self.cameras[i].intrinsics;
         (k.width, k.height)
+    }
+
+    /// The dataset of views `views` of this one, in that order: their cameras, pixels, file
+    /// paths, masks and depth maps, the rest (size, bounds, scene) the same.
+    ///
+    /// # Panics
+    /// If an index is not below [`Dataset::n_views`].
+    pub fn select_views(&self, views: &[usize]) -> Dataset {
+        let pick = |v: &[Vec<f32>]| if v.is_empty() { Vec::new() } else { views.iter().map(|&i| v[i].clone()).collect() };
+        Dataset {
+            cameras: views.iter().map(|&i| self.cameras[i]).collect(),
+            images: pick(&self.images),
+            file_paths: if self.file_paths.is_empty() { Vec::new() } else { views.iter().map(|&i| self.file_paths[i].clone()).collect() },
+            masks: self.masks.as_ref().map(|m| m.select(views)),
+            depths: self.depths.as_ref().map(|d| pick(d)),
+            ..self.clone_without_views()
+        }
+    }
+
+    /// This dataset without its per-view contents (cameras, pixels, paths, masks, depth maps).
+    fn clone_without_views(&self) -> Dataset {
+        Dataset {
+            root: self.root.clone(),
+            split: self.split,
+            width: self.width,
+            height: self.height,
+            cameras: Vec::new(),
+            images: Vec::new(),
+            file_paths: Vec::new(),
+            masks: None,
+            depths: None,
+            near: self.near,
+            far: self.far,
+            aabb: self.aabb,
+            ndc: self.ndc,
+            depth_bounds: self.depth_bounds,
+            ngp: self.ngp,
+            normalization: self.normalization,
+        }
     }
 
     /// A name per view for files written from it (evaluation renders): its image's file stem
@@ -2305,7 +2353,12 @@ mod tests {
             "first:5".parse::<ViewSelection>(),
             Ok(ViewSelection::First(5))
         );
-        for bad in ["every:0", "every", "first:x", "some:3", "", "every:-1"] {
+        assert_eq!("spread:4".parse::<ViewSelection>(), Ok(ViewSelection::Spread(4)));
+        assert_eq!(ViewSelection::Spread(4).indices(200).unwrap(), vec![0, 50, 100, 150]);
+        assert_eq!(ViewSelection::Spread(3).indices(7).unwrap(), vec![0, 2, 4]);
+        assert_eq!(ViewSelection::Spread(9).indices(3).unwrap(), vec![0, 1, 2]);
+        assert!(ViewSelection::Spread(0).indices(3).is_err());
+        for bad in ["every:0", "every", "first:x", "some:3", "", "every:-1", "spread:0"] {
             let e = bad.parse::<ViewSelection>().unwrap_err();
             assert!(
                 e.contains("invalid view selection") && e.contains(bad),
@@ -2319,7 +2372,7 @@ mod tests {
         assert_eq!(ViewSelection::First(3).indices(2).unwrap(), vec![0, 1]);
         assert_eq!(ViewSelection::All.indices(3).unwrap(), vec![0, 1, 2]);
         assert!(ViewSelection::Every(0).indices(3).is_err());
-        for s in ["all", "every:8", "first:5"] {
+        for s in ["all", "every:8", "first:5", "spread:4"] {
             assert_eq!(s.parse::<ViewSelection>().unwrap().to_string(), s);
         }
         assert_eq!("val".parse::<Split>(), Ok(Split::Val));

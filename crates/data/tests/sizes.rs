@@ -132,6 +132,13 @@ fn views_of_several_sizes_sit_on_one_canvas_with_the_rest_masked_out() {
     }
     assert_eq!(drawn.len(), 4 * 48, "every pixel of every view drawn");
 
+    // A selection of views keeps their cameras, pixels, masks and the canvas.
+    let two = ds.select_views(&[3, 0]);
+    assert_eq!((two.n_views(), two.width, two.height, two.view_size(0), two.view_size(1)), (2, 8, 8, (6, 8), (8, 6)));
+    assert_eq!((&two.images[0], &two.file_paths[1]), (&ds.images[3], &ds.file_paths[0]));
+    assert_eq!(two.masks, Some(ds.masks.as_ref().unwrap().select(&[3, 0])));
+    assert_eq!(two.cameras[0].position, ds.cameras[3].position);
+
     // Downscaled: each view by its own size, then the canvas of the largest.
     let (w8, h8) = (16, 12);
     std::fs::create_dir_all(dir.path().join("big")).unwrap();

@@ -234,6 +234,11 @@ pub struct TrainConfig {
     pub log_every: u64,
     /// Write a checkpoint every this many steps (0 = only at the end / on interrupt).
     pub checkpoint_every: u64,
+    /// Score the field on a few test views during a run (nerfstudio's `steps_per_eval_image`),
+    /// written to `history.jsonl` and the progress bar; `None` (the default): only at the end.
+    /// Read by `nerf train` (the ablation runner has its own schedule, `[eval]`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub eval_every: Option<PeriodicEval>,
     /// Rays per rendering chunk during evaluation. On the CPU with the occupancy sampler the
     /// chunks render concurrently (each marched in rounds on one thread, the field's queries
     /// parallel inside); the image does not depend on the thread count.
@@ -243,6 +248,23 @@ pub struct TrainConfig {
     /// ([`crate::profile`]); `None` (the default) = off. Ignored, with a note, on the CPU path.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gpu_profile: Option<crate::profile::ProfileWindow>,
+}
+
+/// Evaluation during a run ([`TrainConfig::eval_every`]).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PeriodicEval {
+    /// Score every this many steps (≥ 1). The time it takes is not training time: it counts
+    /// neither against `time_budget_secs` nor in `wall_seconds`.
+    pub steps: u64,
+    /// Which of the run's test views ([`TrainConfig::test_views`]) to score (default
+    /// `spread:4`: four, spread over them).
+    #[serde(default = "default_eval_views")]
+    pub views: ViewSelection,
+}
+
+fn default_eval_views() -> ViewSelection {
+    ViewSelection::Spread(4)
 }
 
 /// Settings of the per-view colour correction ([`TrainConfig::color_correction`]).
@@ -340,6 +362,7 @@ impl Default for TrainConfig {
             test_views: ViewSelection::Every(8),
             log_every: 100,
             checkpoint_every: 1000,
+            eval_every: None,
             render_chunk_rays: 4096,
             gpu_profile: None,
         }
@@ -414,6 +437,12 @@ impl TrainConfig {
         }
         if self.render_chunk_rays == 0 {
             return Err("render_chunk_rays must be positive".into());
+        }
+        if let Some(e) = &self.eval_every {
+            if e.steps == 0 {
+                return Err("eval_every.steps must be at least 1".into());
+            }
+            e.views.indices(1).map_err(|r| format!("eval_every.views: {r}"))?;
         }
         if let Some(d) = self.ema_decay {
             if !(d > 0.0 && d < 1.0) {
@@ -574,6 +603,21 @@ mod tests {
             let e = TrainConfig { eval_spp: bad, ..TrainConfig::default() }.validate().unwrap_err();
             assert!(e.contains("eval_spp"), "{e}");
         }
+    }
+
+    #[test]
+    fn eval_every_round_trips_and_is_validated() {
+        assert!(serde_json::to_value(TrainConfig::default()).unwrap().get("eval_every").is_none());
+        let c: TrainConfig = toml::from_str("[eval_every]\nsteps = 500\n").unwrap();
+        assert_eq!(c.eval_every, Some(PeriodicEval { steps: 500, views: ViewSelection::Spread(4) }));
+        assert!(c.validate().is_ok());
+        let c: TrainConfig = toml::from_str("[eval_every]\nsteps = 500\nviews = \"first:2\"\n").unwrap();
+        assert_eq!(toml::from_str::<TrainConfig>(&toml::to_string(&c).unwrap()).unwrap(), c);
+        let e = TrainConfig { eval_every: Some(PeriodicEval { steps: 0, views: ViewSelection::All }), ..TrainConfig::default() }.validate().unwrap_err();
+        assert!(e.contains("eval_every.steps"), "{e}");
+        let e = TrainConfig { eval_every: Some(PeriodicEval { steps: 5, views: ViewSelection::Spread(0) }), ..TrainConfig::default() }.validate().unwrap_err();
+        assert!(e.contains("eval_every.views") && e.contains("spread:0"), "{e}");
+        assert!(toml::from_str::<TrainConfig>("[eval_every]\nevery = 5\n").is_err());
     }
 
     #[test]

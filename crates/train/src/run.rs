@@ -194,6 +194,12 @@ pub fn run(
     );
     pb.set_position(trainer.step_count());
     let budget = config.time_budget_secs.unwrap_or(f64::INFINITY);
+    // Test views scored during the run (`eval_every`), and the seconds that took (not training).
+    let probe = match &config.eval_every {
+        Some(e) => Some((e.steps, test.select_views(&e.views.indices(test.n_views()).map_err(|r| TrainError::Config(format!("eval_every.views: {r}")))?))),
+        None => None,
+    };
+    let mut eval_secs = 0.0f64;
     let start = Instant::now();
     let base_elapsed = elapsed;
     let base_step = trainer.step_count();
@@ -211,7 +217,7 @@ pub fn run(
             pb.suspend(|| eprintln!("{}", p.table(25)));
             profile = Some(p);
         }
-        elapsed = base_elapsed + start.elapsed().as_secs_f64();
+        elapsed = base_elapsed + start.elapsed().as_secs_f64() - eval_secs;
         if s.loss.is_finite() {
             last_loss = s.loss;
         }
@@ -237,10 +243,26 @@ pub fn run(
         if config.checkpoint_every > 0 && done % config.checkpoint_every == 0 {
             save(&trainer, elapsed)?;
         }
+        // A score on a few test views (not at the last step: the whole evaluation follows).
+        if let Some((every, views)) = probe.as_ref().filter(|(every, _)| done % every == 0 && done < config.iters) {
+            // Queued GPU steps are training time; the evaluation after them is not.
+            trainer.finish()?;
+            let t0 = Instant::now();
+            let r = evaluate(&trainer, views, None, |_, _| {})?;
+            eval_secs += t0.elapsed().as_secs_f64();
+            elapsed = base_elapsed + start.elapsed().as_secs_f64() - eval_secs;
+            if !r.psnr.is_finite() {
+                // NaN parameters between two GPU loss read-backs: nothing saved.
+                return Err(TrainError::Diverged { step: done, loss: f32::NAN });
+            }
+            pb.set_message(format!("test psnr {:.2} (step {done}, every {every})", r.psnr));
+            let line = json!({"step": done, "elapsed_secs": elapsed, "test_psnr": r.psnr, "test_ssim": r.ssim, "test_views": views.n_views(), "eval_seconds": r.seconds});
+            writeln!(history, "{line}").map_err(io_err(&hist_path))?;
+        }
     }
     // GPU steps are queued: wait for them so the clock counts the work, not its submission.
     trainer.finish()?;
-    elapsed = base_elapsed + start.elapsed().as_secs_f64();
+    elapsed = base_elapsed + start.elapsed().as_secs_f64() - eval_secs;
     if let Some(p) = trainer.take_gpu_profile(true) {
         write_profile(&p)?;
         pb.suspend(|| eprintln!("{}", p.table(25)));
