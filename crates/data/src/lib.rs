@@ -614,11 +614,15 @@ impl Dataset {
         let stems: Vec<String> = (0..self.n_views())
             .map(|i| self.file_paths.get(i).and_then(|p| p.file_stem()).map_or_else(|| format!("view_{i:03}"), |s| s.to_string_lossy().into_owned()))
             .collect();
+        let mut count: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+        for s in &stems {
+            *count.entry(s).or_insert(0) += 1;
+        }
         let mut seen: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
         stems
             .iter()
             .map(|s| {
-                if stems.iter().filter(|t| *t == s).count() == 1 {
+                if count[s.as_str()] == 1 {
                     return s.clone();
                 }
                 let k = seen.entry(s).or_insert(0);
