@@ -602,6 +602,25 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     Ok(c)
 }
 
+/// The longest side nerfstudio trains photos at unless told otherwise (its `MAX_AUTO_RESOLUTION`).
+const LARGE_PHOTO: u32 = 1600;
+
+/// A hint for training views past [`LARGE_PHOTO`] pixels on a side at `--downscale 1`: the
+/// factor that brings them under it, as nerfstudio picks one (a power of two).
+fn large_photos_note(train: &nerf::data::Dataset, downscale: u32) -> Option<String> {
+    let side = (0..train.n_views()).map(|i| train.view_size(i)).map(|(w, h)| w.max(h)).max()?;
+    if downscale != 1 || side <= LARGE_PHOTO {
+        return None;
+    }
+    let k = (1..).map(|n| 1u32 << n).find(|k| side / k <= LARGE_PHOTO).expect("a power of two brings any side under it");
+    let gb = train.n_views() as f64 * train.width as f64 * train.height as f64 * 16.0 / 1e9;
+    Some(format!(
+        "the photos are up to {side} pixels on a side ({gb:.1} GB as loaded); nerfstudio trains such captures at \
+         {LARGE_PHOTO} or less: --downscale {k} (or `downscale = {k}` in the config) would take {:.2} GB and train faster",
+        gb / (k * k) as f64
+    ))
+}
+
 /// What a run in an instant-ngp box with `aabb_scale` > 1 does about the box: cone steps and a
 /// cascade of occupancy grids (picked by the scene unless the config sets them), or, with another
 /// sampler, what instant-ngp would use. (A grid field scales its finest resolution with the box
@@ -645,6 +664,9 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
             },
             s = train.ngp.map_or(1.0, |b| b.aabb_scale),
         );
+    }
+    if let Some(note) = large_photos_note(&train, config.downscale) {
+        eprintln!("note: {}: {note}", a.scene.display());
     }
     if let Some(b) = train.ngp.filter(|b| b.aabb_scale > 1.0) {
         eprintln!("note: {}: aabb_scale {}: {}", a.scene.display(), b.aabb_scale, large_box_note(&config, &SceneBounds::of(&train)));

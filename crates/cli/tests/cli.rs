@@ -248,6 +248,25 @@ fn wrong_image_size_names_the_image() {
     assert_clean_failure(&o, &["r_2.png"]);
 }
 
+/// Photos past 1600 pixels on a side trained at full resolution: a note with the downscale
+/// nerfstudio would train them at; none once it is given.
+#[test]
+fn large_photos_get_a_downscale_note() {
+    let d = tempfile::tempdir().unwrap();
+    let s = d.path().join("wide");
+    std::fs::create_dir_all(&s).unwrap();
+    image::RgbaImage::from_pixel(3400, 4, image::Rgba([200, 100, 50, 255])).save(s.join("p.png")).unwrap();
+    let frames = serde_json::json!([{"file_path": "p.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]}]);
+    for split in ["train", "test"] {
+        std::fs::write(s.join(format!("transforms_{split}.json")), serde_json::json!({"camera_angle_x": 0.7, "frames": frames}).to_string()).unwrap();
+    }
+    let o = train_tiny(&s, &d.path().join("run"), &["--iters", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("up to 3400 pixels on a side") && stderr(&o).contains("--downscale 4"), "{}", stderr(&o));
+    let o = train_tiny(&s, &d.path().join("run2"), &["--iters", "1", "--downscale", "2"]);
+    assert!(o.status.success() && !stderr(&o).contains("pixels on a side"), "{}", stderr(&o));
+}
+
 #[test]
 fn nan_pose_names_the_file_and_frame() {
     let d = tempfile::tempdir().unwrap();
