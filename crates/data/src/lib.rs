@@ -1052,6 +1052,33 @@ fn image_path(root: &Path, file_path: &str) -> PathBuf {
     p
 }
 
+/// The frames read from nerfstudio's downscaled copies of their files for `--downscale k`:
+/// `images_<k>/<file name>` in the scene folder for each image, `masks_<k>/` for each mask and
+/// `depths_<k>/` for each depth map, as `ns-process-data` writes them and nerfstudio's data parser
+/// reads them, with the camera keys scaled ([`ngp::Lens::downscaled`]). `None` unless every
+/// frame has all of its copies.
+fn downscaled_copies(root: &Path, frames: &[&Frame], k: u32) -> Option<Vec<Frame>> {
+    let copy = |dir: &str, p: &Path| -> Option<PathBuf> {
+        let c = root.join(format!("{dir}_{k}")).join(p.file_name()?);
+        c.is_file().then_some(c)
+    };
+    frames
+        .iter()
+        .map(|f| {
+            let mut g = (*f).clone();
+            g.image = copy("images", &f.image)?;
+            if let Some(m) = &f.mask {
+                g.mask = Some(copy("masks", m)?);
+            }
+            if let Some((d, scale)) = &f.depth {
+                g.depth = Some((copy("depths", d)?, *scale));
+            }
+            g.lens = f.lens.downscaled(k);
+            Some(g)
+        })
+        .collect()
+}
+
 /// A decoded image: width, height, straight RGBA f32 pixels.
 type Decoded = (u32, u32, Vec<f32>);
 
@@ -1618,6 +1645,13 @@ fn load_transforms_with(
     // Every frame's camera centre (all splits: `far` must not depend on the split or selection).
     let centres: Vec<Vec3> = frames.iter().map(|f| Vec3::new(f.c2w[0][3], f.c2w[1][3], f.c2w[2][3])).collect();
     let frames: Vec<&Frame> = selected.iter().map(|&i| &frames[in_split[i]]).collect();
+    // nerfstudio's downscaled copies, read in place of box-averaging the originals where every
+    // selected frame has them.
+    let copies = if nerfstudio && k > 1 { downscaled_copies(root, &frames, k) } else { None };
+    let (frames, k): (Vec<&Frame>, u32) = match &copies {
+        Some(c) => (c.iter().collect(), 1),
+        None => (frames, k),
+    };
     for f in &frames {
         if !f.image.is_file() {
             return Err(DataError::MissingImage {

@@ -323,6 +323,29 @@ impl Lens {
         })
     }
 
+    /// The camera keys of the same camera's images downscaled by `k` (nerfstudio's
+    /// `images_<k>/` copies): focal lengths in pixels and the principal point divided by `k`
+    /// (a field of view stays as it is), the lens unchanged, no size to check (the tool that made
+    /// the copies rounded theirs).
+    pub fn downscaled(&self, k: u32) -> Lens {
+        let k = k as f64;
+        let focal = |f: Option<Focal>| {
+            f.map(|f| match f {
+                Focal::Pixels(p) => Focal::Pixels(p / k),
+                angle => angle,
+            })
+        };
+        Lens {
+            size: None,
+            focal_x: focal(self.focal_x),
+            focal_y: focal(self.focal_y),
+            cx: self.cx.map(|c| c / k),
+            cy: self.cy.map(|c| c / k),
+            distortion: self.distortion,
+            equirectangular: self.equirectangular,
+        }
+    }
+
     /// The pinhole intrinsics of an image of `width × height` pixels (before any downscaling):
     /// `0.5·W / tan(0.5·x_fov)` or `fl_x` or `0.5·W / tan(0.5·camera_angle_x)` (in `f64`, as
     /// [`Intrinsics::from_fov_x`]), likewise for `fy` or else `fx`, `cx` or `W/2`, `cy` or `H/2`. Errors:
