@@ -209,6 +209,21 @@ fn masks_and_depth_maps_of_views_of_several_sizes_are_their_own_views_on_the_can
     assert!(matches!(e, DataError::BadMask { frame: 1, .. }) && e.to_string().contains("m1.png") && e.to_string().contains("6x8"), "{e}");
 }
 
+/// A pincushion lens (`k1 > 0`): its pinhole images reach past the photos at their corners, and
+/// those pixels, found at each view's own size, stay dropped on the canvas.
+#[test]
+fn a_lens_mask_of_views_of_several_sizes_is_each_sizes_own() {
+    let dir = tempfile::tempdir().unwrap();
+    scene(dir.path(), 8, |_| json!({"k1": 1.0}));
+    let ds = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    let m = ds.masks.as_ref().unwrap();
+    for v in 0..4 {
+        let (w, h) = SIZES[v];
+        let kept_inside = (0..64u32).filter(|&p| m.is_kept(v, p)).inspect(|&p| assert!(p % 8 < w && p / 8 < h, "view {v}: canvas pixel {p} past the view kept")).count();
+        assert!(kept_inside < (w * h) as usize && kept_inside > (w * h) as usize / 2, "view {v}: {kept_inside} of {} kept", w * h);
+    }
+}
+
 #[test]
 fn sizes_must_be_stated_to_differ() {
     let dir = tempfile::tempdir().unwrap();
