@@ -1118,7 +1118,20 @@ fn decode_rgba(path: &Path) -> Result<Decoded, DataError> {
                 ]
             })
             .collect(),
-        other => other.to_rgba32f().into_raw(),
+        // Grey, and float images (TIFF): values past [0, 1] (an HDR photo) are clipped, as an
+        // 8-bit photo of the scene would clip them; a value that is not a number is an error.
+        other => {
+            let mut px = other.to_rgba32f().into_raw();
+            if let Some(i) = px.iter().position(|v| !v.is_finite()) {
+                return Err(DataError::InvalidValue {
+                    path: path.to_path_buf(),
+                    key: "pixels".into(),
+                    reason: format!("pixel ({}, {}) holds {}: a photo's values must be numbers", (i / 4) as u32 % w, (i / 4) as u32 / w, px[i]),
+                });
+            }
+            px.iter_mut().for_each(|v| *v = v.clamp(0.0, 1.0));
+            px
+        }
     };
     Ok((w, h, px))
 }

@@ -247,6 +247,34 @@ fn rgb_and_16_bit_pngs_are_accepted() {
     );
 }
 
+/// WebP and TIFF photos (`file_path` with their extension) load as PNGs do; a float TIFF's values
+/// past [0, 1] are clipped, and one that is not a number is an error naming the file.
+#[test]
+fn webp_and_tiff_photos_are_accepted() {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path();
+    std::fs::create_dir_all(root.join("train")).unwrap();
+    let frames: Vec<Value> = ["r_0.png", "r_1.webp", "r_2.tif"]
+        .iter()
+        .map(|f| json!({"file_path": format!("train/{f}"), "transform_matrix": ident()}))
+        .collect();
+    set_transforms(root, &json!({"camera_angle_x": ANGLE, "frames": frames}));
+    let img = image::RgbaImage::from_fn(4, 3, |x, y| image::Rgba([x as u8 * 60, y as u8 * 100, 7, if x == 0 { 0 } else { 255 }]));
+    for f in ["r_0.png", "r_1.webp", "r_2.tif"] {
+        img.save(root.join("train").join(f)).unwrap();
+    }
+    let ds = load_blender(root, Split::Train, &LoadOptions::default()).unwrap();
+    assert!(ds.images[1] == ds.images[0] && ds.images[2] == ds.images[0], "lossless WebP and TIFF hold the PNG's pixels");
+    // A float TIFF (what an HDR pipeline writes): clipped to [0, 1]; NaN refused.
+    let float = |v: f32| image::DynamicImage::ImageRgb32F(image::ImageBuffer::from_fn(4, 3, |x, _| image::Rgb([if x == 1 { v } else { 0.25 }, 0.5, 1.0])));
+    float(1.75).save(root.join("train/r_2.tif")).unwrap();
+    let ds = load_blender(root, Split::Train, &LoadOptions::default()).unwrap();
+    assert_eq!((&ds.images[2][..4], &ds.images[2][4..8]), (&[0.25, 0.5, 1.0, 1.0][..], &[1.0, 0.5, 1.0, 1.0][..]));
+    float(f32::NAN).save(root.join("train/r_2.tif")).unwrap();
+    let e = load_blender(root, Split::Train, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("r_2.tif") && e.contains("pixel (1, 0)") && e.contains("NaN"), "{e}");
+}
+
 #[test]
 fn sampled_rays_match_view_rays() {
     let ds = synthetic(4, 12, 10, 7);
