@@ -94,7 +94,8 @@ struct TrainArgs {
     #[arg(long = "time-budget")]
     time_budget: Option<f64>,
     /// Image downscale factor (2 = half resolution; LLFF: picks images_K/, e.g. 8 for the
-    /// NeRF paper's 504×378 fern).
+    /// NeRF paper's 504×378 fern; nerfstudio captures and COLMAP folders read their images_K/
+    /// copies where every photo has one).
     #[arg(long)]
     downscale: Option<u32>,
     /// Forward-facing (LLFF) scenes: Euclidean rays instead of the paper's NDC (nerf-pytorch's
