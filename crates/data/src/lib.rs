@@ -1056,8 +1056,12 @@ fn image_path(root: &Path, file_path: &str) -> PathBuf {
 /// `images_<k>/<file name>` in the scene folder for each image, `masks_<k>/` for each mask and
 /// `depths_<k>/` for each depth map, as `ns-process-data` writes them and nerfstudio's data parser
 /// reads them, with the camera keys scaled ([`ngp::Lens::downscaled`]). `None` unless every
-/// frame has all of its copies.
+/// frame has all of its copies, and for a photo with an instant-ngp dynamic mask beside it
+/// (which has no such copy).
 fn downscaled_copies(root: &Path, frames: &[&Frame], k: u32) -> Option<Vec<Frame>> {
+    if frames.iter().any(|f| f.mask.is_none() && dynamic_mask_path(&f.image).is_file()) {
+        return None;
+    }
     let copy = |dir: &str, p: &Path| -> Option<PathBuf> {
         let c = root.join(format!("{dir}_{k}")).join(p.file_name()?);
         c.is_file().then_some(c)
