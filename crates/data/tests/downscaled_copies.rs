@@ -71,3 +71,25 @@ fn downscaled_copies_are_read_in_place_of_the_originals() {
     assert!(boxed.file_paths[0].ends_with("images/f0.png"));
     assert_eq!(boxed.masks.as_ref().map_or(12 * 3, |m| m.total()), 12 * 3);
 }
+
+/// A photo with an instant-ngp dynamic mask beside it (no `mask_path`): the mask has no copy, so
+/// every frame is read from its original and the mask applies.
+#[test]
+fn a_dynamic_mask_keeps_the_originals() {
+    let dir = tempfile::tempdir().unwrap();
+    capture(dir.path());
+    let text = std::fs::read_to_string(dir.path().join("transforms.json")).unwrap();
+    let mut t: serde_json::Value = serde_json::from_str(&text).unwrap();
+    for f in t["frames"].as_array_mut().unwrap() {
+        f.as_object_mut().unwrap().remove("mask_path");
+    }
+    std::fs::write(dir.path().join("transforms.json"), t.to_string()).unwrap();
+    // Without a dynamic mask: the copies.
+    assert!(load(dir.path(), 2).file_paths[0].ends_with("images_2/f0.png"));
+    // Its non-zero pixels drop: the right half of f0.
+    image::GrayImage::from_fn(8, 6, |x, _| image::Luma([if x >= 4 { 255 } else { 0 }])).save(dir.path().join("images/dynamic_mask_f0.png")).unwrap();
+    let ds = load(dir.path(), 2);
+    assert!(ds.file_paths[0].ends_with("images/f0.png"));
+    let m = ds.masks.as_ref().expect("the dynamic mask");
+    assert_eq!((m.kept_in(0), m.kept_in(1)), (6, 12));
+}
