@@ -9,7 +9,9 @@
 //!   (required with it).
 //!
 //! Values are z-depths (the distance along the camera's optical axis, as both tools and every
-//! RGB-D sensor store them) in the file's world units; 0 marks a pixel without a measurement.
+//! RGB-D sensor store them) in the file's world units; 0 marks a pixel without a measurement. A
+//! panorama's map ([`crate::equirect`]) holds distances along the rays instead (a panorama has no
+//! optical axis; nerfstudio reads an equirectangular camera's depths so).
 //! The maps are single-channel 8- or 16-bit PNGs or `.npy` arrays (nerfstudio reads both; an
 //! array's values are scaled the same way), of the photo's size or of its shape (a
 //! sensor's smaller map is enlarged by nearest neighbour, as nerfstudio does). Loading ([`crate::Dataset::depths`]) turns
@@ -138,15 +140,25 @@ pub(crate) fn ray_distances(px: &[f32], intr: &Intrinsics, scale: f32) -> Vec<f3
     px.chunks_exact(4)
         .enumerate()
         .map(|(p, d)| {
-            let variance = d[2] - d[0] * d[0];
-            if d[1] < 1.0 - 1e-6 || variance > (MAX_RELATIVE_SPREAD * d[0]).powi(2) {
-                return 0.0;
-            }
+            let Some(z) = measured(d) else { return 0.0 };
             let x = ((p % w) as f32 + 0.5 - intr.cx) / intr.fx;
             let y = ((p / w) as f32 + 0.5 - intr.cy) / intr.fy;
-            d[0] * (x * x + y * y + 1.0).sqrt() * scale
+            z * (x * x + y * y + 1.0).sqrt() * scale
         })
         .collect()
+}
+
+/// As [`ray_distances`] for a buffer whose values are distances along the rays already (a
+/// panorama's depth map, resampled to a face of its cube map): each measured value times `scale`.
+pub(crate) fn ranges(px: &[f32], scale: f32) -> Vec<f32> {
+    px.chunks_exact(4).map(|d| measured(d).map_or(0.0, |r| r * scale)).collect()
+}
+
+/// The value of a resampled pixel `(v, valid, v², 1)`, or `None` where any pixel it was made of
+/// had no measurement or their values spread by more than [`MAX_RELATIVE_SPREAD`].
+fn measured(d: &[f32]) -> Option<f32> {
+    let variance = d[2] - d[0] * d[0];
+    (d[1] >= 1.0 - 1e-6 && variance <= (MAX_RELATIVE_SPREAD * d[0]).powi(2)).then_some(d[0])
 }
 
 /// A sparse depth map of the pinhole camera `cam` from 3-D points (in its world): each point in

@@ -1676,13 +1676,6 @@ fn load_transforms_with(
                 frame: f.index,
             });
         }
-        if let (true, Some((d, _))) = (f.lens.equirectangular, &f.depth) {
-            return Err(DataError::InvalidValue {
-                path: tpath.clone(),
-                key: format!("frames[{}]", f.index),
-                reason: format!("a depth map ({}) of an equirectangular photo: depth maps of panoramas are not supported", d.display()),
-            });
-        }
     }
     // A panorama is six views: the faces of a cube map, from its centre ([`equirect`]).
     let faces: Vec<Frame> = frames
@@ -1823,11 +1816,16 @@ fn load_transforms_with(
             .par_iter()
             .enumerate()
             .map(|(i, f)| {
-                let (w0, h0) = sizes[i];
-                let Some((path, scale)) = &f.depth else { return Ok(vec![0.0; ((w0 / k) * (h0 / k)) as usize]) };
+                let ((w0, h0), (vw, vh)) = both[i];
+                let Some((path, scale)) = &f.depth else { return Ok(vec![0.0; ((vw / k) * (vh / k)) as usize]) };
                 let px = depth::decode(depth::DepthSource { path, scale: *scale }, f.index, (w0, h0))?;
-                let px = downscale_rgba(&undistort(i, path, w0, h0, px)?, w0 as usize, h0 as usize, k as usize);
-                Ok(depth::ray_distances(&px, &cameras[i].intrinsics, units))
+                let px = downscale_rgba(&undistort(i, path, w0, h0, px)?, vw as usize, vh as usize, k as usize);
+                // A panorama's depth map holds distances along the rays already (nerfstudio's
+                // rays of an equirectangular camera are unit: it reads them so).
+                Ok(match f.face {
+                    Some(_) => depth::ranges(&px, units),
+                    None => depth::ray_distances(&px, &cameras[i].intrinsics, units),
+                })
             })
             .collect();
         Some(maps.into_iter().collect::<Result<Vec<_>, _>>()?)
