@@ -368,7 +368,9 @@ impl From<ViewSelection> for String {
 /// Options of [`load_blender`].
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct LoadOptions {
-    /// Integer downscale factor (≥ 1; must divide the image size): k×k box average.
+    /// Integer downscale factor (≥ 1; must divide the image size): k×k box average. A nerfstudio
+    /// capture or COLMAP folder whose selected frames all have `images_<k>/` copies reads those
+    /// instead (nerfstudio's downscaled copies; see docs/formats.md).
     pub downscale: u32,
     /// Which views of the split to load.
     pub views: ViewSelection,
