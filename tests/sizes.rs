@@ -85,7 +85,7 @@ fn portrait_and_landscape_crops_train_the_field_on_both_devices() {
     }
     // Evaluation renders and scores each view at its own size: two crops, landscape and
     // portrait, the same score as their part of the whole views' renders.
-    let two = |d: &Dataset| Dataset { cameras: d.cameras[..2].to_vec(), images: d.images[..2].to_vec(), file_paths: d.file_paths[..2].to_vec(), masks: None, ..d.clone() };
+    let two = |d: &Dataset| d.select_views(&[0, 1]);
     let out = tempfile::tempdir().unwrap();
     let report = nerf::train::evaluate(&trained[1], &two(&crops), Some(out.path()), |_, _| {}).unwrap();
     let whole = common::render_views(&trained[1], &two(&full));

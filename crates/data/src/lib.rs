@@ -1178,18 +1178,23 @@ fn decode_views(paths: &[&Path], k: u32, cameras_only: bool) -> Result<(u32, u32
     let mut images = Vec::with_capacity(decoded.len());
     for (i, ((vw, vh), _, px)) in decoded.into_iter().enumerate() {
         if (vw, vh) != (w, h) {
-            return Err(DataError::SizeMismatch {
-                path: paths[i].to_path_buf(),
-                width: vw,
-                height: vh,
-                first: paths[0].to_path_buf(),
-                first_width: w,
-                first_height: h,
-            });
+            return Err(size_mismatch(paths[i], (vw, vh), paths[0], (w, h)));
         }
         images.push(px);
     }
     Ok((w, h, images))
+}
+
+/// The image at `path` is `size`, not the size of the first image `first`.
+fn size_mismatch(path: &Path, size: (u32, u32), first: &Path, first_size: (u32, u32)) -> DataError {
+    DataError::SizeMismatch {
+        path: path.to_path_buf(),
+        width: size.0,
+        height: size.1,
+        first: first.to_path_buf(),
+        first_width: first_size.0,
+        first_height: first_size.1,
+    }
 }
 
 /// A step between decoding an image and downscaling it: `(index, path, width, height, pixels)` →
@@ -1742,15 +1747,7 @@ fn load_transforms_with(
     let sizes: Vec<(u32, u32)> = both.iter().map(|&(_, view)| view).collect();
     let plain: Vec<usize> = (0..frames.len()).filter(|&i| frames[i].face.is_none()).collect();
     if let Some(&i) = plain.iter().find(|&&i| frames[i].lens.size.is_none() && sizes[i] != sizes[plain[0]]) {
-        let first = plain[0];
-        return Err(DataError::SizeMismatch {
-            path: paths[i].to_path_buf(),
-            width: sizes[i].0,
-            height: sizes[i].1,
-            first: paths[first].to_path_buf(),
-            first_width: sizes[first].0,
-            first_height: sizes[first].1,
-        });
+        return Err(size_mismatch(paths[i], sizes[i], paths[plain[0]], sizes[plain[0]]));
     }
     let mut images: Vec<Vec<f32>> = decoded.into_iter().map(|(_, _, px)| px).collect();
     // Each view's pinhole intrinsics at the stored size, and its camera at the loaded one.
@@ -1834,7 +1831,7 @@ fn load_transforms_with(
     };
     // Sparse depth maps from the SfM points (COLMAP folders, `sfm_depth`), where no frame has a
     // depth map of its own.
-    let depths = match (depths, sfm) {
+    let mut depths = match (depths, sfm) {
         (None, Some(points)) if !opts.cameras_only => Some(
             frames
                 .iter()
@@ -1848,7 +1845,6 @@ fn load_transforms_with(
         (d, _) => d,
     };
     // Views of different sizes share the canvas of the largest width and height.
-    let mut depths = depths;
     let loaded: Vec<(u32, u32)> = cameras.iter().map(|c| (c.intrinsics.width, c.intrinsics.height)).collect();
     let canvas = loaded.iter().fold((0, 0), |(w, h), &(vw, vh)| (w.max(vw), h.max(vh)));
     let n_pixels = canvas.0 * canvas.1;

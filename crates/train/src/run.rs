@@ -202,6 +202,8 @@ pub fn run(
     let mut eval_secs = 0.0f64;
     let start = Instant::now();
     let base_elapsed = elapsed;
+    // Training seconds so far: this invocation's wall clock less its evaluations.
+    let train_clock = |eval_secs: f64| base_elapsed + start.elapsed().as_secs_f64() - eval_secs;
     let base_step = trainer.step_count();
     let mut last_loss = f32::NAN;
     while trainer.step_count() < config.iters && elapsed < budget {
@@ -217,7 +219,7 @@ pub fn run(
             pb.suspend(|| eprintln!("{}", p.table(25)));
             profile = Some(p);
         }
-        elapsed = base_elapsed + start.elapsed().as_secs_f64() - eval_secs;
+        elapsed = train_clock(eval_secs);
         if s.loss.is_finite() {
             last_loss = s.loss;
         }
@@ -250,7 +252,7 @@ pub fn run(
             let t0 = Instant::now();
             let r = evaluate(&trainer, views, None, |_, _| {})?;
             eval_secs += t0.elapsed().as_secs_f64();
-            elapsed = base_elapsed + start.elapsed().as_secs_f64() - eval_secs;
+            elapsed = train_clock(eval_secs);
             if !r.psnr.is_finite() {
                 // NaN parameters between two GPU loss read-backs: nothing saved.
                 return Err(TrainError::Diverged { step: done, loss: f32::NAN });
@@ -262,7 +264,7 @@ pub fn run(
     }
     // GPU steps are queued: wait for them so the clock counts the work, not its submission.
     trainer.finish()?;
-    elapsed = base_elapsed + start.elapsed().as_secs_f64() - eval_secs;
+    elapsed = train_clock(eval_secs);
     if let Some(p) = trainer.take_gpu_profile(true) {
         write_profile(&p)?;
         pb.suspend(|| eprintln!("{}", p.table(25)));
