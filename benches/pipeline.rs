@@ -158,8 +158,8 @@ fn training_iteration_gpu(c: &mut Criterion) {
 fn mark_seen(c: &mut Criterion) {
     let data = load_blender(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/lego_100").as_ref(), Split::Train, &LoadOptions::default())
         .expect("the in-repo scene");
-    let cams = &data.cameras;
-    let visible = |p: [f32; 3], r: f32| cams.iter().any(|cam| cam.sees_sphere(p.into(), r));
+    let frusta: Vec<_> = data.cameras.iter().map(|c| c.frustum()).collect();
+    let visible = |p: [f32; 3], r: f32| frusta.iter().any(|f| f.sees_sphere(p.into(), r));
     let res = if small() { 32 } else { 128 };
     let mut g = c.benchmark_group("occupancy_mark_seen");
     g.sample_size(10);

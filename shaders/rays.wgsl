@@ -15,7 +15,10 @@
 // (nerf_data::PixelMasks::pick is the CPU twin).
 //   (u, v) = (col + off, row + off), off = 0.5 (pixel centres) or 0 (integer convention);
 //   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
-// Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays).
+// Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays), or
+// through the camera's lens (Cam.size.w: 1 OpenCV's radial–tangential, 2 its fisheye) the
+// direction it saw at (u, v): nerf_rays::Camera::camera_dir, whose UNDISTORT_ITERATIONS (10)
+// Newton steps camera_dir runs here in f32.
 // NDC scenes (I.ndc = 1): the ray is then warped as nerf_rays::Ndc::ray_or_miss (nerf-pytorch's
 // ndc_rays, unit direction; a ray with d_z ≥ 0 becomes the miss ray (0, 0, 2) + t·(0, 0, 1)).
 // Background: white, black, or (random) rand_f32(seed, 0x52410006 + c, r) per channel c.
@@ -48,13 +51,15 @@ struct ImagesInfo {
     has_depth: u32,    // 1: depth maps, one f32 per pixel laid out as `pixels`
 }
 
-// Camera-to-world 3×4 rows (rotation row a, then position a), intrinsics and size.
+// Camera-to-world 3×4 rows (rotation row a, then position a), intrinsics, size and lens.
 struct Cam {
     r0: vec4<f32>,
     r1: vec4<f32>,
     r2: vec4<f32>,
     intr: vec4<f32>,   // fx, fy, cx, cy
-    size: vec4<u32>,   // width, height, pixel_offset, unused
+    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye)
+    k: vec4<f32>,      // k1, k2, k3, k4
+    p: vec4<f32>,      // p1, p2, unused, unused
 }
 
 @group(0) @binding(0) var<uniform> P: RayGenParams;
@@ -82,6 +87,56 @@ fn ndc_ray(o_in: vec3<f32>, d: vec3<f32>) -> array<vec3<f32>, 2> {
     let on = vec3<f32>(-I.ndc_sx * o.x / o.z, -I.ndc_sy * o.y / o.z, 1.0 + 2.0 * n / o.z);
     let dn = vec3<f32>(-I.ndc_sx * (d.x / d.z - o.x / o.z), -I.ndc_sy * (d.y / d.z - o.y / o.z), -2.0 * n / o.z);
     return array<vec3<f32>, 2>(on, normalize(dn));
+}
+
+// nerf_rays::Camera::camera_dir: the direction, in OpenGL camera axes, of image point (u, v)
+// (z = −1 without a lens or through a radial–tangential one, unit through a fisheye).
+fn camera_dir(cam: Cam, u: f32, v: f32) -> vec3<f32> {
+    let xd = (u - cam.intr.z) / cam.intr.x;
+    let yd = (v - cam.intr.w) / cam.intr.y;
+    let k = cam.k;
+    if (cam.size.w == 1u) {
+        // Newton on the distortion (nerf_rays::Distortion::undistort_iterate).
+        var x = xd;
+        var y = yd;
+        for (var i = 0u; i < 10u; i = i + 1u) {
+            let r2 = x * x + y * y;
+            let radial = 1.0 + r2 * (k.x + r2 * (k.y + r2 * k.z));
+            let dr = k.x + r2 * (2.0 * k.y + r2 * 3.0 * k.z);
+            let xy = x * y;
+            let ex = x * radial + 2.0 * cam.p.x * xy + cam.p.y * (r2 + 2.0 * x * x) - xd;
+            let ey = y * radial + cam.p.x * (r2 + 2.0 * y * y) + 2.0 * cam.p.y * xy - yd;
+            let a = radial + 2.0 * x * x * dr + 2.0 * cam.p.x * y + 6.0 * cam.p.y * x;
+            let b = 2.0 * xy * dr + 2.0 * cam.p.x * x + 2.0 * cam.p.y * y;
+            let d = radial + 2.0 * y * y * dr + 6.0 * cam.p.x * y + 2.0 * cam.p.y * x;
+            let det = a * d - b * b;
+            if (!(abs(det) > 1e-12)) {
+                break;
+            }
+            x = x - (d * ex - b * ey) / det;
+            y = y - (a * ey - b * ex) / det;
+        }
+        return vec3<f32>(x, -y, -1.0);
+    }
+    if (cam.size.w == 2u) {
+        let theta_d = sqrt(xd * xd + yd * yd);
+        if (theta_d < 1e-12) {
+            return vec3<f32>(0.0, 0.0, -1.0);
+        }
+        var theta = theta_d;
+        for (var i = 0u; i < 10u; i = i + 1u) {
+            let t2 = theta * theta;
+            let f = theta * (1.0 + t2 * (k.x + t2 * (k.y + t2 * (k.z + t2 * k.w)))) - theta_d;
+            let df = 1.0 + t2 * (3.0 * k.x + t2 * (5.0 * k.y + t2 * (7.0 * k.z + t2 * 9.0 * k.w)));
+            if (!(abs(df) > 1e-12)) {
+                break;
+            }
+            theta = theta - f / df;
+        }
+        let s = sin(theta) / theta_d;
+        return vec3<f32>(xd * s, -yd * s, -cos(theta));
+    }
+    return vec3<f32>(xd, -(v - cam.intr.w) / cam.intr.y, -1.0);
 }
 
 fn texel(pix: u32) -> vec4<f32> {
@@ -138,7 +193,7 @@ fn ray_gen(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroup
         u = u - 0.5 + rand_f32(P.seed, 0x52410004u, r);
         v = v - 0.5 + rand_f32(P.seed, 0x52410005u, r);
     }
-    let dc = vec3<f32>((u - cam.intr.z) / cam.intr.x, -(v - cam.intr.w) / cam.intr.y, -1.0);
+    let dc = camera_dir(cam, u, v);
     let dw = vec3<f32>(
         cam.r0.x * dc.x + cam.r0.y * dc.y + cam.r0.z * dc.z,
         cam.r1.x * dc.x + cam.r1.y * dc.y + cam.r1.z * dc.z,

@@ -102,6 +102,11 @@ struct TrainArgs {
     /// --no_ndc); eval and render follow the run.
     #[arg(long = "no-ndc")]
     no_ndc: bool,
+    /// Photos taken through a lens with distortion (k1 …, a fisheye): resample them to pinhole
+    /// images when they load, instead of tracing rays through the lens; eval and render follow
+    /// the run.
+    #[arg(long)]
+    undistort: bool,
     /// Output folder.
     #[arg(long, default_value = "runs/latest")]
     out: PathBuf,
@@ -457,6 +462,11 @@ struct ExportArgs {
     /// for depth-nerfacto or a later `nerf train`.
     #[arg(long = "sfm-depth")]
     sfm_depth: bool,
+    /// Photos taken through a lens with distortion are written resampled to pinhole images, with
+    /// no lens keys (for tools that take only pinhole cameras); without it they are written as
+    /// taken, with their lenses.
+    #[arg(long)]
+    undistort: bool,
 }
 
 /// Runs the command line on this process's arguments with `registry`'s fields, then returns; a
@@ -583,6 +593,9 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     if a.no_ndc {
         c.ndc = false;
     }
+    if a.undistort {
+        c.undistort = true;
+    }
     if let Some(x) = a.seed {
         c.seed = x;
     }
@@ -643,7 +656,7 @@ fn large_box_note(config: &nerf::train::TrainConfig, bounds: &SceneBounds) -> St
 fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
     let config = build_config(&a, registry)?;
     let load = |split, views: &ViewSelection| {
-        load_scene(&a.scene, split, &LoadOptions { downscale: config.downscale, views: views.clone(), ndc: config.ndc, cameras_only: false, sfm_depth: config.depth_loss.is_some() })
+        load_scene(&a.scene, split, &LoadOptions { downscale: config.downscale, views: views.clone(), ndc: config.ndc, cameras_only: false, sfm_depth: config.depth_loss.is_some(), undistort: config.undistort })
     };
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
@@ -728,7 +741,7 @@ fn cmd_eval(a: EvalArgs, registry: &Registry) -> Result<()> {
     let ck_path = a.run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
-    let test = load_scene(&a.scene, a.split.split(), &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc, cameras_only: false, sfm_depth: ck.config.depth_loss.is_some() })?;
+    let test = load_scene(&a.scene, a.split.split(), &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc, cameras_only: false, sfm_depth: ck.config.depth_loss.is_some(), undistort: ck.config.undistort })?;
     let mut config = ck.config.for_rendering();
     if let Some(spp) = a.spp {
         config.eval_spp = spp;
@@ -825,7 +838,7 @@ struct LoadedRun {
 fn load_run(registry: &Registry, run: &Path, scene: &Path, device: nerf::gpu::DevicePreference, euclidean_for: Option<&str>, pixels: bool) -> Result<LoadedRun> {
     let ck_path = run.join("checkpoint.bin");
     let Checkpoint { step, config, fields, adam, sampler, .. } = Checkpoint::load(&ck_path)?;
-    let opts = LoadOptions { downscale: config.downscale, views: ViewSelection::All, ndc: config.ndc, cameras_only: !pixels, sfm_depth: false };
+    let opts = LoadOptions { downscale: config.downscale, views: ViewSelection::All, ndc: config.ndc, cameras_only: !pixels, sfm_depth: false, undistort: config.undistort };
     let train = load_scene(scene, Split::Train, &opts)?;
     if let (Some(what), Some(_)) = (euclidean_for, &train.ndc) {
         bail!("{}: the run was trained in NDC space, not the scene's: {what} needs a run trained with --no-ndc", run.display());
@@ -918,7 +931,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
                 })?,
                 PathKind::Interpolate => {
                     // The run's test views (what `nerf eval` loads), in the scene's order.
-                    let opts = LoadOptions { downscale: config.downscale, views: config.test_views.clone(), ndc: config.ndc, cameras_only: true, sfm_depth: false };
+                    let opts = LoadOptions { downscale: config.downscale, views: config.test_views.clone(), ndc: config.ndc, cameras_only: true, sfm_depth: false, undistort: config.undistort };
                     let test = load_scene(&a.scene, Split::Test, &opts)?;
                     nerf::rays::interpolate(&test.cameras, k, frames).with_context(|| {
                         format!("{}: --path interpolate needs at least 2 test cameras and 2 frames", a.scene.display())
@@ -1162,7 +1175,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
     };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth };
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort };
         let mut ds = load_scene(&a.src, split, &opts)?;
         if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
             let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));

@@ -1486,3 +1486,44 @@ fn ablate_shows_each_runs_progress() {
         assert!(line.is_some(), "no evaluation at step {step}: {e}");
     }
 }
+
+/// A scene whose photos were taken through a lens: `nerf train` traces rays through it, or with
+/// `--undistort` resamples the photos (the choice kept in metrics.json, which `nerf eval`
+/// follows); `nerf export-scene` writes the lens, or pinhole images with `--undistort`; a lens
+/// that folds over inside its photo is refused by name.
+#[test]
+fn lens_scenes_train_through_their_lens_or_undistorted() {
+    let d = tempfile::tempdir().unwrap();
+    let scene = small_scene(d.path());
+    let set_lens = |keys: serde_json::Value| {
+        for split in ["train", "test"] {
+            let p = scene.join(format!("transforms_{split}.json"));
+            let mut t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+            t.as_object_mut().unwrap().extend(keys.as_object().unwrap().clone());
+            std::fs::write(&p, t.to_string()).unwrap();
+        }
+    };
+    set_lens(serde_json::json!({"is_fisheye": true, "k1": 0.02}));
+    for (name, extra) in [("native", &[][..]), ("undistorted", &["--undistort"][..])] {
+        let run = d.path().join(name);
+        let o = train_tiny(&scene, &run, &[&["--iters", "2", "--device", "cpu"], extra].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+        assert_eq!(m["config"]["undistort"].as_bool().unwrap_or(false), !extra.is_empty(), "{name}");
+        let o = nerf().arg("eval").arg(&run).arg(&scene).args(["--device", "cpu"]).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let e: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
+        let (a, b) = (m["test_psnr"].as_f64().unwrap(), e["test_psnr"].as_f64().unwrap());
+        assert!((a - b).abs() < 1e-9, "{name}: eval loads the test views as the run did: {a} vs {b}");
+    }
+    for (name, extra) in [("with_lens", &[][..]), ("pinhole", &["--undistort"][..])] {
+        let out = d.path().join(name);
+        let o = nerf().arg("export-scene").arg(&scene).arg(&out).args(["--downscale", "1"]).args(extra).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("transforms_train.json")).unwrap()).unwrap();
+        assert_eq!(t["is_fisheye"].as_bool(), extra.is_empty().then_some(true), "{name}: {t}");
+    }
+    set_lens(serde_json::json!({"is_fisheye": false, "k1": -0.9}));
+    let o = train_tiny(&scene, &d.path().join("folded"), &["--iters", "1", "--device", "cpu"]);
+    assert_clean_failure(&o, &["transforms_train.json", "frames[0].k1", "folds over"]);
+}

@@ -22,7 +22,7 @@
 
 use std::path::Path;
 
-use nerf_rays::Intrinsics;
+use nerf_rays::Camera;
 
 use crate::DataError;
 
@@ -130,20 +130,29 @@ fn read_npy(path: &Path) -> Result<(u32, u32, Vec<f64>), String> {
     Ok((w, h, values))
 }
 
-/// The depth map of a resampled, downscaled buffer from [`decode`]: per pixel the distance along
-/// its unit ray through the pixel's centre of the pinhole camera `intr` (`z·√(x² + y² + 1)`),
-/// times `scale` (the poses' normalisation), or 0 where any of the pixels it was made of had no
-/// measurement (the validity channel is below 1) or where their depths spread by more than
-/// [`MAX_RELATIVE_SPREAD`].
-pub(crate) fn ray_distances(px: &[f32], intr: &Intrinsics, scale: f32) -> Vec<f32> {
-    let w = intr.width as usize;
+/// How much farther than its depth a point lies along the ray of image point `(u, v)`:
+/// `|d| / (−d_z)` for the camera-axes direction `d` there ([`Camera::camera_dir`]; a pinhole
+/// camera's `√(x² + y² + 1)`), `None` where the ray does not look forward (a fisheye past 90°).
+pub fn depth_to_distance(cam: &Camera, u: f64, v: f64) -> Option<f64> {
+    let d = cam.camera_dir(u, v);
+    (d[2] < 0.0).then(|| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() / -d[2])
+}
+
+/// The depth map of a resampled, downscaled buffer from [`decode`] for `cam`: per pixel the
+/// distance along its unit ray through the pixel's centre (`z·`[`depth_to_distance`], a pinhole
+/// camera's `z·√(x² + y² + 1)`, through the camera's lens where it has one), times `scale` (the
+/// poses' normalisation), or 0 where any of the pixels it was made of had no measurement (the
+/// validity channel is below 1), where their depths spread by more than
+/// [`MAX_RELATIVE_SPREAD`], or where the pixel's ray does not look forward (a fisheye past 90°:
+/// a depth map holds depths along the optical axis).
+pub(crate) fn ray_distances(px: &[f32], cam: &Camera, scale: f32) -> Vec<f32> {
+    let w = cam.intrinsics.width as usize;
     px.chunks_exact(4)
         .enumerate()
         .map(|(p, d)| {
             let Some(z) = measured(d) else { return 0.0 };
-            let x = ((p % w) as f32 + 0.5 - intr.cx) / intr.fx;
-            let y = ((p / w) as f32 + 0.5 - intr.cy) / intr.fy;
-            z * (x * x + y * y + 1.0).sqrt() * scale
+            let Some(f) = depth_to_distance(cam, (p % w) as f64 + 0.5, (p / w) as f64 + 0.5) else { return 0.0 };
+            (z as f64 * f) as f32 * scale
         })
         .collect()
 }
@@ -161,33 +170,25 @@ fn measured(d: &[f32]) -> Option<f32> {
     (d[1] >= 1.0 - 1e-6 && variance <= (MAX_RELATIVE_SPREAD * d[0]).powi(2)).then_some(d[0])
 }
 
-/// A sparse depth map of the pinhole camera `cam` from 3-D points (in its world): each point in
-/// front of the camera that projects into the image sets the pixel it falls in to the distance
-/// along that pixel's ray through its centre (`z·√(x² + y² + 1)`, `z` the point's depth along the
-/// optical axis); of two points in one pixel the nearer wins; every other pixel is 0.
-pub fn sfm_depths(cam: &nerf_rays::Camera, points: impl Iterator<Item = [f64; 3]>) -> Vec<f32> {
+/// A sparse depth map of the camera `cam` from 3-D points (in its world): each point in front of
+/// the camera that it images in its photo (through its lens, [`Camera::project`]) sets the pixel
+/// it falls in to the distance along that pixel's ray through its centre at the point's depth
+/// (`z·`[`depth_to_distance`], `z` the point's depth along the optical axis); of two points in
+/// one pixel the nearer wins; every other pixel is 0.
+pub fn sfm_depths(cam: &Camera, points: impl Iterator<Item = [f64; 3]>) -> Vec<f32> {
     let k = &cam.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
     let mut out = vec![0.0f32; w * h];
-    let axis = |c: usize| cam.rotation.col(c).to_array().map(f64::from);
-    let (right, up, back) = (axis(0), axis(1), axis(2));
-    let c = cam.position.to_array().map(f64::from);
-    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     for p in points {
-        let d = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
-        let z = -dot(back, d);
-        if !(z > 0.0) {
-            continue;
-        }
-        let u = k.fx as f64 * dot(right, d) / z + k.cx as f64;
-        let v = -(k.fy as f64) * dot(up, d) / z + k.cy as f64;
+        let q = nerf_rays::glam::Vec3::from_array(p.map(|c| c as f32));
+        let z = cam.to_opencv(q)[2];
+        let Some((u, v)) = cam.project(q).filter(|_| z > 0.0) else { continue };
         if !(u >= 0.0 && v >= 0.0 && u < w as f64 && v < h as f64) {
             continue;
         }
         let (col, row) = (u.floor() as usize, v.floor() as usize);
-        let x = (col as f64 + 0.5 - k.cx as f64) / k.fx as f64;
-        let y = (row as f64 + 0.5 - k.cy as f64) / k.fy as f64;
-        let t = (z * (x * x + y * y + 1.0).sqrt()) as f32;
+        let Some(f) = depth_to_distance(cam, col as f64 + 0.5, row as f64 + 0.5) else { continue };
+        let t = (z * f) as f32;
         let o = &mut out[row * w + col];
         if *o == 0.0 || t < *o {
             *o = t;
@@ -197,16 +198,15 @@ pub fn sfm_depths(cam: &nerf_rays::Camera, points: impl Iterator<Item = [f64; 3]
 }
 
 /// The inverse of the loader's conversion to ray distances (without its scale): per pixel of
-/// the pinhole camera `intr`, the z-depth `t / √(x² + y² + 1)` of a distance `t` along its ray
-/// (0 stays 0).
-pub fn z_depths(t: &[f32], intr: &Intrinsics) -> Vec<f32> {
-    let w = intr.width as usize;
+/// `cam`, the z-depth `t / `[`depth_to_distance`] of a distance `t` along its ray (0 stays 0, as
+/// does a pixel whose ray does not look forward).
+pub fn z_depths(t: &[f32], cam: &Camera) -> Vec<f32> {
+    let w = cam.intrinsics.width as usize;
     t.iter()
         .enumerate()
-        .map(|(p, &d)| {
-            let x = ((p % w) as f32 + 0.5 - intr.cx) / intr.fx;
-            let y = ((p / w) as f32 + 0.5 - intr.cy) / intr.fy;
-            d / (x * x + y * y + 1.0).sqrt()
+        .map(|(p, &d)| match depth_to_distance(cam, (p % w) as f64 + 0.5, (p / w) as f64 + 0.5) {
+            Some(f) if d != 0.0 => (d as f64 / f) as f32,
+            _ => 0.0,
         })
         .collect()
 }
@@ -214,6 +214,7 @@ pub fn z_depths(t: &[f32], intr: &Intrinsics) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nerf_rays::Intrinsics;
 
     #[test]
     fn z_depths_become_distances_along_the_pixels_rays() {
@@ -224,7 +225,8 @@ mod tests {
         px[4 * 4 + 1] = 0.75;
         px[4 * 3..4 * 3 + 4].copy_from_slice(&[1.5, 1.0, 0.75 + 0.25 * 9.0, 1.0]);
         px[4 * 5..4 * 5 + 4].copy_from_slice(&[2.0, 1.0, 0.5 * (1.98f32 * 1.98 + 2.02 * 2.02), 1.0]);
-        let t = ray_distances(&px, &intr, 0.5);
+        let cam = Camera::from_c2w(intr, &[[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]).unwrap();
+        let t = ray_distances(&px, &cam, 0.5);
         // Pixel (0, 0): x = (0.5 − 1.5)/2 = −0.5, y = (0.5 − 1)/4 = −0.125.
         assert!((t[0] - 2.0 * (0.25f32 + 0.015625 + 1.0).sqrt() * 0.5).abs() < 1e-6, "{}", t[0]);
         assert_eq!(t[4], 0.0, "no depth where a source had none");
@@ -233,5 +235,32 @@ mod tests {
         // Pixel (1, 0): x = 0, y = −0.125.
         assert!((t[1] - (1.0f32 + 0.015625).sqrt()).abs() < 1e-6, "{}", t[1]);
         assert!(t.iter().enumerate().all(|(p, &v)| p == 4 || p == 3 || v >= 1.0), "{t:?}");
+    }
+
+    /// Through a lens, a depth becomes the distance along the ray the lens saw at the pixel, and
+    /// back; a fisheye's pixels that look past 90° have no depth.
+    #[test]
+    fn depths_through_a_lens() {
+        use nerf_rays::{Distortion, LensModel};
+        let intr = Intrinsics { width: 40, height: 20, fx: 12.0, fy: 12.0, cx: 20.0, cy: 10.0 };
+        let id = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]];
+        let fish = Camera::from_c2w(intr, &id).unwrap().with_distortion(Distortion { model: LensModel::Fisheye, ..Distortion::NONE });
+        let barrel = fish.with_distortion(Distortion { k1: -0.05, ..Distortion::NONE });
+        let px: Vec<f32> = (0..800).flat_map(|_| [2.0, 1.0, 4.0, 1.0]).collect();
+        for cam in [fish, barrel] {
+            let t = ray_distances(&px, &cam, 1.0);
+            for (p, &d) in t.iter().enumerate() {
+                let ray = cam.ray_at((p % 40) as f32 + 0.5, (p / 40) as f32 + 0.5);
+                let depth = -ray.dir.z; // the camera looks down −z
+                if depth > 0.0 {
+                    assert!((d * depth - 2.0).abs() < 1e-4, "pixel {p}: {d} along a ray of depth {depth} a unit");
+                } else {
+                    assert_eq!(d, 0.0, "pixel {p} looks sideways or back");
+                }
+            }
+            let z = z_depths(&t, &cam);
+            assert!(z.iter().zip(&t).all(|(&z, &t)| if t == 0.0 { z == 0.0 } else { (z - 2.0).abs() < 1e-5 }));
+            assert_eq!(t.contains(&0.0), cam.distortion.model == LensModel::Fisheye, "the edges of a 190° fisheye look back");
+        }
     }
 }

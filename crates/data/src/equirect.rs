@@ -145,7 +145,7 @@ mod tests {
         for f in 0..6 {
             let face = face_rgba(&pano, w, h, f, s);
             let k = face_intrinsics(s);
-            let cam = Camera { intrinsics: k, rotation: face_rotation(f), position: Vec3::ZERO };
+            let cam = Camera { intrinsics: k, rotation: face_rotation(f), position: Vec3::ZERO, distortion: nerf_rays::Distortion::NONE };
             let mut worst = 0.0f32;
             for j in 0..s {
                 for i in 0..s {

@@ -394,6 +394,14 @@ pub struct LoadOptions {
     /// other formats, and with `cameras_only`.
     #[serde(default)]
     pub sfm_depth: bool,
+    /// Photos taken through a lens with distortion (`k1` …, a fisheye) are resampled to the
+    /// pinhole camera of the same intrinsics when they load ([`ngp::undistort_rgba`]), the
+    /// pixels that camera sees past the photo left out of training ([`ngp::pixels_seen`]), and
+    /// the cameras are pinholes. `false` (the default, as nerfstudio and instant-ngp): the photos
+    /// are kept as taken and each camera carries its lens ([`nerf_rays::Camera::distortion`]),
+    /// so that rays go through the photo's own pixels and a fisheye keeps its whole view.
+    #[serde(default)]
+    pub undistort: bool,
 }
 
 impl Default for LoadOptions {
@@ -405,6 +413,7 @@ impl Default for LoadOptions {
             ndc: true,
             cameras_only: false,
             sfm_depth: false,
+            undistort: false,
         }
     }
 }
@@ -1186,6 +1195,41 @@ fn decode_views(paths: &[&Path], k: u32, cameras_only: bool) -> Result<(u32, u32
 }
 
 /// The image at `path` is `size`, not the size of the first image `first`.
+/// Checks that every camera's lens takes each point of its photo back to a direction
+/// ([`nerf_rays::Distortion::undistort_dir`]): the corners of every pixel, once per distinct
+/// lens and image size. Coefficients that fold the lens's polynomial over inside the photo (a
+/// calibration gone wrong, or coefficients meant for another image size) would give its outer
+/// pixels the rays of inner ones.
+fn check_lenses(tpath: &Path, frames: &[&Frame], cameras: &[Camera]) -> Result<(), DataError> {
+    let mut checked: Vec<(Intrinsics, Distortion)> = Vec::new();
+    for (f, cam) in frames.iter().zip(cameras) {
+        let (k, d) = (cam.intrinsics, cam.distortion);
+        if d.is_identity() || checked.contains(&(k, d)) {
+            continue;
+        }
+        checked.push((k, d));
+        let bad = (0..=k.height).into_par_iter().find_map_first(|j| {
+            (0..=k.width).find(|&i| {
+                let (xd, yd) = ((i as f64 - k.cx as f64) / k.fx as f64, (j as f64 - k.cy as f64) / k.fy as f64);
+                !d.undistort_iterate(xd, yd).1
+            })
+            .map(|i| (i, j))
+        });
+        if let Some((i, j)) = bad {
+            return Err(DataError::InvalidValue {
+                path: tpath.to_path_buf(),
+                key: format!("frames[{}].k1", f.index),
+                reason: format!(
+                    "the lens ({:?}: k1 {}, k2 {}, k3 {}, k4 {}, p1 {}, p2 {}) takes no direction to the point ({i}, {j}) of {} ({}x{} as loaded): \
+                     its polynomial folds over inside the photo (are the coefficients for this image size?)",
+                    d.model, d.k1, d.k2, d.k3, d.k4, d.p1, d.p2, f.image.display(), k.width, k.height
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
 fn size_mismatch(path: &Path, size: (u32, u32), first: &Path, first_size: (u32, u32)) -> DataError {
     DataError::SizeMismatch {
         path: path.to_path_buf(),
@@ -1737,8 +1781,11 @@ fn load_transforms_with(
             let (s, _) = view_size(i, path, w, h)?;
             return Ok(equirect::face_rgba(&px, w, h, face, s));
         }
+        if !opts.undistort || f.lens.distortion.is_identity() {
+            return Ok(px);
+        }
         let intr = f.lens.intrinsics(&tpath, path, w, h)?;
-        Ok(if f.lens.distortion.is_identity() { px } else { ngp::undistort_rgba(&px, &intr, &f.lens.distortion) })
+        Ok(ngp::undistort_rgba(&px, &intr, &f.lens.distortion))
     };
     let decoded = decode_each(&paths, k, &view_size, &undistort, opts.cameras_only)?;
     // Views may differ in size where the file states each one's (`w`, `h`: a capture with
@@ -1759,11 +1806,16 @@ fn load_transforms_with(
             None => f.lens.intrinsics(&tpath, &f.image, w, h),
         })
         .collect::<Result<Vec<_>, _>>()?;
+    // Each camera carries its lens, unless the photos are resampled to pinhole images.
     let cameras = frames
         .iter()
         .zip(&intrinsics)
-        .map(|(f, intr)| Camera::from_c2w(intr.downscaled(k), &f.c2w).map_err(|e| DataError::pose(&tpath, f.index, e)))
-        .collect::<Result<Vec<_>, _>>()?;
+        .map(|(f, intr)| {
+            let cam = Camera::from_c2w(intr.downscaled(k), &f.c2w).map_err(|e| DataError::pose(&tpath, f.index, e))?;
+            Ok(if opts.undistort { cam } else { cam.with_distortion(f.lens.distortion) })
+        })
+        .collect::<Result<Vec<_>, DataError>>()?;
+    check_lenses(&tpath, &frames, &cameras)?;
     // nerfstudio's masks, else instant-ngp's dynamic masks where any of the split's photos has
     // one (looked for only where pixels are loaded).
     let dynamic: Vec<Option<PathBuf>> = match frames[0].mask {
@@ -1776,7 +1828,7 @@ fn load_transforms_with(
     let mut seen = Vec::new();
     if !opts.cameras_only {
         for (f, &intr) in frames.iter().zip(&intrinsics) {
-            if f.lens.distortion.is_identity() {
+            if !opts.undistort || f.lens.distortion.is_identity() {
                 seen.push(None);
                 continue;
             }
@@ -1823,7 +1875,7 @@ fn load_transforms_with(
                 // rays of an equirectangular camera are unit: it reads them so).
                 Ok(match f.face {
                     Some(_) => depth::ranges(&px, units),
-                    None => depth::ray_distances(&px, &cameras[i].intrinsics, units),
+                    None => depth::ray_distances(&px, &cameras[i], units),
                 })
             })
             .collect();
@@ -2211,8 +2263,11 @@ pub fn pose_noise(n_views: usize, rot_deg: f32, trans: f32, seed: u64) -> Vec<[f
 /// instant-ngp scene's box ([`Dataset::ngp`]) as `aabb_scale`, `scale`, `offset`; a scene with
 /// other bounds than NeRF's Blender ones (LLFF with Euclidean rays) gets the instant-ngp box that
 /// encloses its [`Dataset::aabb`] ([`NgpBox::enclosing`]; its rays then start at that box's
-/// near distance). Images are written as loaded, that is already resampled to pinhole cameras:
-/// no distortion keys. A dataset in NDC is refused.
+/// near distance). Cameras with a lens ([`nerf_rays::Camera::distortion`]) write it as
+/// instant-ngp's `is_fisheye`, `k1`, `k2`, `k3`, `k4`, `p1`, `p2` (top level: the first view's; a
+/// frame whose lens differs carries its own), and their photos as loaded, distorted; a dataset
+/// loaded with [`LoadOptions::undistort`] has pinhole cameras and resampled photos, and writes no
+/// lens keys. A dataset in NDC is refused.
 pub fn write_blender(
     ds: &Dataset,
     out_root: &Path,
@@ -2272,6 +2327,7 @@ pub fn write_blender(
         let k = &c.intrinsics;
         k != &first.intrinsics || k.fy != k.fx || k.cx != k.width as f32 * 0.5 || k.cy != k.height as f32 * 0.5
     });
+    let lenses = ds.cameras.iter().any(|c| !c.distortion.is_identity());
     let frames: Vec<Value> = ds
         .cameras
         .iter()
@@ -2291,6 +2347,10 @@ pub fn write_blender(
             }
             if ds.depths.is_some() {
                 f.as_object_mut().expect("a JSON object").insert("depth_file_path".into(), Value::from(format!("./{split}/depth_{k}.png")));
+            }
+            if lenses && cam.distortion != first.distortion {
+                let o = f.as_object_mut().expect("a JSON object");
+                o.extend(lens_keys(&cam.distortion).map(|(key, v)| (key.to_string(), v)));
             }
             if pixel_intrinsics && cam.intrinsics != first.intrinsics {
                 let o = f.as_object_mut().expect("a JSON object");
@@ -2321,6 +2381,9 @@ pub fn write_blender(
         top.insert("w".into(), Value::from(k.width));
         top.insert("h".into(), Value::from(k.height));
     }
+    if lenses {
+        top.extend(lens_keys(&first.distortion).map(|(key, v)| (key.to_string(), v)));
+    }
     if let Some(b) = &ngp_box {
         top.insert("aabb_scale".into(), Value::from(b.aabb_scale as f64));
         top.insert("scale".into(), Value::from(b.scale as f64));
@@ -2332,7 +2395,7 @@ pub fn write_blender(
         d.par_iter()
             .zip(&ds.cameras)
             .enumerate()
-            .map(|(v, (t, cam))| depth::z_depths(&ds.view_crop(v, 1, t), &cam.intrinsics))
+            .map(|(v, (t, cam))| depth::z_depths(&ds.view_crop(v, 1, t), cam))
             .collect()
     });
     let z_step = z_depths.as_ref().map(|z| z.iter().flatten().fold(0.0f32, |a, &b| a.max(b)) as f64 / 65535.0);
@@ -2382,6 +2445,20 @@ pub fn write_blender(
         .collect::<Vec<_>>()
         .into_iter()
         .collect()
+}
+
+/// instant-ngp's keys of the lens `d`, every one written (zeros too, so that a frame's keys
+/// replace all of the top level's): `is_fisheye` and the six coefficients.
+fn lens_keys(d: &Distortion) -> [(&'static str, Value); 7] {
+    [
+        ("is_fisheye", Value::from(d.model == LensModel::Fisheye)),
+        ("k1", Value::from(d.k1)),
+        ("k2", Value::from(d.k2)),
+        ("k3", Value::from(d.k3)),
+        ("k4", Value::from(d.k4)),
+        ("p1", Value::from(d.p1)),
+        ("p2", Value::from(d.p2)),
+    ]
 }
 
 /// instant-ngp's `fl_x`, `fl_y`, `cx`, `cy` of `k` (exact: `f32` → `f64`).

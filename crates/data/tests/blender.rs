@@ -24,6 +24,7 @@ fn look_at_origin(k: Intrinsics, theta: f32, phi: f32) -> Camera {
         intrinsics: k,
         rotation: Mat3::from_cols(right, up, back),
         position: pos,
+        distortion: nerf_rays::Distortion::NONE,
     }
 }
 

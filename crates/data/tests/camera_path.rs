@@ -58,7 +58,7 @@ fn written_paths_read_back_to_the_same_cameras() {
         .map(|i| {
             let t = 0.37 * i as f32 + 0.1;
             let rotation = Mat3::from_euler(nerf_rays::glam::EulerRot::YXZ, t, -0.4 * t, 0.05 * t);
-            Camera { intrinsics: k, rotation, position: Vec3::new(3.1 * t.cos(), 0.7 - t, 2.9 * t.sin()) }
+            Camera { intrinsics: k, rotation, position: Vec3::new(3.1 * t.cos(), 0.7 - t, 2.9 * t.sin()), distortion: nerf_rays::Distortion::NONE }
         })
         .collect();
     let text = serde_json::to_string_pretty(&camera_path_json(&cams, Projection::Perspective, 12.5)).unwrap();

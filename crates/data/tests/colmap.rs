@@ -260,7 +260,8 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
         assert_eq!((ca.intrinsics, ca.position, ca.rotation), (cb.intrinsics, cb.position, cb.rotation));
     }
     assert!(a.images == b.images);
-    // A fisheye camera of the same intrinsics: the same pinhole cameras, each photo resampled.
+    // A fisheye camera of the same intrinsics: the same cameras with the fisheye lens, the photos
+    // as they are; resampled to pinhole cameras with `undistort`.
     std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
     let mut fish = model.clone();
     fish.cameras[0].model = "OPENCV_FISHEYE".into();
@@ -268,7 +269,12 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     write_bin(&dir.path().join("sparse/0"), &fish, 0);
     let f = load(dir.path(), Split::Train);
     assert!(f.cameras.iter().zip(&a.cameras).all(|(x, y)| x.intrinsics == y.intrinsics && x.position == y.position));
-    assert!(f.images != a.images, "the fisheye photos are resampled");
+    let lens = nerf_rays::Distortion { model: nerf_rays::LensModel::Fisheye, k1: 0.02, k2: -0.01, ..nerf_rays::Distortion::NONE };
+    assert!(f.cameras.iter().all(|c| c.distortion == lens), "{:?}", f.cameras[0].distortion);
+    assert!(f.images == a.images, "the fisheye photos are kept as taken");
+    let resampled = load_scene(dir.path(), Split::Train, &LoadOptions { undistort: true, ..LoadOptions::default() }).unwrap();
+    assert!(resampled.cameras.iter().all(|c| c.distortion.is_identity()));
+    assert!(resampled.images != a.images, "the fisheye photos are resampled");
     std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
     write_txt(&dir.path().join("sparse/0"), &model);
     // instant-ngp's dynamic mask beside a photo in images/: everything there moved.

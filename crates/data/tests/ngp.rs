@@ -18,6 +18,11 @@ fn load(root: &Path, split: Split) -> Dataset {
     load_blender(root, split, &LoadOptions::default()).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// [`load`] with the photos of lenses resampled to pinhole cameras (`LoadOptions::undistort`).
+fn load_undistorted(root: &Path, split: Split, downscale: u32) -> Dataset {
+    load_blender(root, split, &LoadOptions { undistort: true, downscale, ..LoadOptions::default() }).unwrap_or_else(|e| panic!("{e}"))
+}
+
 fn write_json(path: &Path, v: &Value) {
     std::fs::write(path, serde_json::to_string_pretty(v).unwrap()).unwrap();
 }
@@ -50,6 +55,7 @@ fn assert_same_views(a: &Dataset, b: &Dataset) {
         assert_eq!(ca.intrinsics, cb.intrinsics);
         assert_eq!(ca.position, cb.position);
         assert_eq!(ca.rotation, cb.rotation);
+        assert_eq!(ca.distortion, cb.distortion);
     }
     assert!(a.images == b.images, "images differ");
 }
@@ -303,8 +309,10 @@ fn seen_by_photo(k: &Intrinsics, d: &Distortion, i: u32, j: u32) -> bool {
     (0.0..=k.width as f64).contains(&u) && (0.0..=k.height as f64).contains(&v)
 }
 
+/// A photo through each lens loads as taken, its camera carrying the lens and its rays the
+/// directions the lens saw; with `undistort`, resampled to the pinhole camera.
 #[test]
-fn distorted_photos_are_resampled_to_the_pinhole_camera() {
+fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
     let k = Intrinsics { width: 96, height: 64, fx: 80.0, fy: 82.0, cx: 47.0, cy: 33.5 };
     let rt = |k1, k2, k3, p1, p2| Distortion { k1, k2, k3, p1, p2, ..Default::default() };
     let fish = |k1, k2, k3, k4| Distortion { model: LensModel::Fisheye, k1, k2, k3, k4, ..Default::default() };
@@ -347,8 +355,28 @@ fn distorted_photos_are_resampled_to_the_pinhole_camera() {
         let mut top = json!({"fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "w": k.width, "h": k.height, "frames": [frame]});
         top.as_object_mut().unwrap().extend(keys.as_object().unwrap().clone());
         write_json(&dir.path().join("transforms.json"), &top);
-        let test = load(dir.path(), Split::Test);
-        assert_eq!(test.cameras[0].intrinsics, k);
+        // As taken (the default): the photo's own pixels, each on the ray its lens saw, whose
+        // normalised coordinates are those the photo shows the pattern at.
+        let native = load(dir.path(), Split::Test);
+        let cam = native.cameras[0];
+        assert_eq!((cam.intrinsics, cam.distortion), (k, d));
+        assert!(native.images[0].iter().zip(&photo_f).all(|(a, b)| a == b), "the photo as taken");
+        let mut worst = 0.0f64;
+        for j in 0..k.height {
+            for i in 0..k.width {
+                let dir = cam.rotation.transpose() * cam.ray_at(i as f32 + 0.5, j as f32 + 0.5).dir;
+                let (x, y) = (dir.x as f64 / -dir.z as f64, -dir.y as f64 / -dir.z as f64);
+                let p = pattern(x, y);
+                let o = 4 * (j * k.width + i) as usize;
+                worst = (0..3).fold(worst, |w, c| w.max((native.images[0][o + c] as f64 - p[c]).abs()));
+            }
+        }
+        assert!(worst < 1e-4, "{:?}: the rays miss the photo's pattern by {worst}", d.model);
+        let m = native.masks.as_ref().expect("the mask is loaded");
+        assert!((0..k.width * k.height).all(|p| m.is_kept(0, p) == (mask.as_raw()[p as usize] == 255)), "the mask as taken");
+
+        let test = load_undistorted(dir.path(), Split::Test, 1);
+        assert_eq!((test.cameras[0].intrinsics, test.cameras[0].distortion), (k, Distortion::NONE));
         assert!(max_error(&test.images[0], &k, 4) < 3e-3);
         // The mask is resampled with the photo: kept right of the edge where the photo saw the
         // pixel, dropped left of it (a pixel either side of the edge may go either way), and
@@ -374,14 +402,14 @@ fn distorted_photos_are_resampled_to_the_pinhole_camera() {
         eprintln!("{kept} kept, {dropped} dropped, {unseen} not seen");
         assert!(kept > 150 && dropped > 1000, "{kept} kept, {dropped} dropped");
         assert_eq!(unseen > 0, d.k1 > 0.0 && d.model == LensModel::RadialTangential, "only the pincushion lens reaches past its photo");
-        let half = load_blender(dir.path(), Split::Test, &LoadOptions { downscale: 2, ..Default::default() }).unwrap();
+        let half = load_undistorted(dir.path(), Split::Test, 2);
         let k2 = k.downscaled(2);
         assert!(max_error(&half.images[0], &k2, 2) < 1e-2, "{}", max_error(&half.images[0], &k2, 2));
     }
 }
 
-/// A lens whose pinhole image reaches past the photo gets training masks of the pixels the photo
-/// saw even without mask files (downscaled: a pixel only where all it is made of was seen); a
+/// Resampled (`undistort`), a lens whose pinhole image reaches past the photo gets training masks
+/// of the pixels the photo saw even without mask files (downscaled: a pixel only where all it is made of was seen); a
 /// lens that stays inside its photo gets none.
 #[test]
 fn pixels_the_photo_did_not_see_are_not_trained_on() {
@@ -406,26 +434,54 @@ fn pixels_the_photo_did_not_see_are_not_trained_on() {
         write_json(&dir.path().join("transforms.json"), &top);
     };
     scene(&pincushion);
-    let full = load(dir.path(), Split::Test);
+    // Rays through the photo's own pixels see all of it: no masks.
+    assert!(load(dir.path(), Split::Test).masks.is_none(), "every pixel of the photo is seen");
+    let full = load_undistorted(dir.path(), Split::Test, 1);
     let m = full.masks.as_ref().expect("masks of the seen pixels");
     assert_eq!(m.total() as usize, 2 * n_seen);
     assert!((0..1200).all(|p| m.is_kept(0, p) == seen[p as usize] && m.is_kept(1, p) == seen[p as usize]));
     // The views of one lens share its list.
-    let train = load(dir.path(), Split::Train);
+    let train = load_undistorted(dir.path(), Split::Train, 1);
     let m = train.masks.as_ref().unwrap();
     assert_eq!((m.n_views(), m.total() as usize), (7, 7 * n_seen));
     assert!((1..7).all(|v| std::ptr::eq(m.view(v).unwrap(), m.view(0).unwrap())), "one list for the lens");
-    let half = load_blender(dir.path(), Split::Test, &LoadOptions { downscale: 2, ..Default::default() }).unwrap();
+    let half = load_undistorted(dir.path(), Split::Test, 2);
     let m = half.masks.as_ref().unwrap();
     for (j, i) in (0..15u32).flat_map(|j| (0..20u32).map(move |i| (j, i))) {
         let all = (0..4).all(|q| seen[((2 * j + q / 2) * k.width + 2 * i + q % 2) as usize]);
         assert_eq!(m.is_kept(0, j * 20 + i), all, "downscaled pixel ({i}, {j})");
     }
     // Camera-only loads read no pixels and make no masks.
-    let cams = load_blender(dir.path(), Split::Test, &LoadOptions { cameras_only: true, ..Default::default() }).unwrap();
+    let cams = load_blender(dir.path(), Split::Test, &LoadOptions { cameras_only: true, undistort: true, ..Default::default() }).unwrap();
     assert!(cams.masks.is_none());
     scene(&barrel);
-    assert!(load(dir.path(), Split::Test).masks.is_none(), "a barrel lens stays inside its photo");
+    assert!(load_undistorted(dir.path(), Split::Test, 1).masks.is_none(), "a barrel lens stays inside its photo");
+}
+
+/// Cameras keep their lenses through `write_blender` (a fisheye at the top level, a frame with a
+/// radial–tangential lens of its own), and coefficients that fold over inside the photo are
+/// refused, naming the frame and the photo.
+#[test]
+fn lenses_are_written_and_impossible_ones_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    tiny_scene(
+        dir.path(),
+        json!({"fl_x": 3.0, "fl_y": 3.5, "cx": 2.0, "cy": 2.0, "w": 4, "h": 4, "is_fisheye": true, "k1": 0.02, "k4": -0.001}),
+        [json!({}), json!({"is_fisheye": false, "k1": -0.05, "k4": 0.0, "p2": 0.004})],
+    );
+    let d = load(dir.path(), Split::Train);
+    assert_eq!(d.cameras[0].distortion, Distortion { model: LensModel::Fisheye, k1: 0.02, k4: -0.001, ..Distortion::NONE });
+    assert_eq!(d.cameras[1].distortion, Distortion { k1: -0.05, p2: 0.004, ..Distortion::NONE });
+    let out = tempfile::tempdir().unwrap();
+    nerf_data::write_blender(&d, out.path(), None).unwrap();
+    assert_same_views(&d, &load(out.path(), Split::Train));
+
+    // r·(1 − 0.6 r²) turns back at r_d ≈ 0.50; the photo's corners lie 0.94 out.
+    tiny_scene(dir.path(), json!({"fl_x": 3.0, "cx": 2.0, "cy": 2.0, "k1": -0.6}), [json!({}), json!({})]);
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("frames[0].k1") && e.contains("r_0.png") && e.contains("folds over"), "{e}");
+    // Resampled to the pinhole camera, the same lens loads (its photo's corners seen twice).
+    assert!(load_undistorted(dir.path(), Split::Train, 1).cameras[0].distortion.is_identity());
 }
 
 #[test]
@@ -479,7 +535,7 @@ fn writing_keeps_pixel_intrinsics_and_the_box() {
 fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
     let Some(fern) = nerf_core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else { return };
     // Euclidean rays at 504×378 (images_8), both splits, as the LLFF loader reads them.
-    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false };
+    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false };
     let (train, test) = (load_scene(&fern, Split::Train, &o).unwrap(), load_scene(&fern, Split::Test, &o).unwrap());
     let n = train.n_views() + test.n_views();
     let (mut tr, mut te) = (train.cameras.iter().zip(&train.file_paths), test.cameras.iter().zip(&test.file_paths));

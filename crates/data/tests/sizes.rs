@@ -209,13 +209,16 @@ fn masks_and_depth_maps_of_views_of_several_sizes_are_their_own_views_on_the_can
     assert!(matches!(e, DataError::BadMask { frame: 1, .. }) && e.to_string().contains("m1.png") && e.to_string().contains("6x8"), "{e}");
 }
 
-/// A pincushion lens (`k1 > 0`): its pinhole images reach past the photos at their corners, and
-/// those pixels, found at each view's own size, stay dropped on the canvas.
+/// A pincushion lens (`k1 > 0`), resampled to pinhole cameras (`undistort`): its pinhole images
+/// reach past the photos at their corners, and those pixels, found at each view's own size, stay
+/// dropped on the canvas. Kept as taken, only the canvas past each view is masked.
 #[test]
 fn a_lens_mask_of_views_of_several_sizes_is_each_sizes_own() {
     let dir = tempfile::tempdir().unwrap();
     scene(dir.path(), 8, |_| json!({"k1": 1.0}));
-    let ds = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    let native = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    assert_eq!(native.masks.as_ref().unwrap().total(), native.n_view_pixels(), "every pixel of every view");
+    let ds = load_blender(dir.path(), Split::Train, &LoadOptions { undistort: true, ..LoadOptions::default() }).unwrap();
     let m = ds.masks.as_ref().unwrap();
     for v in 0..4 {
         let (w, h) = SIZES[v];

@@ -354,7 +354,7 @@ pub(crate) struct PoseParams {
 }
 
 // ---- sampling.rs ----
-/// One view's camera as `shaders/rays.wgsl` reads it (80 bytes).
+/// One view's camera as `shaders/rays.wgsl` reads it (112 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct GpuCamera {
@@ -362,8 +362,22 @@ pub struct GpuCamera {
     pub c2w: [[f32; 4]; 3],
     /// `[fx, fy, cx, cy]`.
     pub intrinsics: [f32; 4],
-    /// `[width, height, first pixel of the view in the pixel buffer, 0]`.
+    /// `[width, height, first pixel of the view in the pixel buffer, lens]`, the lens one of
+    /// [`GpuCamera::PINHOLE`], [`GpuCamera::RADIAL_TANGENTIAL`], [`GpuCamera::FISHEYE`].
     pub size: [u32; 4],
+    /// The lens's `[k1, k2, k3, k4]` (`nerf_rays::Distortion`).
+    pub radial: [f32; 4],
+    /// The lens's `[p1, p2, 0, 0]`.
+    pub tangential: [f32; 4],
+}
+
+impl GpuCamera {
+    /// `size[3]` of a camera without a lens.
+    pub const PINHOLE: u32 = 0;
+    /// `size[3]` of OpenCV's radial–tangential lens.
+    pub const RADIAL_TANGENTIAL: u32 = 1;
+    /// `size[3]` of OpenCV's fisheye lens.
+    pub const FISHEYE: u32 = 2;
 }
 
 // ---- sampling.rs ----

@@ -23,7 +23,7 @@ use crate::kernel::{groups_1d, Kernel};
 use crate::layout::COUNTER_N_RAYS;
 use crate::{rng, shaders, GpuContext, GpuError};
 use nerf_data::{Background, Dataset, RayBatch};
-use nerf_rays::PixelConvention;
+use nerf_rays::{LensModel, PixelConvention};
 pub use crate::layout::{GpuCamera};
 use crate::layout::{ImagesInfo, MarchParams, RayGenParams, RoundParams, RoundRayState, ScanParams};
 
@@ -145,10 +145,18 @@ impl GpuImages {
             .map(|(i, c)| {
                 let m = c.c2w();
                 let k = &c.intrinsics;
+                let d = &c.distortion;
+                let lens = match d.model {
+                    _ if d.is_identity() => GpuCamera::PINHOLE,
+                    LensModel::RadialTangential => GpuCamera::RADIAL_TANGENTIAL,
+                    LensModel::Fisheye => GpuCamera::FISHEYE,
+                };
                 GpuCamera {
                     c2w: [m[0], m[1], m[2]],
                     intrinsics: [k.fx, k.fy, k.cx, k.cy],
-                    size: [w as u32, h as u32, (i * w * h) as u32, 0],
+                    size: [w as u32, h as u32, (i * w * h) as u32, lens],
+                    radial: [d.k1, d.k2, d.k3, d.k4].map(|c| c as f32),
+                    tangential: [d.p1 as f32, d.p2 as f32, 0.0, 0.0],
                 }
             })
             .collect();

@@ -222,6 +222,56 @@ fn ray_generation_matches_its_cpu_twin() {
     }
 }
 
+/// Cameras with lenses (OpenCV's radial–tangential and fisheye, random coefficients; a fisheye
+/// wide enough to look back past 90°): the device's f32 Newton steps find the directions the
+/// CPU's f64 ones do, and those differ from the pinhole's.
+#[test]
+fn ray_generation_through_lenses_matches_its_cpu_twin() {
+    use nerf_rays::{Distortion, LensModel};
+    let Some(ctx) = context() else { return };
+    let cap = 3000;
+    for seed in 1..=4u32 {
+        let mut ds = dataset(100 + seed as u64, 3, 13, 7, false);
+        let mut rng = nerf_core::rng(seed as u64, 5);
+        let mut c = |s: f64| rng.gen_range(-s..s);
+        // 13 pixels across at a focal length of 3.5: the fisheye's edges are ~106° off its axis.
+        ds.cameras[1].intrinsics = Intrinsics { fx: 3.5, fy: 3.5, ..ds.cameras[1].intrinsics };
+        // Random lenses that take every point of the image back to a direction (as the loader
+        // demands): coefficients drawn until they do.
+        let inverts = |cam: &Camera| {
+            let k = cam.intrinsics;
+            (0..=k.width).all(|i| (0..=k.height).all(|j| cam.distortion.undistort_dir((i as f64 - k.cx as f64) / k.fx as f64, (j as f64 - k.cy as f64) / k.fy as f64).is_some()))
+        };
+        loop {
+            ds.cameras[0].distortion = Distortion { k1: c(0.3), k2: c(0.05), k3: c(0.01), p1: c(0.01), p2: c(0.01), ..Distortion::NONE };
+            ds.cameras[1].distortion = Distortion { model: LensModel::Fisheye, k1: c(0.05), k2: c(0.01), k3: c(0.002), k4: c(0.0005), ..Distortion::NONE };
+            if inverts(&ds.cameras[0]) && inverts(&ds.cameras[1]) {
+                break;
+            }
+        }
+        let images = GpuImages::new(&ctx, &ds).unwrap();
+        let jitter = seed % 2 == 0;
+        let rays = draw_on_device(&ctx, &images, Background::White, PixelConvention::Center, jitter, seed, cap, cap);
+        let cpu = ray_batch_cpu(&ds, seed, cap, Background::White, PixelConvention::Center, jitter);
+        let pinhole = Dataset { cameras: ds.cameras.iter().map(|c| c.pinhole()).collect(), ..ds.clone() };
+        let plain = ray_batch_cpu(&pinhole, seed, cap, Background::White, PixelConvention::Center, jitter);
+        let d = ctx.read_f32(&rays.dirs, 3 * cap).unwrap();
+        let (mut bent, mut behind) = ([0usize; 3], 0);
+        for r in 0..cap {
+            let v = cpu.view_ids[r] as usize;
+            for a in 0..3 {
+                let i = 3 * r + a;
+                assert!((d[i] - cpu.dirs[i]).abs() <= 2e-5, "seed {seed}: view {v}, ray {r}: dir {:?} vs {:?}", &d[3 * r..3 * r + 3], &cpu.dirs[3 * r..3 * r + 3]);
+            }
+            bent[v] += (0..3).any(|a| (cpu.dirs[3 * r + a] - plain.dirs[3 * r + a]).abs() > 1e-3) as usize;
+            let local = ds.cameras[v].rotation.transpose() * nerf_rays::glam::Vec3::from_slice(&cpu.dirs[3 * r..3 * r + 3]);
+            behind += (v == 1 && local.z > 0.0) as usize;
+        }
+        assert!(bent[0] > 100 && bent[1] > 100 && bent[2] == 0, "seed {seed}: rays the lenses turned, per view: {bent:?}");
+        assert!(behind > 10, "seed {seed}: {behind} fisheye rays look back past 90°");
+    }
+}
+
 /// With depth maps each ray carries its pixel's measured distance, the same as its twin's pixel
 /// (`Dataset::depths[view][pixel]`, 0 where there is none); without them the slot is left alone.
 #[test]

@@ -15,9 +15,14 @@
 //!   nerf-pytorch direction whose camera-space z component is −1.
 //! - [`pose`] refines the training cameras: a per-view translation and rotation applied to the
 //!   view's rays, with its backward pass (nerfstudio's camera optimizer).
+//! - A camera may carry a lens ([`lens`]: OpenCV's radial–tangential or fisheye distortion): its
+//!   pixels' rays are then the directions the lens saw, found by inverting the distortion.
 
+pub mod lens;
 mod ndc;
 pub mod pose;
+
+pub use lens::{Distortion, LensModel};
 
 pub use glam;
 pub use ndc::Ndc;
@@ -405,15 +410,20 @@ impl Aabb {
     }
 }
 
-/// A pinhole camera: intrinsics plus the camera-to-world pose (OpenGL axes: looks down −z, +y up).
+/// A camera: intrinsics, the lens's distortion (none for a pinhole camera) and the
+/// camera-to-world pose (OpenGL axes: looks down −z, +y up).
 #[derive(Clone, Copy, Debug)]
 pub struct Camera {
-    /// Pinhole intrinsics.
+    /// Pinhole intrinsics (of the photo as stored: a lens's distortion acts on the normalised
+    /// coordinates between them and the ray, [`lens`]).
     pub intrinsics: Intrinsics,
     /// Camera-to-world rotation (columns: the camera's x, y, z axes in world coordinates).
     pub rotation: Mat3,
     /// Camera centre in world coordinates.
     pub position: Vec3,
+    /// The lens ([`Distortion::NONE`]: a pinhole camera). A pixel's ray is the direction the
+    /// lens saw at it ([`Camera::camera_dir`]).
+    pub distortion: Distortion,
 }
 
 impl Camera {
@@ -456,7 +466,47 @@ impl Camera {
             intrinsics,
             rotation,
             position,
+            distortion: Distortion::NONE,
         })
+    }
+
+    /// The same camera with the lens `distortion`.
+    pub fn with_distortion(self, distortion: Distortion) -> Self {
+        Self { distortion, ..self }
+    }
+
+    /// The same camera without its lens: the pinhole camera of its intrinsics (what novel views
+    /// along a path through the training cameras are rendered with).
+    pub fn pinhole(self) -> Self {
+        self.with_distortion(Distortion::NONE)
+    }
+
+    /// The direction, in camera axes (OpenGL: x right, y up, −z forward), of continuous image
+    /// coordinates `(u, v)`, computed in f64: the pinhole's `[(u−cx)/fx, −(v−cy)/fy, −1]`, or
+    /// through a lens the direction it saw there ([`Distortion::undistort_iterate`], with z = −1
+    /// for the radial–tangential model, unit for the fisheye, whose z may be positive past 90°).
+    pub fn camera_dir(&self, u: f64, v: f64) -> [f64; 3] {
+        let k = &self.intrinsics;
+        let (xd, yd) = ((u - k.cx as f64) / k.fx as f64, (v - k.cy as f64) / k.fy as f64);
+        let [x, y, z] = if self.distortion.is_identity() { [xd, yd, 1.0] } else { self.distortion.undistort_iterate(xd, yd).0 };
+        [x, -y, -z]
+    }
+
+    /// The point `p` (world coordinates) in OpenCV's camera axes (x right, y down, z forward).
+    pub fn to_opencv(&self, p: Vec3) -> [f64; 3] {
+        let d = p - self.position;
+        let axis = |c: usize| self.rotation.col(c).dot(d) as f64;
+        [axis(0), -axis(1), -axis(2)]
+    }
+
+    /// Continuous image coordinates `(u, v)` where the camera images the world point `p`
+    /// (through its lens, [`Distortion::project`]), wherever that lands, in the image or not;
+    /// `None` where it images nothing (behind a pinhole camera, or on a fisheye's backward
+    /// axis).
+    pub fn project(&self, p: Vec3) -> Option<(f64, f64)> {
+        let k = &self.intrinsics;
+        let (xd, yd) = self.distortion.project(self.to_opencv(p))?;
+        Some((k.fx as f64 * xd + k.cx as f64, k.fy as f64 * yd + k.cy as f64))
     }
 
     /// The row-major 4×4 camera-to-world matrix (bottom row `[0, 0, 0, 1]`), the inverse of
@@ -472,30 +522,56 @@ impl Camera {
         ]
     }
 
-    /// Whether the ball of radius `r` about `c` (world coordinates) may show in the image: it lies
-    /// in front of the camera (depth > −r) and within `r` of the inner side of each of the four
-    /// planes through the camera centre and the image edges (`u ∈ [0, W]`, `v ∈ [0, H]`). A ball
-    /// that shows passes; one that passes may still miss the frustum near its corners (the test is
-    /// conservative, as instant-ngp's `mark_untrained_density_grid`).
+    /// Whether the ball of radius `r` about `c` (world coordinates) may show in the image
+    /// ([`Frustum::sees_sphere`]; for many balls, build the [`frustum`](Self::frustum) once).
     pub fn sees_sphere(&self, c: Vec3, r: f32) -> bool {
-        let p = self.rotation.transpose() * (c - self.position); // camera axes: x right, y up, −z forward
-        let depth = -p.z;
-        if depth <= -r {
-            return false;
-        }
+        self.frustum().sees_sphere(c, r)
+    }
+
+    /// The region of space the image shows, for [`Frustum::sees_sphere`]. A pinhole camera's is
+    /// bounded by the four planes through its centre and the image edges. Through a lens, the
+    /// image's border is traced back through the lens (a point a pixel along it): a
+    /// radial–tangential lens gets the planes that bound those directions (the region the lens
+    /// sees is bounded by its border's directions), a fisheye, or a lens that sees past 89°
+    /// off its axis, the cone about the axis that holds them; both widened by a pixel.
+    pub fn frustum(&self) -> Frustum {
         let k = &self.intrinsics;
-        // x/depth ∈ [−cx/fx, (W − cx)/fx], y/depth ∈ [−(H − cy)/fy, cy/fy]; the signed distance to
-        // the plane x = a·depth is (x − a·depth)/√(1 + a²).
-        let inside = |x: f32, lo: f32, hi: f32| {
-            (x - hi * depth) / (1.0 + hi * hi).sqrt() <= r && (lo * depth - x) / (1.0 + lo * lo).sqrt() <= r
+        let (w, h) = (k.width as f64, k.height as f64);
+        let mut shape = FrustumShape::Planes {
+            x: [-k.cx / k.fx, (k.width as f32 - k.cx) / k.fx],
+            y: [-(k.height as f32 - k.cy) / k.fy, k.cy / k.fy],
         };
-        inside(p.x, -k.cx / k.fx, (k.width as f32 - k.cx) / k.fx) && inside(p.y, -(k.height as f32 - k.cy) / k.fy, k.cy / k.fy)
+        if !self.distortion.is_identity() {
+            let border = (0..=k.width).flat_map(|i| [(i as f64, 0.0), (i as f64, h)]).chain((0..=k.height).flat_map(|j| [(0.0, j as f64), (w, j as f64)]));
+            let (mut x, mut y, mut angle) = ([f64::INFINITY, f64::NEG_INFINITY], [f64::INFINITY, f64::NEG_INFINITY], 0.0f64);
+            for (u, v) in border {
+                let d = self.camera_dir(u, v);
+                let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                angle = angle.max((-d[2] / n).clamp(-1.0, 1.0).acos());
+                let (a, b) = (d[0] / -d[2], d[1] / -d[2]);
+                x = [x[0].min(a), x[1].max(a)];
+                y = [y[0].min(b), y[1].max(b)];
+            }
+            // A pixel's angle at the principal point; the planes widen by the slopes it makes there.
+            let pixel = 1.0 / k.fx.min(k.fy) as f64;
+            shape = if self.distortion.model == LensModel::Fisheye || angle > 89f64.to_radians() {
+                FrustumShape::Cone { half_angle: (angle + pixel) as f32 }
+            } else {
+                let widen = |[lo, hi]: [f64; 2]| [(lo - pixel * (1.0 + lo * lo)) as f32, (hi + pixel * (1.0 + hi * hi)) as f32];
+                FrustumShape::Planes { x: widen(x), y: widen(y) }
+            };
+        }
+        Frustum { to_camera: self.rotation.transpose(), position: self.position, shape }
     }
 
     /// World direction (not normalised) through continuous image coordinates `(u, v)`:
-    /// `R·[(u−cx)/fx, −(v−cy)/fy, −1]`.
+    /// `R·[(u−cx)/fx, −(v−cy)/fy, −1]` for a pinhole camera.
+    /// Through a lens: `R·`[`camera_dir`](Self::camera_dir).
     #[inline]
     pub fn dir_at_unnormalized(&self, u: f32, v: f32) -> Vec3 {
+        if !self.distortion.is_identity() {
+            return self.rotation * Vec3::from_array(self.camera_dir(u as f64, v as f64).map(|c| c as f32));
+        }
         let k = &self.intrinsics;
         let d = Vec3::new((u - k.cx) / k.fx, -(v - k.cy) / k.fy, -1.0);
         self.rotation * d
@@ -547,6 +623,55 @@ impl Camera {
             let (row, col) = ((idx / w) as u32, (idx % w) as u32);
             o.copy_from_slice(&p);
             d.copy_from_slice(&self.ray(col, row, conv).dir.to_array());
+        }
+    }
+}
+
+/// The region of space a camera's image shows ([`Camera::frustum`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Frustum {
+    to_camera: Mat3,
+    position: Vec3,
+    shape: FrustumShape,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum FrustumShape {
+    /// `x/depth ∈ x`, `y/depth ∈ y` (camera axes: x right, y up, depth along −z).
+    Planes { x: [f32; 2], y: [f32; 2] },
+    /// Within `half_angle` of the optical axis (−z).
+    Cone { half_angle: f32 },
+}
+
+impl Frustum {
+    /// Whether the ball of radius `r` about `c` (world coordinates) may show in the image. Between
+    /// planes: it lies in front of the camera (depth > −r) and within `r` of the inner side of
+    /// each of the four planes. In a cone: it reaches within the cone's half-angle of the axis
+    /// (or holds the camera centre). A ball that shows passes; one that passes may still miss
+    /// the image near its corners (the test is conservative, as instant-ngp's
+    /// `mark_untrained_density_grid`).
+    pub fn sees_sphere(&self, c: Vec3, r: f32) -> bool {
+        let p = self.to_camera * (c - self.position); // camera axes: x right, y up, −z forward
+        let depth = -p.z;
+        match self.shape {
+            FrustumShape::Planes { x, y } => {
+                if depth <= -r {
+                    return false;
+                }
+                // The signed distance to the plane x = a·depth is (x − a·depth)/√(1 + a²).
+                let inside = |v: f32, [lo, hi]: [f32; 2]| {
+                    (v - hi * depth) / (1.0 + hi * hi).sqrt() <= r && (lo * depth - v) / (1.0 + lo * lo).sqrt() <= r
+                };
+                inside(p.x, x) && inside(p.y, y)
+            }
+            FrustumShape::Cone { half_angle } => {
+                let dist = p.length();
+                if dist <= r {
+                    return true;
+                }
+                let off_axis = (depth / dist).clamp(-1.0, 1.0).acos();
+                off_axis <= half_angle + (r / dist).asin()
+            }
         }
     }
 }
@@ -659,7 +784,7 @@ pub fn orbit(cameras: &[Camera], center: Vec3, intrinsics: Intrinsics, n: usize)
                 let z = (position - center).normalize();
                 let x = up.cross(z).try_normalize().unwrap_or(e2);
                 let y = z.cross(x);
-                Camera { intrinsics, rotation: Mat3::from_cols(x, y, z), position }
+                Camera { intrinsics, rotation: Mat3::from_cols(x, y, z), position, distortion: Distortion::NONE }
             })
             .collect(),
     )
@@ -732,7 +857,7 @@ pub fn spiral(cameras: &[Camera], near: f32, far: f32, intrinsics: Intrinsics, n
                 let z = (position - target).normalize();
                 let x = up.cross(z).normalize();
                 let y = z.cross(x);
-                Camera { intrinsics, rotation: Mat3::from_cols(x, y, z), position }
+                Camera { intrinsics, rotation: Mat3::from_cols(x, y, z), position, distortion: Distortion::NONE }
             })
             .collect(),
     )
@@ -766,7 +891,7 @@ pub fn interpolate(cameras: &[Camera], intrinsics: Intrinsics, n: usize) -> Opti
                 // The shorter way round (q and −q are the same rotation).
                 let qb = if quats[i].dot(quats[i + 1]) < 0.0 { -quats[i + 1] } else { quats[i + 1] };
                 let q = quats[i].slerp(qb, t).normalize();
-                Camera { intrinsics, rotation: Mat3::from_quat(q), position: a.position.lerp(b.position, t) }
+                Camera { intrinsics, rotation: Mat3::from_quat(q), position: a.position.lerp(b.position, t), distortion: Distortion::NONE }
             })
             .collect(),
     )
@@ -974,6 +1099,56 @@ mod tests {
         assert!(!cam.sees_sphere(back, 1.9) && cam.sees_sphere(back, 2.1));
     }
 
+    /// Cameras with a lens: a pixel's ray leads back to the pixel ([`Camera::project`]), a
+    /// fisheye's rays reach past 90° off the axis, and the frustum holds every point and ball the
+    /// image shows while leaving out most of space.
+    #[test]
+    fn lens_cameras_see_through_their_lens() {
+        use rand::Rng as _;
+        let k = Intrinsics { width: 80, height: 60, fx: 40.0, fy: 42.0, cx: 38.0, cy: 31.0 };
+        let barrel = Distortion { k1: -0.12, k2: 0.01, p1: 0.002, p2: -0.003, ..Distortion::NONE };
+        let pincushion = Distortion { k1: 0.1, k2: 0.02, ..Distortion::NONE };
+        // About 190° across the width.
+        let fish = Distortion { model: LensModel::Fisheye, k1: -0.02, k2: 0.003, ..Distortion::NONE };
+        let fish_k = Intrinsics { fx: 24.0, fy: 24.0, ..k };
+        let mut g = nerf_core::rng(23, 0);
+        for (lens, k) in [(barrel, k), (pincushion, k), (fish, fish_k)] {
+            let cam = Camera { intrinsics: k, ..test_camera() }.with_distortion(lens);
+            assert!(cam.frustum().sees_sphere(cam.position + cam.rotation * Vec3::NEG_Z, 0.0));
+            for _ in 0..500 {
+                let (u, v) = (g.gen_range(0.0..k.width as f32), g.gen_range(0.0..k.height as f32));
+                let p = cam.ray_at(u, v).at(g.gen_range(0.5..5.0));
+                let (pu, pv) = cam.project(p).unwrap();
+                assert!((pu - u as f64).abs() < 1e-3 && (pv - v as f64).abs() < 1e-3, "{lens:?}: ({u}, {v}) back at ({pu}, {pv})");
+            }
+            let edge = cam.rotation.transpose() * cam.ray_at(0.0, k.cy).dir;
+            if lens.model == LensModel::Fisheye {
+                assert!(edge.z > 0.05, "the fisheye's left edge looks behind the camera: {edge:?}");
+            }
+            let shows = |p: Vec3| cam.project(p).is_some_and(|(u, v)| (0.0..=k.width as f64).contains(&u) && (0.0..=k.height as f64).contains(&v));
+            let frustum = cam.frustum();
+            let (mut seen, mut unseen) = (0, 0);
+            for _ in 0..3000 {
+                let c = cam.position + Vec3::new(g.gen_range(-6.0..6.0), g.gen_range(-6.0..6.0), g.gen_range(-6.0..6.0));
+                if shows(c) {
+                    assert!(frustum.sees_sphere(c, 0.0), "{lens:?}: {c:?} shows");
+                }
+                let r = g.gen_range(0.05f32..1.0);
+                let visible = (0..200).any(|_| {
+                    let v = Vec3::new(g.gen_range(-1.0..1.0), g.gen_range(-1.0..1.0), g.gen_range(-1.0..1.0));
+                    v.length() <= 1.0 && shows(c + v * r)
+                });
+                let s = frustum.sees_sphere(c, r);
+                assert!(s || !visible, "{lens:?}: ball at {c:?} r {r} shows but is not seen");
+                seen += s as usize;
+                unseen += !s as usize;
+            }
+            // The fisheye sees more than a hemisphere: fewer balls are out of its view.
+            let out = if lens.model == LensModel::Fisheye { 250 } else { 1000 };
+            assert!(seen > 150 && unseen > out, "{lens:?}: {seen} seen, {unseen} not");
+        }
+    }
+
     #[test]
     fn fov_round_trip_and_downscale() {
         let k = Intrinsics::from_fov_x(800, 800, 0.6911112070083618);
@@ -1089,7 +1264,7 @@ mod tests {
                 let position = centre + 4.0 * Vec3::new(el.cos() * phi.cos(), el.cos() * phi.sin(), el.sin());
                 let z = (position - centre).normalize();
                 let x = Vec3::Z.cross(z).normalize();
-                Camera { intrinsics: k, rotation: Mat3::from_cols(x, z.cross(x), z), position }
+                Camera { intrinsics: k, rotation: Mat3::from_cols(x, z.cross(x), z), position, distortion: Distortion::NONE }
             })
             .collect();
         let path = orbit(&ring, centre, k, 8).unwrap();
@@ -1126,7 +1301,7 @@ mod tests {
         let look = |position: Vec3, at: Vec3| {
             let z = (position - at).normalize();
             let x = Vec3::Z.cross(z).normalize();
-            Camera { intrinsics: k, rotation: Mat3::from_cols(x, z.cross(x), z), position }
+            Camera { intrinsics: k, rotation: Mat3::from_cols(x, z.cross(x), z), position, distortion: Distortion::NONE }
         };
         let cams: Vec<Camera> = (0..20)
             .map(|j| {
@@ -1145,7 +1320,7 @@ mod tests {
         let q = look_at_point(&off).unwrap();
         assert!((q - target).length() > 1e-4 && (q - target).length() < 0.02, "{q}");
         // Forward-facing (every camera looking down −z) and too few cameras: no point.
-        let rig: Vec<Camera> = (0..9).map(|i| Camera { intrinsics: k, rotation: Mat3::IDENTITY, position: Vec3::new(i as f32 * 0.1, 0.0, 0.0) }).collect();
+        let rig: Vec<Camera> = (0..9).map(|i| Camera { intrinsics: k, rotation: Mat3::IDENTITY, position: Vec3::new(i as f32 * 0.1, 0.0, 0.0), distortion: Distortion::NONE }).collect();
         assert!(look_at_point(&rig).is_none());
         assert!(look_at_point(&cams[..1]).is_none());
     }
@@ -1161,7 +1336,7 @@ mod tests {
             .map(|i| {
                 let u = i as f32 / 10.0 * 2.0 - 1.0;
                 let local = Vec3::new(0.5 * u, 0.25 * (3.0 * u).sin(), 0.05 * u * u);
-                Camera { intrinsics: k, rotation: yaw, position: shift + yaw * local }
+                Camera { intrinsics: k, rotation: yaw, position: shift + yaw * local, distortion: Distortion::NONE }
             })
             .collect();
         let center = rig.iter().map(|c| c.position).sum::<Vec3>() / 11.0;
@@ -1189,7 +1364,7 @@ mod tests {
     #[test]
     fn interpolated_cameras_pass_through_the_given_ones_and_turn_evenly_between() {
         let k = Intrinsics::from_fov_x(40, 30, 0.9);
-        let at = |yaw: f32, p: Vec3| Camera { intrinsics: k, rotation: Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(-0.2), position: p };
+        let at = |yaw: f32, p: Vec3| Camera { intrinsics: k, rotation: Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(-0.2), position: p, distortion: Distortion::NONE };
         // Three cameras: the second turned 60° from the first, the third 100° from the second
         // (a turn written the long way round: −260° is +100°).
         let (d60, d100) = (60f32.to_radians(), 100f32.to_radians());

@@ -228,6 +228,11 @@ pub struct TrainConfig {
     /// ablation hashes) of runs made before it existed are unchanged.
     #[serde(skip_serializing_if = "is_true")]
     pub ndc: bool,
+    /// Photos taken through a lens with distortion are resampled to pinhole images when they
+    /// load (`nerf_data::LoadOptions::undistort`); `false` (the default): they are kept as taken
+    /// and their rays go through the lens. Serialised only when `true`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub undistort: bool,
     /// Which test views to evaluate on.
     pub test_views: ViewSelection,
     /// Log (and update the progress bar message) every this many steps.
@@ -359,6 +364,7 @@ impl Default for TrainConfig {
             seed: 0,
             downscale: 1,
             ndc: true,
+            undistort: false,
             test_views: ViewSelection::Every(8),
             log_every: 100,
             checkpoint_every: 1000,

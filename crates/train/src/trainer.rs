@@ -553,13 +553,14 @@ impl Trainer {
 
     /// Marks the occupancy-grid cells that no training camera of `data` sees (instant-ngp's
     /// untrained cells: never occupied, never refreshed; `OccupancyGrid::mark_seen` with
-    /// `Camera::sees_sphere`). Euclidean scenes only: an NDC grid is not in the cameras' space.
+    /// `Frustum::sees_sphere`, through each camera's lens). Euclidean scenes only: an NDC grid is
+    /// not in the cameras' space.
     fn mark_seen(&mut self, data: &Dataset) -> Result<(), TrainError> {
         if data.ndc.is_some() || data.cameras.is_empty() {
             return Ok(());
         }
-        let cameras = &data.cameras;
-        let visible = move |c: [f32; 3], r: f32| cameras.iter().any(|cam| cam.sees_sphere(c.into(), r));
+        let frusta: Vec<nerf_rays::Frustum> = data.cameras.iter().map(|c| c.frustum()).collect();
+        let visible = move |c: [f32; 3], r: f32| frusta.iter().any(|f| f.sees_sphere(c.into(), r));
         if let Some(g) = self.gpu.as_mut() {
             return g.mark_seen(&visible);
         }
