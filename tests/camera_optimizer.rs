@@ -296,7 +296,7 @@ fn one_gpu_step_moves_the_cameras_as_the_cpu_step_does() {
     let (w, h) = (data.width as usize, data.height as usize);
     for (img, cam) in data.images.iter_mut().zip(&mut data.cameras) {
         let (cx, cy) = (w / 2, h / 2);
-        *img = img[4 * (cy * w + cx)..4 * (cy * w + cx) + 4].to_vec();
+        *img = img.rgba(cy * w + cx).to_vec().into();
         let k = &mut cam.intrinsics;
         (k.width, k.height, k.cx, k.cy) = (1, 1, k.cx - cx as f32, k.cy - cy as f32);
     }

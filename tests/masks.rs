@@ -20,7 +20,8 @@ fn occluded(clean: &Dataset, side: u32, seed: u64) -> (Dataset, PixelMasks) {
     let mut rng = nerf::core::rng(seed, 0);
     let mut ds = clean.clone();
     let mut flags = Vec::new();
-    for img in &mut ds.images {
+    for pixels in &mut ds.images {
+        let mut img = pixels.to_f32();
         let (x0, y0) = (rng.gen_range(0..=w - side), rng.gen_range(0..=h - side));
         let mut keep = vec![true; (w * h) as usize];
         for y in y0..y0 + side {
@@ -30,6 +31,7 @@ fn occluded(clean: &Dataset, side: u32, seed: u64) -> (Dataset, PixelMasks) {
                 keep[p] = false;
             }
         }
+        *pixels = img.into();
         flags.push(keep);
     }
     (ds, PixelMasks::from_flags(w * h, flags.iter().map(|f| &f[..])))
@@ -66,7 +68,7 @@ fn object_opacity(t: &Trainer, ds: &Dataset) -> f64 {
     let (mut sum, mut n) = (0.0, 0usize);
     for (i, v) in common::render_views(t, ds).iter().enumerate() {
         for (p, &o) in v.opacity.iter().enumerate() {
-            if ds.images[i][4 * p + 3] > 0.5 {
+            if ds.images[i].value(4 * p + 3) > 0.5 {
                 sum += o as f64;
                 n += 1;
             }
@@ -83,7 +85,7 @@ fn object_opacity(t: &Trainer, ds: &Dataset) -> f64 {
 fn masks_that_drop_the_object_leave_an_empty_field_on_both_devices() {
     let clean = load(Split::Train, ViewSelection::All);
     let test = common::thumbnails(Split::Test, 3);
-    let flags: Vec<Vec<bool>> = clean.images.iter().map(|img| img.chunks_exact(4).map(|p| p[3] == 0.0).collect()).collect();
+    let flags: Vec<Vec<bool>> = clean.images.iter().map(|img| img.to_f32().chunks_exact(4).map(|p| p[3] == 0.0).collect()).collect();
     let empty = Dataset { masks: Some(PixelMasks::from_flags(clean.width * clean.height, flags.iter().map(|f| &f[..]))), ..clean.clone() };
     let config = light_hash_config(80);
     let o = object_opacity(&train_on(&config, &clean, None), &test);

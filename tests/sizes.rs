@@ -35,7 +35,7 @@ fn write_crops(full: &Dataset, dir: &Path, offset: bool) {
             let (x0, y0, w, h) = crop_of(v);
             let img = image::RgbaImage::from_fn(w, h, |x, y| {
                 let p = ((y + y0) * full.width + x + x0) as usize;
-                image::Rgba(std::array::from_fn(|c| (full.images[v][4 * p + c] * 255.0).round() as u8))
+                image::Rgba(std::array::from_fn(|c| (full.images[v].value(4 * p + c) * 255.0).round() as u8))
             });
             img.save(dir.join(format!("train/c_{v}.png"))).unwrap();
             let k = full.cameras[v].intrinsics;

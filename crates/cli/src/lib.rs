@@ -627,11 +627,13 @@ fn large_photos_note(train: &nerf::data::Dataset, downscale: u32) -> Option<Stri
         return None;
     }
     let k = (1..).map(|n| 1u32 << n).find(|k| side / k <= LARGE_PHOTO).expect("a power of two brings any side under it");
-    let gb = train.n_views() as f64 * train.width as f64 * train.height as f64 * 16.0 / 1e9;
+    // Held as loaded (`nerf_data::Pixels`: 4 bytes a pixel of an 8-bit photo, 8 of a 16-bit
+    // one), and downscaled, as box averages, in 16 bits.
+    let gb = train.images.iter().map(|p| p.size_in_bytes() as f64).sum::<f64>() / 1e9;
+    let down = train.n_views() as f64 * train.width as f64 * train.height as f64 * 8.0 / 1e9 / (k * k) as f64;
     Some(format!(
         "the photos are up to {side} pixels on a side ({gb:.1} GB as loaded); nerfstudio trains such captures at \
-         {LARGE_PHOTO} or less: --downscale {k} (or `downscale = {k}` in the config) would take {:.2} GB and train faster",
-        gb / (k * k) as f64
+         {LARGE_PHOTO} or less: --downscale {k} (or `downscale = {k}` in the config) would take {down:.2} GB and train faster"
     ))
 }
 

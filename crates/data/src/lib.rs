@@ -37,7 +37,9 @@ pub use llff::{is_llff, load_llff};
 pub mod mask;
 pub use mask::PixelMasks;
 pub mod ngp;
+pub mod pixels;
 pub use ngp::{Distortion, Focal, Lens, LensModel, NerfstudioNormalization, NgpBox};
+pub use pixels::Pixels;
 use rand::Rng as _;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -381,7 +383,7 @@ pub struct LoadOptions {
     /// Read only each image's size from its header, and leave every view's entry of
     /// [`Dataset::images`] empty: for what needs the cameras alone (rendering a trained run,
     /// exporting its mesh), which then neither decodes nor holds the photos (a nerfstudio capture
-    /// of a few hundred 4K photos is tens of GB as f32). Sizes are checked as in a full load
+    /// of a few hundred 4K photos is several GB even in bytes). Sizes are checked as in a full load
     /// (the same errors, naming the file); lens undistortion, which only resamples pixels, is
     /// skipped. Methods that read pixels panic on such a dataset
     /// ([`Dataset::has_images`] says which it is).
@@ -437,8 +439,9 @@ pub struct Dataset {
     pub cameras: Vec<Camera>,
     /// Per view: RGBA, row-major at the canvas's stride (`4·W·H` values; past a smaller view's
     /// own width and height transparent black), straight (not premultiplied) alpha, values in
-    /// `[0, 1]` (= u8/255).
-    pub images: Vec<Vec<f32>>,
+    /// `[0, 1]`, held in 8 bits a channel where they are exact 8-bit values, else 16
+    /// ([`Pixels`]: a photo from an 8-bit file takes 4 bytes a pixel).
+    pub images: Vec<Pixels>,
     /// Per view: the image file it was loaded from (a panorama's six faces, [`equirect`], share
     /// its file; [`Dataset::view_names`] tells them apart).
     pub file_paths: Vec<PathBuf>,
@@ -584,13 +587,15 @@ impl Dataset {
     /// # Panics
     /// If an index is not below [`Dataset::n_views`].
     pub fn select_views(&self, views: &[usize]) -> Dataset {
-        let pick = |v: &[Vec<f32>]| if v.is_empty() { Vec::new() } else { views.iter().map(|&i| v[i].clone()).collect() };
+        fn pick<T: Clone>(v: &[T], views: &[usize]) -> Vec<T> {
+            if v.is_empty() { Vec::new() } else { views.iter().map(|&i| v[i].clone()).collect() }
+        }
         Dataset {
             cameras: views.iter().map(|&i| self.cameras[i]).collect(),
-            images: pick(&self.images),
+            images: pick(&self.images, views),
             file_paths: if self.file_paths.is_empty() { Vec::new() } else { views.iter().map(|&i| self.file_paths[i].clone()).collect() },
             masks: self.masks.as_ref().map(|m| m.select(views)),
-            depths: self.depths.as_ref().map(|d| pick(d)),
+            depths: self.depths.as_ref().map(|d| pick(d, views)),
             ..self.clone_without_views()
         }
     }
@@ -697,20 +702,22 @@ impl Dataset {
 
     /// Multiplies view `v`'s colours by `gains[v]` (per channel; alpha and the cameras kept): a
     /// change of exposure and white balance between photographs, for experiments with
-    /// per-view colour correction. Values may exceed 1 (written to 8-bit images they clip).
+    /// per-view colour correction. Values past 1 are clipped, as a photo's would be.
     ///
     /// # Panics
     /// Unless there is one gain triple per view.
     pub fn scale_colors(&mut self, gains: &[[f32; 3]]) {
         self.expect_pixels("scale_colors");
         assert_eq!(gains.len(), self.n_views(), "one gain triple per view");
-        for (img, g) in self.images.iter_mut().zip(gains) {
-            for px in img.chunks_exact_mut(4) {
+        self.images.par_iter_mut().zip(gains).for_each(|(img, g)| {
+            let mut px = img.to_f32();
+            for p in px.chunks_exact_mut(4) {
                 for c in 0..3 {
-                    px[c] *= g[c];
+                    p[c] *= g[c];
                 }
             }
-        }
+            *img = Pixels::from_f32(&px);
+        });
     }
 
     /// Moves each view's camera by `noise[v] = [τ (3), ω (3)]` ([`pose_noise`]): the centre by
@@ -865,7 +872,7 @@ impl Dataset {
                     d[s.clone()].copy_from_slice(&ray.dir.to_array());
                     b[s.clone()].copy_from_slice(&bg);
                     if with_targets {
-                        composite(&self.images[view as usize][4 * pix as usize..4 * pix as usize + 4], bg, &mut t[s]);
+                        composite(&self.images[view as usize].rgba(pix as usize), bg, &mut t[s]);
                     } else {
                         t[s].fill(f32::NAN);
                     }
@@ -925,7 +932,7 @@ impl Dataset {
                     o[s.clone()].copy_from_slice(&ray.origin.to_array());
                     d[s.clone()].copy_from_slice(&ray.dir.to_array());
                     b[s.clone()].copy_from_slice(&bg);
-                    composite(&img[4 * pix..4 * pix + 4], bg, &mut t[s]);
+                    composite(&img.rgba(pix), bg, &mut t[s]);
                     vi[col] = i as u32;
                     pi[col] = pix as u32;
                 }
@@ -940,7 +947,8 @@ impl Dataset {
     pub fn view_rgb(&self, i: usize, background: Background) -> Vec<f32> {
         self.expect_pixels("view_rgb");
         let bg = background.fixed_rgb();
-        let img = self.view_crop(i, 4, &self.images[i]);
+        let px = self.images[i].to_f32();
+        let img = self.view_crop(i, 4, &px);
         let mut out = vec![0.0f32; img.len() / 4 * 3];
         for (px, o) in img.chunks_exact(4).zip(out.chunks_exact_mut(3)) {
             composite(px, bg, o);
@@ -1181,7 +1189,7 @@ fn downscale_rgba(px: &[f32], w: usize, h: usize, k: usize) -> Vec<f32> {
 /// Decodes `paths` in parallel and downscales each by `k` (a k×k box average); all must have the
 /// size of the first, and `k` must divide it. Returns that size (before downscaling) and the
 /// images; an error names the first failing image in order.
-fn decode_views(paths: &[&Path], k: u32, cameras_only: bool) -> Result<(u32, u32, Vec<Vec<f32>>), DataError> {
+fn decode_views(paths: &[&Path], k: u32, cameras_only: bool) -> Result<(u32, u32, Vec<Pixels>), DataError> {
     let decoded = decode_each(paths, k, &|_, _, w, h| Ok((w, h)), &|_, _, _, _, px| Ok(px), cameras_only)?;
     let (w, h) = decoded[0].0;
     let mut images = Vec::with_capacity(decoded.len());
@@ -1255,7 +1263,7 @@ type ImageAndViewSize = ((u32, u32), (u32, u32));
 
 /// A decoded view: its image's size, the view's size (both before downscaling) and the view's
 /// downscaled pixels.
-type DecodedView = ((u32, u32), (u32, u32), Vec<f32>);
+type DecodedView = ((u32, u32), (u32, u32), Pixels);
 
 /// A reader for the image at `path`: the format its first bytes show, else its extension's.
 fn open_image(path: &Path) -> Result<image::ImageReader<std::io::BufReader<std::fs::File>>, DataError> {
@@ -1284,6 +1292,8 @@ fn decode_each(paths: &[&Path], k: u32, size: &ViewSize, fix: &ImageFix, cameras
             } else {
                 decode_rgba(path)?
             };
+            // Each view as it will be held, before the next is decoded: the loader never holds
+            // every view as f32.
             if w == 0 || h == 0 {
                 return Err(DataError::BadDownscale { path: path.to_path_buf(), k, reason: "the image is empty".into() });
             }
@@ -1296,11 +1306,11 @@ fn decode_each(paths: &[&Path], k: u32, size: &ViewSize, fix: &ImageFix, cameras
                 });
             }
             if cameras_only {
-                return Ok(((w, h), (vw, vh), px));
+                return Ok(((w, h), (vw, vh), Pixels::default()));
             }
             let px = fix(i, path, w, h, px)?;
             debug_assert_eq!(px.len(), 4 * (vw * vh) as usize, "the view's pixels");
-            Ok(((w, h), (vw, vh), downscale_rgba(&px, vw as usize, vh as usize, k as usize)))
+            Ok(((w, h), (vw, vh), Pixels::from_f32(&downscale_rgba(&px, vw as usize, vh as usize, k as usize))))
         })
         .collect::<Vec<_>>()
         .into_iter()
@@ -1401,7 +1411,7 @@ fn decode_masks(
 fn to_canvas(
     sizes: &[(u32, u32)],
     canvas: (u32, u32),
-    images: &mut [Vec<f32>],
+    images: &mut [Pixels],
     depths: Option<&mut Vec<Vec<f32>>>,
     masks: Option<Vec<Option<Arc<[u32]>>>>,
 ) -> PixelMasks {
@@ -1417,7 +1427,7 @@ fn to_canvas(
     let small = |v: usize| (sizes[v].0 as usize, sizes[v].1 as usize) != (cw, ch);
     for (v, img) in images.iter_mut().enumerate() {
         if small(v) && !img.is_empty() {
-            *img = widen(img, sizes[v].0 as usize, 4, (cw, ch));
+            *img = img.widened(sizes[v].0 as usize, (cw, ch));
         }
     }
     if let Some(d) = depths {
@@ -1796,7 +1806,7 @@ fn load_transforms_with(
     if let Some(&i) = plain.iter().find(|&&i| frames[i].lens.size.is_none() && sizes[i] != sizes[plain[0]]) {
         return Err(size_mismatch(paths[i], sizes[i], paths[plain[0]], sizes[plain[0]]));
     }
-    let mut images: Vec<Vec<f32>> = decoded.into_iter().map(|(_, _, px)| px).collect();
+    let mut images: Vec<Pixels> = decoded.into_iter().map(|(_, _, px)| px).collect();
     // Each view's pinhole intrinsics at the stored size, and its camera at the loaded one.
     let intrinsics = frames
         .iter()
@@ -2414,7 +2424,7 @@ pub fn write_blender(
         .enumerate()
         .map(|(k, img)| {
             let (w, h) = ds.view_size(k);
-            let bytes: Vec<u8> = ds.view_crop(k, 4, img).iter().map(|&v| to_u8(v)).collect();
+            let bytes: Vec<u8> = ds.view_crop(k, 4, &img.to_f32()).iter().map(|&v| to_u8(v)).collect();
             write_png(
                 &img_dir.join(format!("r_{k}.png")),
                 w,

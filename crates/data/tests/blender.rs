@@ -57,7 +57,7 @@ fn synthetic(n: usize, w: u32, h: u32, seed: u64) -> Dataset {
         cameras: (0..n)
             .map(|i| look_at_origin(k, 0.9 * i as f32 + 0.3, 0.2 + 0.1 * i as f32))
             .collect(),
-        images: random_images(n, w, h, seed),
+        images: random_images(n, w, h, seed).into_iter().map(Into::into).collect(),
         file_paths: vec![],
         masks: None,
         depths: None,
@@ -77,6 +77,14 @@ fn opts(k: u32, views: ViewSelection) -> LoadOptions {
         views,
         ..Default::default()
     }
+}
+
+/// The in-repo scene's 8-bit photos are held in bytes: 4 a pixel, a quarter of `f32` RGBA.
+#[test]
+fn eight_bit_photos_take_four_bytes_a_pixel() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/lego_100");
+    let ds = load_blender(&root, Split::Train, &LoadOptions::default()).unwrap();
+    assert!(ds.images.iter().all(|p| p.is_rgba8() && p.size_in_bytes() == 4 * 100 * 100));
 }
 
 #[test]
@@ -199,19 +207,21 @@ fn downscale_is_box_mean_and_halves_focal() {
     for y in 0..2 {
         for x in 0..4 {
             for c in 0..4 {
-                let p = |xx: usize, yy: usize| full.images[1][4 * (yy * 8 + xx) + c];
+                let p = |xx: usize, yy: usize| full.images[1].value(4 * (yy * 8 + xx) + c);
                 let mean = (p(2 * x, 2 * y)
                     + p(2 * x + 1, 2 * y)
                     + p(2 * x, 2 * y + 1)
                     + p(2 * x + 1, 2 * y + 1))
                     / 4.0;
-                let got = half.images[1][4 * (y * 4 + x) + c];
-                assert!((got - mean).abs() < 1e-6, "({x},{y}) c{c}: {got} vs {mean}");
+                let got = half.images[1].value(4 * (y * 4 + x) + c);
+                // Held in 16 bits (a mean of 8-bit values is rarely one): within half a step.
+                assert!((got - mean).abs() <= 0.5 / 65535.0 + 1e-7, "({x},{y}) c{c}: {got} vs {mean}");
             }
         }
     }
     // Known pattern: red = 17x/255, so the mean of columns 2x and 2x+1 is 17(2x+0.5)/255.
-    assert!((half.images[0][4 * 3] - 17.0 * 6.5 / 255.0).abs() < 1e-6);
+    assert!((half.images[0].value(4 * 3) - 17.0 * 6.5 / 255.0).abs() <= 0.5 / 65535.0 + 1e-7);
+    assert!(full.images[1].is_rgba8() && !half.images[1].is_rgba8(), "8-bit photos in bytes, their means in 16 bits");
     // A factor that does not divide the size, and factor 0.
     let e = load_err(dir.path(), &opts(3, ViewSelection::All));
     assert!(matches!(e, DataError::BadDownscale { k: 3, .. }), "{e}");
@@ -240,11 +250,11 @@ fn rgb_and_16_bit_pngs_are_accepted() {
     });
     rgba16.save(root.join("train/r_1.png")).unwrap();
     let ds = load_blender(root, Split::Train, &LoadOptions::default()).unwrap();
-    let px = |v: usize, x: usize, y: usize| &ds.images[v][4 * (y * 4 + x)..4 * (y * 4 + x) + 4];
-    assert_eq!(px(0, 3, 1), &[180.0 / 255.0, 100.0 / 255.0, 1.0, 1.0]);
+    let px = |v: usize, x: usize, y: usize| ds.images[v].rgba(y * 4 + x);
+    assert_eq!(px(0, 3, 1), [180.0 / 255.0, 100.0 / 255.0, 1.0, 1.0]);
     assert_eq!(
         px(1, 2, 1),
-        &[40000.0 / 65535.0, 1.0, 30000.0 / 65535.0, 32768.0 / 65535.0]
+        [40000.0 / 65535.0, 1.0, 30000.0 / 65535.0, 32768.0 / 65535.0]
     );
 }
 
@@ -270,7 +280,9 @@ fn webp_and_tiff_photos_are_accepted() {
     let float = |v: f32| image::DynamicImage::ImageRgb32F(image::ImageBuffer::from_fn(4, 3, |x, _| image::Rgb([if x == 1 { v } else { 0.25 }, 0.5, 1.0])));
     float(1.75).save(root.join("train/r_2.tif")).unwrap();
     let ds = load_blender(root, Split::Train, &LoadOptions::default()).unwrap();
-    assert_eq!((&ds.images[2][..4], &ds.images[2][4..8]), (&[0.25, 0.5, 1.0, 1.0][..], &[1.0, 0.5, 1.0, 1.0][..]));
+    // Held in 16 bits: 0.25 and 0.5 within half a step.
+    let near = |a: [f32; 4], b: [f32; 4]| a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 0.5 / 65535.0);
+    assert!(near(ds.images[2].rgba(0), [0.25, 0.5, 1.0, 1.0]) && near(ds.images[2].rgba(1), [1.0, 0.5, 1.0, 1.0]), "{:?}", ds.images[2].rgba(1));
     float(f32::NAN).save(root.join("train/r_2.tif")).unwrap();
     let e = load_blender(root, Split::Train, &LoadOptions::default()).unwrap_err().to_string();
     assert!(e.contains("r_2.tif") && e.contains("pixel (1, 0)") && e.contains("NaN"), "{e}");
@@ -349,7 +361,7 @@ fn sampled_rays_match_view_rays() {
         );
         frac_sum += (u - col) as f64;
         let bg = &batch.background[3 * r..3 * r + 3];
-        let a = ds.images[v][4 * p + 3];
+        let a = ds.images[v].value(4 * p + 3);
         if r < 300 {
             ds.view_rays(v, Background::Black, PixelConvention::Center, &mut black);
             for (c, &b) in bg.iter().enumerate() {
@@ -424,7 +436,7 @@ fn view_rays_and_view_rgb_composite() {
     let black = ds.view_rgb(1, Background::Black);
     assert_eq!(b.target, white, "Random is treated as white in view_rays");
     for p in 0..15 {
-        let px = &ds.images[1][4 * p..4 * p + 4];
+        let px = &ds.images[1].to_f32()[4 * p..4 * p + 4];
         for c in 0..3 {
             assert!((white[3 * p + c] - (px[c] * px[3] + 1.0 - px[3])).abs() < 1e-7);
             assert!((black[3 * p + c] - px[c] * px[3]).abs() < 1e-7);
@@ -718,7 +730,7 @@ fn lego_train_downscaled() {
     assert!((k.fx - 138.8889).abs() < 1e-3, "focal {}", k.fx);
     assert_eq!((k.cx, k.cy), (50.0, 50.0));
     assert_eq!(ds.images[0].len(), 4 * 100 * 100);
-    assert!(ds.images[0].iter().all(|v| (0.0..=1.0).contains(v)));
+    assert!(ds.images[0].to_f32().iter().all(|v| (0.0..=1.0).contains(v)));
     // Frame 0 of lego: camera centre (-0.0538, 3.8455, 1.2081); it sees the object (lego fits the
     // AABB) and the centre ray of the view hits the box.
     assert!(
@@ -730,8 +742,8 @@ fn lego_train_downscaled() {
         .intersect(r.origin.to_array(), r.dir.to_array())
         .is_some());
     // Alpha: transparent corners, opaque somewhere in the middle.
-    assert_eq!(ds.images[0][3], 0.0);
-    assert!(ds.images[0].chunks_exact(4).any(|p| p[3] == 1.0));
+    assert_eq!(ds.images[0].value(3), 0.0);
+    assert!(ds.images[0].to_f32().chunks_exact(4).any(|p| p[3] == 1.0));
     // Downscaled pixels are the 8x8 box means of the full-resolution image.
     let full = load_blender(&lego, Split::Train, &opts(1, ViewSelection::First(1))).unwrap();
     assert_eq!(full.width, 800);
@@ -742,11 +754,11 @@ fn lego_train_downscaled() {
                 let mut s = 0.0f64;
                 for yy in 0..8 {
                     for xx in 0..8 {
-                        s += full.images[0][4 * ((8 * y + yy) * 800 + 8 * x + xx) + c] as f64;
+                        s += full.images[0].value(4 * ((8 * y + yy) * 800 + 8 * x + xx) + c) as f64;
                     }
                 }
                 max_err =
-                    max_err.max((ds.images[0][4 * (y * 100 + x) + c] - (s / 64.0) as f32).abs());
+                    max_err.max((ds.images[0].value(4 * (y * 100 + x) + c) - (s / 64.0) as f32).abs());
             }
         }
     }
@@ -846,7 +858,7 @@ fn masks_round_trip_and_training_rays_draw_only_kept_pixels() {
     let mut drawn = std::collections::HashSet::new();
     for (k, (&v, &p)) in batch.view_ids.iter().zip(&batch.pixel_ids).enumerate() {
         assert!(flags[v as usize][p as usize], "ray {k}: masked-out pixel {p} of view {v} drawn");
-        let px = &back.images[v as usize][4 * p as usize..4 * p as usize + 4];
+        let px = &back.images[v as usize].to_f32()[4 * p as usize..4 * p as usize + 4];
         let want: Vec<f32> = (0..3).map(|c| px[c] * px[3]).collect();
         assert_eq!(&batch.target[3 * k..3 * k + 3], &want[..], "ray {k}: target of another pixel");
         drawn.insert((v, p));

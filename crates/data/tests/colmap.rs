@@ -236,9 +236,9 @@ fn colmap_models_load_with_cameras_that_reproject_colmaps_points() {
         assert!(train.images[0] == lego_train.images[1], "view_002 is lego's second training view");
         if portrait {
             assert_eq!((train.width, train.height, train.view_size(1)), (100, 100, (64, 100)), "view_003 is a portrait");
-            let whole = &lego_train.images[2];
+            let whole = lego_train.images[2].to_f32();
             let crop: Vec<f32> = (0..100).flat_map(|row| whole[4 * (row * 100 + 36)..4 * (row * 100 + 100)].iter().copied()).collect();
-            assert!(train.view_crop(1, 4, &train.images[1]).as_ref() == &crop[..], "view_003 is lego's third training view's right part");
+            assert!(train.view_crop(1, 4, &train.images[1].to_f32()).as_ref() == &crop[..], "view_003 is lego's third training view's right part");
             assert_eq!(train.masks.as_ref().unwrap().total(), train.n_view_pixels());
         }
     }

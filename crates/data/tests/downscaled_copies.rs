@@ -41,7 +41,7 @@ fn load(root: &Path, k: u32) -> nerf_data::Dataset {
 fn downscaled_copies_are_read_in_place_of_the_originals() {
     let dir = tempfile::tempdir().unwrap();
     capture(dir.path());
-    let colour = |ds: &nerf_data::Dataset| -> [u8; 4] { std::array::from_fn(|c| (ds.images[0][c] * 255.0).round() as u8) };
+    let colour = |ds: &nerf_data::Dataset| -> [u8; 4] { std::array::from_fn(|c| (ds.images[0].value(c) * 255.0).round() as u8) };
     // Full resolution: the originals.
     let full = load(dir.path(), 1);
     assert_eq!((full.width, full.height, colour(&full)), (8, 6, ORIGINAL));

@@ -223,8 +223,8 @@ fn a_downscale_uses_the_closest_image_folder_and_box_averages_the_rest() {
     assert!(k8.file_paths[0].to_string_lossy().contains("images_4"));
     assert_eq!((k8.width, k8.height), (8, 6));
     assert_eq!(k8.cameras[0].intrinsics.fx, 60.0 / 8.0);
-    let px = &k8.images[0];
-    assert!((px[0] - k4.images[0][0]).abs() < 1e-6 && px[3] == 1.0, "RGB images get alpha 1");
+    let px = k8.images[0].to_f32();
+    assert!((px[0] - k4.images[0].value(0)).abs() < 1e-6 && px[3] == 1.0, "RGB images get alpha 1");
     // No folder for 3 (nor for 1): the error lists what the scene has.
     let e = load_llff(dir.path(), Split::Train, &opts(3)).unwrap_err().to_string();
     assert!(e.contains("images_3") && e.contains("images_2, images_4") && e.contains("--downscale"), "{e}");

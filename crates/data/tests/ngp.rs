@@ -360,7 +360,7 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
         let native = load(dir.path(), Split::Test);
         let cam = native.cameras[0];
         assert_eq!((cam.intrinsics, cam.distortion), (k, d));
-        assert!(native.images[0].iter().zip(&photo_f).all(|(a, b)| a == b), "the photo as taken");
+        assert!(native.images[0].to_f32().iter().zip(&photo_f).all(|(a, b)| a == b), "the photo as taken");
         let mut worst = 0.0f64;
         for j in 0..k.height {
             for i in 0..k.width {
@@ -368,7 +368,7 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
                 let (x, y) = (dir.x as f64 / -dir.z as f64, -dir.y as f64 / -dir.z as f64);
                 let p = pattern(x, y);
                 let o = 4 * (j * k.width + i) as usize;
-                worst = (0..3).fold(worst, |w, c| w.max((native.images[0][o + c] as f64 - p[c]).abs()));
+                worst = (0..3).fold(worst, |w, c| w.max((native.images[0].value(o + c) as f64 - p[c]).abs()));
             }
         }
         assert!(worst < 1e-4, "{:?}: the rays miss the photo's pattern by {worst}", d.model);
@@ -377,7 +377,7 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
 
         let test = load_undistorted(dir.path(), Split::Test, 1);
         assert_eq!((test.cameras[0].intrinsics, test.cameras[0].distortion), (k, Distortion::NONE));
-        assert!(max_error(&test.images[0], &k, 4) < 3e-3);
+        assert!(max_error(&test.images[0].to_f32(), &k, 4) < 3e-3);
         // The mask is resampled with the photo: kept right of the edge where the photo saw the
         // pixel, dropped left of it (a pixel either side of the edge may go either way), and
         // dropped where the pinhole image reaches past the photo (the pincushion lens's corners).
@@ -404,7 +404,7 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
         assert_eq!(unseen > 0, d.k1 > 0.0 && d.model == LensModel::RadialTangential, "only the pincushion lens reaches past its photo");
         let half = load_undistorted(dir.path(), Split::Test, 2);
         let k2 = k.downscaled(2);
-        assert!(max_error(&half.images[0], &k2, 2) < 1e-2, "{}", max_error(&half.images[0], &k2, 2));
+        assert!(max_error(&half.images[0].to_f32(), &k2, 2) < 1e-2, "{}", max_error(&half.images[0].to_f32(), &k2, 2));
     }
 }
 
@@ -493,7 +493,7 @@ fn jpeg_images_load() {
     write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 10.0, "frames": [frame]}));
     let d = load(dir.path(), Split::Test);
     assert_eq!((d.width, d.height), (16, 8));
-    let px = &d.images[0];
+    let px = d.images[0].to_f32();
     for (p, (x, y, c)) in px.chunks_exact(4).zip(img.enumerate_pixels()) {
         let _ = (x, y);
         for ch in 0..3 {

@@ -56,9 +56,9 @@ fn scene(root: &Path, seed: u64, extra: impl Fn(usize) -> Value) -> Vec<Vec<f32>
 }
 
 /// The canvas pixel `(col, row)` of view `v`.
-fn canvas_pixel(ds: &Dataset, v: usize, col: u32, row: u32) -> &[f32] {
+fn canvas_pixel(ds: &Dataset, v: usize, col: u32, row: u32) -> [f32; 4] {
     let p = (row * ds.width + col) as usize;
-    &ds.images[v][4 * p..4 * p + 4]
+    ds.images[v].rgba(p)
 }
 
 #[test]
@@ -86,7 +86,7 @@ fn views_of_several_sizes_sit_on_one_canvas_with_the_rest_masked_out() {
                 assert_eq!(ds.masks.as_ref().unwrap().is_kept(v, row * 8 + col), col < w && row < h, "view {v} ({col}, {row})");
             }
         }
-        assert_eq!(ds.view_crop(v, 4, &ds.images[v]).as_ref(), &pixels[v][..], "view {v}: cropped back");
+        assert_eq!(ds.view_crop(v, 4, &ds.images[v].to_f32()).as_ref(), &pixels[v][..], "view {v}: cropped back");
     }
     // Views of one size share one list of kept pixels; a view that fills the canvas would have none.
     let m = ds.masks.as_ref().unwrap();

@@ -22,7 +22,7 @@
 use crate::kernel::{groups_1d, Kernel};
 use crate::layout::COUNTER_N_RAYS;
 use crate::{rng, shaders, GpuContext, GpuError};
-use nerf_data::{Background, Dataset, RayBatch};
+use nerf_data::{Background, Dataset, Pixels, RayBatch};
 use nerf_rays::{LensModel, PixelConvention};
 pub use crate::layout::{GpuCamera};
 use crate::layout::{ImagesInfo, MarchParams, RayGenParams, RoundParams, RoundRayState, ScanParams};
@@ -113,9 +113,8 @@ impl GpuImages {
                 )));
             }
         }
-        let q8 = |x: f32| (x.clamp(0.0, 1.0) * 255.0).round() as u32;
-        let q16 = |x: f32| (x.clamp(0.0, 1.0) * 65535.0).round() as u32;
-        let exact8 = dataset.images.iter().flatten().all(|&x| q8(x) as f32 / 255.0 == x);
+        // The views' own bits (`nerf_data::Pixels`): 8 where every view has them, else 16.
+        let exact8 = dataset.images.iter().all(Pixels::is_rgba8);
         let format = if exact8 { PixelFormat::Rgba8 } else { PixelFormat::Rgba16 };
         let words_per_pixel = if exact8 { 1 } else { 2 };
         let n_words = n_views * w * h * words_per_pixel;
@@ -129,13 +128,9 @@ impl GpuImages {
         }
         let mut words = Vec::with_capacity(n_words);
         for img in &dataset.images {
-            for px in img.chunks_exact(4) {
-                if exact8 {
-                    words.push(q8(px[0]) | q8(px[1]) << 8 | q8(px[2]) << 16 | q8(px[3]) << 24);
-                } else {
-                    words.push(q16(px[0]) | q16(px[1]) << 16);
-                    words.push(q16(px[2]) | q16(px[3]) << 16);
-                }
+            match img {
+                Pixels::Rgba8(b) if exact8 => words.extend(b.chunks_exact(4).map(|p| u32::from_le_bytes([p[0], p[1], p[2], p[3]]))),
+                _ => words.extend(img.to_u16().chunks_exact(2).map(|p| p[0] as u32 | (p[1] as u32) << 16)),
             }
         }
         let cams: Vec<GpuCamera> = dataset
@@ -389,7 +384,7 @@ pub fn ray_batch_cpu(dataset: &Dataset, seed: u32, n_rays: usize, background: Ba
         };
         let ray = dataset.warp(dataset.cameras[view as usize].ray_at(u, v));
         let pix = row * w + col;
-        let px = &dataset.images[view as usize][4 * pix as usize..4 * pix as usize + 4];
+        let px = dataset.images[view as usize].rgba(pix as usize);
         let a = px[3];
         b.origins.extend_from_slice(&ray.origin.to_array());
         b.dirs.extend_from_slice(&ray.dir.to_array());

@@ -120,7 +120,7 @@ fn dataset(seed: u64, n_views: usize, w: u32, h: u32, sixteen: bool) -> Dataset 
             };
             img.push(a);
         }
-        images.push(img);
+        images.push(img.into());
     }
     Dataset {
         root: PathBuf::from("synthetic"),
@@ -345,14 +345,16 @@ fn masked_ray_generation_matches_its_cpu_twin_and_draws_only_kept_pixels() {
         let kept = ds.masks.as_ref().unwrap().total() as usize;
         let images = GpuImages::new(&ctx, &ds).unwrap();
         assert_eq!(images.masks.size() as usize, 4 * (2 * n_views + listed), "seed {seed}: each list once");
-        // NaN can't be packed to RGBA8: poison the twin's images after the upload instead, so
-        // a masked-out pixel read on the CPU side shows.
+        // Change the twin's masked-out pixels after the upload (to the negative of their colour),
+        // so that a masked-out pixel drawn on one side and not the other shows.
         for (img, f) in ds.images.iter_mut().zip(&flags) {
-            for (px, &k) in img.chunks_exact_mut(4).zip(f) {
+            let mut px = img.to_f32();
+            for (p, &k) in px.chunks_exact_mut(4).zip(f) {
                 if !k {
-                    px.fill(f32::NAN);
+                    p.iter_mut().for_each(|x| *x = 1.0 - *x);
                 }
             }
+            *img = px.into();
         }
         let rays = draw_on_device(&ctx, &images, Background::Random, PixelConvention::Center, jitter, seed, cap, cap);
         let cpu = ray_batch_cpu(&ds, seed, cap, Background::Random, PixelConvention::Center, jitter);
@@ -431,7 +433,7 @@ fn ray_generation_in_ndc_matches_its_cpu_twin() {
 fn image_upload_rejects_bad_datasets() {
     let Some(ctx) = context() else { return };
     let mut ds = dataset(9, 2, 4, 3, false);
-    ds.images[1].pop();
+    ds.images[1] = nerf_data::Pixels::from_f32(&ds.images[1].to_f32()[4..]);
     let e = GpuImages::new(&ctx, &ds).err().expect("short image accepted").to_string();
     assert!(e.contains("synthetic") && e.contains("image 1"), "{e}");
     ds.cameras.clear();

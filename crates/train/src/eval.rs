@@ -245,7 +245,8 @@ pub fn evaluate(
             let path = d.join(format!("{}.png", names[i]));
             save_png(&path, w as u32, h as u32, &rgb)?;
         }
-        let image = data.view_crop(i, 4, &data.images[i]);
+        let px = data.images[i].to_f32();
+        let image = data.view_crop(i, 4, &px);
         let alpha = image.chunks_exact(4).map(|p| p[3]);
         let alpha_split = AlphaSplit::of(&rgb, &opacity, gt, alpha);
         let depth = data.depths.as_ref().and_then(|d| DepthError::of(&depth, &data.view_crop(i, 1, &d[i])));
