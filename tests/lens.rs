@@ -6,44 +6,18 @@
 //! lens keys lost) they must not train it. On the CPU and, where an adapter exists, on the GPU.
 
 use std::path::Path;
-use std::sync::Arc;
 
 use nerf::data::{load_blender, Dataset, LoadOptions, Split};
-use nerf::gpu::GpuContext;
 use nerf::rays::glam::{Mat3, Vec3};
 use serde_json::json;
 
 mod common;
-use common::{light_hash_config, sparse_psnr, train_on};
+use common::{gpu_matches_cpu, light_hash_config, psnr_of_each, room, yaw_pitch_pose as pose};
 
-/// The room's walls, floor and ceiling: the cube of this half-extent.
-const ROOM: f32 = 1.2;
 /// The fisheye photos: 64 pixels square, a focal length of 18 pixels (32 pixels out from the
 /// centre is ~100° off the axis), OpenCV's `k1`, `k2`.
 const FISH: (u32, f64, f64, f64) = (64, 18.0, 0.03, -0.004);
 
-/// The room's colour where the ray `(o, d)` from inside it meets a wall: smooth stripes that
-/// differ from wall to wall.
-fn room(o: Vec3, d: Vec3) -> [f32; 3] {
-    let t = (0..3).map(|a| if d[a] > 0.0 { (ROOM - o[a]) / d[a] } else { (-ROOM - o[a]) / d[a] }).fold(f32::INFINITY, f32::min);
-    let p = o + t * d;
-    [0.5 + 0.4 * (3.0 * p.x + p.y).sin(), 0.5 + 0.4 * (2.5 * p.y - p.z + 1.0).sin(), 0.5 + 0.4 * (3.5 * p.z + 0.5 * p.x).sin()]
-}
-
-/// A camera-to-world matrix: a place inside the room, turned by `yaw` about the vertical and
-/// tilted by `pitch`.
-fn pose(c: Vec3, yaw: f32, pitch: f32) -> [[f32; 4]; 4] {
-    let r = Mat3::from_rotation_y(yaw) * Mat3::from_rotation_x(pitch);
-    let mut m = [[0.0; 4]; 4];
-    for row in 0..3 {
-        for col in 0..3 {
-            m[row][col] = r.col(col)[row];
-        }
-        m[row][3] = c[row];
-    }
-    m[3][3] = 1.0;
-    m
-}
 
 /// The fisheye's angle off the axis at distorted radius `theta_d` (in focal lengths):
 /// `θ·(1 + k1·θ² + k2·θ⁴) = θ_d` solved by bisection, apart from the loader's Newton steps.
@@ -135,23 +109,11 @@ fn fisheye_photos_train_through_their_lens() {
     };
     assert!(off_axis(&native) > 95.0 && off_axis(&resampled) < 61.0, "{} and {}", off_axis(&native), off_axis(&resampled));
 
-    let config = light_hash_config(300);
-    let mut psnr = Vec::new();
-    for (name, data) in [("through the lens", &native), ("resampled to pinholes", &resampled), ("read as pinholes", &pinhole)] {
-        let t0 = std::time::Instant::now();
-        let p = sparse_psnr(&train_on(&config, data, None), &test, 1);
-        println!("cpu, fisheye photos {name}: {p:.2} dB on the held-out pinhole views ({:.1} s)", t0.elapsed().as_secs_f64());
-        psnr.push(p);
-    }
+    let runs = [("fisheye photos through the lens", &native), ("resampled to pinholes", &resampled), ("read as pinholes", &pinhole)];
+    let psnr = psnr_of_each(&light_hash_config(300), &runs, &test);
     // Measured: 24.41 dB through the lens, 18.21 dB resampled, 12.78 dB read as pinholes.
     assert!(psnr[0] > 20.0, "{:.2} dB", psnr[0]);
     assert!(psnr[0] > psnr[1] + 3.0, "through the lens {:.2} dB, resampled {:.2} dB", psnr[0], psnr[1]);
     assert!(psnr[0] > psnr[2] + 6.0, "through the lens {:.2} dB, read as pinholes {:.2} dB", psnr[0], psnr[2]);
-
-    let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
-    let short = light_hash_config(80);
-    let cpu = sparse_psnr(&train_on(&short, &native, None), &test, 1);
-    let gpu = sparse_psnr(&train_on(&short, &native, Some(ctx)), &test, 1);
-    println!("{} steps: cpu {cpu:.2} dB, gpu {gpu:.2} dB", short.iters);
-    assert!((gpu - cpu).abs() < 1.0, "cpu {cpu:.2} dB, gpu {gpu:.2} dB");
+    gpu_matches_cpu(80, &native, &test, 1);
 }

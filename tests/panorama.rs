@@ -6,43 +6,22 @@
 //! wrong convention would read them) must not train it.
 
 use std::path::Path;
-use std::sync::Arc;
 
 use nerf::data::{load_blender, LoadOptions, Split};
-use nerf::gpu::GpuContext;
-use nerf::rays::glam::{Mat3, Vec3};
+use nerf::rays::glam::Vec3;
 use nerf::rays::Camera;
 use serde_json::json;
 
 mod common;
-use common::{light_hash_config, sparse_psnr, train_on};
+use common::{gpu_matches_cpu, light_hash_config, psnr_of_each, room};
 
 const W: u32 = 128;
 const H: u32 = 64;
-/// The room's walls, floor and ceiling: the cube of this half-extent.
-const ROOM: f32 = 1.2;
-
-/// The room's colour where the ray `(o, d)` from inside it meets a wall: smooth stripes that
-/// differ from wall to wall.
-fn room(o: Vec3, d: Vec3) -> [f32; 3] {
-    let t = (0..3).map(|a| if d[a] > 0.0 { (ROOM - o[a]) / d[a] } else { (-ROOM - o[a]) / d[a] }).fold(f32::INFINITY, f32::min);
-    let p = o + t * d;
-    [0.5 + 0.4 * (3.0 * p.x + p.y).sin(), 0.5 + 0.4 * (2.5 * p.y - p.z + 1.0).sin(), 0.5 + 0.4 * (3.5 * p.z + 0.5 * p.x).sin()]
-}
 
 /// Panorama `i`'s camera: a place inside the room, turned about the vertical and tilted a little.
 fn pose(i: usize) -> [[f32; 4]; 4] {
-    let r = Mat3::from_rotation_y(1.3 * i as f32 + 0.2) * Mat3::from_rotation_x(0.15 * (i as f32 - 2.0));
     let c = Vec3::new(0.3 * (i as f32 * 2.1).cos(), 0.15 * (i as f32 - 2.0), 0.3 * (i as f32 * 2.1).sin());
-    let mut m = [[0.0; 4]; 4];
-    for row in 0..3 {
-        for col in 0..3 {
-            m[row][col] = r.col(col)[row];
-        }
-        m[row][3] = c[row];
-    }
-    m[3][3] = 1.0;
-    m
+    common::yaw_pitch_pose(c, 1.3 * i as f32 + 0.2, 0.15 * (i as f32 - 2.0))
 }
 
 /// Writes the panoramas (`mirror`: the training ones flipped left to right) and the split files:
@@ -79,22 +58,9 @@ fn panoramas_from_inside_a_room_train_a_field_that_renders_it_from_elsewhere() {
     assert_eq!((train_views.n_views(), test.n_views(), train_views.width), (24, 6, 40), "six 40×40 faces a panorama");
     assert!(train_views.near < 0.5, "rays start near the camera: {}", train_views.near);
 
-    let config = light_hash_config(300);
-    let mut psnr = Vec::new();
-    for (name, data) in [("panoramas", &train_views), ("mirrored panoramas", &mirrored)] {
-        let t0 = std::time::Instant::now();
-        let p = sparse_psnr(&train_on(&config, data, None), &test, 1);
-        println!("cpu, {name}: {p:.2} dB on the held-out panorama's faces ({:.1} s)", t0.elapsed().as_secs_f64());
-        psnr.push(p);
-    }
+    let psnr = psnr_of_each(&light_hash_config(300), &[("panoramas", &train_views), ("mirrored panoramas", &mirrored)], &test);
     // Measured: 19.14 dB, and 9.82 dB from the mirrored panoramas.
     assert!(psnr[0] > 16.0, "{:.2} dB", psnr[0]);
     assert!(psnr[0] > psnr[1] + 3.0, "panoramas {:.2} dB, mirrored {:.2} dB", psnr[0], psnr[1]);
-
-    let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
-    let short = light_hash_config(80);
-    let cpu = sparse_psnr(&train_on(&short, &train_views, None), &test, 1);
-    let gpu = sparse_psnr(&train_on(&short, &train_views, Some(ctx)), &test, 1);
-    println!("{} steps: cpu {cpu:.2} dB, gpu {gpu:.2} dB", short.iters);
-    assert!((gpu - cpu).abs() < 1.0, "cpu {cpu:.2} dB, gpu {gpu:.2} dB");
+    gpu_matches_cpu(80, &train_views, &test, 1);
 }

@@ -7,14 +7,12 @@
 //! rays through the wrong pixels) must not.
 
 use std::path::Path;
-use std::sync::Arc;
 
 use nerf::data::{load_blender, Dataset, LoadOptions, Split, ViewSelection};
-use nerf::gpu::GpuContext;
 use serde_json::json;
 
 mod common;
-use common::{light_hash_config, load, sparse_psnr, train_on};
+use common::{gpu_matches_cpu, light_hash_config, load, sparse_psnr, train_on};
 
 /// View `v`'s crop: `(x0, y0, w, h)` — landscape views keep the top 64 rows, portrait views the
 /// right 64 columns (off-centre, so a lost offset moves every ray).
@@ -99,11 +97,5 @@ fn portrait_and_landscape_crops_train_the_field_on_both_devices() {
     }
     assert!(psnr[1] > psnr[0] - 1.5, "crops {:.2} dB, whole views {:.2} dB", psnr[1], psnr[0]);
     assert!(psnr[1] > psnr[2] + 1.0, "crops {:.2} dB, with their offset lost {:.2} dB", psnr[1], psnr[2]);
-
-    let Some(ctx) = GpuContext::for_tests().map(Arc::new) else { return };
-    let short = light_hash_config(80);
-    let cpu = sparse_psnr(&train_on(&short, &crops, None), &test, 2);
-    let gpu = sparse_psnr(&train_on(&short, &crops, Some(ctx)), &test, 2);
-    println!("{} steps on the crops: cpu {cpu:.2} dB, gpu {gpu:.2} dB", short.iters);
-    assert!((gpu - cpu).abs() < 1.0, "cpu {cpu:.2} dB, gpu {gpu:.2} dB");
+    gpu_matches_cpu(80, &crops, &test, 2);
 }

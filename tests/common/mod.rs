@@ -117,3 +117,56 @@ pub fn train_on(config: &nerf::train::TrainConfig, data: &Dataset, device: Optio
     t.finish().unwrap();
     t
 }
+
+/// The light hash preset ([`light_hash_config`]) trained for `iters` steps on `data` on the CPU
+/// and, where an adapter exists, on the GPU: their PSNRs on `test` (every `stride`th pixel) must
+/// lie within 1 dB. Returns them (`None` without an adapter).
+pub fn gpu_matches_cpu(iters: u64, data: &Dataset, test: &Dataset, stride: usize) -> Option<(f64, f64)> {
+    let ctx = std::sync::Arc::new(nerf::gpu::GpuContext::for_tests()?);
+    let short = light_hash_config(iters);
+    let cpu = sparse_psnr(&train_on(&short, data, None), test, stride);
+    let gpu = sparse_psnr(&train_on(&short, data, Some(ctx)), test, stride);
+    println!("{iters} steps: cpu {cpu:.2} dB, gpu {gpu:.2} dB");
+    assert!((gpu - cpu).abs() < 1.0, "cpu {cpu:.2} dB, gpu {gpu:.2} dB");
+    Some((cpu, gpu))
+}
+
+/// `config` trained on each of `runs` on the CPU: their PSNRs on every pixel of `test`, each
+/// printed with its name and time.
+pub fn psnr_of_each(config: &TrainConfig, runs: &[(&str, &Dataset)], test: &Dataset) -> Vec<f64> {
+    runs.iter()
+        .map(|(name, data)| {
+            let t0 = std::time::Instant::now();
+            let p = sparse_psnr(&train_on(config, data, None), test, 1);
+            println!("cpu, {name}: {p:.2} dB on the held-out views ({:.1} s)", t0.elapsed().as_secs_f64());
+            p
+        })
+        .collect()
+}
+
+/// The half-extent of the textured room of `tests/panorama.rs` and `tests/lens.rs`: its walls,
+/// floor and ceiling are the faces of this cube.
+pub const ROOM: f32 = 1.2;
+
+/// The room's colour where the ray `(o, d)` from inside it meets a wall: smooth stripes that
+/// differ from wall to wall.
+pub fn room(o: nerf::rays::glam::Vec3, d: nerf::rays::glam::Vec3) -> [f32; 3] {
+    let t = (0..3).map(|a| if d[a] > 0.0 { (ROOM - o[a]) / d[a] } else { (-ROOM - o[a]) / d[a] }).fold(f32::INFINITY, f32::min);
+    let p = o + t * d;
+    [0.5 + 0.4 * (3.0 * p.x + p.y).sin(), 0.5 + 0.4 * (2.5 * p.y - p.z + 1.0).sin(), 0.5 + 0.4 * (3.5 * p.z + 0.5 * p.x).sin()]
+}
+
+/// The row-major 4×4 camera-to-world matrix of a camera at `c` turned by `yaw` about the vertical
+/// (+y) and tilted by `pitch` (about its x axis).
+pub fn yaw_pitch_pose(c: nerf::rays::glam::Vec3, yaw: f32, pitch: f32) -> [[f32; 4]; 4] {
+    let r = nerf::rays::glam::Mat3::from_rotation_y(yaw) * nerf::rays::glam::Mat3::from_rotation_x(pitch);
+    let mut m = [[0.0; 4]; 4];
+    for row in 0..3 {
+        for col in 0..3 {
+            m[row][col] = r.col(col)[row];
+        }
+        m[row][3] = c[row];
+    }
+    m[3][3] = 1.0;
+    m
+}
