@@ -15,6 +15,9 @@
 //! `occupancy_mark_seen`: marking the grid cells no training camera sees, over the in-repo
 //! scene's cameras in a box four times as large.
 //!
+//! `view_rays`: one view's rays for pinhole cameras and through two lenses (the Newton steps
+//! that invert a lens, per ray).
+//!
 //! `NERF_BENCH_SMALL=1` shrinks every size for a quick CI-sized run.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion, Throughput};
@@ -175,5 +178,30 @@ fn mark_seen(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, encoding, training_iteration, mark_seen, training_iteration_gpu);
+/// A view's rays (`Dataset::view_rays`: directions, targets, backgrounds) for the in-repo scene's
+/// pinhole cameras and for the same cameras through a radial–tangential lens and a fisheye,
+/// whose rays each take the Newton steps that invert the lens.
+fn camera_rays(c: &mut Criterion) {
+    use nerf::rays::{Distortion, LensModel, PixelConvention};
+    let data = load_blender(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/lego_100").as_ref(), Split::Train, &LoadOptions::default())
+        .expect("the in-repo scene");
+    let lenses = [
+        ("pinhole", Distortion::NONE),
+        ("radial_tangential", Distortion { k1: -0.12, k2: 0.03, p1: 0.002, p2: -0.003, ..Distortion::NONE }),
+        ("fisheye", Distortion { model: LensModel::Fisheye, k1: 0.05, k2: -0.01, k3: 0.002, k4: -0.0005, ..Distortion::NONE }),
+    ];
+    let mut g = c.benchmark_group("view_rays");
+    g.throughput(Throughput::Elements((data.width * data.height) as u64));
+    let mut batch = nerf::data::RayBatch::default();
+    for (name, lens) in lenses {
+        let mut d = data.clone();
+        d.cameras.iter_mut().for_each(|cam| cam.distortion = lens);
+        g.bench_function(BenchmarkId::new(name, "100x100"), |b| {
+            b.iter(|| d.view_rays(black_box(3), nerf::data::Background::White, PixelConvention::Center, &mut batch))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, encoding, training_iteration, mark_seen, camera_rays, training_iteration_gpu);
 criterion_main!(benches);

@@ -46,9 +46,9 @@ pub struct Distortion {
     pub p2: f64,
 }
 
-/// Newton iterations of [`Distortion::undistort_dir`] (and of `shaders/rays.wgsl`, which runs
-/// the same number in f32): from the distorted point itself, a lens a real camera has converges
-/// in a handful.
+/// Newton iterations of [`Distortion::undistort_dir`] at most (it stops once a step no longer
+/// moves the point in f64; `shaders/rays.wgsl` runs all of them in f32): from the distorted
+/// point itself, a lens a real camera has converges in a handful.
 pub const UNDISTORT_ITERATIONS: usize = 10;
 
 /// How far, in normalised coordinates, the distorted position of [`Distortion::undistort_dir`]'s
@@ -161,8 +161,13 @@ impl Distortion {
                     if !(det.abs() > 1e-12) {
                         break;
                     }
-                    x -= (d * ex - b * ey) / det;
-                    y -= (a * ey - c * ex) / det;
+                    let (sx, sy) = ((d * ex - b * ey) / det, (a * ey - c * ex) / det);
+                    x -= sx;
+                    y -= sy;
+                    // Converged to f64 precision: more steps would not move it.
+                    if sx.abs() + sy.abs() <= 1e-15 * (1.0 + x.abs() + y.abs()) {
+                        break;
+                    }
                 }
                 let (fx, fy) = self.distort(x, y);
                 ([x, y, 1.0], (fx - xd).hypot(fy - yd) <= UNDISTORT_TOLERANCE)
@@ -180,7 +185,11 @@ impl Distortion {
                     if !(df.abs() > 1e-12) {
                         break;
                     }
-                    theta -= f / df;
+                    let step = f / df;
+                    theta -= step;
+                    if step.abs() <= 1e-15 * (1.0 + theta.abs()) {
+                        break;
+                    }
                 }
                 let ok = theta.is_finite()
                     && (0.0..std::f64::consts::PI).contains(&theta)
