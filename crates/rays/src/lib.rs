@@ -1,5 +1,5 @@
-//! Pinhole cameras, camera-to-world poses (OpenGL convention), pixel-to-ray generation and
-//! axis-aligned bounding boxes.
+//! Cameras (pinhole, or through a lens), camera-to-world poses (OpenGL convention),
+//! pixel-to-ray generation and axis-aligned bounding boxes.
 //!
 //! Conventions (those of the Blender / NeRF-synthetic format, nerf-pytorch and nerfstudio):
 //! - A [`Camera`] holds a camera-to-world rotation and the camera centre. Camera axes are OpenGL's:
