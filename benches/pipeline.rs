@@ -179,8 +179,9 @@ fn mark_seen(c: &mut Criterion) {
 }
 
 /// A view's rays (`Dataset::view_rays`: directions, targets, backgrounds) for the in-repo scene's
-/// pinhole cameras and for the same cameras through a radial–tangential lens and a fisheye,
-/// whose rays each take the Newton steps that invert the lens.
+/// pinhole cameras and for the same cameras through a radial–tangential lens, a fisheye,
+/// OpenCV's rational lens with thin-prism terms and a Fisheye624, whose rays each take the
+/// Newton steps that invert the lens.
 fn camera_rays(c: &mut Criterion) {
     use nerf::rays::{Distortion, LensModel, PixelConvention};
     let data = load_blender(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/lego_100").as_ref(), Split::Train, &LoadOptions::default())
@@ -189,6 +190,14 @@ fn camera_rays(c: &mut Criterion) {
         ("pinhole", Distortion::NONE),
         ("radial_tangential", Distortion { k1: -0.12, k2: 0.03, p1: 0.002, p2: -0.003, ..Distortion::NONE }),
         ("fisheye", Distortion { model: LensModel::Fisheye, k1: 0.05, k2: -0.01, k3: 0.002, k4: -0.0005, ..Distortion::NONE }),
+        (
+            "full_opencv",
+            Distortion { k1: -0.12, k2: 0.03, k4: 0.05, k5: -0.01, p1: 0.002, p2: -0.003, s1: 0.003, s3: -0.002, ..Distortion::NONE },
+        ),
+        (
+            "fisheye624",
+            Distortion::from_coefficients(LensModel::Fisheye624, [0.05, -0.01, 0.002, -0.0005, 0.0001, -0.00002, 0.001, -0.002, 0.002, -0.0005, -0.001, 0.0003]),
+        ),
     ];
     let mut g = c.benchmark_group("view_rays");
     g.throughput(Throughput::Elements((data.width * data.height) as u64));

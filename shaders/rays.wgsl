@@ -16,9 +16,9 @@
 //   (u, v) = (col + off, row + off), off = 0.5 (pixel centres) or 0 (integer convention);
 //   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
 // Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays), or
-// through the camera's lens (Cam.size.w: 1 OpenCV's radial–tangential, 2 its fisheye) the
-// direction it saw at (u, v): nerf_rays::Camera::camera_dir, whose UNDISTORT_ITERATIONS (10)
-// Newton steps camera_dir runs here in f32.
+// through the camera's lens (Cam.size.w: 1 OpenCV's radial–tangential, 2 its fisheye, 3
+// Fisheye624) the direction it saw at (u, v): nerf_rays::Camera::camera_dir, whose
+// UNDISTORT_ITERATIONS (10) Newton steps (twice for Fisheye624) camera_dir runs here in f32.
 // NDC scenes (I.ndc = 1): the ray is then warped as nerf_rays::Ndc::ray_or_miss (nerf-pytorch's
 // ndc_rays, unit direction; a ray with d_z ≥ 0 becomes the miss ray (0, 0, 2) + t·(0, 0, 1)).
 // Background: white, black, or (random) rand_f32(seed, 0x52410006 + c, r) per channel c.
@@ -57,9 +57,10 @@ struct Cam {
     r1: vec4<f32>,
     r2: vec4<f32>,
     intr: vec4<f32>,   // fx, fy, cx, cy
-    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye)
+    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye, 3 Fisheye624)
     k: vec4<f32>,      // k1, k2, k3, k4
-    p: vec4<f32>,      // p1, p2, unused, unused
+    kp: vec4<f32>,     // k5, k6, p1, p2
+    s: vec4<f32>,      // s1, s2, s3, s4
 }
 
 @group(0) @binding(0) var<uniform> P: RayGenParams;
@@ -89,54 +90,109 @@ fn ndc_ray(o_in: vec3<f32>, d: vec3<f32>) -> array<vec3<f32>, 2> {
     return array<vec3<f32>, 2>(on, normalize(dn));
 }
 
+// nerf_rays::Distortion::radial: the radial factor R at ρ² and dR/d(ρ²), rational for the
+// radial–tangential lens, a polynomial in θ² for the fisheyes.
+fn lens_radial(cam: Cam, r2: f32) -> vec2<f32> {
+    let k = cam.k;
+    let k5 = cam.kp.x;
+    let k6 = cam.kp.y;
+    if (cam.size.w == 1u) {
+        let n = 1.0 + r2 * (k.x + r2 * (k.y + r2 * k.z));
+        let dn = k.x + r2 * (2.0 * k.y + r2 * 3.0 * k.z);
+        let d = 1.0 + r2 * (k.w + r2 * (k5 + r2 * k6));
+        let dd = k.w + r2 * (2.0 * k5 + r2 * 3.0 * k6);
+        return vec2<f32>(n / d, (dn * d - n * dd) / (d * d));
+    }
+    let r = 1.0 + r2 * (k.x + r2 * (k.y + r2 * (k.z + r2 * (k.w + r2 * (k5 + r2 * k6)))));
+    let dr = k.x + r2 * (2.0 * k.y + r2 * (3.0 * k.z + r2 * (4.0 * k.w + r2 * (5.0 * k5 + r2 * 6.0 * k6))));
+    return vec2<f32>(r, dr);
+}
+
+// nerf_rays::Distortion::stage: the radial factor and/or the tangential and thin-prism terms
+// on the point q, and the Jacobian (columns: ∂/∂a, ∂/∂b).
+struct LensStage {
+    f: vec2<f32>,
+    j: mat2x2<f32>,
+}
+
+fn lens_stage(cam: Cam, q: vec2<f32>, radial: bool, tangential: bool) -> LensStage {
+    var out = LensStage(q, mat2x2<f32>(1.0, 0.0, 0.0, 1.0));
+    let a = q.x;
+    let b = q.y;
+    let r2 = a * a + b * b;
+    if (radial) {
+        let rd = lens_radial(cam, r2);
+        out.f = q * rd.x;
+        let ab = 2.0 * a * b * rd.y;
+        out.j = mat2x2<f32>(rd.x + 2.0 * a * a * rd.y, ab, ab, rd.x + 2.0 * b * b * rd.y);
+    }
+    if (tangential) {
+        let p1 = cam.kp.z;
+        let p2 = cam.kp.w;
+        let s = cam.s;
+        let ab = a * b;
+        out.f = out.f + vec2<f32>(
+            2.0 * p1 * ab + p2 * (r2 + 2.0 * a * a) + r2 * (s.x + r2 * s.y),
+            p1 * (r2 + 2.0 * b * b) + 2.0 * p2 * ab + r2 * (s.z + r2 * s.w),
+        );
+        let sx = 2.0 * (s.x + 2.0 * s.y * r2);
+        let sy = 2.0 * (s.z + 2.0 * s.w * r2);
+        out.j = out.j + mat2x2<f32>(
+            2.0 * p1 * b + 6.0 * p2 * a + a * sx, 2.0 * p1 * a + 2.0 * p2 * b + a * sy,
+            2.0 * p1 * a + 2.0 * p2 * b + b * sx, 6.0 * p1 * b + 2.0 * p2 * a + b * sy,
+        );
+    }
+    return out;
+}
+
+// nerf_rays::Distortion::newton: the point the stage takes to `goal`, by 10 Newton steps
+// from `goal` itself.
+fn lens_newton(cam: Cam, goal: vec2<f32>, radial: bool, tangential: bool) -> vec2<f32> {
+    var q = goal;
+    for (var i = 0u; i < 10u; i = i + 1u) {
+        let st = lens_stage(cam, q, radial, tangential);
+        let e = st.f - goal;
+        let det = determinant(st.j);
+        if (!(abs(det) > 1e-12)) {
+            break;
+        }
+        // J⁻¹·e with J = [[a, b], [c, d]] (columns (a, c), (b, d)).
+        let ja = st.j[0][0];
+        let jc = st.j[0][1];
+        let jb = st.j[1][0];
+        let jd = st.j[1][1];
+        q = q - vec2<f32>(jd * e.x - jb * e.y, ja * e.y - jc * e.x) / det;
+    }
+    return q;
+}
+
 // nerf_rays::Camera::camera_dir: the direction, in OpenGL camera axes, of image point (u, v)
 // (z = −1 without a lens or through a radial–tangential one, unit through a fisheye).
 fn camera_dir(cam: Cam, u: f32, v: f32) -> vec3<f32> {
     let xd = (u - cam.intr.z) / cam.intr.x;
     let yd = (v - cam.intr.w) / cam.intr.y;
-    let k = cam.k;
-    if (cam.size.w == 1u) {
-        // Newton on the distortion (nerf_rays::Distortion::undistort_iterate).
-        var x = xd;
-        var y = yd;
-        for (var i = 0u; i < 10u; i = i + 1u) {
-            let r2 = x * x + y * y;
-            let radial = 1.0 + r2 * (k.x + r2 * (k.y + r2 * k.z));
-            let dr = k.x + r2 * (2.0 * k.y + r2 * 3.0 * k.z);
-            let xy = x * y;
-            let ex = x * radial + 2.0 * cam.p.x * xy + cam.p.y * (r2 + 2.0 * x * x) - xd;
-            let ey = y * radial + cam.p.x * (r2 + 2.0 * y * y) + 2.0 * cam.p.y * xy - yd;
-            let a = radial + 2.0 * x * x * dr + 2.0 * cam.p.x * y + 6.0 * cam.p.y * x;
-            let b = 2.0 * xy * dr + 2.0 * cam.p.x * x + 2.0 * cam.p.y * y;
-            let d = radial + 2.0 * y * y * dr + 6.0 * cam.p.x * y + 2.0 * cam.p.y * x;
-            let det = a * d - b * b;
-            if (!(abs(det) > 1e-12)) {
-                break;
-            }
-            x = x - (d * ex - b * ey) / det;
-            y = y - (a * ey - b * ex) / det;
-        }
-        return vec3<f32>(x, -y, -1.0);
+    let lens = cam.size.w;
+    if (lens == 0u) {
+        return vec3<f32>(xd, -yd, -1.0);
     }
-    if (cam.size.w == 2u) {
-        let theta_d = sqrt(xd * xd + yd * yd);
-        if (theta_d < 1e-12) {
-            return vec3<f32>(0.0, 0.0, -1.0);
-        }
-        var theta = theta_d;
-        for (var i = 0u; i < 10u; i = i + 1u) {
-            let t2 = theta * theta;
-            let f = theta * (1.0 + t2 * (k.x + t2 * (k.y + t2 * (k.z + t2 * k.w)))) - theta_d;
-            let df = 1.0 + t2 * (3.0 * k.x + t2 * (5.0 * k.y + t2 * (7.0 * k.z + t2 * 9.0 * k.w)));
-            if (!(abs(df) > 1e-12)) {
-                break;
-            }
-            theta = theta - f / df;
-        }
-        let s = sin(theta) / theta_d;
-        return vec3<f32>(xd * s, -yd * s, -cos(theta));
+    let tangential = any(cam.kp.zw != vec2<f32>(0.0)) || any(cam.s != vec4<f32>(0.0));
+    var q: vec2<f32>;
+    if (lens == 3u && tangential) {
+        // Fisheye624: its tangential terms act on the radially distorted point.
+        q = lens_newton(cam, lens_newton(cam, vec2<f32>(xd, yd), false, true), true, false);
+    } else {
+        q = lens_newton(cam, vec2<f32>(xd, yd), true, tangential);
     }
-    return vec3<f32>(xd, -(v - cam.intr.w) / cam.intr.y, -1.0);
+    if (lens == 1u) {
+        return vec3<f32>(q.x, -q.y, -1.0);
+    }
+    // A fisheye's equidistant point: θ = |q| off the axis.
+    let theta = length(q);
+    var s = 1.0;
+    if (theta >= 1e-12) {
+        s = sin(theta) / theta;
+    }
+    return vec3<f32>(q.x * s, -q.y * s, -cos(theta));
 }
 
 fn texel(pix: u32) -> vec4<f32> {

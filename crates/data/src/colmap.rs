@@ -10,12 +10,13 @@
 //! camera axes to OpenGL's (y and z negated) and with the world's y and z axes swapped and the new
 //! z negated (`applied_transform`); per image its camera's intrinsics in pixels and OpenCV
 //! distortion. The loader then takes it as any nerfstudio file ([`crate::load_blender`]): poses
-//! normalised as nerfstudio does, every 8th image (by name) a test view, images resampled to
-//! pinhole cameras. Camera models: `SIMPLE_PINHOLE`, `PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`,
-//! `OPENCV`, `FULL_OPENCV` when its rational terms `k4..k6` are zero, and the fisheyes
-//! `OPENCV_FISHEYE`, `RADIAL_FISHEYE` and `SIMPLE_RADIAL_FISHEYE` (written as nerfstudio writes
-//! them, `OPENCV_FISHEYE` with `k1..k4`); `FOV` and `THIN_PRISM_FISHEYE` are an error naming the
-//! camera.
+//! normalised as nerfstudio does, every 8th image (by name) a test view, rays through each
+//! camera's lens. Camera models: `SIMPLE_PINHOLE`, `PINHOLE`, `SIMPLE_RADIAL`, `RADIAL`,
+//! `OPENCV`, `FULL_OPENCV` (with its rational terms `k4..k6`), the fisheyes `OPENCV_FISHEYE`,
+//! `RADIAL_FISHEYE` and `SIMPLE_RADIAL_FISHEYE` (written as nerfstudio writes them,
+//! `OPENCV_FISHEYE` with `k1..k4`), `THIN_PRISM_FISHEYE` (its `sx1`, `sy1` as OpenCV's `s1`,
+//! `s3`) and `RAD_TAN_THIN_PRISM_FISHEYE` (Project Aria's Fisheye624, written as nerfstudio's
+//! `FISHEYE624` with `distortion_params`); `FOV` is an error naming the camera.
 
 use std::path::{Path, PathBuf};
 
@@ -89,7 +90,7 @@ pub struct ColmapModel {
 }
 
 /// COLMAP's camera models: id, name, number of parameters (`colmap/src/colmap/sensor/models.h`).
-const MODELS: [(i32, &str, usize); 11] = [
+const MODELS: [(i32, &str, usize); 12] = [
     (0, "SIMPLE_PINHOLE", 3),
     (1, "PINHOLE", 4),
     (2, "SIMPLE_RADIAL", 4),
@@ -101,6 +102,7 @@ const MODELS: [(i32, &str, usize); 11] = [
     (8, "SIMPLE_RADIAL_FISHEYE", 4),
     (9, "RADIAL_FISHEYE", 5),
     (10, "THIN_PRISM_FISHEYE", 12),
+    (11, "RAD_TAN_THIN_PRISM_FISHEYE", 16),
 ];
 
 fn bad(path: &Path, reason: impl Into<String>) -> DataError {
@@ -479,18 +481,14 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
         "PINHOLE" | "OPENCV" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
         "OPENCV_FISHEYE" => ([p[0], p[1], p[2], p[3]], &p[4..], "OPENCV_FISHEYE"),
         "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], &p[3..], "OPENCV_FISHEYE"),
-        "FULL_OPENCV" => {
-            if p[9..12].iter().any(|&k| k != 0.0) {
-                return Err(bad(path, format!("camera {}: FULL_OPENCV's rational terms k4..k6 = {:?} are not supported (only zeros)", c.id, &p[9..12])));
-            }
-            ([p[0], p[1], p[2], p[3]], &p[4..9], "OPENCV")
-        }
+        "FULL_OPENCV" | "THIN_PRISM_FISHEYE" | "RAD_TAN_THIN_PRISM_FISHEYE" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
         other => {
             return Err(bad(
                 path,
                 format!(
                     "camera {}: camera model {other} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, \
-                     FULL_OPENCV without rational terms, OPENCV_FISHEYE, RADIAL_FISHEYE and SIMPLE_RADIAL_FISHEYE are)",
+                     FULL_OPENCV, OPENCV_FISHEYE, RADIAL_FISHEYE, SIMPLE_RADIAL_FISHEYE, THIN_PRISM_FISHEYE and \
+                     RAD_TAN_THIN_PRISM_FISHEYE are)",
                     c.id
                 ),
             ))
@@ -503,11 +501,20 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
     for (k, v) in ["fl_x", "fl_y", "cx", "cy"].iter().zip(f) {
         m.insert((*k).into(), json!(v));
     }
+    if c.model == "RAD_TAN_THIN_PRISM_FISHEYE" {
+        // Project Aria's Fisheye624, written as nerfstudio writes it.
+        m.insert("camera_model".into(), json!("FISHEYE624"));
+        m.insert("distortion_params".into(), json!(rest));
+        return Ok(m);
+    }
     let names: &[&str] = match c.model.as_str() {
         "SIMPLE_RADIAL" => &["k1"],
         "RADIAL" => &["k1", "k2"],
         "OPENCV" => &["k1", "k2", "p1", "p2"],
-        "FULL_OPENCV" => &["k1", "k2", "p1", "p2", "k3"],
+        // COLMAP's order; k4..k6 are the rational terms.
+        "FULL_OPENCV" => &["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"],
+        // COLMAP's sx1, sy1 are OpenCV's s1, s3.
+        "THIN_PRISM_FISHEYE" => &["k1", "k2", "p1", "p2", "k3", "k4", "s1", "s3"],
         "OPENCV_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_RADIAL_FISHEYE" => &["k1", "k2", "k3", "k4"],
         _ => &[],
     };

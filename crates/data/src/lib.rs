@@ -24,6 +24,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use nerf_rays::glam::{Mat3, Vec3};
+use nerf_rays::lens::COEFFICIENT_NAMES;
 use nerf_rays::{Aabb, Camera, Intrinsics, Ndc, PixelConvention, Ray};
 
 pub mod camera_path;
@@ -1231,9 +1232,9 @@ fn check_lenses(tpath: &Path, frames: &[&Frame], cameras: &[Camera]) -> Result<(
                 path: tpath.to_path_buf(),
                 key: format!("frames[{}].k1", f.index),
                 reason: format!(
-                    "the lens ({:?}: k1 {}, k2 {}, k3 {}, k4 {}, p1 {}, p2 {}) takes no direction to the point ({i}, {j}) of {} ({}x{} as loaded): \
+                    "the lens ({d}) takes no direction to the point ({i}, {j}) of {} ({}x{} as loaded): \
                      its polynomial folds over inside the photo (are the coefficients for this image size?)",
-                    d.model, d.k1, d.k2, d.k3, d.k4, d.p1, d.p2, f.image.display(), k.width, k.height
+                    f.image.display(), k.width, k.height
                 ),
             });
         }
@@ -1836,21 +1837,24 @@ fn load_transforms_with(
         _ => Vec::new(),
     };
     // Pixels of the pinhole images that their photos did not see (a lens whose pinhole image
-    // reaches past the photo), once per distinct lens.
-    let mut lenses: Vec<(Intrinsics, Distortion, Option<Seen>)> = Vec::new();
+    // reaches past the photo), and those past a fisheye's image circle (`fisheye_crop_radius`),
+    // once per distinct lens.
+    let mut lenses: Vec<(Intrinsics, Distortion, Option<f64>, Option<Seen>)> = Vec::new();
     let mut seen = Vec::new();
     if !opts.cameras_only {
         for (f, &intr) in frames.iter().zip(&intrinsics) {
-            if !opts.undistort || f.lens.distortion.is_identity() {
+            // Photos kept as taken are seen where they are; resampled ones through their lens.
+            let d = if opts.undistort { f.lens.distortion } else { Distortion::NONE };
+            let crop = f.lens.crop_radius;
+            if d.is_identity() && crop.is_none() {
                 seen.push(None);
                 continue;
             }
-            let d = f.lens.distortion;
-            let s = match lenses.iter().find(|(i, l, _)| (*i, *l) == (intr, d)) {
-                Some((_, _, s)) => s.clone(),
+            let s = match lenses.iter().find(|(i, l, c, _)| (*i, *l, *c) == (intr, d, crop)) {
+                Some((_, _, _, s)) => s.clone(),
                 None => {
-                    let s = ngp::pixels_seen(&intr, &d).map(Arc::new);
-                    lenses.push((intr, d, s.clone()));
+                    let s = ngp::pixels_seen(&intr, &d, crop).map(Arc::new);
+                    lenses.push((intr, d, crop, s.clone()));
                     s
                 }
             };
@@ -2341,6 +2345,9 @@ pub fn write_blender(
         k != &first.intrinsics || k.fy != k.fx || k.cx != k.width as f32 * 0.5 || k.cy != k.height as f32 * 0.5
     });
     let lenses = ds.cameras.iter().any(|c| !c.distortion.is_identity());
+    // A lens instant-ngp's keys do not hold names its `camera_model` in every frame: at the top
+    // level that key would mark a file from nerfstudio, whose poses are normalised on loading.
+    let named_lenses = lenses && ds.cameras.iter().any(|c| !ngp_lens(&c.distortion));
     let frames: Vec<Value> = ds
         .cameras
         .iter()
@@ -2361,9 +2368,9 @@ pub fn write_blender(
             if ds.depths.is_some() {
                 f.as_object_mut().expect("a JSON object").insert("depth_file_path".into(), Value::from(format!("./{split}/depth_{k}.png")));
             }
-            if lenses && cam.distortion != first.distortion {
+            if lenses && (named_lenses || cam.distortion != first.distortion) {
                 let o = f.as_object_mut().expect("a JSON object");
-                o.extend(lens_keys(&cam.distortion).map(|(key, v)| (key.to_string(), v)));
+                o.extend(lens_keys(&cam.distortion).into_iter().map(|(key, v)| (key.to_string(), v)));
             }
             if pixel_intrinsics && cam.intrinsics != first.intrinsics {
                 let o = f.as_object_mut().expect("a JSON object");
@@ -2394,8 +2401,8 @@ pub fn write_blender(
         top.insert("w".into(), Value::from(k.width));
         top.insert("h".into(), Value::from(k.height));
     }
-    if lenses {
-        top.extend(lens_keys(&first.distortion).map(|(key, v)| (key.to_string(), v)));
+    if lenses && !named_lenses {
+        top.extend(lens_keys(&first.distortion).into_iter().map(|(key, v)| (key.to_string(), v)));
     }
     if let Some(b) = &ngp_box {
         top.insert("aabb_scale".into(), Value::from(b.aabb_scale as f64));
@@ -2460,18 +2467,47 @@ pub fn write_blender(
         .collect()
 }
 
-/// instant-ngp's keys of the lens `d`, every one written (zeros too, so that a frame's keys
-/// replace all of the top level's): `is_fisheye` and the six coefficients.
-fn lens_keys(d: &Distortion) -> [(&'static str, Value); 7] {
-    [
-        ("is_fisheye", Value::from(d.model == LensModel::Fisheye)),
-        ("k1", Value::from(d.k1)),
-        ("k2", Value::from(d.k2)),
-        ("k3", Value::from(d.k3)),
-        ("k4", Value::from(d.k4)),
-        ("p1", Value::from(d.p1)),
-        ("p2", Value::from(d.p2)),
-    ]
+/// Whether instant-ngp's keys hold the lens `d` (`is_fisheye`, `k1`..`k4`, `p1`, `p2`): OpenCV's
+/// radial–tangential model without rational or thin-prism terms, or its fisheye without
+/// tangential ones.
+fn ngp_lens(d: &Distortion) -> bool {
+    let [_, _, _, k4, k5, k6, p1, p2, s1, s2, s3, s4] = d.coefficients();
+    let thin_prism = [s1, s2, s3, s4].iter().any(|&s| s != 0.0);
+    match d.model {
+        LensModel::RadialTangential => [k4, k5, k6].iter().all(|&k| k == 0.0) && !thin_prism,
+        LensModel::Fisheye => k5 == 0.0 && k6 == 0.0 && p1 == 0.0 && p2 == 0.0 && !thin_prism,
+        LensModel::Fisheye624 => false,
+    }
+}
+
+/// The keys of the lens `d`, every one written (zeros too, so that a frame's keys replace all
+/// of the top level's): instant-ngp's `is_fisheye` and six coefficients where they hold it
+/// ([`ngp_lens`]), else `camera_model` (`FULL_OPENCV`, `THIN_PRISM_FISHEYE` or `FISHEYE624`)
+/// and its coefficients (`FISHEYE624`'s as nerfstudio's `distortion_params`).
+fn lens_keys(d: &Distortion) -> Vec<(&'static str, Value)> {
+    if ngp_lens(d) {
+        return vec![
+            ("is_fisheye", Value::from(d.model == LensModel::Fisheye)),
+            ("k1", Value::from(d.k1)),
+            ("k2", Value::from(d.k2)),
+            ("k3", Value::from(d.k3)),
+            ("k4", Value::from(d.k4)),
+            ("p1", Value::from(d.p1)),
+            ("p2", Value::from(d.p2)),
+        ];
+    }
+    let c = d.coefficients();
+    match d.model {
+        LensModel::Fisheye624 => {
+            // nerfstudio's order: k0..k5, p0 (OpenCV's p2), p1, s0..s3.
+            let list: Vec<f64> = c[..6].iter().chain(&[c[7], c[6]]).chain(&c[8..]).copied().collect();
+            vec![("camera_model", Value::from("FISHEYE624")), ("distortion_params", Value::from(list))]
+        }
+        model => {
+            let name = if model == LensModel::Fisheye { "THIN_PRISM_FISHEYE" } else { "FULL_OPENCV" };
+            std::iter::once(("camera_model", Value::from(name))).chain(COEFFICIENT_NAMES.iter().zip(c).map(|(k, v)| (*k, Value::from(v)))).collect()
+        }
+    }
 }
 
 /// instant-ngp's `fl_x`, `fl_y`, `cx`, `cy` of `k` (exact: `f32` → `f64`).

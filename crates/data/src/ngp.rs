@@ -65,7 +65,7 @@ pub fn split_filenames(path: &Path, top: &Value, split: crate::Split) -> Result<
     names.iter().map(|n| n.as_str().map(str::to_string).ok_or_else(bad)).collect::<Result<Vec<_>, _>>().map(Some)
 }
 
-pub use nerf_rays::lens::{Distortion, LensModel};
+pub use nerf_rays::lens::{Distortion, LensModel, COEFFICIENT_NAMES};
 
 /// A focal length as a transforms file gives it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -101,8 +101,12 @@ pub struct Lens {
     pub cx: Option<f64>,
     /// `cy`.
     pub cy: Option<f64>,
-    /// The lens model (`camera_model`, `is_fisheye`) and `k1`, `k2`, `k3`, `k4`, `p1`, `p2`.
+    /// The lens model (`camera_model`, `is_fisheye`) and its coefficients (`k1`..`k6`, `p1`,
+    /// `p2`, `s1`..`s4`, or nerfstudio's `distortion_params`).
     pub distortion: Distortion,
+    /// nerfstudio's `fisheye_crop_radius`, in pixels: only the disc of this radius about the
+    /// principal point trains (a fisheye's image circle; the black beyond it is no scene).
+    pub crop_radius: Option<f64>,
     /// nerfstudio's `"camera_model": "EQUIRECTANGULAR"`: the photo is a 360° panorama
     /// ([`crate::equirect`]; the focal keys and `cx`, `cy` are not used, distortion
     /// coefficients are refused).
@@ -159,7 +163,6 @@ impl Lens {
             let (fov, fl, a) = (degrees(fov)?, positive(fl)?, angle(angle_key)?);
             Ok(fov.map(Focal::Angle).or(fl.map(Focal::Pixels)).or(a.map(Focal::Angle)))
         };
-        let coefficient = |key: &str| -> Result<f64, DataError> { Ok(number(key)?.map_or(0.0, |(x, _)| x)) };
         let pixels = |key: &str| -> Result<Option<u32>, DataError> {
             match number(key)? {
                 None => Ok(None),
@@ -168,71 +171,146 @@ impl Lens {
             }
         };
         // nerfstudio names the model (`camera_model`), instant-ngp flags a fisheye (`is_fisheye`).
-        let mut named: Option<(LensModel, String)> = None;
-        let mut equirectangular = None;
+        // `Named` says which coefficients the named model has (COLMAP's names; `FULL_OPENCV`'s
+        // k4..k6 are its rational terms, a fisheye's k4 is its θ⁸ term).
+        #[derive(Clone, Copy, PartialEq)]
+        enum Named {
+            /// OPENCV and its special cases: k1..k3, p1, p2.
+            OpenCv,
+            /// FULL_OPENCV: k1..k6 (k4..k6 rational), p1, p2, s1..s4.
+            FullOpenCv,
+            /// OPENCV_FISHEYE: k1..k4.
+            Fisheye,
+            /// THIN_PRISM_FISHEYE: k1..k4, p1, p2, s1..s4 (COLMAP's), and k5, k6 (θ¹⁰, θ¹²).
+            ThinPrismFisheye,
+            /// FISHEYE624: nerfstudio's `distortion_params` only.
+            Fisheye624,
+            /// EQUIRECTANGULAR: none.
+            Equirectangular,
+        }
+        let mut named: Option<(Named, String, String)> = None;
         if let Some((v, name)) = lookup(top, frame, "camera_model") {
             let model = v.as_str().ok_or_else(|| invalid(name.clone(), format!("expected a string, got {}", json_kind(v))))?;
             let m = match model {
-                "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "RADIAL" | "SIMPLE_RADIAL" => LensModel::RadialTangential,
-                "OPENCV_FISHEYE" => LensModel::Fisheye,
-                "EQUIRECTANGULAR" => {
-                    equirectangular = Some(name.clone());
-                    LensModel::RadialTangential
-                }
+                "OPENCV" | "PINHOLE" | "SIMPLE_PINHOLE" | "RADIAL" | "SIMPLE_RADIAL" => Named::OpenCv,
+                "FULL_OPENCV" => Named::FullOpenCv,
+                "OPENCV_FISHEYE" => Named::Fisheye,
+                "THIN_PRISM_FISHEYE" => Named::ThinPrismFisheye,
+                "FISHEYE624" | "RAD_TAN_THIN_PRISM_FISHEYE" => Named::Fisheye624,
+                "EQUIRECTANGULAR" => Named::Equirectangular,
                 _ => {
                     return Err(invalid(
                         name,
                         format!(
                             "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL, \
-                             OPENCV_FISHEYE and EQUIRECTANGULAR are)"
+                             FULL_OPENCV, OPENCV_FISHEYE, THIN_PRISM_FISHEYE, FISHEYE624 and EQUIRECTANGULAR are)"
                         ),
                     ))
                 }
             };
-            named = Some((m, name));
+            named = Some((m, name, model.to_string()));
         }
-        let mut model = named.as_ref().map_or(LensModel::RadialTangential, |(m, _)| *m);
+        let mut kind = named.as_ref().map_or(Named::OpenCv, |(m, _, _)| *m);
         if let Some((v, name)) = lookup(top, frame, "is_fisheye") {
             let fisheye = v.as_bool().ok_or_else(|| invalid(name.clone(), format!("expected a boolean, got {}", json_kind(v))))?;
             if fisheye {
-                if let Some((LensModel::RadialTangential, model_key)) = &named {
-                    if equirectangular.is_some() {
+                match &named {
+                    Some((Named::Equirectangular, model_key, _)) => {
                         return Err(invalid(name, format!("true, but `{model_key}` names an equirectangular camera")));
                     }
-                    return Err(invalid(name, format!("true, but `{model_key}` names a camera model without a fisheye lens")));
-                }
-                model = LensModel::Fisheye;
-            }
-        }
-        let k4 = coefficient("k4")?;
-        let (p1, p2) = (coefficient("p1")?, coefficient("p2")?);
-        match model {
-            LensModel::RadialTangential if k4 != 0.0 => {
-                let name = lookup(top, frame, "k4").map_or_else(|| "k4".into(), |(_, n)| n);
-                return Err(invalid(
-                    name,
-                    format!(
-                        "{k4}: k4 belongs to the fisheye model (`\"camera_model\": \"OPENCV_FISHEYE\"` or \
-                         `\"is_fisheye\": true`), and this camera is not one"
-                    ),
-                ));
-            }
-            LensModel::Fisheye if p1 != 0.0 || p2 != 0.0 => {
-                let key = if p1 != 0.0 { "p1" } else { "p2" };
-                let name = lookup(top, frame, key).map_or_else(|| key.into(), |(_, n)| n);
-                return Err(invalid(name, format!("{}: the fisheye model has no tangential terms", if p1 != 0.0 { p1 } else { p2 })));
-            }
-            _ => {}
-        }
-        // A panorama has no lens: distortion coefficients would describe some other camera.
-        if let Some(model_key) = &equirectangular {
-            for key in ["k1", "k2", "k3", "k4", "p1", "p2"] {
-                if coefficient(key)? != 0.0 {
-                    let name = lookup(top, frame, key).map_or_else(|| key.into(), |(_, n)| n);
-                    return Err(invalid(name, format!("{}: `{model_key}` names an equirectangular camera, which has no lens distortion", coefficient(key)?)));
+                    Some((Named::OpenCv | Named::FullOpenCv, model_key, _)) => {
+                        return Err(invalid(name, format!("true, but `{model_key}` names a camera model without a fisheye lens")));
+                    }
+                    Some(_) => {}
+                    None => kind = Named::Fisheye,
                 }
             }
         }
+        let model_name = |default: &str| named.as_ref().map_or_else(|| default.to_string(), |(_, _, m)| m.clone());
+        // nerfstudio's `distortion_params`: [k1, k2, k3, k4, p1, p2], or FISHEYE624's
+        // [k0..k5, p0, p1, s0..s3].
+        let mut c = [0.0f64; 12];
+        let mut keys = Vec::new();
+        for (i, key) in COEFFICIENT_NAMES.iter().enumerate() {
+            if let Some((x, name)) = number(key)? {
+                keys.push((i, x, name));
+            }
+        }
+        // A frame's own keys replace the top level's, whichever form each takes; both forms
+        // at one level are refused.
+        let in_frame = |name: &str| name.starts_with("frames[");
+        let listed = lookup(top, frame, "distortion_params").filter(|(_, n)| in_frame(n) || !keys.iter().any(|(_, _, k)| in_frame(k)));
+        if let Some((_, list)) = &listed {
+            if let Some((_, x, name)) = keys.iter().find(|(_, _, k)| in_frame(k) == in_frame(list)) {
+                return Err(invalid(name.clone(), format!("{x}: the lens is given by `{list}` too")));
+            }
+            keys.clear();
+        }
+        if let Some((v, name)) = &listed {
+            let wanted = if kind == Named::Fisheye624 { 12 } else { 6 };
+            let values = v
+                .as_array()
+                .filter(|a| a.len() == wanted)
+                .and_then(|a| a.iter().map(|x| x.as_f64().filter(|x| x.is_finite())).collect::<Option<Vec<f64>>>())
+                .ok_or_else(|| {
+                    invalid(
+                        name.clone(),
+                        format!(
+                            "expected {wanted} finite numbers ({}), got {}",
+                            if wanted == 12 { "FISHEYE624's k0..k5, p0, p1, s0..s3" } else { "k1, k2, k3, k4, p1, p2" },
+                            v.as_array().map_or_else(|| json_kind(v).to_string(), |a| format!("{} values", a.len()))
+                        ),
+                    )
+                })?;
+            match kind {
+                Named::Fisheye624 => {
+                    // Aria's p0 goes with r² + 2x², as OpenCV's p2 does.
+                    c[..6].copy_from_slice(&values[..6]);
+                    (c[6], c[7]) = (values[7], values[6]);
+                    c[8..].copy_from_slice(&values[8..]);
+                }
+                _ => {
+                    c[..4].copy_from_slice(&values[..4]);
+                    (c[6], c[7]) = (values[4], values[5]);
+                }
+            }
+        }
+        for (i, x, name) in keys {
+            if kind == Named::Fisheye624 {
+                return Err(invalid(name, format!("{x}: a {} lens's coefficients are read from `distortion_params` (k0..k5, p0, p1, s0..s3)", model_name(""))));
+            }
+            c[i] = x;
+        }
+        // Coefficients the model does not have would describe some other lens.
+        let (model, has): (LensModel, &[&str]) = match kind {
+            Named::OpenCv => (LensModel::RadialTangential, &["k1", "k2", "k3", "p1", "p2"]),
+            Named::FullOpenCv => (LensModel::RadialTangential, &COEFFICIENT_NAMES),
+            Named::Fisheye => (LensModel::Fisheye, &["k1", "k2", "k3", "k4"]),
+            Named::ThinPrismFisheye => (LensModel::Fisheye, &COEFFICIENT_NAMES),
+            Named::Fisheye624 => (LensModel::Fisheye624, &COEFFICIENT_NAMES),
+            Named::Equirectangular => (LensModel::RadialTangential, &[]),
+        };
+        for (i, key) in COEFFICIENT_NAMES.iter().enumerate() {
+            if c[i] == 0.0 || has.contains(key) {
+                continue;
+            }
+            let name = listed.as_ref().map(|(_, n)| n.clone()).or_else(|| lookup(top, frame, key).map(|(_, n)| n)).unwrap_or_else(|| key.to_string());
+            let reason = match (kind, *key) {
+                (Named::Equirectangular, _) => {
+                    let model_key = named.as_ref().map_or("camera_model", |(_, k, _)| k.as_str());
+                    format!("{}: `{model_key}` names an equirectangular camera, which has no lens distortion", c[i])
+                }
+                (Named::OpenCv, "k4") => format!(
+                    "{}: k4 belongs to the fisheye model (`\"camera_model\": \"OPENCV_FISHEYE\"` or `\"is_fisheye\": true`) \
+                     or to FULL_OPENCV's rational terms, and this camera is neither",
+                    c[i]
+                ),
+                (Named::Fisheye, "p1" | "p2") => format!("{}: the fisheye model has no tangential terms (THIN_PRISM_FISHEYE has)", c[i]),
+                _ => format!("{}: the {} model has no coefficient `{key}`", c[i], model_name(if kind == Named::Fisheye { "fisheye" } else { "OPENCV" })),
+            };
+            return Err(invalid(name, reason));
+        }
+        let equirectangular = kind == Named::Equirectangular;
         let size = match (pixels("w")?, pixels("h")?) {
             (Some(w), Some(h)) => Some((w, h)),
             (None, None) => None,
@@ -245,8 +323,9 @@ impl Lens {
             focal_y: focal("y_fov", "fl_y", "camera_angle_y")?,
             cx: number("cx")?.map(|(x, _)| x),
             cy: number("cy")?.map(|(x, _)| x),
-            distortion: Distortion { model, k1: coefficient("k1")?, k2: coefficient("k2")?, k3: coefficient("k3")?, k4, p1, p2 },
-            equirectangular: equirectangular.is_some(),
+            distortion: Distortion::from_coefficients(model, c),
+            crop_radius: positive("fisheye_crop_radius")?,
+            equirectangular,
         })
     }
 
@@ -269,6 +348,7 @@ impl Lens {
             cx: self.cx.map(|c| c / k),
             cy: self.cy.map(|c| c / k),
             distortion: self.distortion,
+            crop_radius: self.crop_radius.map(|r| r / k),
             equirectangular: self.equirectangular,
         }
     }
@@ -338,23 +418,26 @@ pub fn undistort_rgba(px: &[f32], intr: &Intrinsics, distortion: &Distortion) ->
 
 /// Which pixels of the pinhole image that [`undistort_rgba`] makes for `intr` and `distortion`
 /// the photo saw: pixel `(i, j)` is seen when its distorted position `(fx·x_d + cx,
-/// fy·y_d + cy)` lies in the photo, `[0, W] × [0, H]`. `None` when every pixel is (always so
-/// without distortion). A pixel that is not seen took the photo's nearest edge pixel in the
-/// resampled image, a colour from another direction: the loader leaves it out of training
-/// ([`crate::Dataset::masks`]).
-pub fn pixels_seen(intr: &Intrinsics, distortion: &Distortion) -> Option<Vec<bool>> {
-    if distortion.is_identity() {
+/// fy·y_d + cy)` lies in the photo, `[0, W] × [0, H]`, and, with a `crop` radius
+/// (`fisheye_crop_radius`), within that many pixels of the principal point `(cx, cy)`. Without
+/// distortion the position is the pixel's centre. `None` when every pixel is (always so without
+/// distortion or crop). A pixel that is not seen took the photo's nearest edge pixel in the
+/// resampled image, a colour from another direction, or lies past a fisheye's image circle: the
+/// loader leaves it out of training ([`crate::Dataset::masks`]).
+pub fn pixels_seen(intr: &Intrinsics, distortion: &Distortion, crop: Option<f64>) -> Option<Vec<bool>> {
+    if distortion.is_identity() && crop.is_none() {
         return None;
     }
     let (w, h) = (intr.width as usize, intr.height as usize);
     let (fx, fy, cx, cy) = (intr.fx as f64, intr.fy as f64, intr.cx as f64, intr.cy as f64);
+    let r2 = crop.map_or(f64::INFINITY, |r| r * r);
     let mut seen = vec![true; w * h];
     seen.par_chunks_exact_mut(w).enumerate().for_each(|(j, row)| {
         let y = (j as f64 + 0.5 - cy) / fy;
         for (i, s) in row.iter_mut().enumerate() {
             let (xd, yd) = distortion.distort((i as f64 + 0.5 - cx) / fx, y);
             let (sx, sy) = (fx * xd + cx, fy * yd + cy);
-            *s = (0.0..=w as f64).contains(&sx) && (0.0..=h as f64).contains(&sy);
+            *s = (0.0..=w as f64).contains(&sx) && (0.0..=h as f64).contains(&sy) && (sx - cx).powi(2) + (sy - cy).powi(2) <= r2;
         }
     });
     if seen.iter().all(|&s| s) {

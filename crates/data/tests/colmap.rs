@@ -83,7 +83,7 @@ fn lego_model(root: &Path, sim: &Similarity) -> ColmapModel {
     ColmapModel { cameras: vec![ColmapCamera { id: 7, model: "PINHOLE".into(), width: 100, height: 100, params: vec![f, f, 50.0, 50.0] }], images }
 }
 
-const MODEL_IDS: [(&str, i32); 10] = [
+const MODEL_IDS: [(&str, i32); 12] = [
     ("SIMPLE_PINHOLE", 0),
     ("PINHOLE", 1),
     ("SIMPLE_RADIAL", 2),
@@ -91,9 +91,11 @@ const MODEL_IDS: [(&str, i32); 10] = [
     ("OPENCV", 4),
     ("OPENCV_FISHEYE", 5),
     ("FULL_OPENCV", 6),
+    ("FOV", 7),
     ("SIMPLE_RADIAL_FISHEYE", 8),
     ("RADIAL_FISHEYE", 9),
     ("THIN_PRISM_FISHEYE", 10),
+    ("RAD_TAN_THIN_PRISM_FISHEYE", 11),
 ];
 
 /// `cameras.bin` and `images.bin` as COLMAP writes them (`write_cameras_binary`,
@@ -299,8 +301,17 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     let f = keys("OPENCV", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.01, 0.02]);
     assert_eq!(["k1", "k2", "p1", "p2"].map(|k| f[k].as_f64().unwrap()), [0.1, -0.2, 0.01, 0.02]);
     assert_eq!(f["fl_y"].as_f64(), Some(41.0));
-    let f = keys("FULL_OPENCV", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.01, 0.02, 0.003, 0.0, 0.0, 0.0]);
-    assert_eq!((f["camera_model"].as_str(), f["k3"].as_f64()), (Some("OPENCV"), Some(0.003)));
+    let f = keys("FULL_OPENCV", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.01, 0.02, 0.003, 0.04, 0.005, 0.0006]);
+    assert_eq!(f["camera_model"].as_str(), Some("FULL_OPENCV"));
+    assert_eq!(["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"].map(|k| f[k].as_f64().unwrap()), [0.1, -0.2, 0.01, 0.02, 0.003, 0.04, 0.005, 0.0006]);
+    // COLMAP's sx1, sy1 are OpenCV's s1, s3.
+    let f = keys("THIN_PRISM_FISHEYE", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.01, 0.02, 0.003, 0.0004, 0.005, 0.006]);
+    assert_eq!(f["camera_model"].as_str(), Some("THIN_PRISM_FISHEYE"));
+    assert_eq!(["k1", "k2", "p1", "p2", "k3", "k4", "s1", "s3"].map(|k| f[k].as_f64().unwrap()), [0.1, -0.2, 0.01, 0.02, 0.003, 0.0004, 0.005, 0.006]);
+    // Project Aria's Fisheye624, as nerfstudio writes it: its 12 coefficients in COLMAP's order.
+    let aria: Vec<f64> = (1..=12).map(|i| i as f64 * 1e-3).collect();
+    let f = keys("RAD_TAN_THIN_PRISM_FISHEYE", [vec![40.0, 41.0, 31.0, 23.0], aria.clone()].concat());
+    assert_eq!((f["camera_model"].as_str(), f["distortion_params"].clone()), (Some("FISHEYE624"), serde_json::json!(aria)));
     // The fisheyes, as nerfstudio writes them: OPENCV_FISHEYE with all four terms.
     let fisheye = |f: &serde_json::Value| (f["camera_model"].as_str().map(str::to_string), ["fl_x", "fl_y", "k1", "k2", "k3", "k4"].map(|k| f[k].as_f64().unwrap()));
     let f = keys("OPENCV_FISHEYE", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.03, -0.004]);
@@ -360,16 +371,18 @@ fn broken_models_are_errors_naming_the_file() {
         write_bin(&mdir, &model, 2);
         e
     };
-    let mut prism = model.clone();
-    prism.cameras[0].model = "THIN_PRISM_FISHEYE".into();
-    prism.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-    let e = variant(&prism);
-    assert!(e.contains("cameras.bin") && e.contains("camera 7: camera model THIN_PRISM_FISHEYE is not supported"), "{e}");
+    let mut fov = model.clone();
+    fov.cameras[0].model = "FOV".into();
+    fov.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.9];
+    let e = variant(&fov);
+    assert!(e.contains("cameras.bin") && e.contains("camera 7: camera model FOV is not supported"), "{e}");
+    // A rational lens whose denominator folds it inside the photo (r / (1 − 2 r²) has no
+    // inverse past r = 1/√2, the photo's corners reach r = √2).
     let mut rational = model.clone();
     rational.cameras[0].model = "FULL_OPENCV".into();
-    rational.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.2, 0.0, 0.0];
+    rational.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.0, 0.0, 0.0, 0.0, 0.0, -2.0, 0.0, 0.0];
     let e = variant(&rational);
-    assert!(e.contains("rational terms k4..k6"), "{e}");
+    assert!(e.contains("images.bin") && e.contains("].k1`") && e.contains("folds over") && e.contains("k4 -2"), "{e}");
     let mut orphan = model.clone();
     orphan.images[3].camera_id = 8;
     let e = variant(&orphan);

@@ -202,7 +202,7 @@ fn box_keys_place_instant_ngps_cube_and_rays_end_past_it() {
 #[test]
 fn camera_and_box_errors_name_the_file_and_the_key() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(Value, [Value; 2], &str, &str); 16] = [
+    let cases: [(Value, [Value; 2], &str, &str); 22] = [
         (json!({"fl_x": 3.0, "aabb": [[0, 0, 0], [1, 1]]}), [json!({}), json!({})], "`aabb`", "finite numbers"),
         (json!({"fl_x": 3.0, "aabb": [[1, 1, 1], [1, 1, 1]]}), [json!({}), json!({})], "`aabb`", "a box with a side"),
         (json!({"fl_x": 3.0, "w": 8, "h": 4}), [json!({}), json!({})], "`w`", "r_0.png is 4x4"),
@@ -217,6 +217,12 @@ fn camera_and_box_errors_name_the_file_and_the_key() {
         (json!({"fl_x": 3.0}), [json!({}), json!({"is_fisheye": "yes"})], "`frames[1].is_fisheye`", "expected a boolean"),
         (json!({"fl_x": 3.0, "k4": 0.1}), [json!({}), json!({})], "`k4`", "belongs to the fisheye model"),
         (json!({"fl_x": 3.0, "camera_model": "OPENCV_FISHEYE"}), [json!({}), json!({"p2": 0.01})], "`frames[1].p2`", "no tangential terms"),
+        (json!({"fl_x": 3.0, "camera_model": "FISHEYE624"}), [json!({}), json!({"k1": 0.1})], "`frames[1].k1`", "read from `distortion_params`"),
+        (json!({"fl_x": 3.0, "distortion_params": [0.1, 0, 0]}), [json!({}), json!({})], "`distortion_params`", "expected 6 finite numbers (k1, k2, k3, k4, p1, p2), got 3 values"),
+        (json!({"fl_x": 3.0, "camera_model": "FISHEYE624"}), [json!({}), json!({"distortion_params": [0.1, 0, 0, 0, 0, 0]})], "`frames[1].distortion_params`", "expected 12 finite numbers"),
+        (json!({"fl_x": 3.0, "distortion_params": [0.1, 0, 0, 0, 0, 0], "k1": 0.1}), [json!({}), json!({})], "`k1`", "given by `distortion_params` too"),
+        (json!({"fl_x": 3.0, "k5": 0.1}), [json!({}), json!({})], "`k5`", "the OPENCV model has no coefficient `k5`"),
+        (json!({"fl_x": 3.0, "camera_model": "OPENCV_FISHEYE"}), [json!({}), json!({"s1": 0.01})], "`frames[1].s1`", "the OPENCV_FISHEYE model has no coefficient `s1`"),
         (json!({"fl_x": 3.0, "aabb_scale": 0}), [json!({}), json!({})], "`aabb_scale`", "positive"),
         (json!({"fl_x": 3.0, "offset": [0.5, 0.5]}), [json!({}), json!({})], "`offset`", "3 finite numbers"),
     ];
@@ -324,6 +330,24 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
         (rt(0.08, -0.01, 0.004, -0.001, 0.002), opencv(&rt(0.08, -0.01, 0.004, -0.001, 0.002))),
         (fish(0.05, -0.01, 0.002, -0.0005), json!({"camera_model": "OPENCV_FISHEYE", "k1": 0.05, "k2": -0.01, "k3": 0.002, "k4": -0.0005})),
         (fish(0.0, 0.0, 0.0, 0.0), json!({"is_fisheye": true})),
+        // nerfstudio's list of the same barrel lens: k1, k2, k3, k4, p1, p2.
+        (rt(-0.12, 0.03, 0.0, 0.002, -0.003), json!({"distortion_params": [-0.12, 0.03, 0.0, 0.0, 0.002, -0.003]})),
+        // OpenCV's 12-coefficient model: rational, tangential and thin prism (COLMAP's FULL_OPENCV
+        // has the first eight).
+        (
+            Distortion { k1: -0.1, k2: 0.02, k4: 0.05, k5: -0.01, k6: 0.002, p1: 0.002, p2: -0.001, s1: 0.003, s2: -0.001, s3: -0.002, s4: 0.0005, ..Default::default() },
+            json!({"camera_model": "FULL_OPENCV", "k1": -0.1, "k2": 0.02, "k4": 0.05, "k5": -0.01, "k6": 0.002, "p1": 0.002, "p2": -0.001, "s1": 0.003, "s2": -0.001, "s3": -0.002, "s4": 0.0005}),
+        ),
+        // COLMAP's THIN_PRISM_FISHEYE (its sx1, sy1 as s1, s3).
+        (
+            Distortion { model: LensModel::Fisheye, k1: 0.03, k2: -0.01, k3: 0.002, k4: -0.0003, p1: 0.002, p2: -0.002, s1: 0.003, s3: -0.002, ..Default::default() },
+            json!({"camera_model": "THIN_PRISM_FISHEYE", "k1": 0.03, "k2": -0.01, "k3": 0.002, "k4": -0.0003, "p1": 0.002, "p2": -0.002, "s1": 0.003, "s3": -0.002}),
+        ),
+        // nerfstudio's FISHEYE624: k0..k5, p0 (OpenCV's p2), p1, s0..s3.
+        (
+            Distortion::from_coefficients(LensModel::Fisheye624, [0.04, -0.01, 0.002, -0.0003, 0.00005, -0.00001, 0.0015, -0.002, 0.002, -0.0005, -0.001, 0.0003]),
+            json!({"camera_model": "FISHEYE624", "distortion_params": [0.04, -0.01, 0.002, -0.0003, 0.00005, -0.00001, -0.002, 0.0015, 0.002, -0.0005, -0.001, 0.0003]}),
+        ),
     ];
     for (d, keys) in cases {
         let photo = distorted_photo(&k, &d);
@@ -416,14 +440,14 @@ fn pixels_the_photo_did_not_see_are_not_trained_on() {
     let k = Intrinsics { width: 40, height: 30, fx: 32.0, fy: 32.0, cx: 20.5, cy: 14.0 };
     let pincushion = Distortion { k1: 0.15, p1: 0.01, ..Default::default() };
     let barrel = Distortion { k1: -0.1, ..Default::default() };
-    let seen = pixels_seen(&k, &pincushion).expect("the corners reach past the photo");
+    let seen = pixels_seen(&k, &pincushion, None).expect("the corners reach past the photo");
     let n_seen = seen.iter().filter(|&&s| s).count();
     assert!(n_seen > 600 && n_seen < 1150, "{n_seen} of 1200 seen");
     for (p, &s) in seen.iter().enumerate() {
         assert_eq!(s, seen_by_photo(&k, &pincushion, p as u32 % k.width, p as u32 / k.width), "pixel {p}");
     }
-    assert_eq!(pixels_seen(&k, &barrel), None);
-    assert_eq!(pixels_seen(&k, &Distortion::default()), None);
+    assert_eq!(pixels_seen(&k, &barrel, None), None);
+    assert_eq!(pixels_seen(&k, &Distortion::default(), None), None);
 
     let dir = tempfile::tempdir().unwrap();
     image::RgbImage::from_pixel(k.width, k.height, image::Rgb([90, 140, 30])).save(dir.path().join("a.png")).unwrap();
@@ -458,6 +482,65 @@ fn pixels_the_photo_did_not_see_are_not_trained_on() {
     assert!(load_undistorted(dir.path(), Split::Test, 1).masks.is_none(), "a barrel lens stays inside its photo");
 }
 
+/// nerfstudio's `fisheye_crop_radius` (what its Project Aria processing writes): only the disc
+/// of that many pixels about the principal point trains, at the photo's own size, downscaled
+/// (a pixel only where all it is made of lies in the disc), beside mask files (both must keep
+/// a pixel), and through the resampling of `undistort` (where the pixel's source lies in it).
+#[test]
+fn pixels_past_the_fisheye_crop_radius_are_not_trained_on() {
+    let k = Intrinsics { width: 40, height: 30, fx: 12.0, fy: 12.0, cx: 20.5, cy: 14.0 };
+    let radius = 13.0;
+    let in_disc = |x: f64, y: f64| (x - k.cx as f64).powi(2) + (y - k.cy as f64).powi(2) <= radius * radius;
+    let dir = tempfile::tempdir().unwrap();
+    image::RgbImage::from_pixel(k.width, k.height, image::Rgb([90, 140, 30])).save(dir.path().join("a.png")).unwrap();
+    // The left half masked out.
+    image::GrayImage::from_fn(k.width, k.height, |i, _| image::Luma([if i < 20 { 0 } else { 255 }])).save(dir.path().join("m.png")).unwrap();
+    let lens = Distortion { model: LensModel::Fisheye, k1: 0.02, ..Distortion::NONE };
+    let scene = |mask: bool| {
+        let mut frame = json!({"file_path": "a.png", "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]});
+        if mask {
+            frame["mask_path"] = json!("m.png");
+        }
+        let top = json!({"camera_model": "OPENCV_FISHEYE", "fl_x": k.fx, "fl_y": k.fy, "cx": k.cx, "cy": k.cy, "k1": lens.k1,
+                         "fisheye_crop_radius": radius, "frames": vec![frame; 9]});
+        write_json(&dir.path().join("transforms.json"), &top);
+    };
+    scene(false);
+    let d = load(dir.path(), Split::Test);
+    let m = d.masks.as_ref().expect("the disc is a mask");
+    let mut kept = 0;
+    for (j, i) in (0..k.height).flat_map(|j| (0..k.width).map(move |i| (j, i))) {
+        let inside = in_disc(i as f64 + 0.5, j as f64 + 0.5);
+        assert_eq!(m.is_kept(0, j * k.width + i), inside, "pixel ({i}, {j})");
+        kept += inside as u32;
+    }
+    assert!(kept > 400 && kept < 1100, "{kept} of 1200 in the disc");
+    let half = load_blender(dir.path(), Split::Test, &LoadOptions { downscale: 2, ..Default::default() }).unwrap();
+    let m = half.masks.as_ref().unwrap();
+    for (j, i) in (0..15u32).flat_map(|j| (0..20u32).map(move |i| (j, i))) {
+        let all = (0..4).all(|q| in_disc((2 * i + q % 2) as f64 + 0.5, (2 * j + q / 2) as f64 + 0.5));
+        assert_eq!(m.is_kept(0, j * 20 + i), all, "downscaled pixel ({i}, {j})");
+    }
+    // Resampled to the pinhole camera: a pixel trains where its source in the photo is in the disc.
+    let resampled = load_undistorted(dir.path(), Split::Test, 1);
+    let m = resampled.masks.as_ref().unwrap();
+    for (j, i) in (0..k.height).flat_map(|j| (0..k.width).map(move |i| (j, i))) {
+        let (xd, yd) = lens.distort((i as f64 + 0.5 - k.cx as f64) / k.fx as f64, (j as f64 + 0.5 - k.cy as f64) / k.fy as f64);
+        let (u, v) = (k.fx as f64 * xd + k.cx as f64, k.fy as f64 * yd + k.cy as f64);
+        let seen = (0.0..=40.0).contains(&u) && (0.0..=30.0).contains(&v) && in_disc(u, v);
+        assert_eq!(m.is_kept(0, j * k.width + i), seen, "resampled pixel ({i}, {j})");
+    }
+    // With mask files: the disc's right half.
+    scene(true);
+    let m = load(dir.path(), Split::Test).masks.unwrap();
+    for (j, i) in (0..k.height).flat_map(|j| (0..k.width).map(move |i| (j, i))) {
+        assert_eq!(m.is_kept(1, j * k.width + i), i >= 20 && in_disc(i as f64 + 0.5, j as f64 + 0.5), "masked pixel ({i}, {j})");
+    }
+    tiny_scene(dir.path(), json!({"fl_x": 3.0, "fisheye_crop_radius": -2}), [json!({}), json!({})]);
+    let e = load_blender(dir.path(), Split::Train, &LoadOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("fisheye_crop_radius") && e.contains("not positive"), "{e}");
+}
+
 /// Cameras keep their lenses through `write_blender` (a fisheye at the top level, a frame with a
 /// radial–tangential lens of its own), and coefficients that fold over inside the photo are
 /// refused, naming the frame and the photo.
@@ -475,6 +558,30 @@ fn lenses_are_written_and_impossible_ones_refused() {
     let out = tempfile::tempdir().unwrap();
     nerf_data::write_blender(&d, out.path(), None).unwrap();
     assert_same_views(&d, &load(out.path(), Split::Train));
+
+    // The models instant-ngp's keys do not hold, each frame naming its own (a top-level
+    // `camera_model` would mark a nerfstudio file): Fisheye624, OpenCV's rational model, a
+    // thin-prism fisheye; and a frame's keys replace the top level's list, and the other way round.
+    tiny_scene(
+        dir.path(),
+        json!({"fl_x": 3.0, "cx": 2.0, "cy": 2.0, "w": 4, "h": 4, "camera_model": "FISHEYE624", "distortion_params": [0.01, 0, 0, 0, 0, 0.0001, 0.001, 0, 0, 0, 0.002, 0]}),
+        [json!({}), json!({"camera_model": "FULL_OPENCV", "k1": -0.02, "k4": 0.01, "s2": 0.001})],
+    );
+    let d = load(dir.path(), Split::Train);
+    assert_eq!(d.cameras[0].distortion, Distortion { model: LensModel::Fisheye624, k1: 0.01, k6: 0.0001, p2: 0.001, s3: 0.002, ..Distortion::NONE });
+    assert_eq!(d.cameras[1].distortion, Distortion { k1: -0.02, k4: 0.01, s2: 0.001, ..Distortion::NONE });
+    let mut mixed = d.clone();
+    mixed.cameras[1].distortion = Distortion { model: LensModel::Fisheye, k1: 0.01, p1: -0.001, s1: 0.002, ..Distortion::NONE };
+    for ds in [d, mixed] {
+        let out = tempfile::tempdir().unwrap();
+        nerf_data::write_blender(&ds, out.path(), None).unwrap();
+        let written: Value = serde_json::from_str(&std::fs::read_to_string(out.path().join("transforms_train.json")).unwrap()).unwrap();
+        assert!(written.get("camera_model").is_none() && written["frames"][0]["camera_model"] == "FISHEYE624", "{written}");
+        assert_same_views(&ds, &load(out.path(), Split::Train));
+    }
+    tiny_scene(dir.path(), json!({"fl_x": 3.0, "k1": 0.01}), [json!({}), json!({"distortion_params": [0.02, 0, 0, 0, 0, 0.001]})]);
+    let d = load(dir.path(), Split::Train);
+    assert_eq!((d.cameras[0].distortion.k1, d.cameras[1].distortion), (0.01, Distortion { k1: 0.02, p2: 0.001, ..Distortion::NONE }));
 
     // r·(1 − 0.6 r²) turns back at r_d ≈ 0.50; the photo's corners lie 0.94 out.
     tiny_scene(dir.path(), json!({"fl_x": 3.0, "cx": 2.0, "cy": 2.0, "k1": -0.6}), [json!({}), json!({})]);

@@ -354,7 +354,7 @@ pub(crate) struct PoseParams {
 }
 
 // ---- sampling.rs ----
-/// One view's camera as `shaders/rays.wgsl` reads it (112 bytes).
+/// One view's camera as `shaders/rays.wgsl` reads it (128 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct GpuCamera {
@@ -363,21 +363,23 @@ pub struct GpuCamera {
     /// `[fx, fy, cx, cy]`.
     pub intrinsics: [f32; 4],
     /// `[width, height, first pixel of the view in the pixel buffer, lens]`, the lens one of
-    /// [`GpuCamera::PINHOLE`], [`GpuCamera::RADIAL_TANGENTIAL`], [`GpuCamera::FISHEYE`].
+    /// [`GpuCamera::PINHOLE`], [`GpuCamera::RADIAL_TANGENTIAL`], [`GpuCamera::FISHEYE`],
+    /// [`GpuCamera::FISHEYE624`].
     pub size: [u32; 4],
-    /// The lens's `[k1, k2, k3, k4]` (`nerf_rays::Distortion`).
-    pub radial: [f32; 4],
-    /// The lens's `[p1, p2, 0, 0]`.
-    pub tangential: [f32; 4],
+    /// The lens's coefficients `[k1..k6, p1, p2, s1..s4]`
+    /// (`nerf_rays::Distortion::coefficients`).
+    pub lens: [f32; 12],
 }
 
 impl GpuCamera {
     /// `size[3]` of a camera without a lens.
     pub const PINHOLE: u32 = 0;
-    /// `size[3]` of OpenCV's radial–tangential lens.
+    /// `size[3]` of OpenCV's radial–tangential lens (`LensModel::RadialTangential`).
     pub const RADIAL_TANGENTIAL: u32 = 1;
-    /// `size[3]` of OpenCV's fisheye lens.
+    /// `size[3]` of OpenCV's fisheye lens (`LensModel::Fisheye`).
     pub const FISHEYE: u32 = 2;
+    /// `size[3]` of Meta's Fisheye624 lens (`LensModel::Fisheye624`).
+    pub const FISHEYE624: u32 = 3;
 }
 
 // ---- sampling.rs ----

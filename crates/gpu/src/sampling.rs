@@ -145,13 +145,13 @@ impl GpuImages {
                     _ if d.is_identity() => GpuCamera::PINHOLE,
                     LensModel::RadialTangential => GpuCamera::RADIAL_TANGENTIAL,
                     LensModel::Fisheye => GpuCamera::FISHEYE,
+                    LensModel::Fisheye624 => GpuCamera::FISHEYE624,
                 };
                 GpuCamera {
                     c2w: [m[0], m[1], m[2]],
                     intrinsics: [k.fx, k.fy, k.cx, k.cy],
                     size: [w as u32, h as u32, (i * w * h) as u32, lens],
-                    radial: [d.k1, d.k2, d.k3, d.k4].map(|c| c as f32),
-                    tangential: [d.p1 as f32, d.p2 as f32, 0.0, 0.0],
+                    lens: d.coefficients().map(|c| c as f32),
                 }
             })
             .collect();

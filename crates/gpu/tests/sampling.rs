@@ -222,15 +222,17 @@ fn ray_generation_matches_its_cpu_twin() {
     }
 }
 
-/// Cameras with lenses (OpenCV's radial–tangential and fisheye, random coefficients; a fisheye
-/// wide enough to look back past 90°): the device's f32 Newton steps find the directions the
-/// CPU's f64 ones do, and those differ from the pinhole's.
+/// Cameras with lenses (random coefficients; a fisheye wide enough to look back past 90°):
+/// seeds 1–2 OpenCV's radial–tangential and fisheye lenses, 3–4 with their rational and
+/// thin-prism terms (OpenCV's 12-coefficient model, COLMAP's `THIN_PRISM_FISHEYE`), 5–6 a
+/// rational lens and a Fisheye624 with all its terms. The device's f32 Newton steps find the
+/// directions the CPU's f64 ones do, and those differ from the pinhole's.
 #[test]
 fn ray_generation_through_lenses_matches_its_cpu_twin() {
     use nerf_rays::{Distortion, LensModel};
     let Some(ctx) = context() else { return };
     let cap = 3000;
-    for seed in 1..=4u32 {
+    for seed in 1..=6u32 {
         let mut ds = dataset(100 + seed as u64, 3, 13, 7, false);
         let mut rng = nerf_core::rng(seed as u64, 5);
         let mut c = |s: f64| rng.gen_range(-s..s);
@@ -245,6 +247,19 @@ fn ray_generation_through_lenses_matches_its_cpu_twin() {
         loop {
             ds.cameras[0].distortion = Distortion { k1: c(0.3), k2: c(0.05), k3: c(0.01), p1: c(0.01), p2: c(0.01), ..Distortion::NONE };
             ds.cameras[1].distortion = Distortion { model: LensModel::Fisheye, k1: c(0.05), k2: c(0.01), k3: c(0.002), k4: c(0.0005), ..Distortion::NONE };
+            if seed > 2 {
+                let d = &mut ds.cameras[0].distortion;
+                (d.k4, d.k5, d.k6) = (c(0.2), c(0.04), c(0.01));
+                if seed <= 4 {
+                    (d.s1, d.s2, d.s3, d.s4) = (c(0.01), c(0.002), c(0.01), c(0.002));
+                }
+                let f = &mut ds.cameras[1].distortion;
+                (f.p1, f.p2, f.s1, f.s3) = (c(0.005), c(0.005), c(0.005), c(0.005));
+                if seed > 4 {
+                    f.model = LensModel::Fisheye624;
+                    (f.k5, f.k6, f.s2, f.s4) = (c(0.0001), c(0.00002), c(0.001), c(0.001));
+                }
+            }
             if inverts(&ds.cameras[0]) && inverts(&ds.cameras[1]) {
                 break;
             }

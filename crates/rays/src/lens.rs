@@ -1,54 +1,93 @@
-//! Lens distortion: OpenCV's radial–tangential and fisheye models of how a lens moves the
-//! normalised image coordinates of a pinhole camera, and their inverse, which turns a pixel of a
-//! photo taken through the lens back into the direction it saw ([`Distortion::undistort_dir`]).
+//! Lens distortion: how a lens moves the image of a pinhole (or an equidistant fisheye), in
+//! OpenCV's models and those COLMAP, nerfstudio and Project Aria calibrate, and its inverse,
+//! which turns a pixel of a photo taken through the lens back into the direction it saw
+//! ([`Distortion::undistort_dir`]).
 //!
 //! A [`Camera`](crate::Camera) carries its lens: its rays go through the photo's own pixels, as
 //! in nerfstudio and instant-ngp, so a photo is never resampled and a fisheye keeps its whole
 //! field of view, past 180° where the lens has it.
 
-/// The lens model a [`Distortion`]'s coefficients belong to.
+/// The lens model a [`Distortion`]'s coefficients belong to: how a direction is projected
+/// before the distortion, and where its tangential and thin-prism terms apply.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum LensModel {
-    /// OpenCV's radial–tangential model (COLMAP's `OPENCV` and its special cases): a pinhole
-    /// camera when every coefficient is zero.
+    /// OpenCV's model (`cv::projectPoints` with the rational and thin-prism terms; COLMAP's
+    /// `OPENCV`, `FULL_OPENCV` and their special cases): the pinhole's `(x/z, y/z)`, a rational
+    /// radial factor, then tangential and thin-prism terms. A pinhole camera when every
+    /// coefficient is zero.
     #[default]
     RadialTangential,
-    /// OpenCV's fisheye model (`cv::fisheye`; COLMAP's `OPENCV_FISHEYE`, `RADIAL_FISHEYE`,
-    /// `SIMPLE_RADIAL_FISHEYE`): an equidistant fisheye when every coefficient is zero.
+    /// OpenCV's fisheye model (`cv::fisheye`, Kannala–Brandt; COLMAP's `OPENCV_FISHEYE`,
+    /// `RADIAL_FISHEYE`, `SIMPLE_RADIAL_FISHEYE`, and with tangential and thin-prism terms
+    /// `THIN_PRISM_FISHEYE`): the equidistant point (the angle `θ` off the axis), a polynomial
+    /// radial factor in `θ`, tangential and thin-prism terms on the equidistant point. An
+    /// equidistant fisheye when every coefficient is zero.
     Fisheye,
+    /// Meta's `Fisheye624` (Project Aria's `FisheyeRadTanThinPrism`; nerfstudio's `FISHEYE624`,
+    /// COLMAP's `RAD_TAN_THIN_PRISM_FISHEYE`): as [`Fisheye`](Self::Fisheye), but the
+    /// tangential and thin-prism terms apply to the radially distorted point.
+    Fisheye624,
 }
 
-/// A lens's distortion of normalised image coordinates `(x, y)` (the pinhole's `x/z`, `y/z` in
-/// OpenCV's camera axes: x right, y down, z forward).
+impl LensModel {
+    /// Whether the model projects a direction by its angle off the axis (a fisheye), not by
+    /// its pinhole slope.
+    pub fn is_fisheye(self) -> bool {
+        self != LensModel::RadialTangential
+    }
+}
+
+/// A lens's distortion of the projected coordinates `(a, b)` of a direction, in OpenCV's
+/// camera axes (x right, y down, z forward): the pinhole's `(x/z, y/z)` for
+/// [`LensModel::RadialTangential`], the equidistant `θ·(x, y)/√(x² + y²)` with
+/// `θ = atan2(√(x² + y²), z)` for the fisheyes. With `ρ² = a² + b²`:
 ///
-/// - [`LensModel::RadialTangential`], OpenCV's: `r² = x² + y²`,
-///   `x_d = x·(1 + k1·r² + k2·r⁴ + k3·r⁶) + 2·p1·x·y + p2·(r² + 2x²)` and
-///   `y_d = y·(1 + k1·r² + k2·r⁴ + k3·r⁶) + p1·(r² + 2y²) + 2·p2·x·y` (`k4` is 0).
-/// - [`LensModel::Fisheye`], OpenCV's: `θ = atan(r)`,
-///   `θ_d = θ·(1 + k1·θ² + k2·θ⁴ + k3·θ⁶ + k4·θ⁸)`, `(x_d, y_d) = (θ_d / r)·(x, y)` (`p1`, `p2`
-///   are 0): the distance from the principal point grows with the angle off the axis, not with
-///   its tangent.
+/// - the radial factor `R`: the rational `(1 + k1·ρ² + k2·ρ⁴ + k3·ρ⁶) / (1 + k4·ρ² + k5·ρ⁴ +
+///   k6·ρ⁶)` for [`LensModel::RadialTangential`] (OpenCV's; `k4..k6` are zero but in
+///   `FULL_OPENCV`), the polynomial `1 + k1·θ² + k2·θ⁴ + … + k6·θ¹²` for the fisheyes
+///   (OpenCV's fisheye stops at `k4`);
+/// - the tangential and thin-prism terms of a point `(u, v)`, `r² = u² + v²`:
+///   `T_x = 2·p1·u·v + p2·(r² + 2u²) + s1·r² + s2·r⁴` and
+///   `T_y = p1·(r² + 2v²) + 2·p2·u·v + s3·r² + s4·r⁴` (OpenCV's names and order);
+/// - the distorted point: `R·(a, b) + T(a, b)`, or for [`LensModel::Fisheye624`]
+///   `q + T(q)` with `q = R·(a, b)`.
+///
+/// The photo's pixel `(u, v)` sits at `(fx·x_d + cx, fy·y_d + cy)` of the distorted point.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Distortion {
     /// Which model the coefficients are for.
     pub model: LensModel,
-    /// Radial coefficient of `r²` (fisheye: of `θ²`).
+    /// Radial coefficient of `ρ²` (fisheye: of `θ²`).
     pub k1: f64,
-    /// Radial coefficient of `r⁴` (`θ⁴`).
+    /// Radial coefficient of `ρ⁴` (`θ⁴`).
     pub k2: f64,
-    /// Radial coefficient of `r⁶` (`θ⁶`).
+    /// Radial coefficient of `ρ⁶` (`θ⁶`).
     pub k3: f64,
-    /// The fisheye's coefficient of `θ⁸` (0 for the radial–tangential model).
+    /// The rational model's denominator coefficient of `ρ²`; the fisheye's of `θ⁸`.
     pub k4: f64,
-    /// First tangential coefficient (radial–tangential only).
+    /// The rational model's denominator coefficient of `ρ⁴`; the fisheye's of `θ¹⁰`.
+    pub k5: f64,
+    /// The rational model's denominator coefficient of `ρ⁶`; the fisheye's of `θ¹²`.
+    pub k6: f64,
+    /// First tangential coefficient (with `2uv` in `T_x`).
     pub p1: f64,
-    /// Second tangential coefficient (radial–tangential only).
+    /// Second tangential coefficient (with `r² + 2u²` in `T_x`).
     pub p2: f64,
+    /// Thin prism: coefficient of `r²` in `T_x`.
+    pub s1: f64,
+    /// Thin prism: coefficient of `r⁴` in `T_x`.
+    pub s2: f64,
+    /// Thin prism: coefficient of `r²` in `T_y`.
+    pub s3: f64,
+    /// Thin prism: coefficient of `r⁴` in `T_y`.
+    pub s4: f64,
 }
 
 /// Newton iterations of [`Distortion::undistort_dir`] at most (it stops once a step no longer
 /// moves the point in f64; `shaders/rays.wgsl` runs all of them in f32): from the distorted
-/// point itself, a lens a real camera has converges in a handful.
+/// point itself, a lens a real camera has converges in a handful. A
+/// [`LensModel::Fisheye624`] lens runs them twice: for its tangential terms, then its radial
+/// factor.
 pub const UNDISTORT_ITERATIONS: usize = 10;
 
 /// How far, in normalised coordinates, the distorted position of [`Distortion::undistort_dir`]'s
@@ -56,163 +95,268 @@ pub const UNDISTORT_ITERATIONS: usize = 10;
 /// focal length of 1000 pixels).
 pub const UNDISTORT_TOLERANCE: f64 = 1e-8;
 
+/// The names of [`Distortion::coefficients`], in their order.
+pub const COEFFICIENT_NAMES: [&str; 12] = ["k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2", "s1", "s2", "s3", "s4"];
+
 impl Distortion {
     /// The pinhole camera: no distortion.
-    pub const NONE: Distortion = Distortion { model: LensModel::RadialTangential, k1: 0.0, k2: 0.0, k3: 0.0, k4: 0.0, p1: 0.0, p2: 0.0 };
+    pub const NONE: Distortion =
+        Distortion { model: LensModel::RadialTangential, k1: 0.0, k2: 0.0, k3: 0.0, k4: 0.0, k5: 0.0, k6: 0.0, p1: 0.0, p2: 0.0, s1: 0.0, s2: 0.0, s3: 0.0, s4: 0.0 };
+
+    /// The lens of `model` with `coefficients` in [`COEFFICIENT_NAMES`]' order.
+    pub fn from_coefficients(model: LensModel, c: [f64; 12]) -> Self {
+        let [k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4] = c;
+        Distortion { model, k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4 }
+    }
+
+    /// The coefficients in [`COEFFICIENT_NAMES`]' order: `k1..k6`, `p1`, `p2`, `s1..s4`.
+    pub fn coefficients(&self) -> [f64; 12] {
+        [self.k1, self.k2, self.k3, self.k4, self.k5, self.k6, self.p1, self.p2, self.s1, self.s2, self.s3, self.s4]
+    }
 
     /// `true` for a pinhole camera: the radial–tangential model with every coefficient zero (a
     /// fisheye is never one).
+    #[inline]
     pub fn is_identity(&self) -> bool {
-        self.model == LensModel::RadialTangential && [self.k1, self.k2, self.k3, self.k4, self.p1, self.p2].iter().all(|&c| c == 0.0)
+        // Every coefficient ±0, without a branch per coefficient (it is asked once per ray).
+        self.model == LensModel::RadialTangential && self.coefficients().iter().fold(0u64, |acc, c| acc | (c.to_bits() << 1)) == 0
     }
 
     /// Whether every coefficient is finite.
     pub fn is_finite(&self) -> bool {
-        [self.k1, self.k2, self.k3, self.k4, self.p1, self.p2].iter().all(|c| c.is_finite())
+        self.coefficients().iter().all(|c| c.is_finite())
     }
 
-    /// The distorted position of the undistorted normalised coordinates `(x, y)`.
+    /// Whether any tangential or thin-prism coefficient is not zero.
+    pub fn has_tangential(&self) -> bool {
+        [self.p1, self.p2, self.s1, self.s2, self.s3, self.s4].iter().any(|&c| c != 0.0)
+    }
+
+    /// The radial factor `R` at `ρ²` and its derivative `dR/d(ρ²)`.
     #[inline]
-    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
-        match self.model {
-            LensModel::RadialTangential => {
-                let r2 = x * x + y * y;
-                let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-                let xy = x * y;
-                (
-                    x * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * x * x),
-                    y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * xy,
-                )
+    fn radial(&self, r2: f64) -> (f64, f64) {
+        if self.model == LensModel::RadialTangential {
+            let n = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
+            let dn = self.k1 + r2 * (2.0 * self.k2 + r2 * 3.0 * self.k3);
+            if self.k4 == 0.0 && self.k5 == 0.0 && self.k6 == 0.0 {
+                return (n, dn);
             }
-            LensModel::Fisheye => {
-                let r = (x * x + y * y).sqrt();
-                // θ_d / r → 1 on the axis (θ = atan r ≈ r there).
-                if r < 1e-12 {
-                    return (x, y);
-                }
-                let s = self.fisheye_theta_d(r.atan()) / r;
-                (x * s, y * s)
-            }
+            let d = 1.0 + r2 * (self.k4 + r2 * (self.k5 + r2 * self.k6));
+            let dd = self.k4 + r2 * (2.0 * self.k5 + r2 * 3.0 * self.k6);
+            (n / d, (dn * d - n * dd) / (d * d))
+        } else {
+            let r = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * (self.k3 + r2 * (self.k4 + r2 * (self.k5 + r2 * self.k6)))));
+            let dr = self.k1 + r2 * (2.0 * self.k2 + r2 * (3.0 * self.k3 + r2 * (4.0 * self.k4 + r2 * (5.0 * self.k5 + r2 * 6.0 * self.k6))));
+            (r, dr)
         }
     }
 
-    /// The fisheye's `θ_d(θ) = θ·(1 + k1·θ² + k2·θ⁴ + k3·θ⁶ + k4·θ⁸)`.
+    /// The tangential and thin-prism terms `T(u, v)` and their Jacobian.
     #[inline]
-    fn fisheye_theta_d(&self, theta: f64) -> f64 {
-        let t2 = theta * theta;
-        theta * (1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4))))
+    fn tangential(&self, u: f64, v: f64) -> ((f64, f64), [[f64; 2]; 2]) {
+        let r2 = u * u + v * v;
+        let uv = u * v;
+        let t = (
+            2.0 * self.p1 * uv + self.p2 * (r2 + 2.0 * u * u) + r2 * (self.s1 + r2 * self.s2),
+            self.p1 * (r2 + 2.0 * v * v) + 2.0 * self.p2 * uv + r2 * (self.s3 + r2 * self.s4),
+        );
+        // ∂(s·r² + s'·r⁴)/∂u = 2u·(s + 2s'·r²).
+        let (sx, sy) = (2.0 * (self.s1 + 2.0 * self.s2 * r2), 2.0 * (self.s3 + 2.0 * self.s4 * r2));
+        let j = [
+            [2.0 * self.p1 * v + 6.0 * self.p2 * u + u * sx, 2.0 * self.p1 * u + 2.0 * self.p2 * v + v * sx],
+            [2.0 * self.p1 * u + 2.0 * self.p2 * v + u * sy, 6.0 * self.p1 * v + 2.0 * self.p2 * u + v * sy],
+        ];
+        (t, j)
+    }
+
+    /// One stage of the lens on a point and its Jacobian: the radial factor (`RADIAL`), the
+    /// tangential and thin-prism terms (`TANGENTIAL`), or both, as
+    /// [`LensModel::RadialTangential`] and [`LensModel::Fisheye`] apply them.
+    #[inline(always)]
+    fn stage<const RADIAL: bool, const TANGENTIAL: bool>(&self, a: f64, b: f64) -> ((f64, f64), [[f64; 2]; 2]) {
+        let (mut f, mut j) = ((a, b), [[1.0, 0.0], [0.0, 1.0]]);
+        if RADIAL {
+            let (r, dr) = self.radial(a * a + b * b);
+            f = (a * r, b * r);
+            j = [[r + 2.0 * a * a * dr, 2.0 * a * b * dr], [2.0 * a * b * dr, r + 2.0 * b * b * dr]];
+        }
+        if TANGENTIAL {
+            let (t, jt) = self.tangential(a, b);
+            f = (f.0 + t.0, f.1 + t.1);
+            for (row, trow) in j.iter_mut().zip(jt) {
+                row[0] += trow[0];
+                row[1] += trow[1];
+            }
+        }
+        (f, j)
+    }
+
+    /// The distorted point of the projected point `(a, b)` (the pinhole's `(x/z, y/z)`, or a
+    /// fisheye's equidistant point).
+    #[inline]
+    pub fn distort_projected(&self, a: f64, b: f64) -> (f64, f64) {
+        let tangential = self.has_tangential();
+        match self.model {
+            LensModel::Fisheye624 => {
+                let (q, _) = self.stage::<true, false>(a, b);
+                if tangential {
+                    self.stage::<false, true>(q.0, q.1).0
+                } else {
+                    q
+                }
+            }
+            _ if tangential => self.stage::<true, true>(a, b).0,
+            _ => self.stage::<true, false>(a, b).0,
+        }
+    }
+
+    /// The distorted position of the undistorted normalised coordinates `(x, y)` (the pinhole's
+    /// `(x/z, y/z)`; a fisheye first takes them to its equidistant point, `θ = atan(r)`).
+    #[inline]
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        if !self.model.is_fisheye() {
+            return self.distort_projected(x, y);
+        }
+        let r = (x * x + y * y).sqrt();
+        // θ / r → 1 on the axis (θ = atan r ≈ r there).
+        let s = if r < 1e-12 { 1.0 } else { r.atan() / r };
+        self.distort_projected(x * s, y * s)
     }
 
     /// The distorted normalised coordinates of a point `p` in OpenCV's camera axes (x right,
     /// y down, z forward), where the lens images it: the pinhole's `(x/z, y/z)` distorted, or for
-    /// the fisheye the angle `θ` off the axis (to π, so a point beside or behind the camera too)
-    /// through `θ_d`. `None` where the lens does not image the point: behind a
+    /// a fisheye the angle `θ` off the axis (to π, so a point beside or behind the camera too)
+    /// through its lens. `None` where the lens does not image the point: behind a
     /// radial–tangential lens (`z ≤ 0`), on a fisheye's backward axis, or non-finite.
     pub fn project(&self, p: [f64; 3]) -> Option<(f64, f64)> {
-        let out = match self.model {
-            LensModel::RadialTangential => {
+        let out = if self.model.is_fisheye() {
+            let rho = (p[0] * p[0] + p[1] * p[1]).sqrt();
+            if rho == 0.0 {
                 if !(p[2] > 0.0) {
                     return None;
                 }
-                self.distort(p[0] / p[2], p[1] / p[2])
+                self.distort_projected(0.0, 0.0)
+            } else {
+                let s = rho.atan2(p[2]) / rho;
+                self.distort_projected(p[0] * s, p[1] * s)
             }
-            LensModel::Fisheye => {
-                let rho = (p[0] * p[0] + p[1] * p[1]).sqrt();
-                let theta = rho.atan2(p[2]);
-                if rho == 0.0 {
-                    if !(p[2] > 0.0) {
-                        return None;
-                    }
-                    (0.0, 0.0)
-                } else {
-                    let s = self.fisheye_theta_d(theta) / rho;
-                    (p[0] * s, p[1] * s)
-                }
+        } else {
+            if !(p[2] > 0.0) {
+                return None;
             }
+            self.distort(p[0] / p[2], p[1] / p[2])
         };
         (out.0.is_finite() && out.1.is_finite()).then_some(out)
     }
 
     /// The direction a lens pixel at distorted normalised coordinates `(x_d, y_d)` saw, in
     /// OpenCV's camera axes (x right, y down, z forward): the radial–tangential model's
-    /// undistorted `(x, y, 1)` (z = 1, so that distances along it are depths), the fisheye's unit
-    /// `(sin θ·x_d/θ_d, sin θ·y_d/θ_d, cos θ)` (a direction up to θ = π off the axis). The
-    /// inverse of [`distort`](Self::distort) is found by [`UNDISTORT_ITERATIONS`] Newton steps
-    /// from `(x_d, y_d)`, as `shaders/rays.wgsl` does in f32 (nerfstudio's
-    /// `radial_and_tangential_undistort` likewise). `None` where they do not reach a point the
-    /// lens takes to within [`UNDISTORT_TOLERANCE`] of `(x_d, y_d)`: a position past the edge of
-    /// what the coefficients can describe (their polynomial folds back there).
+    /// undistorted `(x, y, 1)` (z = 1, so that distances along it are depths), a fisheye's unit
+    /// `(sin θ·a/θ, sin θ·b/θ, cos θ)` of its equidistant point `(a, b)` (a direction up to
+    /// θ = π off the axis). The inverse of [`distort`](Self::distort) is found by
+    /// [`UNDISTORT_ITERATIONS`] Newton steps from `(x_d, y_d)`, as `shaders/rays.wgsl` does in
+    /// f32 (nerfstudio's `radial_and_tangential_undistort` and `fisheye624_unproject`
+    /// likewise). `None` where they do not reach a point the lens takes to within
+    /// [`UNDISTORT_TOLERANCE`] of `(x_d, y_d)`: a position past the edge of what the
+    /// coefficients can describe (their polynomial folds back there).
     pub fn undistort_dir(&self, xd: f64, yd: f64) -> Option<[f64; 3]> {
         let (d, converged) = self.undistort_iterate(xd, yd);
         converged.then_some(d)
+    }
+
+    /// [`UNDISTORT_ITERATIONS`] Newton steps at most for the point `(a, b)` that the stage
+    /// ([`stage`](Self::stage)) takes to `(x_d, y_d)`, from `(x_d, y_d)` itself (the stage's
+    /// terms are type parameters, so that each loop is compiled without branches on them).
+    fn newton<const RADIAL: bool, const TANGENTIAL: bool>(&self, xd: f64, yd: f64) -> (f64, f64) {
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..UNDISTORT_ITERATIONS {
+            let ((fx, fy), [[a, b], [c, d]]) = self.stage::<RADIAL, TANGENTIAL>(x, y);
+            let (ex, ey) = (fx - xd, fy - yd);
+            let det = a * d - b * c;
+            if !(det.abs() > 1e-12) {
+                break;
+            }
+            let (sx, sy) = ((d * ex - b * ey) / det, (a * ey - c * ex) / det);
+            x -= sx;
+            y -= sy;
+            // Converged to f64 precision: more steps would not move it.
+            if sx.abs() + sy.abs() <= 1e-15 * (1.0 + x.abs() + y.abs()) {
+                break;
+            }
+        }
+        (x, y)
+    }
+
+    /// A fisheye without tangential terms moves a point along its own direction: Newton on θ
+    /// alone, `θ·R(θ²) = θ_d` (the steps the 2-D ones take, for less work), and the unit
+    /// direction `(sin θ·x_d/θ_d, sin θ·y_d/θ_d, cos θ)`.
+    fn undistort_theta(&self, xd: f64, yd: f64) -> ([f64; 3], bool) {
+        let theta_d = (xd * xd + yd * yd).sqrt();
+        if theta_d < 1e-12 {
+            return ([0.0, 0.0, 1.0], true);
+        }
+        let mut theta = theta_d;
+        for _ in 0..UNDISTORT_ITERATIONS {
+            let (r, dr) = self.radial(theta * theta);
+            let df = r + 2.0 * theta * theta * dr;
+            if !(df.abs() > 1e-12) {
+                break;
+            }
+            let step = (theta * r - theta_d) / df;
+            theta -= step;
+            if step.abs() <= 1e-15 * (1.0 + theta.abs()) {
+                break;
+            }
+        }
+        let ok = theta.is_finite()
+            && (0.0..std::f64::consts::PI).contains(&theta)
+            && (theta * self.radial(theta * theta).0 - theta_d).abs() <= UNDISTORT_TOLERANCE;
+        let s = theta.sin() / theta_d;
+        ([xd * s, yd * s, theta.cos()], ok)
     }
 
     /// [`undistort_dir`](Self::undistort_dir)'s direction after its Newton steps, and whether
     /// it counts: the direction rays take (the GPU's is the same), which a loader checks over
     /// the whole photo (`nerf_data` refuses a lens that does not invert over its image).
     pub fn undistort_iterate(&self, xd: f64, yd: f64) -> ([f64; 3], bool) {
-        match self.model {
-            LensModel::RadialTangential => {
-                let (mut x, mut y) = (xd, yd);
-                for _ in 0..UNDISTORT_ITERATIONS {
-                    let (fx, fy, [[a, b], [c, d]]) = self.distort_jacobian(x, y);
-                    let (ex, ey) = (fx - xd, fy - yd);
-                    let det = a * d - b * c;
-                    if !(det.abs() > 1e-12) {
-                        break;
-                    }
-                    let (sx, sy) = ((d * ex - b * ey) / det, (a * ey - c * ex) / det);
-                    x -= sx;
-                    y -= sy;
-                    // Converged to f64 precision: more steps would not move it.
-                    if sx.abs() + sy.abs() <= 1e-15 * (1.0 + x.abs() + y.abs()) {
-                        break;
-                    }
-                }
-                let (fx, fy) = self.distort(x, y);
-                ([x, y, 1.0], (fx - xd).hypot(fy - yd) <= UNDISTORT_TOLERANCE)
-            }
-            LensModel::Fisheye => {
-                let theta_d = xd.hypot(yd);
-                if theta_d < 1e-12 {
-                    return ([0.0, 0.0, 1.0], true);
-                }
-                let mut theta = theta_d;
-                for _ in 0..UNDISTORT_ITERATIONS {
-                    let t2 = theta * theta;
-                    let f = self.fisheye_theta_d(theta) - theta_d;
-                    let df = 1.0 + t2 * (3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4)));
-                    if !(df.abs() > 1e-12) {
-                        break;
-                    }
-                    let step = f / df;
-                    theta -= step;
-                    if step.abs() <= 1e-15 * (1.0 + theta.abs()) {
-                        break;
-                    }
-                }
-                let ok = theta.is_finite()
-                    && (0.0..std::f64::consts::PI).contains(&theta)
-                    && (self.fisheye_theta_d(theta) - theta_d).abs() <= UNDISTORT_TOLERANCE;
-                let s = theta.sin() / theta_d;
-                ([xd * s, yd * s, theta.cos()], ok)
-            }
+        let tangential = self.has_tangential();
+        if self.model.is_fisheye() && !tangential {
+            return self.undistort_theta(xd, yd);
         }
+        let (a, b) = match self.model {
+            LensModel::Fisheye624 if tangential => {
+                let (u, v) = self.newton::<false, true>(xd, yd);
+                self.newton::<true, false>(u, v)
+            }
+            _ if tangential => self.newton::<true, true>(xd, yd),
+            _ => self.newton::<true, false>(xd, yd),
+        };
+        let (fx, fy) = self.distort_projected(a, b);
+        let close = ((fx - xd) * (fx - xd) + (fy - yd) * (fy - yd)).sqrt() <= UNDISTORT_TOLERANCE;
+        if !self.model.is_fisheye() {
+            return ([a, b, 1.0], close);
+        }
+        let theta = (a * a + b * b).sqrt();
+        let ok = close && theta.is_finite() && theta < std::f64::consts::PI;
+        // sin θ / θ → 1 on the axis.
+        let s = if theta < 1e-12 { 1.0 } else { theta.sin() / theta };
+        ([a * s, b * s, theta.cos()], ok)
     }
+}
 
-    /// The radial–tangential model's distorted position of `(x, y)` and its Jacobian
-    /// `[[∂x_d/∂x, ∂x_d/∂y], [∂y_d/∂x, ∂y_d/∂y]]`.
-    fn distort_jacobian(&self, x: f64, y: f64) -> (f64, f64, [[f64; 2]; 2]) {
-        let r2 = x * x + y * y;
-        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-        // ∂radial/∂(r²).
-        let dr = self.k1 + r2 * (2.0 * self.k2 + r2 * 3.0 * self.k3);
-        let (fx, fy) = self.distort(x, y);
-        let a = radial + 2.0 * x * x * dr + 2.0 * self.p1 * y + 6.0 * self.p2 * x;
-        let b = 2.0 * x * y * dr + 2.0 * self.p1 * x + 2.0 * self.p2 * y;
-        let c = 2.0 * x * y * dr + 2.0 * self.p1 * x + 2.0 * self.p2 * y;
-        let d = radial + 2.0 * y * y * dr + 6.0 * self.p1 * y + 2.0 * self.p2 * x;
-        (fx, fy, [[a, b], [c, d]])
+impl std::fmt::Display for Distortion {
+    /// The model and its coefficients that are not zero: `Fisheye624: k1 0.1, p2 -0.002`.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{:?}:", self.model)?;
+        let mut any = false;
+        for (name, c) in COEFFICIENT_NAMES.iter().zip(self.coefficients()).filter(|(_, c)| *c != 0.0) {
+            write!(f, "{} {name} {c}", if any { "," } else { "" })?;
+            any = true;
+        }
+        if !any {
+            write!(f, " no coefficients")?;
+        }
+        Ok(())
     }
 }
 
@@ -221,39 +365,86 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
+    /// Random lenses of every model, each with the terms real calibrations have: even indices
+    /// radial–tangential (every other one rational, with thin prism), then fisheyes with and
+    /// without tangential terms, and `Fisheye624`s.
     fn lenses(rng: &mut impl Rng) -> Vec<Distortion> {
-        (0..40)
+        (0..60)
             .map(|i| {
                 let mut c = || rng.gen_range(-1.0..1.0);
-                if i % 2 == 0 {
-                    Distortion { k1: 0.2 * c(), k2: 0.05 * c(), k3: 0.01 * c(), p1: 0.01 * c(), p2: 0.01 * c(), ..Distortion::NONE }
-                } else {
-                    Distortion { model: LensModel::Fisheye, k1: 0.05 * c(), k2: 0.01 * c(), k3: 0.002 * c(), k4: 0.0005 * c(), ..Distortion::NONE }
+                match i % 6 {
+                    0 => Distortion { k1: 0.2 * c(), k2: 0.05 * c(), k3: 0.01 * c(), p1: 0.01 * c(), p2: 0.01 * c(), ..Distortion::NONE },
+                    1 => Distortion {
+                        k1: 0.2 * c(),
+                        k2: 0.05 * c(),
+                        k3: 0.01 * c(),
+                        k4: 0.1 * c(),
+                        k5: 0.02 * c(),
+                        k6: 0.005 * c(),
+                        p1: 0.01 * c(),
+                        p2: 0.01 * c(),
+                        s1: 0.005 * c(),
+                        s2: 0.001 * c(),
+                        s3: 0.005 * c(),
+                        s4: 0.001 * c(),
+                        ..Distortion::NONE
+                    },
+                    2 => Distortion { model: LensModel::Fisheye, k1: 0.05 * c(), k2: 0.01 * c(), k3: 0.002 * c(), k4: 0.0005 * c(), ..Distortion::NONE },
+                    3 => Distortion {
+                        model: LensModel::Fisheye,
+                        k1: 0.05 * c(),
+                        k2: 0.01 * c(),
+                        k3: 0.002 * c(),
+                        k4: 0.0005 * c(),
+                        p1: 0.002 * c(),
+                        p2: 0.002 * c(),
+                        s1: 0.002 * c(),
+                        s3: 0.002 * c(),
+                        ..Distortion::NONE
+                    },
+                    _ => Distortion {
+                        model: LensModel::Fisheye624,
+                        k1: 0.05 * c(),
+                        k2: 0.01 * c(),
+                        k3: 0.002 * c(),
+                        k4: 0.0005 * c(),
+                        k5: 0.0001 * c(),
+                        k6: 0.00002 * c(),
+                        p1: 0.002 * c(),
+                        p2: 0.002 * c(),
+                        s1: 0.002 * c(),
+                        s2: 0.0005 * c(),
+                        s3: 0.002 * c(),
+                        s4: 0.0005 * c(),
+                    },
                 }
             })
             .collect()
     }
 
     /// `undistort_dir` inverts `distort` (and `project`) over the field of view such lenses have:
-    /// the radial–tangential model out to 40° off the axis, the fisheye out to 100°, past a
+    /// the radial–tangential model out to 40° off the axis, the fisheyes out to 100°, past a
     /// hemisphere.
     #[test]
     fn undistorting_inverts_the_lens() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
         for lens in lenses(&mut rng) {
-            let max_theta: f64 = if lens.model == LensModel::Fisheye { 100f64.to_radians() } else { 40f64.to_radians() };
+            let max_theta: f64 = if lens.model.is_fisheye() { 100f64.to_radians() } else { 40f64.to_radians() };
             for _ in 0..200 {
                 let (theta, phi) = (rng.gen_range(0.0..max_theta), rng.gen_range(-3.2f64..3.2));
                 let p = [theta.sin() * phi.cos(), theta.sin() * phi.sin(), theta.cos()];
                 let (xd, yd) = lens.project(p).unwrap();
-                if lens.model == LensModel::RadialTangential {
-                    assert_eq!(lens.distort(p[0] / p[2], p[1] / p[2]), (xd, yd));
+                if theta < 80f64.to_radians() {
+                    let (dx, dy) = lens.distort(p[0] / p[2], p[1] / p[2]);
+                    assert!((dx - xd).abs() + (dy - yd).abs() < 1e-12, "{lens:?}: distort and project agree");
                 }
                 let d = lens.undistort_dir(xd, yd).unwrap_or_else(|| panic!("{lens:?} at θ {theta}"));
                 let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                 assert!((0..3).all(|a| (d[a] / n - p[a]).abs() < 1e-9), "{lens:?}: {d:?} against {p:?}");
                 if lens.model == LensModel::RadialTangential {
                     assert_eq!(d[2], 1.0, "z = 1");
+                } else {
+                    assert!((n - 1.0).abs() < 1e-12, "a fisheye's direction is a unit vector");
                 }
             }
         }
@@ -267,28 +458,92 @@ mod tests {
         let barrel = Distortion { k1: -0.5, ..Distortion::NONE };
         assert!(barrel.undistort_dir(0.5, 0.0).is_some());
         assert!(barrel.undistort_dir(0.6, 0.0).is_none());
-        let fish = Distortion { model: LensModel::Fisheye, ..Distortion::NONE };
-        assert!(fish.undistort_dir(3.0, 0.0).is_some_and(|d| d[2] < -0.98), "θ = 3 looks almost backwards");
-        assert!(fish.undistort_dir(3.2, 0.0).is_none(), "past π");
+        // The same fold from a rational lens's denominator: r / (1 + 0.5 r²) peaks at r = √2.
+        let rational = Distortion { k4: 0.5, ..Distortion::NONE };
+        assert!(rational.undistort_dir(0.6, 0.0).is_some() && rational.undistort_dir(0.8, 0.0).is_none());
+        for model in [LensModel::Fisheye, LensModel::Fisheye624] {
+            let fish = Distortion { model, ..Distortion::NONE };
+            assert!(fish.undistort_dir(3.0, 0.0).is_some_and(|d| d[2] < -0.98), "θ = 3 looks almost backwards");
+            assert!(fish.undistort_dir(3.2, 0.0).is_none(), "past π");
+            assert!(fish.project([0.0, 0.0, -1.0]).is_none());
+            assert_eq!(fish.project([1.0, 0.0, 0.0]).map(|(x, _)| x), Some(std::f64::consts::FRAC_PI_2));
+        }
         assert_eq!(Distortion::NONE.undistort_dir(0.3, -0.7), Some([0.3, -0.7, 1.0]));
-        assert!(fish.project([0.0, 0.0, -1.0]).is_none() && barrel.project([0.1, 0.0, 0.0]).is_none());
-        assert_eq!(fish.project([1.0, 0.0, 0.0]).map(|(x, _)| x), Some(std::f64::consts::FRAC_PI_2));
+        assert!(barrel.project([0.1, 0.0, 0.0]).is_none());
     }
 
-    /// The Jacobian of the radial–tangential model against central differences.
+    /// Each stage's Jacobian against central differences, for every model and each stage
+    /// alone or both together.
     #[test]
     fn the_jacobian_is_the_derivative() {
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
-        for lens in lenses(&mut rng).into_iter().filter(|l| l.model == LensModel::RadialTangential) {
-            let (x, y) = (rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8));
-            let (_, _, j) = lens.distort_jacobian(x, y);
-            let h = 1e-6;
-            let dx = |f: (f64, f64), g: (f64, f64)| [(f.0 - g.0) / (2.0 * h), (f.1 - g.1) / (2.0 * h)];
-            let cx = dx(lens.distort(x + h, y), lens.distort(x - h, y));
-            let cy = dx(lens.distort(x, y + h), lens.distort(x, y - h));
-            for (got, want) in [(j[0][0], cx[0]), (j[1][0], cx[1]), (j[0][1], cy[0]), (j[1][1], cy[1])] {
-                assert!((got - want).abs() < 1e-7, "{got} against {want}");
+        for lens in lenses(&mut rng) {
+            let stages: [fn(&Distortion, f64, f64) -> ((f64, f64), [[f64; 2]; 2]); 3] =
+                [Distortion::stage::<true, false>, Distortion::stage::<false, true>, Distortion::stage::<true, true>];
+            for stage in stages {
+                let (x, y) = (rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8));
+                let (_, j) = stage(&lens, x, y);
+                let h = 1e-6;
+                let f = |x, y| stage(&lens, x, y).0;
+                let dx = |f: (f64, f64), g: (f64, f64)| [(f.0 - g.0) / (2.0 * h), (f.1 - g.1) / (2.0 * h)];
+                let cx = dx(f(x + h, y), f(x - h, y));
+                let cy = dx(f(x, y + h), f(x, y - h));
+                for (got, want) in [(j[0][0], cx[0]), (j[1][0], cx[1]), (j[0][1], cy[0]), (j[1][1], cy[1])] {
+                    assert!((got - want).abs() < 1e-7, "{lens:?}: {got} against {want}");
+                }
             }
+        }
+    }
+
+    /// The models against the formulas of the tools that calibrate them, written out here in
+    /// their own names and orders: OpenCV's 12-coefficient model (`cv::projectPoints`),
+    /// COLMAP's `THIN_PRISM_FISHEYE` (`ThinPrismFisheyeModel::Distortion`: tangential and
+    /// thin-prism terms on the equidistant point, `sx1`, `sy1`), and nerfstudio's
+    /// `fisheye624_project` (`k0..k5`, `p0` with `r² + 2x²`, `p1`, `s0..s3`, all on the
+    /// radially distorted point).
+    #[test]
+    fn the_models_are_the_calibration_tools() {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(11);
+        for _ in 0..50 {
+            let mut c = |s: f64| s * rng.gen_range(-1.0..1.0);
+            let k: [f64; 12] = std::array::from_fn(|_| c(0.05));
+            let (x, y) = (c(0.7), c(0.7));
+            let close = |a: (f64, f64), b: (f64, f64)| (a.0 - b.0).abs() + (a.1 - b.1).abs() < 1e-13;
+
+            // OpenCV: distCoeffs (k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4).
+            let [k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4] = k;
+            let r2 = x * x + y * y;
+            let radial = (1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2) / (1.0 + k4 * r2 + k5 * r2 * r2 + k6 * r2 * r2 * r2);
+            let opencv = (
+                x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) + s1 * r2 + s2 * r2 * r2,
+                y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y + s3 * r2 + s4 * r2 * r2,
+            );
+            let ours = Distortion { k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4, ..Distortion::NONE };
+            assert!(close(ours.distort(x, y), opencv), "OpenCV's model");
+
+            // COLMAP's THIN_PRISM_FISHEYE: params (k1, k2, p1, p2, k3, k4, sx1, sy1).
+            let [k1, k2, p1, p2, k3, k4, sx1, sy1, ..] = k;
+            let r = (x * x + y * y).sqrt();
+            let theta = r.atan();
+            let (uu, vv) = (theta * x / r, theta * y / r);
+            let t2 = uu * uu + vv * vv;
+            let radial = k1 * t2 + k2 * t2 * t2 + k3 * t2 * t2 * t2 + k4 * t2 * t2 * t2 * t2;
+            let du = uu * radial + 2.0 * p1 * uu * vv + p2 * (t2 + 2.0 * uu * uu) + sx1 * t2;
+            let dv = vv * radial + 2.0 * p2 * uu * vv + p1 * (t2 + 2.0 * vv * vv) + sy1 * t2;
+            let ours = Distortion { model: LensModel::Fisheye, k1, k2, k3, k4, p1, p2, s1: sx1, s3: sy1, ..Distortion::NONE };
+            assert!(close(ours.distort(x, y), (uu + du, vv + dv)), "COLMAP's THIN_PRISM_FISHEYE");
+
+            // nerfstudio's fisheye624_project: params (k0..k5, p0, p1, s0..s3).
+            let [k0, k1, k2, k3, k4, k5, p0, p1, s0, s1, s2, s3] = k;
+            let th_k = theta + k0 * theta.powi(3) + k1 * theta.powi(5) + k2 * theta.powi(7) + k3 * theta.powi(9) + k4 * theta.powi(11) + k5 * theta.powi(13);
+            let (xr, yr) = (th_k * x / r, th_k * y / r);
+            let rd2 = xr * xr + yr * yr;
+            let aria = (
+                xr + (2.0 * xr * xr + rd2) * p0 + 2.0 * xr * yr * p1 + s0 * rd2 + s1 * rd2 * rd2,
+                yr + (2.0 * yr * yr + rd2) * p1 + 2.0 * xr * yr * p0 + s2 * rd2 + s3 * rd2 * rd2,
+            );
+            let ours = Distortion::from_coefficients(LensModel::Fisheye624, [k0, k1, k2, k3, k4, k5, p1, p0, s0, s1, s2, s3]);
+            assert!(close(ours.distort(x, y), aria), "nerfstudio's FISHEYE624");
         }
     }
 }

@@ -554,7 +554,7 @@ impl Camera {
             }
             // A pixel's angle at the principal point; the planes widen by the slopes it makes there.
             let pixel = 1.0 / k.fx.min(k.fy) as f64;
-            shape = if self.distortion.model == LensModel::Fisheye || angle > 89f64.to_radians() {
+            shape = if self.distortion.model.is_fisheye() || angle > 89f64.to_radians() {
                 FrustumShape::Cone { half_angle: (angle + pixel) as f32 }
             } else {
                 let widen = |[lo, hi]: [f64; 2]| [(lo - pixel * (1.0 + lo * lo)) as f32, (hi + pixel * (1.0 + hi * hi)) as f32];
@@ -1111,8 +1111,12 @@ mod tests {
         // About 190° across the width.
         let fish = Distortion { model: LensModel::Fisheye, k1: -0.02, k2: 0.003, ..Distortion::NONE };
         let fish_k = Intrinsics { fx: 24.0, fy: 24.0, ..k };
+        // OpenCV's rational model with thin-prism terms (its numerator of higher degree, so
+        // that it does not fold far off the axis), and a Fisheye624.
+        let rational = Distortion { k1: 0.05, k2: 0.002, k4: 0.02, p1: 0.001, s1: 0.003, s3: -0.002, ..Distortion::NONE };
+        let aria = Distortion { model: LensModel::Fisheye624, k1: -0.03, k2: 0.003, k5: 1e-5, p1: 0.001, p2: -0.002, s1: 0.001, s4: 0.0005, ..Distortion::NONE };
         let mut g = nerf_core::rng(23, 0);
-        for (lens, k) in [(barrel, k), (pincushion, k), (fish, fish_k)] {
+        for (lens, k) in [(barrel, k), (pincushion, k), (rational, k), (fish, fish_k), (aria, fish_k)] {
             let cam = Camera { intrinsics: k, ..test_camera() }.with_distortion(lens);
             assert!(cam.frustum().sees_sphere(cam.position + cam.rotation * Vec3::NEG_Z, 0.0));
             for _ in 0..500 {
@@ -1122,7 +1126,7 @@ mod tests {
                 assert!((pu - u as f64).abs() < 1e-3 && (pv - v as f64).abs() < 1e-3, "{lens:?}: ({u}, {v}) back at ({pu}, {pv})");
             }
             let edge = cam.rotation.transpose() * cam.ray_at(0.0, k.cy).dir;
-            if lens.model == LensModel::Fisheye {
+            if lens.model.is_fisheye() {
                 assert!(edge.z > 0.05, "the fisheye's left edge looks behind the camera: {edge:?}");
             }
             let shows = |p: Vec3| cam.project(p).is_some_and(|(u, v)| (0.0..=k.width as f64).contains(&u) && (0.0..=k.height as f64).contains(&v));
@@ -1144,7 +1148,7 @@ mod tests {
                 unseen += !s as usize;
             }
             // The fisheye sees more than a hemisphere: fewer balls are out of its view.
-            let out = if lens.model == LensModel::Fisheye { 250 } else { 1000 };
+            let out = if lens.model.is_fisheye() { 250 } else { 1000 };
             assert!(seen > 150 && unseen > out, "{lens:?}: {seen} seen, {unseen} not");
         }
     }
