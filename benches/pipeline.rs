@@ -181,7 +181,7 @@ fn mark_seen(c: &mut Criterion) {
 /// A view's rays (`Dataset::view_rays`: directions, targets, backgrounds) for the in-repo scene's
 /// pinhole cameras and for the same cameras through a radial–tangential lens, a fisheye,
 /// OpenCV's rational lens with thin-prism terms and a Fisheye624, whose rays each take the
-/// Newton steps that invert the lens.
+/// Newton steps that invert the lens, and COLMAP's FOV lens, inverted in closed form.
 fn camera_rays(c: &mut Criterion) {
     use nerf::rays::{Distortion, LensModel, PixelConvention};
     let data = load_blender(concat!(env!("CARGO_MANIFEST_DIR"), "/scenes/lego_100").as_ref(), Split::Train, &LoadOptions::default())
@@ -198,6 +198,7 @@ fn camera_rays(c: &mut Criterion) {
             "fisheye624",
             Distortion::from_coefficients(LensModel::Fisheye624, [0.05, -0.01, 0.002, -0.0005, 0.0001, -0.00002, 0.001, -0.002, 0.002, -0.0005, -0.001, 0.0003]),
         ),
+        ("fov", Distortion::fov(0.9)),
     ];
     let mut g = c.benchmark_group("view_rays");
     g.throughput(Throughput::Elements((data.width * data.height) as u64));

@@ -17,8 +17,9 @@
 //   with jitter u = col + off − ½ + rand_f32(seed, 0x52410004, r), v likewise with 0x52410005.
 // Direction: R·[(u − cx)/fx, −(v − cy)/fy, −1], normalised (OpenGL camera, as nerf_rays), or
 // through the camera's lens (Cam.size.w: 1 OpenCV's radial–tangential, 2 its fisheye, 3
-// Fisheye624) the direction it saw at (u, v): nerf_rays::Camera::camera_dir, whose
-// UNDISTORT_ITERATIONS (10) Newton steps (twice for Fisheye624) camera_dir runs here in f32.
+// Fisheye624, 4 COLMAP's FOV) the direction it saw at (u, v): nerf_rays::Camera::camera_dir,
+// whose UNDISTORT_ITERATIONS (10) Newton steps (twice for Fisheye624; FOV's closed form)
+// camera_dir runs here in f32.
 // NDC scenes (I.ndc = 1): the ray is then warped as nerf_rays::Ndc::ray_or_miss (nerf-pytorch's
 // ndc_rays, unit direction; a ray with d_z ≥ 0 becomes the miss ray (0, 0, 2) + t·(0, 0, 1)).
 // Background: white, black, or (random) rand_f32(seed, 0x52410006 + c, r) per channel c.
@@ -57,8 +58,8 @@ struct Cam {
     r1: vec4<f32>,
     r2: vec4<f32>,
     intr: vec4<f32>,   // fx, fy, cx, cy
-    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye, 3 Fisheye624)
-    k: vec4<f32>,      // k1, k2, k3, k4
+    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye, 3 Fisheye624, 4 FOV)
+    k: vec4<f32>,      // k1, k2, k3, k4 (FOV: ω, 0, 0, 0)
     kp: vec4<f32>,     // k5, k6, p1, p2
     s: vec4<f32>,      // s1, s2, s3, s4
 }
@@ -174,6 +175,21 @@ fn camera_dir(cam: Cam, u: f32, v: f32) -> vec3<f32> {
     let lens = cam.size.w;
     if (lens == 0u) {
         return vec3<f32>(xd, -yd, -1.0);
+    }
+    if (lens == 4u) {
+        // COLMAP's FOV lens, inverted in closed form: ρ = tan(ρ_d·ω) / (2·tan(ω/2)).
+        let omega = cam.k.x;
+        let rho_d = sqrt(xd * xd + yd * yd);
+        var s = 1.0;
+        if (omega != 0.0) {
+            let c = 2.0 * tan(0.5 * omega);
+            if (rho_d < 1e-12) {
+                s = omega / c;
+            } else {
+                s = tan(rho_d * omega) / (c * rho_d);
+            }
+        }
+        return vec3<f32>(xd * s, -yd * s, -1.0);
     }
     let tangential = any(cam.kp.zw != vec2<f32>(0.0)) || any(cam.s != vec4<f32>(0.0));
     var q: vec2<f32>;

@@ -16,7 +16,8 @@
 //! `RADIAL_FISHEYE` and `SIMPLE_RADIAL_FISHEYE` (written as nerfstudio writes them,
 //! `OPENCV_FISHEYE` with `k1..k4`), `THIN_PRISM_FISHEYE` (its `sx1`, `sy1` as OpenCV's `s1`,
 //! `s3`) and `RAD_TAN_THIN_PRISM_FISHEYE` (Project Aria's Fisheye624, written as nerfstudio's
-//! `FISHEYE624` with `distortion_params`); `FOV` is an error naming the camera.
+//! `FISHEYE624` with `distortion_params`) and `FOV` (its `omega`). Other models are an error
+//! naming the camera.
 
 use std::path::{Path, PathBuf};
 
@@ -481,13 +482,13 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
         "PINHOLE" | "OPENCV" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
         "OPENCV_FISHEYE" => ([p[0], p[1], p[2], p[3]], &p[4..], "OPENCV_FISHEYE"),
         "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], &p[3..], "OPENCV_FISHEYE"),
-        "FULL_OPENCV" | "THIN_PRISM_FISHEYE" | "RAD_TAN_THIN_PRISM_FISHEYE" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
+        "FULL_OPENCV" | "THIN_PRISM_FISHEYE" | "RAD_TAN_THIN_PRISM_FISHEYE" | "FOV" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
         other => {
             return Err(bad(
                 path,
                 format!(
                     "camera {}: camera model {other} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, \
-                     FULL_OPENCV, OPENCV_FISHEYE, RADIAL_FISHEYE, SIMPLE_RADIAL_FISHEYE, THIN_PRISM_FISHEYE and \
+                     FULL_OPENCV, OPENCV_FISHEYE, RADIAL_FISHEYE, SIMPLE_RADIAL_FISHEYE, FOV, THIN_PRISM_FISHEYE and \
                      RAD_TAN_THIN_PRISM_FISHEYE are)",
                     c.id
                 ),
@@ -515,6 +516,7 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
         "FULL_OPENCV" => &["k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"],
         // COLMAP's sx1, sy1 are OpenCV's s1, s3.
         "THIN_PRISM_FISHEYE" => &["k1", "k2", "p1", "p2", "k3", "k4", "s1", "s3"],
+        "FOV" => &["omega"],
         "OPENCV_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_RADIAL_FISHEYE" => &["k1", "k2", "k3", "k4"],
         _ => &[],
     };

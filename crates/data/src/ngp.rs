@@ -102,7 +102,7 @@ pub struct Lens {
     /// `cy`.
     pub cy: Option<f64>,
     /// The lens model (`camera_model`, `is_fisheye`) and its coefficients (`k1`..`k6`, `p1`,
-    /// `p2`, `s1`..`s4`, or nerfstudio's `distortion_params`).
+    /// `p2`, `s1`..`s4`, or nerfstudio's `distortion_params`; `FOV`'s `omega`).
     pub distortion: Distortion,
     /// nerfstudio's `fisheye_crop_radius`, in pixels: only the disc of this radius about the
     /// principal point trains (a fisheye's image circle; the black beyond it is no scene).
@@ -185,6 +185,8 @@ impl Lens {
             ThinPrismFisheye,
             /// FISHEYE624: nerfstudio's `distortion_params` only.
             Fisheye624,
+            /// FOV (COLMAP's): `omega` only.
+            Fov,
             /// EQUIRECTANGULAR: none.
             Equirectangular,
         }
@@ -197,13 +199,14 @@ impl Lens {
                 "OPENCV_FISHEYE" => Named::Fisheye,
                 "THIN_PRISM_FISHEYE" => Named::ThinPrismFisheye,
                 "FISHEYE624" | "RAD_TAN_THIN_PRISM_FISHEYE" => Named::Fisheye624,
+                "FOV" => Named::Fov,
                 "EQUIRECTANGULAR" => Named::Equirectangular,
                 _ => {
                     return Err(invalid(
                         name,
                         format!(
                             "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL, \
-                             FULL_OPENCV, OPENCV_FISHEYE, THIN_PRISM_FISHEYE, FISHEYE624 and EQUIRECTANGULAR are)"
+                             FULL_OPENCV, OPENCV_FISHEYE, THIN_PRISM_FISHEYE, FISHEYE624, FOV and EQUIRECTANGULAR are)"
                         ),
                     ))
                 }
@@ -218,7 +221,7 @@ impl Lens {
                     Some((Named::Equirectangular, model_key, _)) => {
                         return Err(invalid(name, format!("true, but `{model_key}` names an equirectangular camera")));
                     }
-                    Some((Named::OpenCv | Named::FullOpenCv, model_key, _)) => {
+                    Some((Named::OpenCv | Named::FullOpenCv | Named::Fov, model_key, _)) => {
                         return Err(invalid(name, format!("true, but `{model_key}` names a camera model without a fisheye lens")));
                     }
                     Some(_) => {}
@@ -288,6 +291,7 @@ impl Lens {
             Named::Fisheye => (LensModel::Fisheye, &["k1", "k2", "k3", "k4"]),
             Named::ThinPrismFisheye => (LensModel::Fisheye, &COEFFICIENT_NAMES),
             Named::Fisheye624 => (LensModel::Fisheye624, &COEFFICIENT_NAMES),
+            Named::Fov => (LensModel::Fov, &[]),
             Named::Equirectangular => (LensModel::RadialTangential, &[]),
         };
         for (i, key) in COEFFICIENT_NAMES.iter().enumerate() {
@@ -311,6 +315,19 @@ impl Lens {
             return Err(invalid(name, reason));
         }
         let equirectangular = kind == Named::Equirectangular;
+        // COLMAP's FOV lens: its field of view `omega` in radians, in (0, π).
+        let omega = match number("omega")? {
+            None if kind == Named::Fov => {
+                let name = named.as_ref().map_or_else(|| "camera_model".to_string(), |(_, k, _)| k.clone());
+                return Err(invalid(name, "FOV: the lens needs its field of view `omega` (radians)".into()));
+            }
+            None => 0.0,
+            Some((w, name)) if kind != Named::Fov => {
+                return Err(invalid(name, format!("{w}: omega belongs to the FOV model (`\"camera_model\": \"FOV\"`), and this camera is not one")));
+            }
+            Some((w, name)) if !(w > 0.0 && w < std::f64::consts::PI) => return Err(invalid(name, format!("{w} is not in (0, pi) radians"))),
+            Some((w, _)) => w,
+        };
         let size = match (pixels("w")?, pixels("h")?) {
             (Some(w), Some(h)) => Some((w, h)),
             (None, None) => None,
@@ -323,7 +340,7 @@ impl Lens {
             focal_y: focal("y_fov", "fl_y", "camera_angle_y")?,
             cx: number("cx")?.map(|(x, _)| x),
             cy: number("cy")?.map(|(x, _)| x),
-            distortion: Distortion::from_coefficients(model, c),
+            distortion: Distortion { omega, ..Distortion::from_coefficients(model, c) },
             crop_radius: positive("fisheye_crop_radius")?,
             equirectangular,
         })

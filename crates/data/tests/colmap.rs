@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DVec3};
 use nerf_data::colmap::{self, ColmapCamera, ColmapImage, ColmapModel};
-use nerf_data::{load_blender, load_scene, DataError, Dataset, LoadOptions, Split};
+use nerf_data::{load_blender, load_scene, DataError, Dataset, Distortion, LensModel, LoadOptions, Split};
 
 fn lego_100() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../scenes/lego_100")
@@ -312,6 +312,35 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     let aria: Vec<f64> = (1..=12).map(|i| i as f64 * 1e-3).collect();
     let f = keys("RAD_TAN_THIN_PRISM_FISHEYE", [vec![40.0, 41.0, 31.0, 23.0], aria.clone()].concat());
     assert_eq!((f["camera_model"].as_str(), f["distortion_params"].clone()), (Some("FISHEYE624"), serde_json::json!(aria)));
+    let f = keys("FOV", vec![40.0, 41.0, 31.0, 23.0, 0.9]);
+    assert_eq!((f["camera_model"].as_str(), f["omega"].as_f64()), (Some("FOV"), Some(0.9)));
+    // Each model loads as its lens (COLMAP's parameters in its order, taken to ours).
+    std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
+    let cases = [
+        ("FULL_OPENCV", vec![-0.1, 0.02, 0.001, -0.002, 0.003, 0.05, -0.01, 0.002], Distortion { k1: -0.1, k2: 0.02, p1: 0.001, p2: -0.002, k3: 0.003, k4: 0.05, k5: -0.01, k6: 0.002, ..Distortion::NONE }),
+        (
+            "THIN_PRISM_FISHEYE",
+            vec![0.02, -0.01, 0.001, -0.002, 0.003, -0.0004, 0.002, -0.001],
+            Distortion { model: LensModel::Fisheye, k1: 0.02, k2: -0.01, p1: 0.001, p2: -0.002, k3: 0.003, k4: -0.0004, s1: 0.002, s3: -0.001, ..Distortion::NONE },
+        ),
+        (
+            "RAD_TAN_THIN_PRISM_FISHEYE",
+            vec![0.02, -0.01, 0.003, -0.0004, 0.0001, -0.00002, 0.001, -0.002, 0.002, -0.0005, -0.001, 0.0003],
+            Distortion::from_coefficients(LensModel::Fisheye624, [0.02, -0.01, 0.003, -0.0004, 0.0001, -0.00002, -0.002, 0.001, 0.002, -0.0005, -0.001, 0.0003]),
+        ),
+        ("FOV", vec![0.9], Distortion::fov(0.9)),
+    ];
+    for (name, coefficients, lens) in cases {
+        let mut m = model.clone();
+        m.cameras[0].model = name.into();
+        m.cameras[0].params.truncate(4);
+        m.cameras[0].params.extend(coefficients);
+        write_bin(&dir.path().join("sparse/0"), &m, 0);
+        let d = load(dir.path(), Split::Train);
+        assert!(d.cameras.iter().all(|c| c.distortion == lens), "{name}: {}", d.cameras[0].distortion);
+        std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
+    }
+    write_txt(&dir.path().join("sparse/0"), &model);
     // The fisheyes, as nerfstudio writes them: OPENCV_FISHEYE with all four terms.
     let fisheye = |f: &serde_json::Value| (f["camera_model"].as_str().map(str::to_string), ["fl_x", "fl_y", "k1", "k2", "k3", "k4"].map(|k| f[k].as_f64().unwrap()));
     let f = keys("OPENCV_FISHEYE", vec![40.0, 41.0, 31.0, 23.0, 0.1, -0.2, 0.03, -0.004]);
@@ -371,11 +400,6 @@ fn broken_models_are_errors_naming_the_file() {
         write_bin(&mdir, &model, 2);
         e
     };
-    let mut fov = model.clone();
-    fov.cameras[0].model = "FOV".into();
-    fov.cameras[0].params = vec![50.0, 50.0, 50.0, 50.0, 0.9];
-    let e = variant(&fov);
-    assert!(e.contains("cameras.bin") && e.contains("camera 7: camera model FOV is not supported"), "{e}");
     // A rational lens whose denominator folds it inside the photo (r / (1 − 2 r²) has no
     // inverse past r = 1/√2, the photo's corners reach r = √2).
     let mut rational = model.clone();

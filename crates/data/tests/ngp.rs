@@ -202,14 +202,17 @@ fn box_keys_place_instant_ngps_cube_and_rays_end_past_it() {
 #[test]
 fn camera_and_box_errors_name_the_file_and_the_key() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(Value, [Value; 2], &str, &str); 22] = [
+    let cases: [(Value, [Value; 2], &str, &str); 25] = [
         (json!({"fl_x": 3.0, "aabb": [[0, 0, 0], [1, 1]]}), [json!({}), json!({})], "`aabb`", "finite numbers"),
         (json!({"fl_x": 3.0, "aabb": [[1, 1, 1], [1, 1, 1]]}), [json!({}), json!({})], "`aabb`", "a box with a side"),
         (json!({"fl_x": 3.0, "w": 8, "h": 4}), [json!({}), json!({})], "`w`", "r_0.png is 4x4"),
         (json!({"fl_x": 3.0, "w": 4}), [json!({}), json!({})], "`h`", "missing key"),
         (json!({"fl_x": -3.0}), [json!({}), json!({})], "`fl_x`", "not positive"),
         (json!({"fl_x": 3.0}), [json!({}), json!({"fl_y": "tall"})], "`frames[1].fl_y`", "expected a number"),
-        (json!({"fl_x": 3.0, "camera_model": "FOV"}), [json!({}), json!({})], "`camera_model`", "not supported"),
+        (json!({"fl_x": 3.0, "camera_model": "VR180_L"}), [json!({}), json!({})], "`camera_model`", "not supported"),
+        (json!({"fl_x": 3.0, "camera_model": "FOV"}), [json!({}), json!({})], "`camera_model`", "needs its field of view `omega`"),
+        (json!({"fl_x": 3.0}), [json!({}), json!({"omega": 0.9})], "`frames[1].omega`", "belongs to the FOV model"),
+        (json!({"fl_x": 3.0, "camera_model": "FOV", "omega": 3.5}), [json!({}), json!({})], "`omega`", "not in (0, pi)"),
         (json!({"camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({"k1": 0.1})], "`frames[1].k1`", "no lens distortion"),
         (json!({"camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "names an equirectangular camera"),
         (json!({"fl_x": 3.0, "camera_model": 5}), [json!({}), json!({})], "`camera_model`", "expected a string"),
@@ -343,6 +346,8 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
             Distortion { model: LensModel::Fisheye, k1: 0.03, k2: -0.01, k3: 0.002, k4: -0.0003, p1: 0.002, p2: -0.002, s1: 0.003, s3: -0.002, ..Default::default() },
             json!({"camera_model": "THIN_PRISM_FISHEYE", "k1": 0.03, "k2": -0.01, "k3": 0.002, "k4": -0.0003, "p1": 0.002, "p2": -0.002, "s1": 0.003, "s3": -0.002}),
         ),
+        // COLMAP's FOV lens.
+        (Distortion::fov(0.9), json!({"camera_model": "FOV", "omega": 0.9})),
         // nerfstudio's FISHEYE624: k0..k5, p0 (OpenCV's p2), p1, s0..s3.
         (
             Distortion::from_coefficients(LensModel::Fisheye624, [0.04, -0.01, 0.002, -0.0003, 0.00005, -0.00001, 0.0015, -0.002, 0.002, -0.0005, -0.001, 0.0003]),
@@ -425,7 +430,10 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
         }
         eprintln!("{kept} kept, {dropped} dropped, {unseen} not seen");
         assert!(kept > 150 && dropped > 1000, "{kept} kept, {dropped} dropped");
-        assert_eq!(unseen > 0, d.k1 > 0.0 && d.model == LensModel::RadialTangential, "only the pincushion lens reaches past its photo");
+        // The pincushion lens, and the FOV lens, which magnifies about its axis (its factor
+        // there is 2·tan(ω/2)/ω > 1), reach past their photo's nearer edges.
+        let reaches_past = (d.k1 > 0.0 && d.model == LensModel::RadialTangential) || d.model == LensModel::Fov;
+        assert_eq!(unseen > 0, reaches_past, "{d}: {unseen} pixels not seen");
         let half = load_undistorted(dir.path(), Split::Test, 2);
         let k2 = k.downscaled(2);
         assert!(max_error(&half.images[0].to_f32(), &k2, 2) < 1e-2, "{}", max_error(&half.images[0].to_f32(), &k2, 2));
@@ -572,7 +580,9 @@ fn lenses_are_written_and_impossible_ones_refused() {
     assert_eq!(d.cameras[1].distortion, Distortion { k1: -0.02, k4: 0.01, s2: 0.001, ..Distortion::NONE });
     let mut mixed = d.clone();
     mixed.cameras[1].distortion = Distortion { model: LensModel::Fisheye, k1: 0.01, p1: -0.001, s1: 0.002, ..Distortion::NONE };
-    for ds in [d, mixed] {
+    let mut fov = d.clone();
+    fov.cameras[1].distortion = Distortion::fov(0.8);
+    for ds in [d, mixed, fov] {
         let out = tempfile::tempdir().unwrap();
         nerf_data::write_blender(&ds, out.path(), None).unwrap();
         let written: Value = serde_json::from_str(&std::fs::read_to_string(out.path().join("transforms_train.json")).unwrap()).unwrap();

@@ -364,10 +364,10 @@ pub struct GpuCamera {
     pub intrinsics: [f32; 4],
     /// `[width, height, first pixel of the view in the pixel buffer, lens]`, the lens one of
     /// [`GpuCamera::PINHOLE`], [`GpuCamera::RADIAL_TANGENTIAL`], [`GpuCamera::FISHEYE`],
-    /// [`GpuCamera::FISHEYE624`].
+    /// [`GpuCamera::FISHEYE624`], [`GpuCamera::FOV`].
     pub size: [u32; 4],
     /// The lens's coefficients `[k1..k6, p1, p2, s1..s4]`
-    /// (`nerf_rays::Distortion::coefficients`).
+    /// (`nerf_rays::Distortion::coefficients`); for [`GpuCamera::FOV`], `[ω, 0, …]`.
     pub lens: [f32; 12],
 }
 
@@ -380,6 +380,8 @@ impl GpuCamera {
     pub const FISHEYE: u32 = 2;
     /// `size[3]` of Meta's Fisheye624 lens (`LensModel::Fisheye624`).
     pub const FISHEYE624: u32 = 3;
+    /// `size[3]` of COLMAP's FOV lens (`LensModel::Fov`).
+    pub const FOV: u32 = 4;
 }
 
 // ---- sampling.rs ----

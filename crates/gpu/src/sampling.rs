@@ -146,12 +146,18 @@ impl GpuImages {
                     LensModel::RadialTangential => GpuCamera::RADIAL_TANGENTIAL,
                     LensModel::Fisheye => GpuCamera::FISHEYE,
                     LensModel::Fisheye624 => GpuCamera::FISHEYE624,
+                    LensModel::Fov => GpuCamera::FOV,
                 };
+                let mut coefficients = d.coefficients().map(|c| c as f32);
+                if d.model == LensModel::Fov {
+                    coefficients = [0.0; 12];
+                    coefficients[0] = d.omega as f32;
+                }
                 GpuCamera {
                     c2w: [m[0], m[1], m[2]],
                     intrinsics: [k.fx, k.fy, k.cx, k.cy],
                     size: [w as u32, h as u32, (i * w * h) as u32, lens],
-                    lens: d.coefficients().map(|c| c as f32),
+                    lens: coefficients,
                 }
             })
             .collect();

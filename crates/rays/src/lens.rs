@@ -27,13 +27,17 @@ pub enum LensModel {
     /// COLMAP's `RAD_TAN_THIN_PRISM_FISHEYE`): as [`Fisheye`](Self::Fisheye), but the
     /// tangential and thin-prism terms apply to the radially distorted point.
     Fisheye624,
+    /// COLMAP's `FOV` model (Devernay and Faugeras's, the ATAN camera of PTAM and DSO): the
+    /// pinhole's `(x/z, y/z)` at radius `ρ` moves to `atan(2ρ·tan(ω/2)) / ω` along its
+    /// direction, with the field of view `ω` in [`Distortion::omega`]; no other coefficients.
+    Fov,
 }
 
 impl LensModel {
     /// Whether the model projects a direction by its angle off the axis (a fisheye), not by
     /// its pinhole slope.
     pub fn is_fisheye(self) -> bool {
-        self != LensModel::RadialTangential
+        matches!(self, LensModel::Fisheye | LensModel::Fisheye624)
     }
 }
 
@@ -45,7 +49,7 @@ impl LensModel {
 /// - the radial factor `R`: the rational `(1 + k1·ρ² + k2·ρ⁴ + k3·ρ⁶) / (1 + k4·ρ² + k5·ρ⁴ +
 ///   k6·ρ⁶)` for [`LensModel::RadialTangential`] (OpenCV's; `k4..k6` are zero but in
 ///   `FULL_OPENCV`), the polynomial `1 + k1·θ² + k2·θ⁴ + … + k6·θ¹²` for the fisheyes
-///   (OpenCV's fisheye stops at `k4`);
+///   (OpenCV's fisheye stops at `k4`), `atan(2ρ·tan(ω/2)) / (ρ·ω)` for [`LensModel::Fov`];
 /// - the tangential and thin-prism terms of a point `(u, v)`, `r² = u² + v²`:
 ///   `T_x = 2·p1·u·v + p2·(r² + 2u²) + s1·r² + s2·r⁴` and
 ///   `T_y = p1·(r² + 2v²) + 2·p2·u·v + s3·r² + s4·r⁴` (OpenCV's names and order);
@@ -81,6 +85,9 @@ pub struct Distortion {
     pub s3: f64,
     /// Thin prism: coefficient of `r⁴` in `T_y`.
     pub s4: f64,
+    /// [`LensModel::Fov`]'s field of view `ω`, in radians (0 for the other models): its radial
+    /// factor is `R = atan(2ρ·tan(ω/2)) / (ρ·ω)`, a pinhole's as `ω` → 0.
+    pub omega: f64,
 }
 
 /// Newton iterations of [`Distortion::undistort_dir`] at most (it stops once a step no longer
@@ -101,12 +108,12 @@ pub const COEFFICIENT_NAMES: [&str; 12] = ["k1", "k2", "k3", "k4", "k5", "k6", "
 impl Distortion {
     /// The pinhole camera: no distortion.
     pub const NONE: Distortion =
-        Distortion { model: LensModel::RadialTangential, k1: 0.0, k2: 0.0, k3: 0.0, k4: 0.0, k5: 0.0, k6: 0.0, p1: 0.0, p2: 0.0, s1: 0.0, s2: 0.0, s3: 0.0, s4: 0.0 };
+        Distortion { model: LensModel::RadialTangential, k1: 0.0, k2: 0.0, k3: 0.0, k4: 0.0, k5: 0.0, k6: 0.0, p1: 0.0, p2: 0.0, s1: 0.0, s2: 0.0, s3: 0.0, s4: 0.0, omega: 0.0 };
 
-    /// The lens of `model` with `coefficients` in [`COEFFICIENT_NAMES`]' order.
+    /// The lens of `model` with `coefficients` in [`COEFFICIENT_NAMES`]' order (`omega` 0).
     pub fn from_coefficients(model: LensModel, c: [f64; 12]) -> Self {
         let [k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4] = c;
-        Distortion { model, k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4 }
+        Distortion { model, k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4, omega: 0.0 }
     }
 
     /// The coefficients in [`COEFFICIENT_NAMES`]' order: `k1..k6`, `p1`, `p2`, `s1..s4`.
@@ -124,7 +131,12 @@ impl Distortion {
 
     /// Whether every coefficient is finite.
     pub fn is_finite(&self) -> bool {
-        self.coefficients().iter().all(|c| c.is_finite())
+        self.coefficients().iter().all(|c| c.is_finite()) && self.omega.is_finite()
+    }
+
+    /// The [`LensModel::Fov`] lens of field of view `omega` (radians).
+    pub fn fov(omega: f64) -> Self {
+        Distortion { model: LensModel::Fov, omega, ..Distortion::NONE }
     }
 
     /// Whether any tangential or thin-prism coefficient is not zero.
@@ -135,6 +147,9 @@ impl Distortion {
     /// The radial factor `R` at `ρ²` and its derivative `dR/d(ρ²)`.
     #[inline]
     fn radial(&self, r2: f64) -> (f64, f64) {
+        if self.model == LensModel::Fov {
+            return self.fov_radial(r2);
+        }
         if self.model == LensModel::RadialTangential {
             let n = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
             let dn = self.k1 + r2 * (2.0 * self.k2 + r2 * 3.0 * self.k3);
@@ -149,6 +164,30 @@ impl Distortion {
             let dr = self.k1 + r2 * (2.0 * self.k2 + r2 * (3.0 * self.k3 + r2 * (4.0 * self.k4 + r2 * (5.0 * self.k5 + r2 * 6.0 * self.k6))));
             (r, dr)
         }
+    }
+
+    /// [`LensModel::Fov`]'s radial factor `R = atan(c·ρ) / (ρ·ω)`, `c = 2·tan(ω/2)`, and
+    /// `dR/d(ρ²)`; near the axis (`c²ρ² < 10⁻⁴`) from the series `atan(t)/t = 1 − t²/3 + t⁴/5 −
+    /// t⁶/7`, which the closed form loses to cancellation there.
+    #[inline]
+    fn fov_radial(&self, r2: f64) -> (f64, f64) {
+        if self.omega == 0.0 {
+            return (1.0, 0.0);
+        }
+        let c = 2.0 * (0.5 * self.omega).tan();
+        let scale = c / self.omega;
+        let t2 = c * c * r2;
+        if t2 < 1e-4 {
+            let r = scale * (1.0 + t2 * (-1.0 / 3.0 + t2 * (1.0 / 5.0 - t2 / 7.0)));
+            let dr = scale * c * c * (-1.0 / 3.0 + t2 * (2.0 / 5.0 - t2 * 3.0 / 7.0));
+            return (r, dr);
+        }
+        let rho = r2.sqrt();
+        let t = c * rho;
+        let r = t.atan() / (rho * self.omega);
+        // dR/dρ = (t/(1 + t²) − atan t) / (ω·ρ²), and d(ρ²) = 2ρ·dρ.
+        let dr = (t / (1.0 + t2) - t.atan()) / (self.omega * r2) / (2.0 * rho);
+        (r, dr)
     }
 
     /// The tangential and thin-prism terms `T(u, v)` and their Jacobian.
@@ -323,6 +362,18 @@ impl Distortion {
         if self.model.is_fisheye() && !tangential {
             return self.undistort_theta(xd, yd);
         }
+        if self.model == LensModel::Fov && self.omega != 0.0 {
+            // The closed form: ρ = tan(ρ_d·ω) / (2·tan(ω/2)), for ρ_d·ω below a right angle.
+            let rho_d = (xd * xd + yd * yd).sqrt();
+            if rho_d < 1e-12 {
+                let s = 1.0 / self.fov_radial(0.0).0;
+                return ([xd * s, yd * s, 1.0], true);
+            }
+            let angle = rho_d * self.omega;
+            let s = angle.tan() / (2.0 * (0.5 * self.omega).tan()) / rho_d;
+            let ok = angle.abs() < std::f64::consts::FRAC_PI_2 && s.is_finite() && s > 0.0;
+            return ([xd * s, yd * s, 1.0], ok);
+        }
         let (a, b) = match self.model {
             LensModel::Fisheye624 if tangential => {
                 let (u, v) = self.newton::<false, true>(xd, yd);
@@ -353,6 +404,10 @@ impl std::fmt::Display for Distortion {
             write!(f, "{} {name} {c}", if any { "," } else { "" })?;
             any = true;
         }
+        if self.model == LensModel::Fov {
+            write!(f, " omega {}", self.omega)?;
+            any = true;
+        }
         if !any {
             write!(f, " no coefficients")?;
         }
@@ -365,14 +420,15 @@ mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
 
-    /// Random lenses of every model, each with the terms real calibrations have: even indices
-    /// radial–tangential (every other one rational, with thin prism), then fisheyes with and
-    /// without tangential terms, and `Fisheye624`s.
+    /// Random lenses of every model, each with the terms real calibrations have: by index mod 7,
+    /// radial–tangential (0: OpenCV's common five, 1: rational, with thin prism), fisheyes
+    /// without and with tangential terms (2, 3), `Fisheye624`s (4, 5) and `FOV` lenses (6).
     fn lenses(rng: &mut impl Rng) -> Vec<Distortion> {
-        (0..60)
+        (0..70)
             .map(|i| {
                 let mut c = || rng.gen_range(-1.0..1.0);
-                match i % 6 {
+                match i % 7 {
+                    6 => Distortion::fov(0.9 + 0.6 * c()),
                     0 => Distortion { k1: 0.2 * c(), k2: 0.05 * c(), k3: 0.01 * c(), p1: 0.01 * c(), p2: 0.01 * c(), ..Distortion::NONE },
                     1 => Distortion {
                         k1: 0.2 * c(),
@@ -416,6 +472,7 @@ mod tests {
                         s2: 0.0005 * c(),
                         s3: 0.002 * c(),
                         s4: 0.0005 * c(),
+                        omega: 0.0,
                     },
                 }
             })
@@ -441,7 +498,7 @@ mod tests {
                 let d = lens.undistort_dir(xd, yd).unwrap_or_else(|| panic!("{lens:?} at θ {theta}"));
                 let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                 assert!((0..3).all(|a| (d[a] / n - p[a]).abs() < 1e-9), "{lens:?}: {d:?} against {p:?}");
-                if lens.model == LensModel::RadialTangential {
+                if !lens.model.is_fisheye() {
                     assert_eq!(d[2], 1.0, "z = 1");
                 } else {
                     assert!((n - 1.0).abs() < 1e-12, "a fisheye's direction is a unit vector");
@@ -470,6 +527,26 @@ mod tests {
         }
         assert_eq!(Distortion::NONE.undistort_dir(0.3, -0.7), Some([0.3, -0.7, 1.0]));
         assert!(barrel.project([0.1, 0.0, 0.0]).is_none());
+    }
+
+    /// The FOV lens's radial factor near its axis, where it switches to the series, agrees with
+    /// the closed form on either side, and both slopes with the factor's central differences.
+    #[test]
+    fn the_fov_series_meets_the_closed_form() {
+        let lens = Distortion::fov(1.1);
+        let c = 2.0 * 0.55f64.tan();
+        let edge = 1e-4 / (c * c);
+        for r2 in [0.5 * edge, 0.999 * edge, 1.001 * edge, 2.0 * edge] {
+            let (r, dr) = lens.fov_radial(r2);
+            let rho = r2.sqrt();
+            let closed = (c * rho).atan() / (rho * 1.1);
+            assert!((r - closed).abs() < 1e-13, "{r} against {closed} at ρ² {r2}");
+            let h = 1e-3 * edge;
+            let fd = (lens.fov_radial(r2 + h).0 - lens.fov_radial(r2 - h).0) / (2.0 * h);
+            assert!((dr - fd).abs() < 1e-6 * dr.abs(), "{dr} against {fd} at ρ² {r2}");
+        }
+        assert_eq!(Distortion::fov(0.0).distort(0.3, 0.4), (0.3, 0.4), "ω → 0 is the pinhole");
+        assert!(lens.undistort_dir(1.6 / 1.1, 0.0).is_none(), "ρ_d·ω past a right angle");
     }
 
     /// Each stage's Jacobian against central differences, for every model and each stage
@@ -544,6 +621,11 @@ mod tests {
             );
             let ours = Distortion::from_coefficients(LensModel::Fisheye624, [k0, k1, k2, k3, k4, k5, p1, p0, s0, s1, s2, s3]);
             assert!(close(ours.distort(x, y), aria), "nerfstudio's FISHEYE624");
+
+            // COLMAP's FOV: factor atan(r·2·tan(ω/2)) / (r·ω), its closed form.
+            let omega = 0.9 + c(0.6);
+            let factor = (r * 2.0 * (omega / 2.0).tan()).atan() / (r * omega);
+            assert!(close(Distortion::fov(omega).distort(x, y), (x * factor, y * factor)), "COLMAP's FOV");
         }
     }
 }
