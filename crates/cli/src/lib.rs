@@ -16,7 +16,7 @@
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
-use nerf::data::{load_scene, write_blender, LoadOptions, Split, ViewSelection};
+use nerf::data::{load_scene, write_blender, CameraPathFile, LoadOptions, Split, ViewSelection};
 use nerf::field::{merge_json, Registry};
 use nerf::rays::Projection;
 use nerf::train::{make_trainer, run, Checkpoint, RunOptions, SceneBounds, TrainConfig, TrainError};
@@ -267,7 +267,8 @@ struct RenderArgs {
     run: PathBuf,
     /// The scene the run was trained on: its cameras define the path (see `--path`).
     scene: PathBuf,
-    /// Frames of the path (evenly spaced) [default: 60].
+    /// Frames of the path (evenly spaced) [default: 60; along an instant-ngp camera path, 60 a
+    /// second of it].
     #[arg(long)]
     frames: Option<usize>,
     /// The path: `orbit` (a turntable at the training cameras' distance and elevation around
@@ -277,9 +278,11 @@ struct RenderArgs {
     #[arg(long, value_enum, default_value = "auto", conflicts_with = "camera_path")]
     path: PathKind,
     /// Render along this camera path instead: a nerfstudio `camera_path.json` (what its viewer
-    /// exports; poses in the frame of the scene's cameras, see docs/formats.md). Every render writes
-    /// the path it took as such a file, to edit and render again.
-    #[arg(long = "camera-path", value_name = "FILE", conflicts_with = "frames")]
+    /// exports; poses in the frame of the scene's cameras, see docs/formats.md), or an
+    /// instant-ngp `base_cam.json` (what its camera-path editor saves; keyframes in instant-ngp's
+    /// space, splined as instant-ngp does, `--frames` frames or 60 a second of the path). Every
+    /// render writes the path it took as a nerfstudio file, to edit and render again.
+    #[arg(long = "camera-path", value_name = "FILE")]
     camera_path: Option<PathBuf>,
     /// What a frame is: `perspective` (a pinhole camera with the training views' intrinsics),
     /// `fisheye` (nerfstudio's equidistant fisheye with those intrinsics: as wide in focal lengths,
@@ -854,12 +857,19 @@ fn load_run(registry: &Registry, run: &Path, scene: &Path, device: nerf::gpu::De
 /// rays, colours and depths are held in memory at once, about 56 bytes a pixel (3.8 GB here).
 const MAX_RENDER_PIXELS: u64 = 1 << 26;
 
+/// Frames a second of an instant-ngp camera path: the frame rate of instant-ngp's video renders
+/// (`run.py --video_fps`, its GUI's render settings).
+const NGP_VIDEO_FPS: f64 = 60.0;
+
 fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     if a.frames == Some(0) {
         bail!("--frames must be at least 1");
     }
     // A user's path is read before the checkpoint, so a typo there fails fast.
-    let user_path = a.camera_path.as_deref().map(nerf::data::load_camera_path).transpose()?;
+    let user_path = a.camera_path.as_deref().map(nerf::data::read_camera_path).transpose()?;
+    if let (Some(CameraPathFile::Nerfstudio(_)), Some(_)) = (&user_path, a.frames) {
+        bail!("--frames: {} is a nerfstudio camera path, which has one camera per frame", a.camera_path.as_deref().unwrap_or(Path::new("")).display());
+    }
     let LoadedRun { config, step, train, mut trainer } = load_run(registry, &a.run, &a.scene, a.device, None, false)?;
     trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
     if let Some(s) = a.step_size {
@@ -888,7 +898,8 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         Ok(k)
     };
     let projection = match (&user_path, a.camera_type) {
-        (Some(p), _) => p.projection,
+        (Some(CameraPathFile::Nerfstudio(p)), _) => p.projection,
+        (Some(CameraPathFile::InstantNgp(_)), _) => Projection::Perspective,
         (None, CameraType::Perspective) => Projection::Perspective,
         (None, CameraType::Fisheye) => Projection::Fisheye,
         (None, CameraType::Equirectangular) => Projection::Equirectangular,
@@ -901,12 +912,28 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         );
     }
     let (path, path_fps) = match user_path {
-        Some(p) => {
+        Some(CameraPathFile::Nerfstudio(p)) => {
             let mut cams = p.cameras;
             for c in &mut cams {
                 c.intrinsics = sized(c.intrinsics)?;
             }
             (cams, p.fps)
+        }
+        Some(CameraPathFile::InstantNgp(p)) => {
+            let file = a.camera_path.as_deref().unwrap_or(Path::new(""));
+            let space = nerf::data::NgpSpace::of(&train).with_context(|| {
+                format!(
+                    "{}: an instant-ngp camera path needs a scene instant-ngp reads (transforms files or a COLMAP model); {} is an LLFF scene, \
+                     whose cameras are in nerf-pytorch's recentred frame",
+                    file.display(),
+                    a.scene.display()
+                )
+            })?;
+            // The frames are the size of the training images' (`--width` scales them), each
+            // with its keyframes' field of view; instant-ngp renders 60 frames a second.
+            let k = sized(train.cameras[0].intrinsics)?;
+            let frames = a.frames.unwrap_or_else(|| (p.duration_seconds() * NGP_VIDEO_FPS).round().max(1.0) as usize);
+            (p.cameras(file, frames, k.width, k.height, &space)?, Some(NGP_VIDEO_FPS))
         }
         None => {
             let k = match projection {

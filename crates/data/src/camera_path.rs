@@ -1,5 +1,6 @@
 //! Camera paths in nerfstudio's `camera_path.json` format, read by `nerf render --camera-path`
 //! and written beside every render so a path can be edited and rendered again.
+//! [`read_camera_path`] also reads instant-ngp's ([`crate::ngp_path`]).
 //!
 //! The file (what nerfstudio's viewer exports and `ns-render camera-path` reads):
 //!
@@ -22,7 +23,7 @@ use std::path::Path;
 
 use nerf_rays::{Camera, Intrinsics, Projection};
 
-use crate::DataError;
+use crate::{DataError, NgpCameraPath};
 
 /// A camera path: one camera per frame and the frame rate the file asks for.
 #[derive(Clone, Debug)]
@@ -42,9 +43,37 @@ pub struct CameraPath {
 /// (0, 180); not needed by equirectangular paths), a camera type other than perspective, fisheye
 /// and equirectangular, an empty path.
 pub fn load_camera_path(path: &Path) -> Result<CameraPath, DataError> {
+    parse_camera_path(path, &read_json(path)?)
+}
+
+/// A camera path file in either format ([`read_camera_path`]).
+#[derive(Clone, Debug)]
+pub enum CameraPathFile {
+    /// nerfstudio's `camera_path.json`: one camera per frame.
+    Nerfstudio(CameraPath),
+    /// instant-ngp's `base_cam.json`: keyframes in instant-ngp's space, to be placed in a
+    /// scene's frame ([`crate::NgpSpace`]) and splined into frames ([`NgpCameraPath::cameras`]).
+    InstantNgp(NgpCameraPath),
+}
+
+/// Reads a camera path in nerfstudio's format ([`load_camera_path`]) or instant-ngp's
+/// ([`NgpCameraPath`]): a file with a `path` and no `camera_path` is instant-ngp's. Errors
+/// as those readers'.
+pub fn read_camera_path(path: &Path) -> Result<CameraPathFile, DataError> {
+    let v = read_json(path)?;
+    if v.get("camera_path").is_none() && v.get("path").is_some() {
+        return NgpCameraPath::parse(path, &v).map(CameraPathFile::InstantNgp);
+    }
+    parse_camera_path(path, &v).map(CameraPathFile::Nerfstudio)
+}
+
+fn read_json(path: &Path) -> Result<serde_json::Value, DataError> {
     let text = std::fs::read_to_string(path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })?;
-    let v: serde_json::Value =
-        serde_json::from_str(&text).map_err(|source| DataError::Json { path: path.to_path_buf(), source })?;
+    serde_json::from_str(&text).map_err(|source| DataError::Json { path: path.to_path_buf(), source })
+}
+
+/// [`load_camera_path`] of a file already parsed.
+fn parse_camera_path(path: &Path, v: &serde_json::Value) -> Result<CameraPath, DataError> {
     let missing = |key: &str| DataError::MissingKey { path: path.to_path_buf(), key: key.into() };
     let invalid = |key: &str, reason: String| DataError::InvalidValue { path: path.to_path_buf(), key: key.into(), reason };
     if !v.is_object() {

@@ -18,7 +18,8 @@
 //! of all views, or over those the views' masks keep ([`mask`]); optional jitter and random
 //! backgrounds), [`Dataset::view_rays`] for evaluation.
 //! Forward-facing scenes give their rays in NDC ([`Dataset::ndc`], [`Dataset::warp`]).
-//! Camera paths to render along are read and written in nerfstudio's format ([`camera_path`]).
+//! Camera paths to render along are read and written in nerfstudio's format ([`camera_path`]),
+//! and read in instant-ngp's ([`ngp_path`]).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -32,12 +33,14 @@ pub mod colmap;
 pub mod depth;
 pub mod equirect;
 pub use colmap::is_colmap;
-pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, CameraPath};
+pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, read_camera_path, CameraPath, CameraPathFile};
 pub mod llff;
 pub use llff::{is_llff, load_llff};
 pub mod mask;
 pub use mask::PixelMasks;
 pub mod ngp;
+pub mod ngp_path;
+pub use ngp_path::{NgpCameraPath, NgpSpace};
 pub mod pixels;
 pub use ngp::{Distortion, Focal, Lens, LensModel, NerfstudioNormalization, NgpBox};
 pub use pixels::Pixels;
