@@ -281,7 +281,8 @@ struct RenderArgs {
     /// exports; poses in the frame of the scene's cameras, see docs/formats.md), or an
     /// instant-ngp `base_cam.json` (what its camera-path editor saves; keyframes in instant-ngp's
     /// space, splined as instant-ngp does, `--frames` frames or 60 a second of the path). Every
-    /// render writes the path it took as a nerfstudio file, to edit and render again.
+    /// render writes the path it took in nerfstudio's format and, where it can, instant-ngp's,
+    /// to edit and render again.
     #[arg(long = "camera-path", value_name = "FILE")]
     camera_path: Option<PathBuf>,
     /// What a frame is: `perspective` (a pinhole camera with the training views' intrinsics),
@@ -295,7 +296,8 @@ struct RenderArgs {
     /// keeps the aspect.
     #[arg(long)]
     width: Option<u32>,
-    /// Where to write frame_0000.png, …, render.json and camera_path.json (default: `RUN/render`).
+    /// Where to write frame_0000.png, …, render.json, camera_path.json and (perspective frames
+    /// of a scene instant-ngp reads) base_cam.json (default: `RUN/render`).
     #[arg(long)]
     out: Option<PathBuf>,
     /// No progress bar.
@@ -1028,6 +1030,17 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     // The path as nerfstudio's camera_path.json: `--camera-path` renders it again.
     let text = serde_json::to_string_pretty(&nerf::data::camera_path_json(&path, projection, video_fps))?;
     nerf::train::run::write_atomic(&out.join("camera_path.json"), text.as_bytes())?;
+    // And as instant-ngp's base_cam.json, for its GUI (and `--camera-path` again), where the
+    // scene has an instant-ngp space and the frames are perspective: the same frames at 60 a
+    // second.
+    let ngp_path = (projection == Projection::Perspective)
+        .then(|| nerf::data::NgpSpace::of(&train))
+        .flatten()
+        .and_then(|space| nerf::data::NgpCameraPath::from_cameras(&path, &space, NGP_VIDEO_FPS));
+    if let Some(p) = ngp_path {
+        let text = serde_json::to_string_pretty(&p.to_json())?;
+        nerf::train::run::write_atomic(&out.join("base_cam.json"), text.as_bytes())?;
+    }
     if interrupted {
         return Err(RenderInterrupted { done, total: n_frames, out }.into());
     }

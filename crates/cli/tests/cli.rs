@@ -897,7 +897,8 @@ fn ngp_keyframe(c2w: &[[f64; 4]]) -> ([f64; 4], [f64; 3]) {
 /// `nerf render --camera-path` reads instant-ngp's `base_cam.json`: a keyframe made from one of
 /// an orbit's cameras (put into instant-ngp's space by its formulas) renders that orbit frame
 /// again; a path of two keyframes 0.1 s long is 6 frames at 60 a second, moving evenly from the
-/// first camera to the second (a linear spline).
+/// first camera to the second (a linear spline). The `base_cam.json` written beside the orbit
+/// renders the orbit again.
 #[test]
 fn render_follows_an_instant_ngp_camera_path() {
     let d = tempfile::tempdir().unwrap();
@@ -954,6 +955,26 @@ fn render_follows_an_instant_ngp_camera_path() {
             assert!((x - want).abs() < 1e-4, "frame {i}, position {row}: {x} vs {want}");
         }
     }
+    // The orbit's own base_cam.json replays it: 3 frames at 60 a second, the same cameras.
+    let again = d.path().join("again");
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(orbit.join("base_cam.json"))
+        .args(["--width", "20", "--device", "cpu", "--quiet", "--out"]).arg(&again).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let got = json(&again.join("render.json"));
+    assert_eq!(got["frames"], 3);
+    for i in 0..3 {
+        for row in 0..3 {
+            for c in 0..4 {
+                let (x, y) = (got["camera_to_world"][i][row][c].as_f64().unwrap(), c2w(i)[row][c]);
+                assert!((x - y).abs() < 1e-5, "frame {i}, camera_to_world[{row}][{c}]: {x} vs {y}");
+            }
+        }
+    }
+    // A panorama's path has no instant-ngp form.
+    let pano = d.path().join("pano");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--camera-type", "equirectangular", "--frames", "1", "--width", "8", "--device", "cpu", "--quiet", "--out"]).arg(&pano).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(pano.join("camera_path.json").is_file() && !pano.join("base_cam.json").exists());
     // Bad files are refused by key.
     std::fs::write(d.path().join("bad.json"), r#"{"path": [{"R": [0, 0, 0, 1], "T": [0.5, 0.5]}]}"#).unwrap();
     let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(d.path().join("bad.json")).output().unwrap();

@@ -651,6 +651,19 @@ impl NerfstudioNormalization {
             c2w[i][3] = (self.scale * (r[i][0] * d[0] + r[i][1] * d[1] + r[i][2] * d[2])) as f32;
         }
     }
+
+    /// The inverse of [`NerfstudioNormalization::apply`]: a camera-to-world matrix of the
+    /// normalised frame in the file's, `Rᵀ·rotation_block`, `Rᵀ·t / s + c`.
+    pub fn unapply(&self, c2w: &mut [[f32; 4]]) {
+        let r = &self.rotation;
+        let m: [[f64; 4]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| c2w[i][j] as f64));
+        for i in 0..3 {
+            for j in 0..3 {
+                c2w[i][j] = (r[0][i] * m[0][j] + r[1][i] * m[1][j] + r[2][i] * m[2][j]) as f32;
+            }
+            c2w[i][3] = ((r[0][i] * m[0][3] + r[1][i] * m[1][3] + r[2][i] * m[2][3]) / self.scale + self.center[i]) as f32;
+        }
+    }
 }
 
 /// nerfstudio's `rotation_matrix_between(a, b)`: the rotation about `a × b` taking the direction

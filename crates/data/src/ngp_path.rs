@@ -273,6 +273,51 @@ impl NgpCameraPath {
     }
 }
 
+impl NgpCameraPath {
+    /// The path that replays `cameras` frame for frame when read back and rendered at
+    /// `fps` frames a second, which [`NgpCameraPath::cameras`] does with `cameras.len()` frames
+    /// (and `nerf render` by default): one keyframe per camera, in instant-ngp's space, its
+    /// vertical field of view from `fy`, the last one twice (an open path ends at its last
+    /// keyframe, which no frame reaches), linear (`spline_order` 1). For `n` cameras, keyframe
+    /// `i` of the `n + 1` is timestamped `n·(i + 1) / ((n + 1)·fps)`: the path lasts `n / fps`
+    /// seconds and frame `i` lands on keyframe `i`. `None` for no cameras.
+    pub fn from_cameras(cameras: &[Camera], space: &NgpSpace, fps: f64) -> Option<Self> {
+        let last = cameras.last()?;
+        let n = cameras.len() as f64;
+        let keyframes = cameras
+            .iter()
+            .chain(std::iter::once(last))
+            .enumerate()
+            .map(|(i, c)| {
+                let fov = 2.0 * (0.5 * f64::from(c.intrinsics.height) / f64::from(c.intrinsics.fy)).atan();
+                NgpKeyframe::from_matrix(space.to_ngp(&c.c2w()), fov.to_degrees(), n * (i + 1) as f64 / ((n + 1.0) * fps))
+            })
+            .collect();
+        Some(Self { keyframes, looped: false, spline_order: 1 })
+    }
+
+    /// The path as instant-ngp's `base_cam.json` (what its GUI's camera-path editor loads):
+    /// `loop`, `time`, `spline_order`, `duration_seconds` and the keyframes' `R`, `T`, `fov`,
+    /// `timestamp`, with the keys instant-ngp's older versions require (`scale`, `slice`,
+    /// `aperture_size`, `dof`) at their defaults.
+    pub fn to_json(&self) -> Value {
+        let path: Vec<Value> = self
+            .keyframes
+            .iter()
+            .map(|k| {
+                serde_json::json!({
+                    "R": k.rotation, "T": k.position, "fov": k.fov, "timestamp": k.timestamp,
+                    "scale": 1.5, "slice": 0.0, "aperture_size": 0.0, "dof": 0.0,
+                })
+            })
+            .collect();
+        serde_json::json!({
+            "loop": self.looped, "time": 0.0, "spline_order": self.spline_order,
+            "duration_seconds": self.duration_seconds(), "path": path,
+        })
+    }
+}
+
 /// instant-ngp's `ngp_matrix_to_nerf`: a camera matrix of instant-ngp's space (columns right,
 /// down, forward, position; row-major) as a camera-to-world matrix of the transforms file's frame
 /// (OpenGL axes: right, up, back) for a scene placed by `placement`: the rows cycled back
@@ -323,6 +368,16 @@ impl NgpSpace {
             None => ds.ngp.unwrap_or_default(),
         };
         Some(Self { placement, normalization: ds.normalization })
+    }
+
+    /// A camera-to-world matrix (3 or 4 rows) of the dataset's frame as a camera matrix of
+    /// instant-ngp's space: the inverse of [`NgpSpace::to_scene`].
+    pub fn to_ngp(&self, c2w: &[[f32; 4]]) -> [[f64; 4]; 3] {
+        let mut m: [[f32; 4]; 3] = [c2w[0], c2w[1], c2w[2]];
+        if let Some(n) = &self.normalization {
+            n.unapply(&mut m);
+        }
+        nerf_matrix_to_ngp(std::array::from_fn(|i| std::array::from_fn(|j| f64::from(m[i][j]))), &self.placement)
     }
 
     /// A camera matrix of instant-ngp's space as a camera-to-world matrix (3 rows) of the
@@ -463,6 +518,51 @@ mod tests {
         let p = path(ks, false, 1);
         assert_eq!(p.keyframes.iter().map(|k| k.timestamp).collect::<Vec<_>>(), vec![1.0, 2.0, 3.0]);
         assert_eq!(p.duration_seconds(), 3.0);
+    }
+
+    /// A written path read back gives the cameras it was written from, frame for frame, in a
+    /// file's placement and through nerfstudio's normalisation alike.
+    #[test]
+    fn written_paths_replay_their_cameras() {
+        use nerf_rays::glam::{Mat3, Quat, Vec3};
+        use nerf_rays::Intrinsics;
+        let k = Intrinsics { width: 40, height: 30, fx: 35.0, fy: 35.0, cx: 20.0, cy: 15.0 };
+        let cams: Vec<Camera> = (0..5)
+            .map(|i| {
+                let a = i as f32 * 0.4;
+                let rot = Mat3::from_quat(Quat::from_euler(nerf_rays::glam::EulerRot::ZXY, a, 0.3 + 0.1 * a, -0.2));
+                let pos = Vec3::new(2.0 * a.cos(), 2.0 * a.sin(), 0.5 + 0.1 * a);
+                let mut c2w = [[0.0f32; 4]; 3];
+                for r in 0..3 {
+                    for col in 0..3 {
+                        c2w[r][col] = rot.col(col)[r];
+                    }
+                    c2w[r][3] = pos[r];
+                }
+                Camera::from_c2w(k, &c2w).unwrap()
+            })
+            .collect();
+        let normalization = NerfstudioNormalization::of(&cams.iter().map(|c| c.c2w()).collect::<Vec<_>>().iter().map(|m| &m[..]).collect::<Vec<_>>());
+        assert!(normalization.is_some());
+        for space in [
+            NgpSpace { placement: NgpBox { scale: 0.2, offset: [0.4, 0.5, 0.6], aabb_scale: 2.0 }, normalization: None },
+            NgpSpace { placement: NgpBox::default(), normalization },
+        ] {
+            let p = NgpCameraPath::from_cameras(&cams, &space, 60.0).unwrap();
+            let back = NgpCameraPath::parse(Path::new("base_cam.json"), &p.to_json()).unwrap();
+            assert_eq!(back.keyframes.len(), 6);
+            assert!((back.duration_seconds() * 60.0 - 5.0).abs() < 1e-9, "5 frames at 60 a second");
+            let again = back.cameras(Path::new("base_cam.json"), cams.len(), k.width, k.height, &space).unwrap();
+            for (i, (a, b)) in cams.iter().zip(&again).enumerate() {
+                let (ma, mb) = (a.c2w(), b.c2w());
+                for r in 0..3 {
+                    for c in 0..4 {
+                        assert!((ma[r][c] - mb[r][c]).abs() < 2e-5, "frame {i} [{r}][{c}]: {ma:?} vs {mb:?}");
+                    }
+                }
+                assert!((a.intrinsics.fy - b.intrinsics.fy).abs() < 1e-3 && b.intrinsics.cx == 20.0, "{:?}", b.intrinsics);
+            }
+        }
     }
 
     /// Errors name the file and the key.
