@@ -181,8 +181,9 @@ pub fn sfm_depths(cam: &Camera, points: impl Iterator<Item = [f64; 3]>) -> Vec<f
     let mut out = vec![0.0f32; w * h];
     for p in points {
         let q = nerf_rays::glam::Vec3::from_array(p.map(|c| c as f32));
-        let z = cam.to_opencv(q)[2];
-        let Some((u, v)) = cam.project(q).filter(|_| z > 0.0) else { continue };
+        let c = cam.to_opencv(q);
+        let z = c[2];
+        let Some((u, v)) = cam.project_opencv(c).filter(|_| z > 0.0) else { continue };
         if !(u >= 0.0 && v >= 0.0 && u < w as f64 && v < h as f64) {
             continue;
         }

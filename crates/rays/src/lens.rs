@@ -166,6 +166,13 @@ impl Distortion {
         }
     }
 
+    /// [`LensModel::Fov`]'s constant `c = 2·tan(ω/2)`: a ray `ρ` off the axis (on the plane
+    /// `z = 1`) lands `atan(c·ρ)/ω` from the centre.
+    #[inline]
+    fn fov_c(&self) -> f64 {
+        2.0 * (0.5 * self.omega).tan()
+    }
+
     /// [`LensModel::Fov`]'s radial factor `R = atan(c·ρ) / (ρ·ω)`, `c = 2·tan(ω/2)`, and
     /// `dR/d(ρ²)`; near the axis (`c²ρ² < 10⁻⁴`) from the series `atan(t)/t = 1 − t²/3 + t⁴/5 −
     /// t⁶/7`, which the closed form loses to cancellation there.
@@ -174,7 +181,7 @@ impl Distortion {
         if self.omega == 0.0 {
             return (1.0, 0.0);
         }
-        let c = 2.0 * (0.5 * self.omega).tan();
+        let c = self.fov_c();
         let scale = c / self.omega;
         let t2 = c * c * r2;
         if t2 < 1e-4 {
@@ -370,12 +377,13 @@ impl Distortion {
                 return ([xd * s, yd * s, 1.0], true);
             }
             let angle = rho_d * self.omega;
-            let s = angle.tan() / (2.0 * (0.5 * self.omega).tan()) / rho_d;
+            let s = angle.tan() / self.fov_c() / rho_d;
             let ok = angle.abs() < std::f64::consts::FRAC_PI_2 && s.is_finite() && s > 0.0;
             return ([xd * s, yd * s, 1.0], ok);
         }
         let (a, b) = match self.model {
-            LensModel::Fisheye624 if tangential => {
+            // (A fisheye without tangential terms took the 1-D path above.)
+            LensModel::Fisheye624 => {
                 let (u, v) = self.newton::<false, true>(xd, yd);
                 self.newton::<true, false>(u, v)
             }
@@ -553,9 +561,11 @@ mod tests {
     /// alone or both together.
     #[test]
     fn the_jacobian_is_the_derivative() {
+        /// A stage: the distorted point and its Jacobian.
+        type Stage = fn(&Distortion, f64, f64) -> ((f64, f64), [[f64; 2]; 2]);
         let mut rng = rand::rngs::StdRng::seed_from_u64(3);
         for lens in lenses(&mut rng) {
-            let stages: [fn(&Distortion, f64, f64) -> ((f64, f64), [[f64; 2]; 2]); 3] =
+            let stages: [Stage; 3] =
                 [Distortion::stage::<true, false>, Distortion::stage::<false, true>, Distortion::stage::<true, true>];
             for stage in stages {
                 let (x, y) = (rng.gen_range(-0.8..0.8), rng.gen_range(-0.8..0.8));

@@ -504,8 +504,13 @@ impl Camera {
     /// `None` where it images nothing (behind a pinhole camera, or on a fisheye's backward
     /// axis).
     pub fn project(&self, p: Vec3) -> Option<(f64, f64)> {
+        self.project_opencv(self.to_opencv(p))
+    }
+
+    /// [`Camera::project`] of a point already in OpenCV's camera axes ([`Camera::to_opencv`]).
+    pub fn project_opencv(&self, c: [f64; 3]) -> Option<(f64, f64)> {
         let k = &self.intrinsics;
-        let (xd, yd) = self.distortion.project(self.to_opencv(p))?;
+        let (xd, yd) = self.distortion.project(c)?;
         Some((k.fx as f64 * xd + k.cx as f64, k.fy as f64 * yd + k.cy as f64))
     }
 
