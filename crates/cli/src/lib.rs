@@ -322,6 +322,15 @@ struct RenderArgs {
     /// training step unless set; occupancy sampler only), as `nerf eval --step-size`.
     #[arg(long)]
     step_size: Option<f32>,
+    /// Rays per pixel, averaged: anti-aliased frames (instant-ngp renders its videos with 8),
+    /// at that many times the render time. The rays go through a lattice of points over each
+    /// pixel, as `nerf eval --spp` places them [default: 1, the pixel's centre].
+    #[arg(long, default_value_t = 1)]
+    spp: u32,
+    /// Pixel filter the `--spp` rays are placed by, as `nerf eval --filter` [default: the run's
+    /// `eval_filter`, box unless set].
+    #[arg(long, value_parser = parse_pixel_filter)]
+    filter: Option<nerf::rays::PixelFilter>,
 }
 
 #[derive(Args)]
@@ -856,7 +865,8 @@ fn load_run(registry: &Registry, run: &Path, scene: &Path, device: nerf::gpu::De
 }
 
 /// The most pixels `nerf render` renders in one frame (8192², e.g. an 8K panorama): a frame's
-/// rays, colours and depths are held in memory at once, about 56 bytes a pixel (3.8 GB here).
+/// rays, colours and depths are held in memory at once, about 56 bytes a pixel (3.8 GB here;
+/// 20 more with `--spp` above 1, for the sums).
 const MAX_RENDER_PIXELS: u64 = 1 << 26;
 
 /// Frames a second of an instant-ngp camera path: the frame rate of instant-ngp's video renders
@@ -866,6 +876,9 @@ const NGP_VIDEO_FPS: f64 = 60.0;
 fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     if a.frames == Some(0) {
         bail!("--frames must be at least 1");
+    }
+    if !(1..=nerf::train::config::MAX_EVAL_SPP).contains(&a.spp) {
+        bail!("--spp {}: must be 1..={} rays per pixel", a.spp, nerf::train::config::MAX_EVAL_SPP);
     }
     // A user's path is read before the checkpoint, so a typo there fails fast.
     let user_path = a.camera_path.as_deref().map(nerf::data::read_camera_path).transpose()?;
@@ -983,6 +996,9 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let bg: Vec<f32> = config.eval_background.fixed_rgb().repeat(n);
     let (mut o, mut d) = (Vec::new(), Vec::new());
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
+    // Supersampling: each frame is the mean of its renders through these points of each pixel.
+    let points = config.pixel_convention.sample_offsets_filtered(a.spp as usize, a.filter.unwrap_or(config.eval_filter));
+    let mut sums = (points.len() > 1).then(|| (vec![0.0f32; 3 * n], vec![0.0f32; n], vec![0.0f32; n]));
     let mut render_seconds = 0.0;
     let (mut depth_range, mut gray) = (None, Vec::new());
     let mut gif = a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?;
@@ -995,11 +1011,28 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             break;
         }
         pb.set_position(i as u64);
-        cam.frame_rays_into(projection, config.pixel_convention, &mut o, &mut d);
-        train.warp_rays(&mut o, &mut d);
-        let t = std::time::Instant::now();
-        trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
-        render_seconds += t.elapsed().as_secs_f64();
+        for (j, &point) in points.iter().enumerate() {
+            cam.frame_rays_at(projection, point, &mut o, &mut d);
+            train.warp_rays(&mut o, &mut d);
+            let t = std::time::Instant::now();
+            trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
+            render_seconds += t.elapsed().as_secs_f64();
+            if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
+                for (s, x) in [(&mut *s_rgb, &rgb), (&mut *s_opacity, &opacity), (&mut *s_depth, &depth)] {
+                    if j == 0 {
+                        s.copy_from_slice(x);
+                    } else {
+                        s.iter_mut().zip(x.iter()).for_each(|(s, x)| *s += x);
+                    }
+                }
+            }
+        }
+        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_ref() {
+            let k = 1.0 / points.len() as f32;
+            for (x, s) in [(&mut rgb, s_rgb), (&mut opacity, s_opacity), (&mut depth, s_depth)] {
+                x.iter_mut().zip(s.iter()).for_each(|(x, s)| *x = s * k);
+            }
+        }
         nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
         if let Some(g) = gif.as_mut() {
             g.push(&rgb)?;
@@ -1022,7 +1055,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": config.field, "iterations": step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "render_step_size": trainer.config().render_step_size, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;

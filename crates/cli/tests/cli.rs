@@ -981,6 +981,32 @@ fn render_follows_an_instant_ngp_camera_path() {
     assert_clean_failure(&o, &["bad.json", "path[0].T", "3 finite numbers"]);
 }
 
+/// `nerf render --spp N` averages N rays through each pixel: the frame moves a little from the
+/// one-ray frame (which `--spp 1` keeps bit for bit), and render.json records the count.
+#[test]
+fn render_supersamples_with_spp() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let render = |name: &str, extra: &[&str]| -> image::RgbImage {
+        let out = d.path().join(name);
+        let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--width", "24", "--device", "cpu", "--quiet", "--out"]).arg(&out).args(extra).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
+        assert_eq!(r["spp"], extra.get(1).map_or(1, |n| n.parse::<u64>().unwrap()), "{r}");
+        image::open(out.join("frame_0000.png")).unwrap().to_rgb8()
+    };
+    let (one, same, four) = (render("one", &[]), render("same", &["--spp", "1"]), render("four", &["--spp", "4"]));
+    assert_eq!(one.as_raw(), same.as_raw());
+    let diffs: Vec<i32> = one.as_raw().iter().zip(four.as_raw()).map(|(x, y)| (*x as i32 - *y as i32).abs()).collect();
+    let mean = diffs.iter().sum::<i32>() as f64 / diffs.len() as f64;
+    assert!(diffs.iter().any(|&d| d > 0) && mean < 3.0, "four rays a pixel: a little different, mean {mean}");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--spp", "0"]).output().unwrap();
+    assert_clean_failure(&o, &["--spp 0", "rays per pixel"]);
+}
+
 /// Every config shipped in configs/ is accepted by `nerf train` (one step on the in-repo scene,
 /// CPU): a renamed key or a typo there is an error the user would meet first.
 #[test]

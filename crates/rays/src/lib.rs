@@ -706,16 +706,22 @@ impl Camera {
     /// Every pixel's ray, row-major, from the camera-axes direction `dir(u, v)` of its point
     /// (rotated into the world and normalised).
     fn camera_rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3) {
+        let off = conv.offset();
+        self.world_rays_at(off, off, origins, dirs, |u, v| self.rotation * dir(u, v));
+    }
+
+    /// Every pixel's ray, row-major, through the point `(col + ox, row + oy)` of pixel
+    /// `(col, row)`, from the world direction `dir(u, v)` there (normalised).
+    fn world_rays_at(&self, ox: f32, oy: f32, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3) {
         let (w, h) = (self.intrinsics.width, self.intrinsics.height);
         let n = w as usize * h as usize;
         origins.clear();
         dirs.clear();
         origins.reserve(3 * n);
         dirs.reserve(3 * n);
-        let off = conv.offset();
         for row in 0..h {
             for col in 0..w {
-                let d = (self.rotation * dir(col as f32 + off, row as f32 + off)).normalize();
+                let d = dir(col as f32 + ox, row as f32 + oy).normalize();
                 origins.extend_from_slice(&self.position.to_array());
                 dirs.extend_from_slice(&d.to_array());
             }
@@ -747,6 +753,22 @@ impl Camera {
             Projection::Perspective => self.rays_into(conv, origins, dirs),
             Projection::Equirectangular => self.equirect_rays_into(conv, origins, dirs),
             Projection::Fisheye => self.camera_rays_into(conv, origins, dirs, |u, v| self.fisheye_dir(u, v)),
+        }
+    }
+
+    /// [`frame_rays_into`](Self::frame_rays_into) through another point of each pixel: the
+    /// point `offset` from its integer corner (`[0.5, 0.5]` is the centre; one of
+    /// [`PixelConvention::sample_offsets`] for supersampling). At the convention's offset the
+    /// rays are [`frame_rays_into`](Self::frame_rays_into)'s, bit for bit.
+    pub fn frame_rays_at(&self, projection: Projection, offset: [f32; 2], origins: &mut Vec<f32>, dirs: &mut Vec<f32>) {
+        let [ox, oy] = offset;
+        match projection {
+            Projection::Perspective => self.world_rays_at(ox, oy, origins, dirs, |u, v| self.dir_at_unnormalized(u, v)),
+            Projection::Equirectangular => {
+                let (w, h) = (self.intrinsics.width, self.intrinsics.height);
+                self.world_rays_at(ox, oy, origins, dirs, |u, v| self.rotation * Self::equirect_dir(w, h, u, v))
+            }
+            Projection::Fisheye => self.world_rays_at(ox, oy, origins, dirs, |u, v| self.rotation * self.fisheye_dir(u, v)),
         }
     }
 }
@@ -1065,6 +1087,27 @@ mod tests {
         cam.frame_rays_into(Projection::Perspective, PixelConvention::Center, &mut o2, &mut d2);
         cam.rays_into(PixelConvention::Center, &mut o, &mut d);
         assert_eq!((o, d), (o2, d2));
+    }
+
+    /// `frame_rays_at` at the convention's point is `frame_rays_into`, bit for bit, for every
+    /// projection and either convention; elsewhere in the pixel it is the ray through that point.
+    #[test]
+    fn frame_rays_at_moves_the_point_in_the_pixel() {
+        let cam = Camera { intrinsics: Intrinsics { width: 12, height: 9, fx: 10.0, fy: 11.0, cx: 6.5, cy: 4.0 }, ..test_camera() };
+        let (mut o, mut d, mut o2, mut d2) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for projection in [Projection::Perspective, Projection::Equirectangular, Projection::Fisheye] {
+            for conv in [PixelConvention::Center, PixelConvention::Integer] {
+                cam.frame_rays_into(projection, conv, &mut o, &mut d);
+                cam.frame_rays_at(projection, [conv.offset(); 2], &mut o2, &mut d2);
+                assert_eq!((&o, &d), (&o2, &d2), "{projection:?} {conv:?}");
+            }
+        }
+        cam.frame_rays_at(Projection::Perspective, [0.25, 0.875], &mut o, &mut d);
+        let k = 4 * 12 + 7; // row 4, column 7
+        assert_eq!(&d[3 * k..3 * k + 3], &cam.ray_at(7.25, 4.875).dir.to_array());
+        let fish = cam.rotation * cam.fisheye_dir(7.25, 4.875);
+        cam.frame_rays_at(Projection::Fisheye, [0.25, 0.875], &mut o, &mut d);
+        assert!((Vec3::from_slice(&d[3 * k..3 * k + 3]) - fish.normalize()).length() < 1e-6);
     }
 
     #[test]
