@@ -998,7 +998,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
     // Supersampling: each frame is the mean of its renders through these points of each pixel.
     let points = config.pixel_convention.sample_offsets_filtered(a.spp as usize, a.filter.unwrap_or(config.eval_filter));
-    let mut sums = (points.len() > 1).then(|| (vec![0.0f32; 3 * n], vec![0.0f32; n], vec![0.0f32; n]));
+    let mut mean = nerf::train::PassMean::new(points.len());
     let mut render_seconds = 0.0;
     let (mut depth_range, mut gray) = (None, Vec::new());
     let mut gif = a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?;
@@ -1017,22 +1017,9 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             let t = std::time::Instant::now();
             trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
             render_seconds += t.elapsed().as_secs_f64();
-            if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
-                for (s, x) in [(&mut *s_rgb, &rgb), (&mut *s_opacity, &opacity), (&mut *s_depth, &depth)] {
-                    if j == 0 {
-                        s.copy_from_slice(x);
-                    } else {
-                        s.iter_mut().zip(x.iter()).for_each(|(s, x)| *s += x);
-                    }
-                }
-            }
+            mean.add(j, [&rgb, &opacity, &depth]);
         }
-        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_ref() {
-            let k = 1.0 / points.len() as f32;
-            for (x, s) in [(&mut rgb, s_rgb), (&mut opacity, s_opacity), (&mut depth, s_depth)] {
-                x.iter_mut().zip(s.iter()).for_each(|(x, s)| *x = s * k);
-            }
-        }
+        mean.finish([&mut rgb, &mut opacity, &mut depth]);
         nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
         if let Some(g) = gif.as_mut() {
             g.push(&rgb)?;

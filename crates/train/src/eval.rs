@@ -180,6 +180,46 @@ pub struct EvalReport {
     pub render_seconds: f64,
 }
 
+/// The mean of a supersampled render's passes, one per ray through each pixel: the colour,
+/// opacity and depth buffers summed pass by pass, then divided by the count ([`evaluate`]'s
+/// `eval_spp`, `nerf render --spp`). With one pass it holds nothing and leaves the buffers as
+/// they are.
+#[derive(Debug, Default)]
+pub struct PassMean {
+    sums: Option<[Vec<f32>; 3]>,
+    passes: usize,
+}
+
+impl PassMean {
+    /// For renders of `passes` passes.
+    pub fn new(passes: usize) -> Self {
+        Self { sums: (passes > 1).then(Default::default), passes }
+    }
+
+    /// Adds pass `j` (0 first, which starts the sums over, at its buffers' sizes) of the colour,
+    /// opacity and depth buffers.
+    pub fn add(&mut self, j: usize, passes: [&[f32]; 3]) {
+        let Some(sums) = self.sums.as_mut() else { return };
+        for (s, x) in sums.iter_mut().zip(passes) {
+            if j == 0 {
+                s.clear();
+                s.extend_from_slice(x);
+            } else {
+                s.iter_mut().zip(x).for_each(|(s, x)| *s += x);
+            }
+        }
+    }
+
+    /// Writes the mean over the passes into the buffers, after the last pass.
+    pub fn finish(&self, out: [&mut [f32]; 3]) {
+        let Some(sums) = self.sums.as_ref() else { return };
+        let k = 1.0 / self.passes as f32;
+        for (x, s) in out.into_iter().zip(sums) {
+            x.iter_mut().zip(s).for_each(|(x, s)| *x = s * k);
+        }
+    }
+}
+
 /// Renders every view of `data` with the trainer's fields on `data`'s evaluation background
 /// (`eval_spp` rays per pixel placed by `eval_filter`, averaged), scores it, and writes `<out_dir>/<name>.png` renders ([`Dataset::view_names`]) when
 /// `out_dir` is given.
@@ -200,7 +240,7 @@ pub fn evaluate(
     let points = conv.sample_offsets_filtered(trainer.config().eval_spp as usize, trainer.config().eval_filter);
     let mut batch = RayBatch::default();
     let (mut rgb, mut opacity, mut depth) = (Vec::new(), Vec::new(), Vec::new());
-    let mut sums = (points.len() > 1).then(|| (Vec::new(), Vec::new(), Vec::new()));
+    let mut mean = PassMean::new(points.len());
     let mut views = Vec::with_capacity(data.n_views());
     let mut render_seconds = 0.0;
     let names = data.view_names();
@@ -211,32 +251,14 @@ pub fn evaluate(
         for (x, n) in [(&mut rgb, 3 * w * h), (&mut opacity, w * h), (&mut depth, w * h)] {
             x.resize(n, 0.0);
         }
-        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
-            for (x, n) in [(s_rgb, 3 * w * h), (s_opacity, w * h), (s_depth, w * h)] {
-                x.resize(n, 0.0);
-            }
-        }
         for (j, &point) in points.iter().enumerate() {
             data.view_rays_at(i, bg, point, &mut batch);
             let t = std::time::Instant::now();
             trainer.render_rays(&batch.origins, &batch.dirs, &batch.background, &mut rgb, &mut opacity, &mut depth)?;
             render_seconds += t.elapsed().as_secs_f64();
-            if let Some((s_rgb, s_opacity, s_depth)) = sums.as_mut() {
-                for (s, x) in [(&mut *s_rgb, &rgb), (&mut *s_opacity, &opacity), (&mut *s_depth, &depth)] {
-                    if j == 0 {
-                        s.copy_from_slice(x);
-                    } else {
-                        s.iter_mut().zip(x.iter()).for_each(|(s, x)| *s += x);
-                    }
-                }
-            }
+            mean.add(j, [&rgb, &opacity, &depth]);
         }
-        if let Some((s_rgb, s_opacity, s_depth)) = sums.as_ref() {
-            let k = 1.0 / points.len() as f32;
-            for (x, s) in [(&mut rgb, s_rgb), (&mut opacity, s_opacity), (&mut depth, s_depth)] {
-                x.iter_mut().zip(s.iter()).for_each(|(x, s)| *x = s * k);
-            }
-        }
+        mean.finish([&mut rgb, &mut opacity, &mut depth]);
         let gt = &batch.target;
         let psnr = nerf_metrics::psnr(&rgb, gt);
         let ssim = nerf_metrics::ssim(&rgb, gt, w, h);
@@ -267,7 +289,28 @@ pub fn evaluate(
 
 #[cfg(test)]
 mod tests {
-    use super::{AlphaSplit, DepthError};
+    use super::{AlphaSplit, DepthError, PassMean};
+
+    /// The mean of the passes lands in the buffers; a new first pass starts over at its size; one
+    /// pass leaves the buffers alone.
+    #[test]
+    fn pass_mean_averages_the_passes() {
+        let mut m = PassMean::new(2);
+        let (mut a, mut b, mut c) = (vec![0.0f32; 3], vec![0.0f32; 1], vec![0.0f32; 1]);
+        m.add(0, [&[1.0, 2.0, 3.0], &[0.5], &[4.0]]);
+        m.add(1, [&[3.0, 2.0, 1.0], &[1.0], &[2.0]]);
+        m.finish([&mut a, &mut b, &mut c]);
+        assert_eq!((a.as_slice(), b[0], c[0]), ([2.0, 2.0, 2.0].as_slice(), 0.75, 3.0));
+        let (mut a, mut b, mut c) = (vec![0.0f32; 6], vec![0.0f32; 2], vec![0.0f32; 2]);
+        m.add(0, [&[2.0; 6], &[1.0; 2], &[1.0; 2]]);
+        m.add(1, [&[4.0; 6], &[0.0; 2], &[3.0; 2]]);
+        m.finish([&mut a, &mut b, &mut c]);
+        assert_eq!((a, b, c), (vec![3.0; 6], vec![0.5; 2], vec![2.0; 2]));
+        let one = PassMean::new(1);
+        let mut x = vec![7.0f32];
+        one.finish([&mut x, &mut [], &mut []]);
+        assert_eq!(x, [7.0]);
+    }
 
     #[test]
     fn depth_error_over_the_measured_pixels() {
