@@ -307,6 +307,12 @@ struct RenderArgs {
     /// the first frame's surfaces (1st to 99th percentile; NDC scenes: NDC depth, i.e. disparity).
     #[arg(long)]
     depth: bool,
+    /// Also write normal_0000.png, …: the surface normal where each pixel's ray stops, from the
+    /// density's gradient (central differences a pixel's footprint there apart), as `(n + 1)/2`
+    /// in world axes (x red, y green, z blue) over the background (instant-ngp's Normals view,
+    /// nerfstudio's `normals` output). Not for NDC runs.
+    #[arg(long)]
+    normals: bool,
     /// Also write the frames as one looping animated GIF, `render.gif`, shown at FPS frames per
     /// second (each frame in 256 colours: a preview to share; the PNGs keep full colour).
     #[arg(long, value_name = "FPS")]
@@ -869,6 +875,41 @@ fn load_run(registry: &Registry, run: &Path, scene: &Path, device: nerf::gpu::De
 /// 20 more with `--spp` above 1, for the sums).
 const MAX_RENDER_PIXELS: u64 = 1 << 26;
 
+/// The buffers of `nerf render --normals`, reused from frame to frame.
+#[derive(Default)]
+struct NormalBuffers {
+    surface: Vec<f32>,
+    steps: Vec<f32>,
+    stencil: Vec<f32>,
+    sigma: Vec<f32>,
+    batch: Vec<f32>,
+    normals: Vec<f32>,
+    /// The frame's normal map, RGB.
+    image: Vec<f32>,
+}
+
+impl NormalBuffers {
+    /// The normal map of a frame whose rays (`origins`, `dirs`) rendered `depth` and `opacity`:
+    /// the density at six points about each ray's surface point, `steps` away, in batches of
+    /// 2^16 pixels (a frame may have 2^26).
+    #[allow(clippy::too_many_arguments)]
+    fn render(&mut self, trainer: &nerf::train::Trainer, origins: &[f32], dirs: &[f32], depth: &[f32], opacity: &[f32], steps: nerf::render::NormalSteps, background: [f32; 3]) -> Result<()> {
+        use nerf::render::{gradient_stencil, normals_from_stencil, surface_points_of};
+        const BATCH: usize = 1 << 16;
+        surface_points_of(origins, dirs, depth, opacity, steps, &mut self.surface, &mut self.steps);
+        self.normals.clear();
+        for (p, h) in self.surface.chunks(3 * BATCH).zip(self.steps.chunks(BATCH)) {
+            gradient_stencil(p, h, &mut self.stencil);
+            self.sigma.resize(self.stencil.len() / 3, 0.0);
+            trainer.density_at(&self.stencil, &mut self.sigma)?;
+            normals_from_stencil(&self.sigma, &mut self.batch);
+            self.normals.extend_from_slice(&self.batch);
+        }
+        nerf::render::normals_to_rgb(&self.normals, opacity, background, &mut self.image);
+        Ok(())
+    }
+}
+
 /// Frames a second of an instant-ngp camera path: the frame rate of instant-ngp's video renders
 /// (`run.py --video_fps`, its GUI's render settings).
 const NGP_VIDEO_FPS: f64 = 60.0;
@@ -919,6 +960,9 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         (None, CameraType::Fisheye) => Projection::Fisheye,
         (None, CameraType::Equirectangular) => Projection::Equirectangular,
     };
+    if a.normals && train.ndc.is_some() {
+        bail!("{}: the run was trained in NDC space, whose density gradient is not the scene's: --normals needs a run trained with --no-ndc", a.run.display());
+    }
     if projection != Projection::Perspective && train.ndc.is_some() {
         bail!(
             "{}: the run was trained in NDC space, which holds only what lies in front of the cameras: a {} frame needs a run trained with --no-ndc",
@@ -999,6 +1043,13 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     // Supersampling: each frame is the mean of its renders through these points of each pixel.
     let points = config.pixel_convention.sample_offsets_filtered(a.spp as usize, a.filter.unwrap_or(config.eval_filter));
     let mut mean = nerf::train::PassMean::new(points.len());
+    // Normal maps: the density's gradient at each pixel's surface point, by central differences
+    // a pixel's footprint there apart (at least 1/2048 of the scene box's longest side).
+    let min_normal_step = {
+        let b = &train.aabb;
+        (0..3).map(|i| b.max[i] - b.min[i]).fold(0.0f32, f32::max) / 2048.0
+    };
+    let mut normal_bufs = NormalBuffers::default();
     let mut render_seconds = 0.0;
     let (mut depth_range, mut gray) = (None, Vec::new());
     let mut gif = a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?;
@@ -1021,6 +1072,20 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         }
         mean.finish([&mut rgb, &mut opacity, &mut depth]);
         nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
+        if a.normals {
+            if points.len() > 1 {
+                // The surface of the pixel centres' rays (depth and opacity: the mean of the passes).
+                cam.frame_rays_into(projection, config.pixel_convention, &mut o, &mut d);
+            }
+            // A pixel's angle: its focal length's reciprocal, or a panorama's 2π over its width.
+            let pixel_angle = match projection {
+                Projection::Equirectangular => std::f32::consts::TAU / k.width as f32,
+                _ => 2.0 / (cam.intrinsics.fx + cam.intrinsics.fy),
+            };
+            let steps = nerf::render::NormalSteps { pixel_angle, min: min_normal_step };
+            normal_bufs.render(&trainer, &o, &d, &depth, &opacity, steps, config.eval_background.fixed_rgb())?;
+            nerf::data::save_png(&out.join(format!("normal_{i:04}.png")), k.width, k.height, &normal_bufs.image)?;
+        }
         if let Some(g) = gif.as_mut() {
             g.push(&rgb)?;
         }

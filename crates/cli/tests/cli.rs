@@ -334,6 +334,10 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
         }
         // An instant-ngp camera path: instant-ngp does not read LLFF scenes, so there is no
         // space its keyframes could be in.
+        if space == "ndc" {
+            let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "1", "--normals", "--device", "cpu"]).output().unwrap();
+            assert_clean_failure(&o, &["NDC", "--normals", "--no-ndc"]);
+        }
         let base_cam = d.path().join("base_cam.json");
         std::fs::write(&base_cam, r#"{"path": [{"R": [0, 0, 0, 1], "T": [0.5, 0.5, 0.5], "fov": 50}]}"#).unwrap();
         let o = nerf().arg("render").arg(&run).arg(&fern).arg("--camera-path").arg(&base_cam).args(["--frames", "1", "--device", "cpu"]).output().unwrap();
@@ -1005,6 +1009,36 @@ fn render_supersamples_with_spp() {
     assert!(diffs.iter().any(|&d| d > 0) && mean < 3.0, "four rays a pixel: a little different, mean {mean}");
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--spp", "0"]).output().unwrap();
     assert_clean_failure(&o, &["--spp 0", "rays per pixel"]);
+}
+
+/// `nerf render --normals` writes a normal map beside each frame, the size of the frame, each
+/// pixel a blend of a unit normal's colour and the white background by the frame's opacity.
+#[test]
+fn render_writes_normal_maps() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = d.path().join("normals");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "2", "--width", "16", "--spp", "2", "--normals", "--device", "cpu", "--quiet", "--out"]).arg(&out).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    for i in 0..2 {
+        let n = image::open(out.join(format!("normal_{i:04}.png"))).unwrap().to_rgb8();
+        assert_eq!(n.dimensions(), (16, 16));
+        // Over white, a pixel of opacity a shows c = 1 − a·(1 − n)/2 per channel, so for a unit
+        // normal n, Σ(1 − c)² = a²·(4 − 2·Σn)/4 ≤ a²·(1 + √3/2): no colour farther from white
+        // (a gradient left unnormalised would saturate its channels).
+        for p in n.pixels() {
+            let dist2: f32 = p.0.iter().map(|&c| (1.0 - c as f32 / 255.0).powi(2)).sum();
+            assert!(dist2 <= 1.0 + 0.75f32.sqrt() + 1e-2, "{p:?}");
+        }
+    }
+    assert!(!out.join("normal_0002.png").exists());
+    let plain = d.path().join("plain");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--width", "16", "--device", "cpu", "--quiet", "--out"]).arg(&plain).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(!plain.join("normal_0000.png").exists(), "only with --normals");
 }
 
 /// Every config shipped in configs/ is accepted by `nerf train` (one step on the in-repo scene,

@@ -19,13 +19,16 @@
 //! per ray, and run in parallel over blocks of rays with rayon for large batches.
 //!
 //! [`depth_range`] and [`depth_to_gray`] turn the expected depth into a viewable image;
-//! [`surface_points`] into a point cloud. [`distortion_loss_grad`] is mip-NeRF 360's
+//! [`surface_points`] into a point cloud; [`surface_points_of`], [`gradient_stencil`],
+//! [`normals_from_stencil`] and [`normals_to_rgb`] the density's gradient at each ray's surface
+//! point into a normal map. [`distortion_loss_grad`] is mip-NeRF 360's
 //! regulariser on the weights; [`color_correct_forward`] the per-view affine colour correction
 //! of real captures (exposure, white balance).
 
 mod color;
 mod depth;
 mod distortion;
+mod normals;
 mod points;
 
 pub use color::{
@@ -33,6 +36,7 @@ pub use color::{
 };
 pub use depth::{depth_range, depth_to_gray};
 pub use distortion::distortion_loss_grad;
+pub use normals::{gradient_stencil, normals_from_stencil, normals_to_rgb, surface_points_of, NormalSteps};
 pub use points::{surface_points, SurfacePoint};
 use nerf_core::Real;
 use nerf_core::par::{cut, for_ray_blocks, SplitAt};
