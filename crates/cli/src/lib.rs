@@ -858,16 +858,42 @@ struct LoadedRun {
 /// `pixels` the split's photos are not decoded (its cameras and box are all that rendering and
 /// mesh export need; [`LoadOptions::cameras_only`]).
 fn load_run(registry: &Registry, run: &Path, scene: &Path, device: nerf::gpu::DevicePreference, euclidean_for: Option<&str>, pixels: bool) -> Result<LoadedRun> {
+    let opened = open_run(run, scene, euclidean_for, pixels)?;
+    let bounds = SceneBounds::of(&opened.train);
+    opened.into_loaded(registry, device, bounds)
+}
+
+/// A run's checkpoint and its scene's training split, before a trainer holds them
+/// ([`open_run`]; [`load_run`] does both).
+struct OpenedRun {
+    ck_path: PathBuf,
+    ck: Checkpoint,
+    /// The scene's training split (cameras, box).
+    train: nerf::data::Dataset,
+}
+
+/// [`load_run`]'s first half: the checkpoint and the scene, checked as it checks them.
+fn open_run(run: &Path, scene: &Path, euclidean_for: Option<&str>, pixels: bool) -> Result<OpenedRun> {
     let ck_path = run.join("checkpoint.bin");
-    let Checkpoint { step, config, fields, adam, sampler, .. } = Checkpoint::load(&ck_path)?;
-    let opts = LoadOptions { downscale: config.downscale, views: ViewSelection::All, ndc: config.ndc, cameras_only: !pixels, sfm_depth: false, undistort: config.undistort };
+    let ck = Checkpoint::load(&ck_path)?;
+    let c = &ck.config;
+    let opts = LoadOptions { downscale: c.downscale, views: ViewSelection::All, ndc: c.ndc, cameras_only: !pixels, sfm_depth: false, undistort: c.undistort };
     let train = load_scene(scene, Split::Train, &opts)?;
     if let (Some(what), Some(_)) = (euclidean_for, &train.ndc) {
         bail!("{}: the run was trained in NDC space, not the scene's: {what} needs a run trained with --no-ndc", run.display());
     }
-    let mut trainer = make_trainer(&config.for_rendering(), registry, SceneBounds::of(&train), device)?;
-    trainer.restore(step, &fields, adam, &sampler).map_err(|e| e.in_checkpoint(&ck_path))?;
-    Ok(LoadedRun { config, step, train, trainer })
+    Ok(OpenedRun { ck_path, ck, train })
+}
+
+impl OpenedRun {
+    /// [`load_run`]'s second half: a trainer on `device` for the scene within `bounds`, holding
+    /// the checkpoint's state.
+    fn into_loaded(self, registry: &Registry, device: nerf::gpu::DevicePreference, bounds: SceneBounds) -> Result<LoadedRun> {
+        let Checkpoint { step, config, fields, adam, sampler, .. } = self.ck;
+        let mut trainer = make_trainer(&config.for_rendering(), registry, bounds, device)?;
+        trainer.restore(step, &fields, adam, &sampler).map_err(|e| e.in_checkpoint(&self.ck_path))?;
+        Ok(LoadedRun { config, step, train: self.train, trainer })
+    }
 }
 
 /// The most pixels `nerf render` renders in one frame (8192², e.g. an 8K panorama): a frame's
@@ -926,11 +952,11 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     if let (Some(CameraPathFile::Nerfstudio(_)), Some(_)) = (&user_path, a.frames) {
         bail!("--frames: {} is a nerfstudio camera path, which has one camera per frame", a.camera_path.as_deref().unwrap_or(Path::new("")).display());
     }
-    let LoadedRun { config, step, train, mut trainer } = load_run(registry, &a.run, &a.scene, a.device, None, false)?;
-    trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
-    if let Some(s) = a.step_size {
-        trainer.set_render_step_size(Some(s)).with_context(|| format!("{}: --step-size {s}", a.run.display()))?;
-    }
+    // The path first: the trainer marches the depth range that covers the scene from its
+    // cameras (SceneBounds::for_path).
+    let opened = open_run(&a.run, &a.scene, None, false)?;
+    let config = opened.ck.config.clone();
+    let train = &opened.train;
     // --width scales the intrinsics; the height keeps the aspect.
     let sized = |k: nerf::rays::Intrinsics| -> Result<nerf::rays::Intrinsics> {
         let k = match a.width {
@@ -980,7 +1006,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         }
         Some(CameraPathFile::InstantNgp(p)) => {
             let file = a.camera_path.as_deref().unwrap_or(Path::new(""));
-            let space = nerf::data::NgpSpace::of(&train).with_context(|| {
+            let space = nerf::data::NgpSpace::of(train).with_context(|| {
                 format!(
                     "{}: an instant-ngp camera path needs a scene instant-ngp reads (transforms files or a COLMAP model); {} is an LLFF scene, \
                      whose cameras are in nerf-pytorch's recentred frame",
@@ -1014,7 +1040,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
                 p => p,
             };
             let path = match kind {
-                PathKind::Spiral => nerf::data::llff::render_path(&train, k, frames).with_context(|| {
+                PathKind::Spiral => nerf::data::llff::render_path(train, k, frames).with_context(|| {
                     format!("{}: no spiral: it needs an LLFF scene (its depth bounds) and its cameras", a.scene.display())
                 })?,
                 PathKind::Interpolate => {
@@ -1031,6 +1057,15 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             (path, None)
         }
     };
+    let bounds = match train.ndc {
+        Some(_) => SceneBounds::of(train),
+        None => SceneBounds::of(train).for_path(&train.cameras, &path),
+    };
+    let LoadedRun { step, train, mut trainer, .. } = opened.into_loaded(registry, a.device, bounds)?;
+    trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
+    if let Some(s) = a.step_size {
+        trainer.set_render_step_size(Some(s)).with_context(|| format!("{}: --step-size {s}", a.run.display()))?;
+    }
     let k = path[0].intrinsics; // every camera of a path has the same size
     let n_frames = path.len();
     let video_fps = a.gif.map(f64::from).or(path_fps).unwrap_or(30.0);
@@ -1107,7 +1142,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": config.field, "iterations": step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "near": bounds.near, "far": bounds.far, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;

@@ -937,6 +937,20 @@ fn render_follows_an_instant_ngp_camera_path() {
             assert!((x - y).abs() < 1e-5, "camera_to_world[{row}][{c}]: {x} vs {y}");
         }
     }
+    // The orbit keeps the scene's depth range (Blender's [2, 6]); a camera twice as far out
+    // moves its far end out by as much, so the scene stays within its rays.
+    assert_eq!((r["near"].as_f64(), r["far"].as_f64()), (Some(2.0), Some(6.0)), "{r}");
+    let mut far = c2w(1);
+    let dist = (0..3).map(|i| far[i][3] * far[i][3]).sum::<f64>().sqrt();
+    (0..3).for_each(|i| far[i][3] *= 2.0);
+    let (rf, tf) = ngp_keyframe(&far);
+    std::fs::write(d.path().join("far.json"), serde_json::json!({"path": [{"R": rf, "T": tf, "fov": fov}]}).to_string()).unwrap();
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(d.path().join("far.json"))
+        .args(["--frames", "1", "--width", "8", "--device", "cpu", "--quiet", "--out"]).arg(d.path().join("far")).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let got = json(&d.path().join("far/render.json"));
+    assert_eq!(got["near"].as_f64(), Some(2.0));
+    assert!((got["far"].as_f64().unwrap() - (6.0 + dist)).abs() < 1e-3, "{got}: the training cameras are {dist} away");
     // Two keyframes, a linear spline, timestamps 0.05 and 0.1 s: the path takes 0.1 s, 6 frames.
     let (r0, t0) = ngp_keyframe(&c2w(0));
     let (r2, t2) = ngp_keyframe(&c2w(2));

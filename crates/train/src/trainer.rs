@@ -79,6 +79,33 @@ impl SceneBounds {
         OccupancyGridConfig { cascades: Some(grid.cascades.unwrap_or(self.cascades)), ..grid.clone() }
     }
 
+    /// The bounds for rendering a novel-view path from `path`'s cameras in a scene trained from
+    /// `training`'s: `far` moved out by as much as the path's farthest camera lies farther from
+    /// the box's centre than the farthest training camera, `near` in (to no less than 0) by as
+    /// much as its nearest camera lies nearer than the nearest training camera. A path within
+    /// the training cameras' distances keeps the bounds as they are; one that zooms out or flies
+    /// in keeps the scene within its rays' segments (NeRF's Blender scenes march `[2, 6]`, which
+    /// a camera 8 from the object would see nothing of). Not for NDC scenes, whose bounds are
+    /// NDC's.
+    pub fn for_path(self, training: &[nerf_rays::Camera], path: &[nerf_rays::Camera]) -> Self {
+        let c = nerf_rays::glam::Vec3::from_array(std::array::from_fn(|i| 0.5 * (self.aabb_min[i] + self.aabb_max[i])));
+        let range = |cams: &[nerf_rays::Camera]| {
+            cams.iter().map(|k| (k.position - c).length()).fold((f32::INFINITY, 0.0f32), |(lo, hi), d| (lo.min(d), hi.max(d)))
+        };
+        let ((t_lo, t_hi), (p_lo, p_hi)) = (range(training), range(path));
+        if training.is_empty() || path.is_empty() || !(t_hi.is_finite() && p_hi.is_finite()) {
+            return self;
+        }
+        // Rounding (a path at the training cameras' own distance) moves nothing.
+        let slack = 1e-4 * t_hi;
+        let (closer, farther) = (t_lo - p_lo, p_hi - t_hi);
+        Self {
+            near: if closer > slack { (self.near - closer).max(0.0) } else { self.near },
+            far: if farther > slack { self.far + farther } else { self.far },
+            ..self
+        }
+    }
+
     /// Per-ray segments into `near`/`far` (resized to the rays): `[near, far]`, clipped to the
     /// box when [`SceneBounds::clip_to_box`].
     pub fn segments(&self, origins: &[f32], dirs: &[f32], near: &mut Vec<f32>, far: &mut Vec<f32>) {
@@ -1359,6 +1386,41 @@ fn run_stage(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A path within the training cameras' distances keeps the bounds; one farther out moves
+    /// `far` out by as much, one nearer moves `near` in (not below 0); the scene then lies
+    /// within the rays' segments from those cameras.
+    #[test]
+    fn bounds_for_a_path_cover_the_scene_from_its_cameras() {
+        use nerf_rays::glam::Vec3;
+        use nerf_rays::{Camera, Intrinsics};
+        let k = Intrinsics { width: 8, height: 8, fx: 8.0, fy: 8.0, cx: 4.0, cy: 4.0 };
+        // Cameras on +x looking at the origin down −x (OpenGL axes: back = +x).
+        let at = |x: f32| Camera::from_c2w(k, &[[0.0, 0.0, 1.0, x], [1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]]).unwrap();
+        let b = SceneBounds {
+            aabb_min: [-1.5; 3],
+            aabb_max: [1.5; 3],
+            near: 2.0,
+            far: 6.0,
+            clip_to_box: false,
+            cascades: 1,
+            cone_angle: 0.0,
+            scene_scale: 1.0,
+            n_views: 2,
+        };
+        let training = [at(3.5), at(4.5)];
+        assert_eq!(b.for_path(&training, &[at(4.0), at(3.5)]), b, "within the training distances");
+        assert_eq!(b.for_path(&training, &[at(4.5001), at(3.4999)]), b, "rounding");
+        let out = b.for_path(&training, &[at(4.0), at(8.0)]);
+        assert_eq!((out.near, out.far), (2.0, 9.5));
+        let inn = b.for_path(&training, &[at(2.0), at(0.5)]);
+        assert_eq!((inn.near, inn.far), (0.0, 6.0));
+        // From 8 away the box spans t ∈ [6.5, 9.5] along the axis: inside the new segment.
+        let (mut near, mut far) = (Vec::new(), Vec::new());
+        out.segments(&[8.0, 0.0, 0.0], &(-Vec3::X).to_array(), &mut near, &mut far);
+        assert!(near[0] <= 6.5 && far[0] >= 9.5, "{near:?} {far:?}");
+        assert_eq!(b.for_path(&[], &[at(8.0)]), b);
+    }
 
     #[test]
     fn alive_mse_counts_only_rays_with_opacity() {
