@@ -307,6 +307,11 @@ struct RenderArgs {
     /// the first frame's surfaces (1st to 99th percentile; NDC scenes: NDC depth, i.e. disparity).
     #[arg(long)]
     depth: bool,
+    /// Continue a render that was interrupted (Ctrl-C) in `--out`: the frames its render.json
+    /// counts are kept, and rendering goes on from the next. The command must be the one that
+    /// started it (the same path, frame size and rays per pixel); anything else is refused.
+    #[arg(long)]
+    resume: bool,
     /// Also write normal_0000.png, …: the surface normal where each pixel's ray stops, from the
     /// density's gradient (central differences a pixel's footprint there apart), as `(n + 1)/2`
     /// in world axes (x red, y green, z blue) over the background (instant-ngp's Normals view,
@@ -805,6 +810,49 @@ fn cmd_eval(a: EvalArgs, registry: &Registry) -> Result<()> {
     Ok(())
 }
 
+/// [`resume_point`]: frames done, the seconds they took, their depth range.
+type ResumePoint = (usize, f64, Option<(f32, f32)>);
+
+/// Where `nerf render --resume` goes on in `out`: the frames its `render.json` counts (each
+/// PNG present), with the seconds they took and their depth range. The earlier render must have
+/// had the same path (every camera within 10⁻⁵), camera type, frame size and rays per pixel.
+fn resume_point(out: &Path, path: &[nerf::rays::Camera], camera_type: &str, spp: usize) -> Result<ResumePoint> {
+    let file = out.join("render.json");
+    let text = std::fs::read_to_string(&file).with_context(|| format!("{}: nothing to resume", file.display()))?;
+    let r: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", file.display()))?;
+    let k = path[0].intrinsics;
+    let same = |key: &str, want: serde_json::Value| -> Result<()> {
+        match r.get(key) {
+            Some(v) if *v == want => Ok(()),
+            got => bail!("{}: `{key}` is {}, this render's is {want}: --resume continues the render that was started, with the same path and options", file.display(), got.map_or("missing".into(), |v| v.to_string())),
+        }
+    };
+    same("path_frames", path.len().into())?;
+    same("camera_type", camera_type.into())?;
+    same("width", k.width.into())?;
+    same("height", k.height.into())?;
+    same("spp", spp.into())?;
+    let done = r.get("frames").and_then(serde_json::Value::as_u64).with_context(|| format!("{}: no `frames`", file.display()))? as usize;
+    let cams = r.get("camera_to_world").and_then(serde_json::Value::as_array).with_context(|| format!("{}: no `camera_to_world`", file.display()))?;
+    if done > path.len() || cams.len() != done {
+        bail!("{}: `frames` is {done} with {} cameras, for a path of {}", file.display(), cams.len(), path.len());
+    }
+    for (i, (c, cam)) in cams.iter().zip(path).enumerate() {
+        let m = cam.c2w();
+        let close = (0..3).all(|row| (0..4).all(|col| c[row][col].as_f64().is_some_and(|v| (v - f64::from(m[row][col])).abs() <= 1e-5)));
+        if !close {
+            bail!("{}: frame {i}'s camera is not this path's: --resume continues the render that was started, with the same path", file.display());
+        }
+        let png = out.join(format!("frame_{i:04}.png"));
+        if !png.is_file() {
+            bail!("{}: missing, though {} counts it", png.display(), file.display());
+        }
+    }
+    let seconds = r.get("render_seconds").and_then(serde_json::Value::as_f64).unwrap_or(0.0);
+    let range = r.get("depth_range").and_then(serde_json::Value::as_array).and_then(|v| Some((v.first()?.as_f64()? as f32, v.get(1)?.as_f64()? as f32)));
+    Ok((done, seconds, range))
+}
+
 /// A render stopped by Ctrl-C after its current frame (exit code 130).
 #[derive(Debug)]
 struct RenderInterrupted {
@@ -821,7 +869,7 @@ impl std::fmt::Display for RenderInterrupted {
         };
         write!(
             f,
-            "interrupted after {} of {} frames: {frames}render.json and camera_path.json are in {} (no render.gif)",
+            "interrupted after {} of {} frames: {frames}render.json and camera_path.json are in {} (no render.gif); the same command with --resume goes on from there",
             self.done,
             self.total,
             self.out.display()
@@ -1085,14 +1133,23 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         (0..3).map(|i| b.max[i] - b.min[i]).fold(0.0f32, f32::max) / 2048.0
     };
     let mut normal_bufs = NormalBuffers::default();
-    let mut render_seconds = 0.0;
-    let (mut depth_range, mut gray) = (None, Vec::new());
-    let mut gif = a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?;
+    let (mut gray, mut gif) = (Vec::new(), a.gif.map(|fps| nerf::data::GifWriter::create(&out.join("render.gif"), k.width, k.height, fps)).transpose()?);
+    // An interrupted render goes on where it stopped: its frames so far are kept (read back
+    // into the GIF), its time and depth range carried over.
+    let (start, mut render_seconds, mut depth_range) = match a.resume {
+        true => resume_point(&out, &path, projection.name(), points.len())?,
+        false => (0, 0.0, None),
+    };
+    if let Some(g) = gif.as_mut() {
+        for i in 0..start {
+            g.push(&nerf::data::load_png_rgb(&out.join(format!("frame_{i:04}.png")), k.width, k.height)?)?;
+        }
+    }
     // Ctrl-C stops after the frame being rendered; the frames so far and the json files stay.
     let stop = ctrl_c_flag()?;
-    let mut done = 0;
+    let mut done = start;
     let pb = progress(a.quiet, n_frames, "render {bar:30} {pos}/{len} frames, {eta} left");
-    for (i, cam) in path.iter().enumerate() {
+    for (i, cam) in path.iter().enumerate().skip(start) {
         if stop.load(Ordering::SeqCst) {
             break;
         }

@@ -1247,7 +1247,7 @@ fn ctrl_c_stops_a_render_and_keeps_its_frames() {
     let o = child.wait_with_output().unwrap();
     let e = stderr(&o);
     assert_eq!(o.status.code(), Some(130), "{e}");
-    assert!(e.contains("interrupted after") && !e.contains("panicked"), "{e}");
+    assert!(e.contains("interrupted after") && e.contains("--resume") && !e.contains("panicked"), "{e}");
     let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("render.json")).unwrap()).unwrap();
     let done = r["frames"].as_u64().unwrap() as usize;
     assert!((3..100000).contains(&done) && r["path_frames"] == 100000, "{r}");
@@ -1256,6 +1256,58 @@ fn ctrl_c_stops_a_render_and_keeps_its_frames() {
     assert!(out.join("camera_path.json").is_file());
     let gifs: Vec<_> = std::fs::read_dir(&out).unwrap().map(|e| e.unwrap().file_name()).filter(|n| n.to_string_lossy().contains("gif")).collect();
     assert!(gifs.is_empty(), "{gifs:?}");
+}
+
+/// `nerf render --resume` goes on from where an interrupted render stopped: the frames its
+/// render.json counts stay as they are, the rest are rendered as the whole render would have
+/// rendered them, the GIF holds them all; a different path or size is refused, as is a folder
+/// with nothing to resume.
+#[test]
+fn resume_finishes_an_interrupted_render() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let args = ["--frames", "4", "--width", "12", "--device", "cpu", "--quiet", "--depth", "--gif", "10", "--out"];
+    let whole = d.path().join("whole");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(args).arg(&whole).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    // What Ctrl-C after frame 1 leaves: two frames, render.json counting them, no GIF.
+    let part = d.path().join("part");
+    std::fs::create_dir_all(&part).unwrap();
+    let mut r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(whole.join("render.json")).unwrap()).unwrap();
+    r["frames"] = 2.into();
+    r["camera_to_world"].as_array_mut().unwrap().truncate(2);
+    std::fs::write(part.join("render.json"), r.to_string()).unwrap();
+    for f in ["frame_0000.png", "frame_0001.png", "depth_0000.png", "depth_0001.png"] {
+        std::fs::copy(whole.join(f), part.join(f)).unwrap();
+    }
+    // The kept frames stay as they are: marked here so that re-rendering them would show.
+    let marked = image::RgbImage::from_pixel(12, 12, image::Rgb([1, 2, 3]));
+    marked.save(part.join("frame_0000.png")).unwrap();
+    let o = nerf().arg("render").arg(&run).arg(&s).args(args).arg(&part).arg("--resume").output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = |dir: &Path, f: &str| image::open(dir.join(f)).unwrap().to_rgb8().into_raw();
+    assert_eq!(png(&part, "frame_0000.png"), marked.into_raw(), "kept, not rendered again");
+    for f in ["frame_0001.png", "frame_0002.png", "frame_0003.png", "depth_0002.png", "depth_0003.png"] {
+        assert_eq!(png(&part, f), png(&whole, f), "{f}");
+    }
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(part.join("render.json")).unwrap()).unwrap();
+    assert_eq!((r["frames"].as_u64(), r["camera_to_world"].as_array().map(Vec::len)), (Some(4), Some(4)));
+    {
+        use image::AnimationDecoder as _;
+        let f = std::fs::File::open(part.join("render.gif")).unwrap();
+        let frames = image::codecs::gif::GifDecoder::new(std::io::BufReader::new(f)).unwrap().into_frames().collect_frames().unwrap();
+        assert_eq!(frames.len(), 4, "the GIF holds the kept frames and the new ones");
+    }
+    // Another size, or nothing to resume: refused.
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "4", "--width", "10", "--device", "cpu", "--out"]).arg(&part).arg("--resume").output().unwrap();
+    assert_clean_failure(&o, &["render.json", "width", "--resume"]);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "5", "--width", "12", "--device", "cpu", "--out"]).arg(&part).arg("--resume").output().unwrap();
+    assert_clean_failure(&o, &["render.json", "path_frames"]);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "4", "--device", "cpu", "--resume", "--out"]).arg(d.path().join("empty")).output().unwrap();
+    assert_clean_failure(&o, &["render.json", "nothing to resume"]);
 }
 
 /// `--path interpolate` goes through the run's test cameras in order (nerfstudio's

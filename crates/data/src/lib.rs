@@ -2129,6 +2129,21 @@ pub fn save_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(),
     write_png(path, width, height, &bytes, image::ExtendedColorType::Rgb8)
 }
 
+/// Reads back an RGB image [`save_png`] wrote (`nerf render --resume`): `3·W·H` values in
+/// `[0, 1]`, the alpha of an RGBA file dropped. Errors name the file: missing, undecodable, or
+/// not `width × height`.
+pub fn load_png_rgb(path: &Path, width: u32, height: u32) -> Result<Vec<f32>, DataError> {
+    let (w, h, px) = decode_rgba(path)?;
+    if (w, h) != (width, height) {
+        return Err(DataError::InvalidValue {
+            path: path.to_path_buf(),
+            key: "size".into(),
+            reason: format!("{w}x{h}, expected {width}x{height}"),
+        });
+    }
+    Ok(px.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect())
+}
+
 /// A looping animated GIF written frame by frame (`nerf render --gif`): each frame quantised to
 /// its own 256-colour palette (NeuQuant, the `image` crate's GIF encoder), so it is a preview,
 /// not a lossless copy. The file is written under a temporary name and renamed into place by
