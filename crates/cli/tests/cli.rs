@@ -40,6 +40,16 @@ fn small_scene(dir: &Path) -> PathBuf {
     out
 }
 
+/// [`small_scene`] and a two-step [`train_tiny`] run on it on the CPU, in `dir`: the scene and
+/// the run folder.
+fn tiny_cpu_run(dir: &Path) -> (PathBuf, PathBuf) {
+    let s = small_scene(dir);
+    let run = dir.join("run");
+    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    (s, run)
+}
+
 /// A tiny field and sampler so that steps take milliseconds.
 fn write_tiny_config(cfg: &Path) {
     std::fs::write(
@@ -392,10 +402,7 @@ fn unknown_field_and_bad_config_are_errors() {
 #[test]
 fn a_corrupted_checkpoint_is_refused_by_name() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let ck = run.join("checkpoint.bin");
     let mut bytes = std::fs::read(&ck).unwrap();
     let at = bytes.len() / 2; // inside the tensors
@@ -813,10 +820,7 @@ fn without_an_adapter_gpu_is_a_clear_error_and_auto_runs_on_the_cpu() {
 #[test]
 fn render_writes_an_orbit_of_novel_views() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let out = d.path().join("frames");
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "20", "--device", "cpu", "--gif", "10", "--out"]).arg(&out).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
@@ -906,10 +910,7 @@ fn ngp_keyframe(c2w: &[[f64; 4]]) -> ([f64; 4], [f64; 3]) {
 #[test]
 fn render_follows_an_instant_ngp_camera_path() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let orbit = d.path().join("orbit");
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "20", "--device", "cpu", "--quiet", "--out"]).arg(&orbit).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
@@ -1004,10 +1005,7 @@ fn render_follows_an_instant_ngp_camera_path() {
 #[test]
 fn render_supersamples_with_spp() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let render = |name: &str, extra: &[&str]| -> image::RgbImage {
         let out = d.path().join(name);
         let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--width", "24", "--device", "cpu", "--quiet", "--out"]).arg(&out).args(extra).output().unwrap();
@@ -1030,10 +1028,7 @@ fn render_supersamples_with_spp() {
 #[test]
 fn render_writes_normal_maps() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let out = d.path().join("normals");
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "2", "--width", "16", "--spp", "2", "--normals", "--device", "cpu", "--quiet", "--out"]).arg(&out).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
@@ -1265,10 +1260,7 @@ fn ctrl_c_stops_a_render_and_keeps_its_frames() {
 #[test]
 fn resume_finishes_an_interrupted_render() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let args = ["--frames", "4", "--width", "12", "--device", "cpu", "--quiet", "--depth", "--gif", "10", "--out"];
     let whole = d.path().join("whole");
     let o = nerf().arg("render").arg(&run).arg(&s).args(args).arg(&whole).output().unwrap();
@@ -1344,10 +1336,7 @@ fn render_paths_through_the_test_cameras() {
 #[test]
 fn export_points_writes_a_ply_inside_the_scene_box() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     // A barely trained field: every ray that stops anywhere in the box counts.
     let o = nerf().arg("export-points").arg(&run).arg(&s).args(["--points", "300", "--min-opacity", "0", "--device", "cpu"]).output().unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
@@ -1372,10 +1361,7 @@ fn export_points_writes_a_ply_inside_the_scene_box() {
 #[test]
 fn export_mesh_writes_a_ply_mesh_inside_the_scene_box() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let mesh = |threshold: &str| {
         nerf().arg("export-mesh").arg(&run).arg(&s).args(["--resolution", "24", "--threshold", threshold, "--device", "cpu"]).output().unwrap()
     };
@@ -1450,10 +1436,7 @@ fn export_mesh_writes_a_ply_mesh_inside_the_scene_box() {
 #[test]
 fn render_writes_panoramas_and_fisheye_frames() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let out = d.path().join("pano");
     let o = nerf().arg("render").arg(&run).arg(&s).args(["--camera-type", "equirectangular", "--frames", "2", "--width", "24", "--device", "cpu", "--out"])
         .arg(&out).output().unwrap();
@@ -1657,10 +1640,7 @@ fn export_scene_moves_cameras_and_camera_optimizer_trains_on_it() {
 #[test]
 fn render_and_exports_read_only_the_cameras_of_the_training_photos() {
     let d = tempfile::tempdir().unwrap();
-    let s = small_scene(d.path());
-    let run = d.path().join("run");
-    let o = train_tiny(&s, &run, &["--iters", "2", "--device", "cpu"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let (s, run) = tiny_cpu_run(d.path());
     let mesh = || nerf().arg("export-mesh").arg(&run).arg(&s).args(["--resolution", "16", "--threshold", "0.001", "--device", "cpu"]).output().unwrap();
     let before = mesh();
     let points = || {
