@@ -67,7 +67,7 @@ pub fn read_camera_path(path: &Path) -> Result<CameraPathFile, DataError> {
     parse_camera_path(path, &v).map(CameraPathFile::Nerfstudio)
 }
 
-fn read_json(path: &Path) -> Result<serde_json::Value, DataError> {
+pub(crate) fn read_json(path: &Path) -> Result<serde_json::Value, DataError> {
     let text = std::fs::read_to_string(path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })?;
     serde_json::from_str(&text).map_err(|source| DataError::Json { path: path.to_path_buf(), source })
 }
@@ -141,6 +141,12 @@ pub fn intrinsics_from_fov_y(width: u32, height: u32, fov_y_degrees: f64) -> Int
     Intrinsics { width, height, fx: f, fy: f, cx: width as f32 * 0.5, cy: height as f32 * 0.5 }
 }
 
+/// The vertical field of view of `k` in degrees, `2·atan(½·H / fy)`: the inverse of
+/// [`intrinsics_from_fov_y`] (computed in f64).
+pub fn fov_y_degrees(k: &Intrinsics) -> f64 {
+    (2.0 * (0.5 * f64::from(k.height) / f64::from(k.fy)).atan()).to_degrees()
+}
+
 /// The intrinsics nerfstudio gives a `width × height` equirectangular camera (`fx = W/2`,
 /// `fy = H`, the principal point at the centre); only the size is used for its rays.
 pub fn equirect_intrinsics(width: u32, height: u32) -> Intrinsics {
@@ -159,11 +165,10 @@ pub fn camera_path_json(cameras: &[Camera], projection: Projection, fps: f64) ->
     let path: Vec<serde_json::Value> = cameras
         .iter()
         .map(|c| {
-            let fov = 2.0 * (0.5 * c.intrinsics.height as f64 / c.intrinsics.fy as f64).atan();
             let m: Vec<f32> = c.c2w().iter().flatten().copied().collect();
             serde_json::json!({
                 "camera_to_world": m,
-                "fov": fov.to_degrees(),
+                "fov": fov_y_degrees(&c.intrinsics),
                 "aspect": c.intrinsics.width as f64 / c.intrinsics.height as f64,
             })
         })

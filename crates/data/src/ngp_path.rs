@@ -40,7 +40,7 @@ use nerf_rays::glam::{DMat3, DQuat, DVec3, DVec4};
 use nerf_rays::Camera;
 use serde_json::Value;
 
-use crate::camera_path::intrinsics_from_fov_y;
+use crate::camera_path::{fov_y_degrees, intrinsics_from_fov_y, read_json};
 use crate::{DataError, Dataset, NerfstudioNormalization, NgpBox};
 
 /// How long instant-ngp spreads keyframes without valid timestamps over (its
@@ -132,9 +132,7 @@ impl NgpCameraPath {
     /// `T` (3 finite numbers) or `fov` (degrees in (0, 180)) missing or invalid, `loop` not a
     /// boolean, `spline_order` other than 0–3.
     pub fn load(path: &Path) -> Result<Self, DataError> {
-        let text = std::fs::read_to_string(path).map_err(|source| DataError::Io { path: path.to_path_buf(), source })?;
-        let v: Value = serde_json::from_str(&text).map_err(|source| DataError::Json { path: path.to_path_buf(), source })?;
-        Self::parse(path, &v)
+        Self::parse(path, &read_json(path)?)
     }
 
     /// [`NgpCameraPath::load`] of a file already parsed (`path` names it in errors).
@@ -288,10 +286,7 @@ impl NgpCameraPath {
             .iter()
             .chain(std::iter::once(last))
             .enumerate()
-            .map(|(i, c)| {
-                let fov = 2.0 * (0.5 * f64::from(c.intrinsics.height) / f64::from(c.intrinsics.fy)).atan();
-                NgpKeyframe::from_matrix(space.to_ngp(&c.c2w()), fov.to_degrees(), n * (i + 1) as f64 / ((n + 1.0) * fps))
-            })
+            .map(|(i, c)| NgpKeyframe::from_matrix(space.to_ngp(&c.c2w()), fov_y_degrees(&c.intrinsics), n * (i + 1) as f64 / ((n + 1.0) * fps)))
             .collect();
         Some(Self { keyframes, looped: false, spline_order: 1 })
     }
