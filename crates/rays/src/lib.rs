@@ -18,10 +18,12 @@
 //! - A camera may carry a lens ([`lens`]: OpenCV's radial–tangential or fisheye distortion): its
 //!   pixels' rays are then the directions the lens saw, found by inverting the distortion.
 
+pub mod exposure;
 pub mod lens;
 mod ndc;
 pub mod pose;
 
+pub use exposure::{Exposure, ThinLens};
 pub use lens::{Distortion, LensModel};
 
 pub use glam;
@@ -187,22 +189,29 @@ impl PixelConvention {
         if spp <= 1 {
             return vec![[o, o]];
         }
-        let n = spp;
-        let gcd = |mut a: usize, mut b: usize| {
-            while b != 0 {
-                (a, b) = (b, a % b);
-            }
-            a
-        };
-        let target = n as f64 / 1.618_033_988_749_895;
-        let a = (1..n).filter(|&a| gcd(a, n) == 1).min_by(|&x, &y| (x as f64 - target).abs().total_cmp(&(y as f64 - target).abs())).unwrap_or(1);
-        (0..n)
+        (0..spp)
             .map(|k| {
-                let (x, y) = ((k as f64 + 0.5) / n as f64, (((k * a) % n) as f64 + 0.5) / n as f64);
+                let [x, y] = lattice_point(k, spp);
                 [(o as f64 + filter.inverse_cdf(x)) as f32, (o as f64 + filter.inverse_cdf(y)) as f32]
             })
             .collect()
     }
+}
+
+/// Point `k` of the `n`-point rank-1 lattice over the unit square, `((k + ½)/n, ((k·a mod n) +
+/// ½)/n)` with `a` the integer nearest `n/φ` that is coprime to `n` (a Fibonacci lattice where `n`
+/// is a Fibonacci number): each axis has one point in each of its `n` strata, and the points
+/// spread over the square ([`PixelConvention::sample_offsets`], [`exposure::pass_sample`]).
+pub(crate) fn lattice_point(k: usize, n: usize) -> [f64; 2] {
+    let gcd = |mut a: usize, mut b: usize| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    };
+    let target = n as f64 / 1.618_033_988_749_895;
+    let a = (1..n).filter(|&a| gcd(a, n) == 1).min_by(|&x, &y| (x as f64 - target).abs().total_cmp(&(y as f64 - target).abs())).unwrap_or(1);
+    [(k as f64 + 0.5) / n as f64, (((k * a) % n) as f64 + 0.5) / n as f64]
 }
 
 /// The filter a rendered pixel integrates the image plane with when it is supersampled
@@ -468,6 +477,15 @@ impl Camera {
             position,
             distortion: Distortion::NONE,
         })
+    }
+
+    /// The rotation of the camera's axes as a unit quaternion, from the rotation block
+    /// orthonormalised (file poses carry rounding, or a uniform scale): the z axis kept, x made
+    /// orthogonal to it and to y.
+    pub fn orientation(&self) -> glam::Quat {
+        let z = self.rotation.z_axis.try_normalize().unwrap_or(Vec3::Z);
+        let x = self.rotation.y_axis.cross(z).try_normalize().unwrap_or(Vec3::X);
+        glam::Quat::from_mat3(&Mat3::from_cols(x, z.cross(x), z))
     }
 
     /// The same camera with the lens `distortion`.
@@ -900,13 +918,7 @@ pub fn interpolate(cameras: &[Camera], intrinsics: Intrinsics, n: usize) -> Opti
     if cameras.len() < 2 || n < 2 {
         return None;
     }
-    // Orthonormalised first: file poses carry rounding, and from_mat3 wants a rotation.
-    let quat = |c: &Camera| {
-        let z = c.rotation.z_axis.try_normalize().unwrap_or(Vec3::Z);
-        let x = c.rotation.y_axis.cross(z).try_normalize().unwrap_or(Vec3::X);
-        glam::Quat::from_mat3(&Mat3::from_cols(x, z.cross(x), z))
-    };
-    let quats: Vec<glam::Quat> = cameras.iter().map(quat).collect();
+    let quats: Vec<glam::Quat> = cameras.iter().map(Camera::orientation).collect();
     let last = (cameras.len() - 1) as f32;
     Some(
         (0..n)
