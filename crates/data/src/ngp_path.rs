@@ -28,16 +28,19 @@
 //! passes near its keyframes, not through them. A `loop` path wraps around to its first
 //! keyframe. Frame `i` of `n` is the camera at play time `i / n`, as in `run.py`, where the
 //! frame's shutter opens then: `run.py` also blurs each frame over the next half frame of the
-//! path, which is not rendered here.
+//! path (`nerf render --shutter 0.5`).
 //!
-//! Not used: `time` (the GUI's play head), `slice`, `scale` (the GUI's orbit distance),
-//! `aperture_size`/`dof` (depth of field: frames are rendered in focus everywhere), `up_dir`,
-//! `glow_mode` and `glow_y_cutoff`.
+//! Depth of field: a keyframe's `aperture_size` (`dof` in older files, which takes its place
+//! where both are present) is the radius of its lens, and `slice + scale` the distance of the
+//! plane in focus in front of it, both in instant-ngp's units (instant-ngp's `plane_z`). They are
+//! splined with the rest; [`NgpCameraPath::lenses`] gives each frame's lens in scene units.
+//!
+//! Not used: `time` (the GUI's play head), `up_dir`, `glow_mode` and `glow_y_cutoff`.
 
 use std::path::Path;
 
 use nerf_rays::glam::{DMat3, DQuat, DVec3, DVec4};
-use nerf_rays::Camera;
+use nerf_rays::{Camera, ThinLens};
 use serde_json::Value;
 
 use crate::camera_path::{fov_y_degrees, intrinsics_from_fov_y, read_json};
@@ -60,9 +63,20 @@ pub struct NgpKeyframe {
     /// `timestamp`: the second at which the path reaches the next keyframe (module docs; 0 where
     /// the file has none).
     pub timestamp: f64,
+    /// `aperture_size` (or `dof`): the lens's radius in instant-ngp's units; 0 (also where the
+    /// file has none): a pinhole.
+    pub aperture: f64,
+    /// `slice + scale`: the distance of the plane in focus in front of the camera, in
+    /// instant-ngp's units (its `plane_z`; [`NgpKeyframe::DEFAULT_FOCUS`] where the file has
+    /// neither).
+    pub focus: f64,
 }
 
 impl NgpKeyframe {
+    /// The focus distance of a keyframe without `slice` or `scale`: instant-ngp's defaults (0 and
+    /// 1.5, its camera's distance from the point it orbits).
+    pub const DEFAULT_FOCUS: f64 = 1.5;
+
     /// instant-ngp's `CameraKeyframe::m()`: the 3×4 camera matrix (columns right, down, forward,
     /// position), row-major, from the normalised quaternion.
     pub fn matrix(&self) -> [[f64; 4]; 3] {
@@ -83,7 +97,7 @@ impl NgpKeyframe {
             DVec3::new(m[0][2], m[1][2], m[2][2]),
         );
         let q = DQuat::from_mat3(&r);
-        Self { rotation: [q.x, q.y, q.z, q.w], position: [m[0][3], m[1][3], m[2][3]], fov, timestamp }
+        Self { rotation: [q.x, q.y, q.z, q.w], position: [m[0][3], m[1][3], m[2][3]], fov, timestamp, aperture: 0.0, focus: Self::DEFAULT_FOCUS }
     }
 }
 
@@ -104,6 +118,8 @@ struct Sum {
     r: DVec4,
     t: DVec3,
     fov: f64,
+    aperture: f64,
+    focus: f64,
 }
 
 /// instant-ngp's weighted sum of keyframes `Σ wᵢ·kᵢ`, left to right, each quaternion's sign
@@ -112,18 +128,18 @@ struct Sum {
 fn blend(terms: &[(&NgpKeyframe, f64)]) -> NgpKeyframe {
     let mut acc: Option<Sum> = None;
     for &(k, w) in terms {
-        let term = Sum { r: DVec4::from_array(k.rotation) * w, t: DVec3::from_array(k.position) * w, fov: k.fov * w };
+        let term = Sum { r: DVec4::from_array(k.rotation) * w, t: DVec3::from_array(k.position) * w, fov: k.fov * w, aperture: k.aperture * w, focus: k.focus * w };
         acc = Some(match acc {
             None => term,
             Some(a) => {
                 let r = if term.r.dot(a.r) < 0.0 { -term.r } else { term.r };
-                Sum { r: a.r + r, t: a.t + term.t, fov: a.fov + term.fov }
+                Sum { r: a.r + r, t: a.t + term.t, fov: a.fov + term.fov, aperture: a.aperture + term.aperture, focus: a.focus + term.focus }
             }
         });
     }
     let a = acc.expect("a spline has terms");
     let r = a.r.try_normalize().unwrap_or(DVec4::W);
-    NgpKeyframe { rotation: r.to_array(), position: a.t.to_array(), fov: a.fov, timestamp: 0.0 }
+    NgpKeyframe { rotation: r.to_array(), position: a.t.to_array(), fov: a.fov, timestamp: 0.0, aperture: a.aperture, focus: a.focus }
 }
 
 impl NgpCameraPath {
@@ -177,7 +193,20 @@ impl NgpCameraPath {
                 invalid(&key, format!("{fov}: the vertical field of view must be in (0, 180) degrees"))
             })?;
             let timestamp = f.get("timestamp").and_then(Value::as_f64).unwrap_or(0.0);
-            keyframes.push(NgpKeyframe { rotation: [r[0], r[1], r[2], r[3]], position: [t[0], t[1], t[2]], fov: fov_deg, timestamp });
+            // The lens: `dof` where present (instant-ngp's `from_json`), else `aperture_size`.
+            let number = |key: &str, default: f64| -> Result<f64, DataError> {
+                match f.get(key) {
+                    None | Some(Value::Null) => Ok(default),
+                    Some(x) => x.as_f64().filter(|v| v.is_finite()).ok_or_else(|| invalid(&format!("path[{i}].{key}"), format!("{x}: must be a finite number"))),
+                }
+            };
+            let aperture_key = if f.get("dof").is_some_and(|v| !v.is_null()) { "dof" } else { "aperture_size" };
+            let aperture = number(aperture_key, 0.0)?;
+            if aperture < 0.0 {
+                return Err(invalid(&format!("path[{i}].{aperture_key}"), format!("{aperture}: the aperture's radius must be at least 0")));
+            }
+            let focus = number("slice", 0.0)? + number("scale", NgpKeyframe::DEFAULT_FOCUS)?;
+            keyframes.push(NgpKeyframe { rotation: [r[0], r[1], r[2], r[3]], position: [t[0], t[1], t[2]], fov: fov_deg, timestamp, aperture, focus });
         }
         let mut p = Self { keyframes, looped, spline_order };
         p.sanitize_timestamps();
@@ -259,9 +288,7 @@ impl NgpCameraPath {
     pub fn cameras(&self, path: &Path, frames: usize, width: u32, height: u32, space: &NgpSpace) -> Result<Vec<Camera>, DataError> {
         (0..frames)
             .map(|i| {
-                let kf = self.eval(i as f64 / frames as f64);
-                let c2w = space.to_scene(kf.matrix());
-                Camera::from_c2w(intrinsics_from_fov_y(width, height, kf.fov), &c2w).map_err(|e| DataError::InvalidValue {
+                self.camera_at(i as f64 / frames as f64, width, height, space).map_err(|e| DataError::InvalidValue {
                     path: path.to_path_buf(),
                     key: "path".into(),
                     reason: format!("frame {i}: {e}"),
@@ -269,9 +296,38 @@ impl NgpCameraPath {
             })
             .collect()
     }
+
+    /// The `width × height` camera at play time `t` (0 to 1), in the frame of `space`'s scene
+    /// (what frame `i` of `n` is at `t = i / n`; `nerf render --shutter` also takes the
+    /// camera at the frame's end, `(i + 1) / n`).
+    pub fn camera_at(&self, t: f64, width: u32, height: u32, space: &NgpSpace) -> Result<Camera, nerf_rays::RayError> {
+        let kf = self.eval(t);
+        Camera::from_c2w(intrinsics_from_fov_y(width, height, kf.fov), &space.to_scene(kf.matrix()))
+    }
 }
 
 impl NgpCameraPath {
+    /// The lens of each of `frames` frames along the path (frame `i` at play time `i / frames`,
+    /// as [`NgpCameraPath::cameras`]), in the scene units of `space`: `None` where the splined
+    /// aperture is 0 (a pinhole). Errors name `path` where a frame with an aperture has its plane
+    /// in focus at or behind the camera (`slice + scale` ≤ 0).
+    pub fn lenses(&self, path: &Path, frames: usize, space: &NgpSpace) -> Result<Vec<Option<ThinLens>>, DataError> {
+        (0..frames)
+            .map(|i| {
+                let kf = self.eval(i as f64 / frames as f64);
+                if kf.aperture <= 0.0 {
+                    return Ok(None);
+                }
+                let lens = ThinLens { aperture: space.length_to_scene(kf.aperture) as f32, focus_distance: space.length_to_scene(kf.focus) as f32 };
+                lens.validate().map(|()| Some(lens)).map_err(|e| DataError::InvalidValue {
+                    path: path.to_path_buf(),
+                    key: "path".into(),
+                    reason: format!("frame {i}'s lens (slice + scale {:.4}, aperture_size {:.4}): {e}", kf.focus, kf.aperture),
+                })
+            })
+            .collect()
+    }
+
     /// The path that replays `cameras` frame for frame when read back and rendered at
     /// `fps` frames a second, which [`NgpCameraPath::cameras`] does with `cameras.len()` frames
     /// (and `nerf render` by default): one keyframe per camera, in instant-ngp's space, its
@@ -293,8 +349,8 @@ impl NgpCameraPath {
 
     /// The path as instant-ngp's `base_cam.json` (what its GUI's camera-path editor loads):
     /// `loop`, `time`, `spline_order`, `duration_seconds` and the keyframes' `R`, `T`, `fov`,
-    /// `timestamp`, with the keys instant-ngp's older versions require (`scale`, `slice`,
-    /// `aperture_size`, `dof`) at their defaults.
+    /// `timestamp`, and each keyframe's lens: `aperture_size` (and `dof`, which older versions
+    /// read), its focus distance as `scale` with `slice` 0.
     pub fn to_json(&self) -> Value {
         let path: Vec<Value> = self
             .keyframes
@@ -302,7 +358,7 @@ impl NgpCameraPath {
             .map(|k| {
                 serde_json::json!({
                     "R": k.rotation, "T": k.position, "fov": k.fov, "timestamp": k.timestamp,
-                    "scale": 1.5, "slice": 0.0, "aperture_size": 0.0, "dof": 0.0,
+                    "scale": k.focus, "slice": 0.0, "aperture_size": k.aperture, "dof": k.aperture,
                 })
             })
             .collect();
@@ -375,6 +431,16 @@ impl NgpSpace {
         nerf_matrix_to_ngp(std::array::from_fn(|i| std::array::from_fn(|j| f64::from(m[i][j]))), &self.placement)
     }
 
+    /// A length of instant-ngp's space in the dataset's frame: divided by the placement's
+    /// `scale`, times nerfstudio's normalisation's.
+    pub fn length_to_scene(&self, l: f64) -> f64 {
+        let l = l / f64::from(self.placement.scale);
+        match &self.normalization {
+            Some(n) => l * n.scale,
+            None => l,
+        }
+    }
+
     /// A camera matrix of instant-ngp's space as a camera-to-world matrix (3 rows) of the
     /// dataset's frame.
     pub fn to_scene(&self, m: [[f64; 4]; 3]) -> [[f32; 4]; 3] {
@@ -392,7 +458,7 @@ mod tests {
     use super::*;
 
     fn kf(rotation: [f64; 4], position: [f64; 3], fov: f64) -> NgpKeyframe {
-        NgpKeyframe { rotation, position, fov, timestamp: 0.0 }
+        NgpKeyframe { rotation, position, fov, timestamp: 0.0, aperture: 0.0, focus: NgpKeyframe::DEFAULT_FOCUS }
     }
 
     fn path(keyframes: Vec<NgpKeyframe>, looped: bool, spline_order: u32) -> NgpCameraPath {
@@ -577,9 +643,57 @@ mod tests {
             (r#"{"path": [{"R": [0, 0, 0, 1], "T": [0, 0, 0], "fov": 180}]}"#.to_string(), &["path[0].fov", "(0, 180)"]),
             (format!(r#"{{"spline_order": 4, "path": [{good}]}}"#), &["spline_order"]),
             (format!(r#"{{"loop": 1, "path": [{good}]}}"#), &["loop"]),
+            (r#"{"path": [{"R": [0, 0, 0, 1], "T": [0, 0, 0], "fov": 50, "aperture_size": -0.1}]}"#.to_string(), &["path[0].aperture_size", "at least 0"]),
+            (r#"{"path": [{"R": [0, 0, 0, 1], "T": [0, 0, 0], "fov": 50, "dof": "wide"}]}"#.to_string(), &["path[0].dof", "finite number"]),
+            (r#"{"path": [{"R": [0, 0, 0, 1], "T": [0, 0, 0], "fov": 50, "scale": null, "slice": [1]}]}"#.to_string(), &["path[0].slice"]),
         ] {
             let e = err(&text);
             assert!(words.iter().all(|w| e.contains(w)), "{text}: {e}");
         }
+    }
+
+    /// A keyframe's lens: `dof` in place of `aperture_size` where both are present, focus at
+    /// `slice + scale` (1.5 by default), splined with the rest, converted to scene units by the
+    /// placement's scale (and nerfstudio's), and written back.
+    #[test]
+    fn keyframes_carry_their_lens() {
+        let p = Path::new("base_cam.json");
+        let text = r#"{"spline_order": 1, "path": [
+            {"R": [0, 0, 0, 1], "T": [0.5, 0.5, 2], "fov": 50, "timestamp": 1, "aperture_size": 0.9, "dof": 0.02, "slice": 0.1, "scale": 1.0},
+            {"R": [0, 0, 0, 1], "T": [0.5, 0.5, 2], "fov": 50, "timestamp": 2, "aperture_size": 0.04, "slice": -0.1, "scale": 2.0},
+            {"R": [0, 0, 0, 1], "T": [0.5, 0.5, 2], "fov": 50, "timestamp": 3}]}"#;
+        let path = NgpCameraPath::parse(p, &serde_json::from_str(text).unwrap()).unwrap();
+        let k: Vec<(f64, f64)> = path.keyframes.iter().map(|k| (k.aperture, k.focus)).collect();
+        assert_eq!(k, vec![(0.02, 1.1), (0.04, 1.9), (0.0, NgpKeyframe::DEFAULT_FOCUS)]);
+        // Linear between the first two: halfway through the first segment (play time 1/4).
+        let mid = path.eval(0.25);
+        assert!((mid.aperture - 0.03).abs() < 1e-12 && (mid.focus - 1.5).abs() < 1e-12, "{mid:?}");
+        for (space, unit) in [
+            (NgpSpace { placement: NgpBox { scale: 0.25, offset: [0.5; 3], aabb_scale: 1.0 }, normalization: None }, 4.0),
+            (
+                NgpSpace {
+                    placement: NgpBox::default(),
+                    normalization: Some(NerfstudioNormalization { rotation: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], center: [0.0; 3], scale: 0.5 }),
+                },
+                0.5 / f64::from(0.33f32),
+            ),
+        ] {
+            let lenses = path.lenses(p, 4, &space).unwrap();
+            let l = lenses[1].expect("an aperture at play time 1/4");
+            assert!((f64::from(l.aperture) - 0.03 * unit).abs() < 1e-6 && (f64::from(l.focus_distance) - 1.5 * unit).abs() < 1e-5, "{l:?}");
+            // The first frame has the first keyframe's lens.
+            let l = lenses[0].expect("the first keyframe's aperture");
+            assert!((f64::from(l.aperture) - 0.02 * unit).abs() < 1e-6 && (f64::from(l.focus_distance) - 1.1 * unit).abs() < 1e-5, "{l:?}");
+        }
+        // Written and read back, the lens stays.
+        let back = NgpCameraPath::parse(p, &path.to_json()).unwrap();
+        for (a, b) in path.keyframes.iter().zip(&back.keyframes) {
+            assert!((a.aperture - b.aperture).abs() < 1e-12 && (a.focus - b.focus).abs() < 1e-12);
+        }
+        // A lens focused behind the camera is refused by frame.
+        let behind = r#"{"path": [{"R": [0, 0, 0, 1], "T": [0, 0, 0], "fov": 50, "aperture_size": 0.1, "slice": -2, "scale": 1}]}"#;
+        let path = NgpCameraPath::parse(p, &serde_json::from_str(behind).unwrap()).unwrap();
+        let e = path.lenses(p, 2, &NgpSpace { placement: NgpBox::default(), normalization: None }).unwrap_err().to_string();
+        assert!(e.contains("base_cam.json") && e.contains("frame 0") && e.contains("focus"), "{e}");
     }
 }
