@@ -342,6 +342,23 @@ struct RenderArgs {
     /// `eval_filter`, box unless set].
     #[arg(long, value_parser = parse_pixel_filter)]
     filter: Option<nerf::rays::PixelFilter>,
+    /// Depth of field: the radius of a thin lens, in scene units (instant-ngp's
+    /// `aperture_size`). Rays leave points of the lens and meet on the plane `--focus` in front
+    /// of the camera; what lies off it blurs. Each pixel's `--spp` rays take their own lens
+    /// points: use 8 or more, or the frames are noisy. An instant-ngp camera path's own lens is
+    /// used unless this is given (`--aperture 0`: none).
+    #[arg(long, value_name = "RADIUS")]
+    aperture: Option<f32>,
+    /// Distance of the plane in focus in front of the camera, in scene units [default: for
+    /// each frame, how far in front of its camera the point the path looks at lies (the orbit's
+    /// centre); for an LLFF scene, the focus depth of nerf-pytorch's spiral].
+    #[arg(long, value_name = "DISTANCE", requires = "aperture")]
+    focus: Option<f32>,
+    /// Motion blur: the fraction of a frame's time the shutter stays open, from the frame's
+    /// camera towards the next frame's (instant-ngp's `run.py` renders with 0.5). Each pixel's
+    /// `--spp` rays are cast at their own moments: use 8 or more [default: 0, no blur].
+    #[arg(long, value_name = "FRACTION", default_value_t = 0.0)]
+    shutter: f32,
 }
 
 #[derive(Args)]
@@ -816,7 +833,7 @@ type ResumePoint = (usize, f64, Option<(f32, f32)>);
 /// Where `nerf render --resume` goes on in `out`: the frames its `render.json` counts (each
 /// PNG present), with the seconds they took and their depth range. The earlier render must have
 /// had the same path (every camera within 10⁻⁵), camera type, frame size and rays per pixel.
-fn resume_point(out: &Path, path: &[nerf::rays::Camera], camera_type: &str, spp: usize) -> Result<ResumePoint> {
+fn resume_point(out: &Path, path: &[nerf::rays::Camera], camera_type: &str, spp: usize, shutter: f32, lenses: &serde_json::Value) -> Result<ResumePoint> {
     let file = out.join("render.json");
     let text = std::fs::read_to_string(&file).with_context(|| format!("{}: nothing to resume", file.display()))?;
     let r: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", file.display()))?;
@@ -832,6 +849,14 @@ fn resume_point(out: &Path, path: &[nerf::rays::Camera], camera_type: &str, spp:
     same("width", k.width.into())?;
     same("height", k.height.into())?;
     same("spp", spp.into())?;
+    // Renders from before motion blur and depth of field had neither.
+    let shutter = serde_json::json!(shutter);
+    if r.get("shutter").unwrap_or(&serde_json::json!(0.0)).as_f64() != shutter.as_f64() {
+        same("shutter", shutter)?;
+    }
+    if r.get("lenses").unwrap_or(&serde_json::Value::Null) != lenses {
+        same("lenses", lenses.clone())?;
+    }
     let done = r.get("frames").and_then(serde_json::Value::as_u64).with_context(|| format!("{}: no `frames`", file.display()))? as usize;
     let cams = r.get("camera_to_world").and_then(serde_json::Value::as_array).with_context(|| format!("{}: no `camera_to_world`", file.display()))?;
     if done > path.len() || cams.len() != done {
@@ -984,6 +1009,27 @@ impl NormalBuffers {
     }
 }
 
+/// Where each frame's shutter closes towards (`nerf render --shutter`): the next frame's camera.
+enum NextCamera {
+    /// Closed paths (an orbit, the spiral): the first frame follows the last.
+    Cyclic,
+    /// Open paths: the last frame stands still.
+    Clamped,
+    /// The camera at each frame's end, given (an instant-ngp path at `(i + 1) / n`).
+    Given(Vec<nerf::rays::Camera>),
+}
+
+impl NextCamera {
+    /// The camera frame `i` of `path` moves towards.
+    fn camera<'a>(&'a self, path: &'a [nerf::rays::Camera], i: usize) -> &'a nerf::rays::Camera {
+        match self {
+            NextCamera::Cyclic => &path[(i + 1) % path.len()],
+            NextCamera::Clamped => &path[(i + 1).min(path.len() - 1)],
+            NextCamera::Given(ends) => &ends[i],
+        }
+    }
+}
+
 /// Frames a second of an instant-ngp camera path: the frame rate of instant-ngp's video renders
 /// (`run.py --video_fps`, its GUI's render settings).
 const NGP_VIDEO_FPS: f64 = 60.0;
@@ -994,6 +1040,12 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     }
     if !(1..=nerf::train::config::MAX_EVAL_SPP).contains(&a.spp) {
         bail!("--spp {}: must be 1..={} rays per pixel", a.spp, nerf::train::config::MAX_EVAL_SPP);
+    }
+    if !(0.0..=1.0).contains(&a.shutter) {
+        bail!("--shutter {}: the fraction of a frame the shutter is open must be in [0, 1]", a.shutter);
+    }
+    if let Some(r) = a.aperture {
+        nerf::rays::ThinLens { aperture: r, focus_distance: a.focus.unwrap_or(1.0) }.validate().map_err(|e| anyhow::anyhow!("--aperture / --focus: {e}"))?;
     }
     // A user's path is read before the checkpoint, so a typo there fails fast.
     let user_path = a.camera_path.as_deref().map(nerf::data::read_camera_path).transpose()?;
@@ -1044,13 +1096,19 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             projection.name()
         );
     }
-    let (path, path_fps) = match user_path {
+    // The point the path looks at (the orbit's centre, and where frames focus by default): the
+    // point the training cameras look at (a capture's object, wherever nerfstudio's
+    // normalisation left it) when it lies in the scene box, else the box's centre.
+    let center = nerf::rays::look_at_point(&train.cameras)
+        .filter(|p| train.aabb.contains(p.to_array()))
+        .unwrap_or_else(|| nerf::rays::glam::Vec3::from_array(train.aabb.center()));
+    let (path, path_fps, next, path_lenses) = match user_path {
         Some(CameraPathFile::Nerfstudio(p)) => {
             let mut cams = p.cameras;
             for c in &mut cams {
                 c.intrinsics = sized(c.intrinsics)?;
             }
-            (cams, p.fps)
+            (cams, p.fps, NextCamera::Clamped, None)
         }
         Some(CameraPathFile::InstantNgp(p)) => {
             let file = a.camera_path.as_deref().unwrap_or(Path::new(""));
@@ -1066,7 +1124,19 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             // with its keyframes' field of view; instant-ngp renders 60 frames a second.
             let k = sized(train.cameras[0].intrinsics)?;
             let frames = a.frames.unwrap_or_else(|| (p.duration_seconds() * NGP_VIDEO_FPS).round().max(1.0) as usize);
-            (p.cameras(file, frames, k.width, k.height, &space)?, Some(NGP_VIDEO_FPS))
+            let cams = p.cameras(file, frames, k.width, k.height, &space)?;
+            // The shutter closes towards the camera at the frame's end, `(i + 1) / n` of the
+            // path (instant-ngp's `render_frame_end_camera`).
+            let next = match a.shutter > 0.0 {
+                true => NextCamera::Given(
+                    (1..=frames)
+                        .map(|i| p.camera_at(i as f64 / frames as f64, k.width, k.height, &space))
+                        .collect::<Result<_, _>>()
+                        .with_context(|| format!("{}: the camera at a frame's end", file.display()))?,
+                ),
+                false => NextCamera::Clamped,
+            };
+            (cams, Some(NGP_VIDEO_FPS), next, Some(p.lenses(file, frames, &space)?))
         }
         None => {
             let k = match projection {
@@ -1075,12 +1145,6 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             };
             let k = sized(k)?;
             let frames = a.frames.unwrap_or(60);
-            // The orbit's centre: the point the training cameras look at (a capture's object,
-            // wherever nerfstudio's normalisation left it) when it lies in the scene box, else the
-            // box's centre.
-            let center = nerf::rays::look_at_point(&train.cameras)
-                .filter(|p| train.aabb.contains(p.to_array()))
-                .unwrap_or_else(|| nerf::rays::glam::Vec3::from_array(train.aabb.center()));
             // Forward-facing captures get nerf-pytorch's spiral; object-centred ones a turntable orbit.
             let kind = match a.path {
                 PathKind::Auto if nerf::data::is_llff(&a.scene) => PathKind::Spiral,
@@ -1102,12 +1166,49 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
                 _ => nerf::rays::orbit(&train.cameras, center, k, frames)
                     .with_context(|| format!("{}: the training cameras do not define an orbit", a.scene.display()))?,
             };
-            (path, None)
+            // An orbit and the spiral come back to their first frame after their last.
+            let next = match kind {
+                PathKind::Interpolate => NextCamera::Clamped,
+                _ => NextCamera::Cyclic,
+            };
+            (path, None, next, None)
         }
     };
     let bounds = match train.ndc {
         Some(_) => SceneBounds::of(train),
         None => SceneBounds::of(train).for_path(&train.cameras, &path),
+    };
+    // Each frame's lens: `--aperture`, focused at `--focus` or where the path looks, else an
+    // instant-ngp path's own.
+    let lenses: Vec<Option<nerf::rays::ThinLens>> = match (a.aperture, path_lenses) {
+        (Some(r), _) if r > 0.0 => path
+            .iter()
+            .enumerate()
+            .map(|(i, cam)| {
+                let focus_distance = match (a.focus, nerf::data::llff::focus_depth(train)) {
+                    (Some(f), _) => f,
+                    (None, Some(f)) => f,
+                    (None, None) => {
+                        let forward = -cam.rotation.z_axis.normalize();
+                        let depth = (center - cam.position).dot(forward);
+                        if !(depth > 1e-6) {
+                            bail!("--aperture: the point the path looks at, {center}, is not in front of frame {i}'s camera: give --focus");
+                        }
+                        depth
+                    }
+                };
+                Ok(Some(nerf::rays::ThinLens { aperture: r, focus_distance }))
+            })
+            .collect::<Result<_>>()?,
+        (Some(_), _) | (None, None) => vec![None; path.len()],
+        (None, Some(l)) => l,
+    };
+    if a.spp < 4 && (a.shutter > 0.0 || lenses.iter().any(Option::is_some)) {
+        eprintln!("note: depth of field and motion blur are averaged over each pixel's --spp rays; with {} the frames are noisy (8 or more smooths them)", a.spp);
+    }
+    let lenses_json = match lenses.iter().any(Option::is_some) {
+        true => serde_json::json!(lenses.iter().map(|l| l.map(|l| [l.aperture, l.focus_distance])).collect::<Vec<_>>()),
+        false => serde_json::Value::Null,
     };
     let LoadedRun { step, train, mut trainer, .. } = opened.into_loaded(registry, a.device, bounds)?;
     trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
@@ -1137,7 +1238,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     // An interrupted render goes on where it stopped: its frames so far are kept (read back
     // into the GIF), its time and depth range carried over.
     let (start, mut render_seconds, mut depth_range) = match a.resume {
-        true => resume_point(&out, &path, projection.name(), points.len())?,
+        true => resume_point(&out, &path, projection.name(), points.len(), a.shutter, &lenses_json)?,
         false => (0, 0.0, None),
     };
     if let Some(g) = gif.as_mut() {
@@ -1154,8 +1255,12 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             break;
         }
         pb.set_position(i as u64);
+        // The shutter closes a fraction of the way to the next frame's camera.
+        let close = (a.shutter > 0.0).then(|| nerf::rays::exposure::camera_lerp(cam, next.camera(&path, i), a.shutter));
+        let exposure = nerf::rays::Exposure { camera: cam, shutter_close: close.as_ref(), lens: lenses[i], projection };
         for (j, &point) in points.iter().enumerate() {
             cam.frame_rays_at(projection, point, &mut o, &mut d);
+            exposure.apply(j, points.len(), i as u64, &mut o, &mut d);
             train.warp_rays(&mut o, &mut d);
             let t = std::time::Instant::now();
             trainer.render_rays(&o, &d, &bg, &mut rgb, &mut opacity, &mut depth)?;
@@ -1199,7 +1304,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": config.field, "iterations": step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "near": bounds.near, "far": bounds.far, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "shutter": a.shutter, "lenses": lenses_json, "near": bounds.near, "far": bounds.far, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;
@@ -1213,7 +1318,17 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let ngp_path = (projection == Projection::Perspective)
         .then(|| nerf::data::NgpSpace::of(&train))
         .flatten()
-        .and_then(|space| nerf::data::NgpCameraPath::from_cameras(&path, &space, NGP_VIDEO_FPS));
+        .and_then(|space| {
+            let mut p = nerf::data::NgpCameraPath::from_cameras(&path, &space, NGP_VIDEO_FPS)?;
+            // Each keyframe with its frame's lens (the last frame's twice).
+            for (k, lens) in p.keyframes.iter_mut().zip(lenses.iter().chain(lenses.last())) {
+                if let Some(l) = lens {
+                    k.aperture = space.length_to_ngp(f64::from(l.aperture));
+                    k.focus = space.length_to_ngp(f64::from(l.focus_distance));
+                }
+            }
+            Some(p)
+        });
     if let Some(p) = ngp_path {
         let text = serde_json::to_string_pretty(&p.to_json())?;
         nerf::train::run::write_atomic(&out.join("base_cam.json"), text.as_bytes())?;

@@ -1023,6 +1023,81 @@ fn render_supersamples_with_spp() {
     assert_clean_failure(&o, &["--spp 0", "rays per pixel"]);
 }
 
+/// `nerf render --aperture R [--focus D]` renders through a thin lens and `--shutter F` blurs
+/// each frame over part of the way to the next: a zero aperture and a closed shutter leave the
+/// frames bit for bit; by default every frame focuses on the orbit's centre; the lens goes into
+/// render.json and, in instant-ngp's units, into base_cam.json, whose render has it again;
+/// a resumed render must have the same lens and shutter; bad values are refused.
+#[test]
+fn render_blurs_with_a_lens_and_an_open_shutter() {
+    let d = tempfile::tempdir().unwrap();
+    let (s, run) = tiny_cpu_run(d.path());
+    let json = |p: &Path| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap() };
+    let render = |name: &str, extra: &[&str]| -> (Vec<u8>, serde_json::Value) {
+        let out = d.path().join(name);
+        let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "16", "--device", "cpu", "--quiet", "--out"]).arg(&out).args(extra).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        (image::open(out.join("frame_0001.png")).unwrap().to_rgb8().into_raw(), json(&out.join("render.json")))
+    };
+    let (sharp, r) = render("sharp", &["--spp", "2"]);
+    assert_eq!((r["shutter"].as_f64(), r["lenses"].is_null()), (Some(0.0), true), "{r}");
+    let (pinhole, _) = render("pinhole", &["--spp", "2", "--aperture", "0", "--shutter", "0"]);
+    assert_eq!(sharp, pinhole, "no aperture and a closed shutter change nothing");
+    let (lens, r) = render("lens", &["--spp", "2", "--aperture", "0.3"]);
+    assert_ne!(sharp, lens, "a wide lens blurs");
+    // Every frame is focused on one point: the orbit's centre, where its cameras look.
+    let lenses = r["lenses"].as_array().unwrap();
+    assert_eq!(lenses.len(), 3);
+    let focus_point = |i: usize| -> [f64; 3] {
+        let m = &r["camera_to_world"][i];
+        let f = lenses[i][1].as_f64().unwrap();
+        assert_eq!(lenses[i][0].as_f64(), Some(0.30000001192092896));
+        std::array::from_fn(|a| m[a][3].as_f64().unwrap() - f * m[a][2].as_f64().unwrap())
+    };
+    let p0 = focus_point(0);
+    for i in 1..3 {
+        let p = focus_point(i);
+        assert!((0..3).all(|a| (p[a] - p0[a]).abs() < 1e-4), "frame {i} focuses at {p:?}, frame 0 at {p0:?}");
+    }
+    // base_cam.json holds the lens in instant-ngp's units (lego's scale 0.33), and renders it again.
+    let b = json(&d.path().join("lens/base_cam.json"));
+    let kf = &b["path"][1];
+    assert!((kf["aperture_size"].as_f64().unwrap() - 0.3 * 0.33).abs() < 1e-5, "{kf}");
+    assert!((kf["scale"].as_f64().unwrap() + kf["slice"].as_f64().unwrap() - 0.33 * lenses[1][1].as_f64().unwrap()).abs() < 1e-4, "{kf}");
+    let again = d.path().join("again");
+    let o = nerf().arg("render").arg(&run).arg(&s).arg("--camera-path").arg(d.path().join("lens/base_cam.json"))
+        .args(["--width", "16", "--spp", "2", "--device", "cpu", "--quiet", "--out"]).arg(&again).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let back = json(&again.join("render.json"));
+    for i in 0..3 {
+        for k in 0..2 {
+            let (x, y) = (back["lenses"][i][k].as_f64().unwrap(), lenses[i][k].as_f64().unwrap());
+            assert!((x - y).abs() < 1e-4, "frame {i}: {back}");
+        }
+    }
+    // An explicit focus is every frame's.
+    let (_, r) = render("focus", &["--aperture", "0.1", "--focus", "2.5"]);
+    assert!(r["lenses"].as_array().unwrap().iter().all(|l| l[1].as_f64() == Some(2.5)), "{r}");
+    // Motion blur: the frame moves towards the next one's camera.
+    let (moving, r) = render("moving", &["--spp", "2", "--shutter", "0.5"]);
+    assert_ne!(sharp, moving, "an open shutter blurs");
+    assert_eq!(r["shutter"].as_f64(), Some(0.5));
+    // A render is resumed with the lens and shutter it was started with.
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "16", "--spp", "2", "--device", "cpu", "--resume", "--out"]).arg(d.path().join("moving")).output().unwrap();
+    assert_clean_failure(&o, &["render.json", "shutter", "--resume"]);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "3", "--width", "16", "--spp", "2", "--aperture", "0.2", "--device", "cpu", "--resume", "--out"]).arg(d.path().join("lens")).output().unwrap();
+    assert_clean_failure(&o, &["render.json", "lenses", "--resume"]);
+    // Bad values.
+    for (args, words) in [
+        (&["--shutter", "1.5"][..], &["--shutter 1.5", "[0, 1]"][..]),
+        (&["--aperture=-1"], &["--aperture", "at least 0"]),
+        (&["--aperture", "0.1", "--focus", "0"], &["--focus", "above 0"]),
+    ] {
+        let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1"]).args(args).output().unwrap();
+        assert_clean_failure(&o, words);
+    }
+}
+
 /// `nerf render --normals` writes a normal map beside each frame, the size of the frame, each
 /// pixel a blend of a unit normal's colour and the white background by the frame's opacity.
 #[test]

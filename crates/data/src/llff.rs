@@ -336,3 +336,10 @@ pub fn render_path(ds: &Dataset, intrinsics: Intrinsics, n: usize) -> Option<Vec
     let [lo, hi] = ds.depth_bounds?;
     nerf_rays::spiral(&ds.cameras, 0.9 * lo, 5.0 * hi, intrinsics, n)
 }
+
+/// How far in front of its cameras [`render_path`]'s spiral looks ([`nerf_rays::spiral_focus`]
+/// of its depths). `None` for a scene without depth bounds.
+pub fn focus_depth(ds: &Dataset) -> Option<f32> {
+    let [lo, hi] = ds.depth_bounds?;
+    Some(nerf_rays::spiral_focus(0.9 * lo, 5.0 * hi))
+}

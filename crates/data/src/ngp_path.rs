@@ -441,6 +441,16 @@ impl NgpSpace {
         }
     }
 
+    /// A length of the dataset's frame in instant-ngp's space: the inverse of
+    /// [`NgpSpace::length_to_scene`].
+    pub fn length_to_ngp(&self, l: f64) -> f64 {
+        let l = match &self.normalization {
+            Some(n) => l / n.scale,
+            None => l,
+        };
+        l * f64::from(self.placement.scale)
+    }
+
     /// A camera matrix of instant-ngp's space as a camera-to-world matrix (3 rows) of the
     /// dataset's frame.
     pub fn to_scene(&self, m: [[f64; 4]; 3]) -> [[f32; 4]; 3] {
@@ -678,6 +688,7 @@ mod tests {
                 0.5 / f64::from(0.33f32),
             ),
         ] {
+            assert!((space.length_to_ngp(space.length_to_scene(0.7)) - 0.7).abs() < 1e-12);
             let lenses = path.lenses(p, 4, &space).unwrap();
             let l = lenses[1].expect("an aperture at play time 1/4");
             assert!((f64::from(l.aperture) - 0.03 * unit).abs() < 1e-6 && (f64::from(l.focus_distance) - 1.5 * unit).abs() < 1e-5, "{l:?}");

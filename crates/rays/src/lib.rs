@@ -863,6 +863,12 @@ pub fn look_at_point(cameras: &[Camera]) -> Option<Vec3> {
     p.is_finite().then(|| p.as_vec3())
 }
 
+/// The distance in front of the cameras that [`spiral`]'s frames look at, between depths `near`
+/// and `far`: nerf-pytorch's `focal`, `1 / (0.25/near + 0.75/far)` (its "focus depth").
+pub fn spiral_focus(near: f32, far: f32) -> f32 {
+    1.0 / (0.25 / near + 0.75 / far)
+}
+
 /// nerf-pytorch's `render_path_spiral` for forward-facing captures (LLFF): `n` cameras on a
 /// spiral of two turns about the mean camera, in its image plane with a depth swing of half the
 /// rate, every one looking at a point `focus` in front of the mean camera; `intrinsics` for every
@@ -890,7 +896,7 @@ pub fn spiral(cameras: &[Camera], near: f32, far: f32, intrinsics: Intrinsics, n
         v[lo] + (v[hi] - v[lo]) * (r - lo as f32)
     };
     let rads = Vec3::new(percentile90(0), percentile90(1), percentile90(2));
-    let focus = 1.0 / (0.25 / near + 0.75 / far);
+    let focus = spiral_focus(near, far);
     let target = center + avg * Vec3::new(0.0, 0.0, -focus);
     Some(
         (0..n)
