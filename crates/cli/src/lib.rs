@@ -309,7 +309,7 @@ struct RenderArgs {
     depth: bool,
     /// Continue a render that was interrupted (Ctrl-C) in `--out`: the frames its render.json
     /// counts are kept, and rendering goes on from the next. The command must be the one that
-    /// started it (the same path, frame size and rays per pixel); anything else is refused.
+    /// started it (the same path, frame size, rays per pixel, lens and shutter); anything else is refused.
     #[arg(long)]
     resume: bool,
     /// Also write normal_0000.png, …: the surface normal where each pixel's ray stops, from the

@@ -23,6 +23,7 @@
 
 use crate::{Camera, Projection};
 use glam::{Mat3, Vec3};
+use rayon::prelude::*;
 
 /// A thin lens: depth of field (see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -92,8 +93,9 @@ impl Exposure<'_> {
             (if q_open.dot(q) < 0.0 { -q } else { q }, c.position)
         });
         let lens = self.lens.filter(|l| l.aperture > 0.0);
-        for (pixel, (o, d)) in origins.chunks_exact_mut(3).zip(dirs.chunks_exact_mut(3)).enumerate() {
-            let [time, lu, lv] = pass_sample(pixel as u64, pass, passes, seed);
+        let point = pass_point(pass, passes);
+        origins.par_chunks_exact_mut(3).zip(dirs.par_chunks_exact_mut(3)).enumerate().for_each(|(pixel, (o, d))| {
+            let [time, lu, lv] = shifted(point, pixel as u64, seed);
             let dir_cam = to_camera * Vec3::from_slice(d);
             let (q, position) = match close {
                 Some((qc, pc)) => (q_open.slerp(qc, time).normalize(), Vec3::from_slice(o).lerp(pc, time)),
@@ -120,7 +122,7 @@ impl Exposure<'_> {
             let dir = dir.normalize();
             o.copy_from_slice(&origin.to_array());
             d.copy_from_slice(&dir.to_array());
-        }
+        });
     }
 }
 
@@ -130,14 +132,23 @@ impl Exposure<'_> {
 /// [`PixelConvention::sample_offsets`](crate::PixelConvention::sample_offsets)), all shifted
 /// modulo 1 by a hash of `pixel` and `seed`, so that each pixel takes its own.
 pub fn pass_sample(pixel: u64, pass: usize, passes: usize, seed: u64) -> [f32; 3] {
+    shifted(pass_point(pass, passes), pixel, seed)
+}
+
+/// The unshifted point of pass `pass` of `passes` (the same for every pixel).
+fn pass_point(pass: usize, passes: usize) -> [f64; 3] {
     let n = passes.max(1);
+    let [x, y] = crate::lattice_point(pass % n, n);
+    [((pass % n) as f64 + 0.5) / n as f64, x, y]
+}
+
+/// `point` shifted modulo 1 by a hash of `pixel` and `seed` (21 bits a coordinate).
+#[inline]
+fn shifted(point: [f64; 3], pixel: u64, seed: u64) -> [f32; 3] {
     let h = mix64(seed ^ mix64(pixel.wrapping_add(0x9e37_79b9_7f4a_7c15)));
     let shift = |k: u32| ((h >> (k * 21)) & 0x1f_ffff) as f64 / (1u64 << 21) as f64;
-    let [x, y] = crate::lattice_point(pass % n, n);
-    let time = (pass % n) as f64 / n as f64 + 0.5 / n as f64;
-    let v = [time, x, y];
     // Below 1 after rounding to f32 too (the largest f32 under 1 is 1 − ε/2).
-    std::array::from_fn(|k| ((v[k] + shift(k as u32)).fract() as f32).min(1.0 - f32::EPSILON / 2.0))
+    std::array::from_fn(|k| ((point[k] + shift(k as u32)).fract() as f32).min(1.0 - f32::EPSILON / 2.0))
 }
 
 /// splitmix64's finaliser: a well-mixed 64-bit hash of `x`.
@@ -157,7 +168,8 @@ pub fn concentric_disk([u, v]: [f32; 2]) -> [f32; 2] {
     }
     let quarter = std::f32::consts::FRAC_PI_4;
     let (r, phi) = if a.abs() > b.abs() { (a, quarter * (b / a)) } else { (b, 2.0 * quarter - quarter * (a / b)) };
-    [r * phi.cos(), r * phi.sin()]
+    let (sin, cos) = phi.sin_cos();
+    [r * cos, r * sin]
 }
 
 #[cfg(test)]
