@@ -336,6 +336,13 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
         let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "2", "--width", "32", "--device", "cpu", "--depth"]).output().unwrap();
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(run.join("render/frame_0001.png").is_file() && run.join("render/depth_0001.png").is_file());
+        // Depth of field in either space (the lens moves the rays before NDC warps them), focused
+        // by default at the depth nerf-pytorch's spiral looks at: one distance for every frame.
+        let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "2", "--width", "16", "--spp", "2", "--aperture", "0.01", "--device", "cpu", "--quiet", "--out"]).arg(run.join("dof")).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("dof/render.json")).unwrap()).unwrap();
+        let focus: Vec<f64> = (0..2).map(|i| r["lenses"][i][1].as_f64().unwrap()).collect();
+        assert!(focus[0] > 0.0 && focus[0] == focus[1], "{r}");
         // A point cloud needs distances: the Euclidean run gives one, the NDC run a clear error.
         let o = nerf().arg("export-points").arg(&run).arg(&fern).args(["--points", "50", "--min-opacity", "0", "--device", "cpu"]).output().unwrap();
         match space {
