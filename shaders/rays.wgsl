@@ -58,7 +58,7 @@ struct Cam {
     r1: vec4<f32>,
     r2: vec4<f32>,
     intr: vec4<f32>,   // fx, fy, cx, cy
-    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye, 3 Fisheye624, 4 FOV)
+    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye, 3 Fisheye624, 4 FOV, 5 division)
     k: vec4<f32>,      // k1, k2, k3, k4 (FOV: ω, 0, 0, 0)
     kp: vec4<f32>,     // k5, k6, p1, p2
     s: vec4<f32>,      // s1, s2, s3, s4
@@ -189,6 +189,11 @@ fn camera_dir(cam: Cam, u: f32, v: f32) -> vec3<f32> {
                 s = tan(rho_d * omega) / (c * rho_d);
             }
         }
+        return vec3<f32>(xd * s, -yd * s, -1.0);
+    }
+    if (lens == 5u) {
+        // COLMAP's division lens, inverted in closed form: p = p_d / (1 + k1·ρ_d²).
+        let s = 1.0 / (1.0 + cam.k.x * (xd * xd + yd * yd));
         return vec3<f32>(xd * s, -yd * s, -1.0);
     }
     let tangential = any(cam.kp.zw != vec2<f32>(0.0)) || any(cam.s != vec4<f32>(0.0));

@@ -16,8 +16,12 @@
 //! `RADIAL_FISHEYE` and `SIMPLE_RADIAL_FISHEYE` (written as nerfstudio writes them,
 //! `OPENCV_FISHEYE` with `k1..k4`), `THIN_PRISM_FISHEYE` (its `sx1`, `sy1` as OpenCV's `s1`,
 //! `s3`) and `RAD_TAN_THIN_PRISM_FISHEYE` (Project Aria's Fisheye624, written as nerfstudio's
-//! `FISHEYE624` with `distortion_params`) and `FOV` (its `omega`). Other models are an error
-//! naming the camera.
+//! `FISHEYE624` with `distortion_params`), `FOV` (its `omega`), and those of COLMAP 3.12 on:
+//! `SIMPLE_DIVISION` and `DIVISION` (Fitzgibbon's division model, written as `DIVISION` with its
+//! `k` as `k1`), the plain equidistant fisheyes `SIMPLE_FISHEYE` and `FISHEYE` (written as
+//! `OPENCV_FISHEYE` with zero coefficients) and `EQUIRECTANGULAR` (360° panoramas, written as
+//! nerfstudio's `EQUIRECTANGULAR` camera, whose mapping is COLMAP's: the image's centre looks
+//! forward, its top row up). `EUCM` and unknown models are an error naming the camera.
 
 use std::path::{Path, PathBuf};
 
@@ -91,7 +95,8 @@ pub struct ColmapModel {
 }
 
 /// COLMAP's camera models: id, name, number of parameters (`colmap/src/colmap/sensor/models.h`).
-const MODELS: [(i32, &str, usize); 12] = [
+/// `EUCM` is known (its model files read) but refused ([`transforms_json`]).
+const MODELS: [(i32, &str, usize); 18] = [
     (0, "SIMPLE_PINHOLE", 3),
     (1, "PINHOLE", 4),
     (2, "SIMPLE_RADIAL", 4),
@@ -104,6 +109,12 @@ const MODELS: [(i32, &str, usize); 12] = [
     (9, "RADIAL_FISHEYE", 5),
     (10, "THIN_PRISM_FISHEYE", 12),
     (11, "RAD_TAN_THIN_PRISM_FISHEYE", 16),
+    (12, "SIMPLE_DIVISION", 4),
+    (13, "DIVISION", 5),
+    (14, "SIMPLE_FISHEYE", 3),
+    (15, "FISHEYE", 4),
+    (16, "EUCM", 6),
+    (17, "EQUIRECTANGULAR", 2),
 ];
 
 fn bad(path: &Path, reason: impl Into<String>) -> DataError {
@@ -477,19 +488,29 @@ pub fn camera_to_world(im: &ColmapImage) -> [[f64; 4]; 4] {
 /// `cx`, `cy`, and the distortion coefficients its model has), as nerfstudio writes them.
 fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, Value>, DataError> {
     let p = &c.params;
+    if c.model == "EQUIRECTANGULAR" {
+        // A panorama: its size is all there is (COLMAP's parameters repeat it).
+        let mut m = serde_json::Map::new();
+        m.insert("camera_model".into(), json!("EQUIRECTANGULAR"));
+        m.insert("w".into(), json!(c.width));
+        m.insert("h".into(), json!(c.height));
+        return Ok(m);
+    }
     let (f, rest, model): (_, &[f64], _) = match c.model.as_str() {
         "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" => ([p[0], p[0], p[1], p[2]], &p[3..], c.model.as_str()),
         "PINHOLE" | "OPENCV" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
-        "OPENCV_FISHEYE" => ([p[0], p[1], p[2], p[3]], &p[4..], "OPENCV_FISHEYE"),
-        "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE" => ([p[0], p[0], p[1], p[2]], &p[3..], "OPENCV_FISHEYE"),
+        "OPENCV_FISHEYE" | "FISHEYE" => ([p[0], p[1], p[2], p[3]], &p[4..], "OPENCV_FISHEYE"),
+        "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_FISHEYE" => ([p[0], p[0], p[1], p[2]], &p[3..], "OPENCV_FISHEYE"),
+        "SIMPLE_DIVISION" => ([p[0], p[0], p[1], p[2]], &p[3..], "DIVISION"),
+        "DIVISION" => ([p[0], p[1], p[2], p[3]], &p[4..], "DIVISION"),
         "FULL_OPENCV" | "THIN_PRISM_FISHEYE" | "RAD_TAN_THIN_PRISM_FISHEYE" | "FOV" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
         other => {
             return Err(bad(
                 path,
                 format!(
                     "camera {}: camera model {other} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, \
-                     FULL_OPENCV, OPENCV_FISHEYE, RADIAL_FISHEYE, SIMPLE_RADIAL_FISHEYE, FOV, THIN_PRISM_FISHEYE and \
-                     RAD_TAN_THIN_PRISM_FISHEYE are)",
+                     FULL_OPENCV, OPENCV_FISHEYE, RADIAL_FISHEYE, SIMPLE_RADIAL_FISHEYE, FOV, THIN_PRISM_FISHEYE, \
+                     RAD_TAN_THIN_PRISM_FISHEYE, SIMPLE_DIVISION, DIVISION, SIMPLE_FISHEYE, FISHEYE and EQUIRECTANGULAR are)",
                     c.id
                 ),
             ))
@@ -517,7 +538,8 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
         // COLMAP's sx1, sy1 are OpenCV's s1, s3.
         "THIN_PRISM_FISHEYE" => &["k1", "k2", "p1", "p2", "k3", "k4", "s1", "s3"],
         "FOV" => &["omega"],
-        "OPENCV_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_RADIAL_FISHEYE" => &["k1", "k2", "k3", "k4"],
+        "SIMPLE_DIVISION" | "DIVISION" => &["k1"],
+        "OPENCV_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_RADIAL_FISHEYE" | "SIMPLE_FISHEYE" | "FISHEYE" => &["k1", "k2", "k3", "k4"],
         _ => &[],
     };
     // nerfstudio writes all four fisheye coefficients, zeros for those a model lacks.

@@ -187,6 +187,8 @@ impl Lens {
             Fisheye624,
             /// FOV (COLMAP's): `omega` only.
             Fov,
+            /// DIVISION and SIMPLE_DIVISION (COLMAP's): `k1` only.
+            Division,
             /// EQUIRECTANGULAR: none.
             Equirectangular,
         }
@@ -200,13 +202,14 @@ impl Lens {
                 "THIN_PRISM_FISHEYE" => Named::ThinPrismFisheye,
                 "FISHEYE624" | "RAD_TAN_THIN_PRISM_FISHEYE" => Named::Fisheye624,
                 "FOV" => Named::Fov,
+                "DIVISION" | "SIMPLE_DIVISION" => Named::Division,
                 "EQUIRECTANGULAR" => Named::Equirectangular,
                 _ => {
                     return Err(invalid(
                         name,
                         format!(
                             "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL, \
-                             FULL_OPENCV, OPENCV_FISHEYE, THIN_PRISM_FISHEYE, FISHEYE624, FOV and EQUIRECTANGULAR are)"
+                             FULL_OPENCV, OPENCV_FISHEYE, THIN_PRISM_FISHEYE, FISHEYE624, FOV, DIVISION and EQUIRECTANGULAR are)"
                         ),
                     ))
                 }
@@ -221,7 +224,7 @@ impl Lens {
                     Some((Named::Equirectangular, model_key, _)) => {
                         return Err(invalid(name, format!("true, but `{model_key}` names an equirectangular camera")));
                     }
-                    Some((Named::OpenCv | Named::FullOpenCv | Named::Fov, model_key, _)) => {
+                    Some((Named::OpenCv | Named::FullOpenCv | Named::Fov | Named::Division, model_key, _)) => {
                         return Err(invalid(name, format!("true, but `{model_key}` names a camera model without a fisheye lens")));
                     }
                     Some(_) => {}
@@ -292,6 +295,7 @@ impl Lens {
             Named::ThinPrismFisheye => (LensModel::Fisheye, &COEFFICIENT_NAMES),
             Named::Fisheye624 => (LensModel::Fisheye624, &COEFFICIENT_NAMES),
             Named::Fov => (LensModel::Fov, &[]),
+            Named::Division => (LensModel::Division, &["k1"]),
             Named::Equirectangular => (LensModel::RadialTangential, &[]),
         };
         for (i, key) in COEFFICIENT_NAMES.iter().enumerate() {

@@ -83,7 +83,7 @@ fn lego_model(root: &Path, sim: &Similarity) -> ColmapModel {
     ColmapModel { cameras: vec![ColmapCamera { id: 7, model: "PINHOLE".into(), width: 100, height: 100, params: vec![f, f, 50.0, 50.0] }], images }
 }
 
-const MODEL_IDS: [(&str, i32); 12] = [
+const MODEL_IDS: [(&str, i32); 18] = [
     ("SIMPLE_PINHOLE", 0),
     ("PINHOLE", 1),
     ("SIMPLE_RADIAL", 2),
@@ -96,6 +96,12 @@ const MODEL_IDS: [(&str, i32); 12] = [
     ("RADIAL_FISHEYE", 9),
     ("THIN_PRISM_FISHEYE", 10),
     ("RAD_TAN_THIN_PRISM_FISHEYE", 11),
+    ("SIMPLE_DIVISION", 12),
+    ("DIVISION", 13),
+    ("SIMPLE_FISHEYE", 14),
+    ("FISHEYE", 15),
+    ("EUCM", 16),
+    ("EQUIRECTANGULAR", 17),
 ];
 
 /// `cameras.bin` and `images.bin` as COLMAP writes them (`write_cameras_binary`,
@@ -329,6 +335,8 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
             Distortion::from_coefficients(LensModel::Fisheye624, [0.02, -0.01, 0.003, -0.0004, 0.0001, -0.00002, -0.002, 0.001, 0.002, -0.0005, -0.001, 0.0003]),
         ),
         ("FOV", vec![0.9], Distortion::fov(0.9)),
+        ("DIVISION", vec![-0.05], Distortion { model: LensModel::Division, k1: -0.05, ..Distortion::NONE }),
+        ("FISHEYE", vec![], Distortion { model: LensModel::Fisheye, ..Distortion::NONE }),
     ];
     for (name, coefficients, lens) in cases {
         let mut m = model.clone();
@@ -340,6 +348,21 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
         assert!(d.cameras.iter().all(|c| c.distortion == lens), "{name}: {}", d.cameras[0].distortion);
         std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
     }
+    // A panorama (COLMAP's EQUIRECTANGULAR) is six views, the faces of a cube map; the front
+    // one looks where a pinhole camera of the same pose looks, as COLMAP's and nerfstudio's
+    // mappings both put the image's centre forward and its top row up.
+    let mut pano = model.clone();
+    pano.cameras[0].model = "EQUIRECTANGULAR".into();
+    pano.cameras[0].params = vec![100.0, 100.0];
+    write_bin(&dir.path().join("sparse/0"), &pano, 0);
+    let p = load(dir.path(), Split::Train);
+    assert_eq!(p.n_views(), 6 * a.n_views());
+    for (i, c) in a.cameras.iter().enumerate() {
+        let front = &p.cameras[6 * i];
+        assert!(front.rotation.abs_diff_eq(c.rotation, 1e-5) && (front.position - c.position).length() < 1e-5, "view {i}");
+        assert!(front.distortion.is_identity() && front.intrinsics.fx * 2.0 == front.intrinsics.width as f32, "a 90° pinhole face");
+    }
+    std::fs::remove_dir_all(dir.path().join("sparse")).unwrap();
     write_txt(&dir.path().join("sparse/0"), &model);
     // The fisheyes, as nerfstudio writes them: OPENCV_FISHEYE with all four terms.
     let fisheye = |f: &serde_json::Value| (f["camera_model"].as_str().map(str::to_string), ["fl_x", "fl_y", "k1", "k2", "k3", "k4"].map(|k| f[k].as_f64().unwrap()));
@@ -350,6 +373,23 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     let f = keys("SIMPLE_RADIAL_FISHEYE", vec![40.0, 31.0, 23.0, 0.1]);
     assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 40.0, 0.1, 0.0, 0.0, 0.0]));
     assert_eq!((f["cx"].as_f64(), f["cy"].as_f64(), f.get("p1")), (Some(31.0), Some(23.0), None));
+    // COLMAP 3.12's: the plain equidistant fisheyes, the division model, panoramas; EUCM refused.
+    let f = keys("SIMPLE_FISHEYE", vec![40.0, 31.0, 23.0]);
+    assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 40.0, 0.0, 0.0, 0.0, 0.0]));
+    let f = keys("FISHEYE", vec![40.0, 41.0, 31.0, 23.0]);
+    assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 41.0, 0.0, 0.0, 0.0, 0.0]));
+    let f = keys("SIMPLE_DIVISION", vec![40.0, 31.0, 23.0, -0.1]);
+    assert_eq!((f["camera_model"].as_str(), f["fl_x"].as_f64(), f["fl_y"].as_f64(), f["k1"].as_f64()), (Some("DIVISION"), Some(40.0), Some(40.0), Some(-0.1)));
+    let f = keys("DIVISION", vec![40.0, 41.0, 31.0, 23.0, 0.05]);
+    assert_eq!((f["camera_model"].as_str(), f["fl_y"].as_f64(), f["cy"].as_f64(), f["k1"].as_f64()), (Some("DIVISION"), Some(41.0), Some(23.0), Some(0.05)));
+    let f = keys("EQUIRECTANGULAR", vec![64.0, 48.0]);
+    assert_eq!((f["camera_model"].as_str(), f["w"].as_u64(), f["h"].as_u64(), f.get("fl_x")), (Some("EQUIRECTANGULAR"), Some(64), Some(48), None));
+    let eucm = ColmapModel {
+        cameras: vec![ColmapCamera { id: 3, model: "EUCM".into(), width: 64, height: 48, params: vec![40.0, 41.0, 31.0, 23.0, 0.6, 1.1] }],
+        images: vec![ColmapImage { id: 1, qvec: [1.0, 0.0, 0.0, 0.0], tvec: [0.0; 3], camera_id: 3, name: "a.png".into() }],
+    };
+    let e = colmap::transforms_json(Path::new("images.bin"), &eucm).unwrap_err().to_string();
+    assert!(e.contains("images.bin") && e.contains("camera 3") && e.contains("EUCM is not supported"), "{e}");
     // The identity pose: COLMAP's camera at the origin looking down +z (OpenCV) is, after
     // nerfstudio's axes, a camera at the origin looking along +y with +z up.
     let m = &f["transform_matrix"];

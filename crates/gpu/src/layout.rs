@@ -364,7 +364,7 @@ pub struct GpuCamera {
     pub intrinsics: [f32; 4],
     /// `[width, height, first pixel of the view in the pixel buffer, lens]`, the lens one of
     /// [`GpuCamera::PINHOLE`], [`GpuCamera::RADIAL_TANGENTIAL`], [`GpuCamera::FISHEYE`],
-    /// [`GpuCamera::FISHEYE624`], [`GpuCamera::FOV`].
+    /// [`GpuCamera::FISHEYE624`], [`GpuCamera::FOV`], [`GpuCamera::DIVISION`].
     pub size: [u32; 4],
     /// The lens's coefficients `[k1..k6, p1, p2, s1..s4]`
     /// (`nerf_rays::Distortion::coefficients`); for [`GpuCamera::FOV`], `[ω, 0, …]`.
@@ -382,6 +382,8 @@ impl GpuCamera {
     pub const FISHEYE624: u32 = 3;
     /// `size[3]` of COLMAP's FOV lens (`LensModel::Fov`).
     pub const FOV: u32 = 4;
+    /// `size[3]` of COLMAP's division lens (`LensModel::Division`; `k1` in `lens[0]`).
+    pub const DIVISION: u32 = 5;
 }
 
 // ---- sampling.rs ----

@@ -147,6 +147,7 @@ impl GpuImages {
                     LensModel::Fisheye => GpuCamera::FISHEYE,
                     LensModel::Fisheye624 => GpuCamera::FISHEYE624,
                     LensModel::Fov => GpuCamera::FOV,
+                    LensModel::Division => GpuCamera::DIVISION,
                 };
                 let mut coefficients = d.coefficients().map(|c| c as f32);
                 if d.model == LensModel::Fov {

@@ -31,6 +31,12 @@ pub enum LensModel {
     /// pinhole's `(x/z, y/z)` at radius `ρ` moves to `atan(2ρ·tan(ω/2)) / ω` along its
     /// direction, with the field of view `ω` in [`Distortion::omega`]; no other coefficients.
     Fov,
+    /// COLMAP's `DIVISION` and `SIMPLE_DIVISION` (Fitzgibbon's one-parameter division model):
+    /// the pinhole's `(x/z, y/z)` is the distorted point `p_d` divided by `1 + k1·|p_d|²`. Its
+    /// radial factor is `R = 2 / (1 + √(1 − 4·k1·ρ²))` (nothing is imaged where
+    /// `4·k1·ρ² > 1`), and it inverts in closed form; `k1` is its only coefficient (to first
+    /// order in `ρ²` it is OpenCV's `k1`).
+    Division,
 }
 
 impl LensModel {
@@ -49,7 +55,8 @@ impl LensModel {
 /// - the radial factor `R`: the rational `(1 + k1·ρ² + k2·ρ⁴ + k3·ρ⁶) / (1 + k4·ρ² + k5·ρ⁴ +
 ///   k6·ρ⁶)` for [`LensModel::RadialTangential`] (OpenCV's; `k4..k6` are zero but in
 ///   `FULL_OPENCV`), the polynomial `1 + k1·θ² + k2·θ⁴ + … + k6·θ¹²` for the fisheyes
-///   (OpenCV's fisheye stops at `k4`), `atan(2ρ·tan(ω/2)) / (ρ·ω)` for [`LensModel::Fov`];
+///   (OpenCV's fisheye stops at `k4`), `atan(2ρ·tan(ω/2)) / (ρ·ω)` for [`LensModel::Fov`],
+///   `2 / (1 + √(1 − 4·k1·ρ²))` for [`LensModel::Division`];
 /// - the tangential and thin-prism terms of a point `(u, v)`, `r² = u² + v²`:
 ///   `T_x = 2·p1·u·v + p2·(r² + 2u²) + s1·r² + s2·r⁴` and
 ///   `T_y = p1·(r² + 2v²) + 2·p2·u·v + s3·r² + s4·r⁴` (OpenCV's names and order);
@@ -149,6 +156,11 @@ impl Distortion {
     fn radial(&self, r2: f64) -> (f64, f64) {
         if self.model == LensModel::Fov {
             return self.fov_radial(r2);
+        }
+        if self.model == LensModel::Division {
+            // R = 2/(1 + q), q = √(1 − 4k·ρ²): dR/d(ρ²) = 4k / (q·(1 + q)²). NaN where q² < 0.
+            let q = (1.0 - 4.0 * self.k1 * r2).sqrt();
+            return (2.0 / (1.0 + q), 4.0 * self.k1 / (q * (1.0 + q) * (1.0 + q)));
         }
         if self.model == LensModel::RadialTangential {
             let n = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
@@ -381,6 +393,15 @@ impl Distortion {
             let ok = angle.abs() < std::f64::consts::FRAC_PI_2 && s.is_finite() && s > 0.0;
             return ([xd * s, yd * s, 1.0], ok);
         }
+        if self.model == LensModel::Division {
+            // The closed form: p = p_d / (1 + k1·ρ_d²), where the lens takes p back to p_d (past
+            // the radius where the division folds back, it takes p elsewhere).
+            let s = 1.0 / (1.0 + self.k1 * (xd * xd + yd * yd));
+            let (a, b) = (xd * s, yd * s);
+            let (fx, fy) = self.distort_projected(a, b);
+            let close = ((fx - xd) * (fx - xd) + (fy - yd) * (fy - yd)).sqrt() <= UNDISTORT_TOLERANCE * (1.0 + (xd * xd + yd * yd).sqrt());
+            return ([a, b, 1.0], close && s > 0.0 && s.is_finite());
+        }
         let (a, b) = match self.model {
             // (A fisheye without tangential terms took the 1-D path above.)
             LensModel::Fisheye624 => {
@@ -484,6 +505,10 @@ mod tests {
                     },
                 }
             })
+            .collect::<Vec<_>>()
+            .into_iter()
+            // Drawn after the others, so that theirs stay the draws they were.
+            .chain((0..10).map(|_| Distortion { model: LensModel::Division, k1: rng.gen_range(-0.2..0.2), ..Distortion::NONE }))
             .collect()
     }
 
@@ -535,6 +560,17 @@ mod tests {
         }
         assert_eq!(Distortion::NONE.undistort_dir(0.3, -0.7), Some([0.3, -0.7, 1.0]));
         assert!(barrel.project([0.1, 0.0, 0.0]).is_none());
+        // The division model with k1 > 0 images nothing past ρ = 1/(2√k1) (1.118 for 0.2), and its
+        // distorted radius peaks at 1/√k1 there (2.236): past it, no direction.
+        let division = Distortion { model: LensModel::Division, k1: 0.2, ..Distortion::NONE };
+        assert!(division.project([1.1, 0.0, 1.0]).is_some() && division.project([1.2, 0.0, 1.0]).is_none());
+        assert!(division.undistort_dir(2.2, 0.0).is_some() && division.undistort_dir(2.3, 0.0).is_none());
+        // With k1 < 0 (barrel) every point is imaged, and the closed form inverts up to
+        // 1/√(−k1), where 1 + k1·ρ_d² reaches 0.
+        let barrel_division = Distortion { model: LensModel::Division, k1: -0.25, ..Distortion::NONE };
+        assert!(barrel_division.undistort_dir(1.9, 0.0).is_some() && barrel_division.undistort_dir(2.0, 0.0).is_none());
+        let (x, _) = barrel_division.project([40.0, 0.0, 1.0]).unwrap();
+        assert!(x < 2.0 && (x / (1.0 - 0.25 * x * x) - 40.0).abs() < 1e-9, "{x}");
     }
 
     /// The FOV lens's radial factor near its axis, where it switches to the series, agrees with
