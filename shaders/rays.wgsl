@@ -58,7 +58,7 @@ struct Cam {
     r1: vec4<f32>,
     r2: vec4<f32>,
     intr: vec4<f32>,   // fx, fy, cx, cy
-    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye, 3 Fisheye624, 4 FOV, 5 division)
+    size: vec4<u32>,   // width, height, pixel_offset, lens (0 none, 1 radial–tangential, 2 fisheye, 3 Fisheye624, 4 FOV, 5 division, 6 EUCM)
     k: vec4<f32>,      // k1, k2, k3, k4 (FOV: ω, 0, 0, 0)
     kp: vec4<f32>,     // k5, k6, p1, p2
     s: vec4<f32>,      // s1, s2, s3, s4
@@ -190,6 +190,16 @@ fn camera_dir(cam: Cam, u: f32, v: f32) -> vec3<f32> {
             }
         }
         return vec3<f32>(xd * s, -yd * s, -1.0);
+    }
+    if (lens == 6u) {
+        // COLMAP's EUCM lens, inverted in closed form: the unit direction of (x_d, y_d, m_z),
+        // m_z = (1 − β·α²·r²) / (α·√(1 − (2α − 1)·β·r²) + 1 − α) (past 90° off the axis too).
+        let a = cam.k.x;
+        let b = cam.k.y;
+        let r2 = xd * xd + yd * yd;
+        let mz = (1.0 - b * a * a * r2) / (a * sqrt(max(1.0 - (2.0 * a - 1.0) * b * r2, 0.0)) + 1.0 - a);
+        let n = normalize(vec3<f32>(xd, yd, mz));
+        return vec3<f32>(n.x, -n.y, -n.z);
     }
     if (lens == 5u) {
         // COLMAP's division lens, inverted in closed form: p = p_d / (1 + k1·ρ_d²).

@@ -21,7 +21,8 @@
 //! `k` as `k1`), the plain equidistant fisheyes `SIMPLE_FISHEYE` and `FISHEYE` (written as
 //! `OPENCV_FISHEYE` with zero coefficients) and `EQUIRECTANGULAR` (360° panoramas, written as
 //! nerfstudio's `EQUIRECTANGULAR` camera, whose mapping is COLMAP's: the image's centre looks
-//! forward, its top row up). `EUCM` and unknown models are an error naming the camera.
+//! forward, its top row up) and `EUCM` (its `alpha` and `beta`). Unknown models are an error
+//! naming the camera.
 
 use std::path::{Path, PathBuf};
 
@@ -95,7 +96,6 @@ pub struct ColmapModel {
 }
 
 /// COLMAP's camera models: id, name, number of parameters (`colmap/src/colmap/sensor/models.h`).
-/// `EUCM` is known (its model files read) but refused ([`transforms_json`]).
 const MODELS: [(i32, &str, usize); 18] = [
     (0, "SIMPLE_PINHOLE", 3),
     (1, "PINHOLE", 4),
@@ -503,6 +503,7 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
         "SIMPLE_RADIAL_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_FISHEYE" => ([p[0], p[0], p[1], p[2]], &p[3..], "OPENCV_FISHEYE"),
         "SIMPLE_DIVISION" => ([p[0], p[0], p[1], p[2]], &p[3..], "DIVISION"),
         "DIVISION" => ([p[0], p[1], p[2], p[3]], &p[4..], "DIVISION"),
+        "EUCM" => ([p[0], p[1], p[2], p[3]], &p[4..], "EUCM"),
         "FULL_OPENCV" | "THIN_PRISM_FISHEYE" | "RAD_TAN_THIN_PRISM_FISHEYE" | "FOV" => ([p[0], p[1], p[2], p[3]], &p[4..], c.model.as_str()),
         other => {
             return Err(bad(
@@ -510,7 +511,7 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
                 format!(
                     "camera {}: camera model {other} is not supported (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, \
                      FULL_OPENCV, OPENCV_FISHEYE, RADIAL_FISHEYE, SIMPLE_RADIAL_FISHEYE, FOV, THIN_PRISM_FISHEYE, \
-                     RAD_TAN_THIN_PRISM_FISHEYE, SIMPLE_DIVISION, DIVISION, SIMPLE_FISHEYE, FISHEYE and EQUIRECTANGULAR are)",
+                     RAD_TAN_THIN_PRISM_FISHEYE, SIMPLE_DIVISION, DIVISION, SIMPLE_FISHEYE, FISHEYE, EUCM and EQUIRECTANGULAR are)",
                     c.id
                 ),
             ))
@@ -539,6 +540,7 @@ fn camera_keys(path: &Path, c: &ColmapCamera) -> Result<serde_json::Map<String, 
         "THIN_PRISM_FISHEYE" => &["k1", "k2", "p1", "p2", "k3", "k4", "s1", "s3"],
         "FOV" => &["omega"],
         "SIMPLE_DIVISION" | "DIVISION" => &["k1"],
+        "EUCM" => &["alpha", "beta"],
         "OPENCV_FISHEYE" | "RADIAL_FISHEYE" | "SIMPLE_RADIAL_FISHEYE" | "SIMPLE_FISHEYE" | "FISHEYE" => &["k1", "k2", "k3", "k4"],
         _ => &[],
     };

@@ -2494,15 +2494,15 @@ fn ngp_lens(d: &Distortion) -> bool {
     match d.model {
         LensModel::RadialTangential => [k4, k5, k6].iter().all(|&k| k == 0.0) && !thin_prism,
         LensModel::Fisheye => k5 == 0.0 && k6 == 0.0 && p1 == 0.0 && p2 == 0.0 && !thin_prism,
-        LensModel::Fisheye624 | LensModel::Fov | LensModel::Division => false,
+        LensModel::Fisheye624 | LensModel::Fov | LensModel::Division | LensModel::Eucm => false,
     }
 }
 
 /// The keys of the lens `d`, every one written (zeros too, so that a frame's keys replace all
 /// of the top level's): instant-ngp's `is_fisheye` and six coefficients where they hold it
 /// ([`ngp_lens`]), else `camera_model` (`FULL_OPENCV`, `THIN_PRISM_FISHEYE`, `FISHEYE624`,
-/// `FOV` or `DIVISION`) and its coefficients (`FISHEYE624`'s as nerfstudio's
-/// `distortion_params`, `FOV`'s `omega`, `DIVISION`'s `k1`).
+/// `FOV`, `DIVISION` or `EUCM`) and its coefficients (`FISHEYE624`'s as nerfstudio's
+/// `distortion_params`, `FOV`'s `omega`, `DIVISION`'s `k1`, `EUCM`'s `alpha` and `beta`).
 fn lens_keys(d: &Distortion) -> Vec<(&'static str, Value)> {
     if ngp_lens(d) {
         return vec![
@@ -2519,6 +2519,7 @@ fn lens_keys(d: &Distortion) -> Vec<(&'static str, Value)> {
     match d.model {
         LensModel::Fov => vec![("camera_model", Value::from("FOV")), ("omega", Value::from(d.omega))],
         LensModel::Division => vec![("camera_model", Value::from("DIVISION")), ("k1", Value::from(d.k1))],
+        LensModel::Eucm => vec![("camera_model", Value::from("EUCM")), ("alpha", Value::from(d.alpha)), ("beta", Value::from(d.beta))],
         LensModel::Fisheye624 => {
             // nerfstudio's order: k0..k5, p0 (OpenCV's p2), p1, s0..s3.
             let list: Vec<f64> = c[..6].iter().chain(&[c[7], c[6]]).chain(&c[8..]).copied().collect();

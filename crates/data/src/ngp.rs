@@ -189,6 +189,8 @@ impl Lens {
             Fov,
             /// DIVISION and SIMPLE_DIVISION (COLMAP's): `k1` only.
             Division,
+            /// EUCM (COLMAP's): `alpha` and `beta` only.
+            Eucm,
             /// EQUIRECTANGULAR: none.
             Equirectangular,
         }
@@ -203,13 +205,14 @@ impl Lens {
                 "FISHEYE624" | "RAD_TAN_THIN_PRISM_FISHEYE" => Named::Fisheye624,
                 "FOV" => Named::Fov,
                 "DIVISION" | "SIMPLE_DIVISION" => Named::Division,
+                "EUCM" => Named::Eucm,
                 "EQUIRECTANGULAR" => Named::Equirectangular,
                 _ => {
                     return Err(invalid(
                         name,
                         format!(
                             "camera model `{model}` is not supported (OPENCV, PINHOLE, SIMPLE_PINHOLE, RADIAL, SIMPLE_RADIAL, \
-                             FULL_OPENCV, OPENCV_FISHEYE, THIN_PRISM_FISHEYE, FISHEYE624, FOV, DIVISION and EQUIRECTANGULAR are)"
+                             FULL_OPENCV, OPENCV_FISHEYE, THIN_PRISM_FISHEYE, FISHEYE624, FOV, DIVISION, EUCM and EQUIRECTANGULAR are)"
                         ),
                     ))
                 }
@@ -224,7 +227,7 @@ impl Lens {
                     Some((Named::Equirectangular, model_key, _)) => {
                         return Err(invalid(name, format!("true, but `{model_key}` names an equirectangular camera")));
                     }
-                    Some((Named::OpenCv | Named::FullOpenCv | Named::Fov | Named::Division, model_key, _)) => {
+                    Some((Named::OpenCv | Named::FullOpenCv | Named::Fov | Named::Division | Named::Eucm, model_key, _)) => {
                         return Err(invalid(name, format!("true, but `{model_key}` names a camera model without a fisheye lens")));
                     }
                     Some(_) => {}
@@ -296,6 +299,7 @@ impl Lens {
             Named::Fisheye624 => (LensModel::Fisheye624, &COEFFICIENT_NAMES),
             Named::Fov => (LensModel::Fov, &[]),
             Named::Division => (LensModel::Division, &["k1"]),
+            Named::Eucm => (LensModel::Eucm, &[]),
             Named::Equirectangular => (LensModel::RadialTangential, &[]),
         };
         for (i, key) in COEFFICIENT_NAMES.iter().enumerate() {
@@ -332,6 +336,22 @@ impl Lens {
             Some((w, name)) if !(w > 0.0 && w < std::f64::consts::PI) => return Err(invalid(name, format!("{w} is not in (0, pi) radians"))),
             Some((w, _)) => w,
         };
+        // COLMAP's EUCM lens: `alpha` in [0, 1] and `beta` above 0, both needed.
+        let mut eucm = [0.0; 2];
+        for (slot, key, valid, range) in [(0, "alpha", (|a: f64| (0.0..=1.0).contains(&a)) as fn(f64) -> bool, "in [0, 1]"), (1, "beta", |b: f64| b > 0.0, "above 0")] {
+            eucm[slot] = match number(key)? {
+                None if kind == Named::Eucm => {
+                    let name = named.as_ref().map_or_else(|| "camera_model".to_string(), |(_, k, _)| k.clone());
+                    return Err(invalid(name, format!("EUCM: the lens needs its `{key}`")));
+                }
+                None => 0.0,
+                Some((x, name)) if kind != Named::Eucm => {
+                    return Err(invalid(name, format!("{x}: {key} belongs to the EUCM model (`\"camera_model\": \"EUCM\"`), and this camera is not one")));
+                }
+                Some((x, name)) if !valid(x) => return Err(invalid(name, format!("{x} is not {range}"))),
+                Some((x, _)) => x,
+            };
+        }
         let size = match (pixels("w")?, pixels("h")?) {
             (Some(w), Some(h)) => Some((w, h)),
             (None, None) => None,
@@ -344,7 +364,7 @@ impl Lens {
             focal_y: focal("y_fov", "fl_y", "camera_angle_y")?,
             cx: number("cx")?.map(|(x, _)| x),
             cy: number("cy")?.map(|(x, _)| x),
-            distortion: Distortion { omega, ..Distortion::from_coefficients(model, c) },
+            distortion: Distortion { omega, alpha: eucm[0], beta: eucm[1], ..Distortion::from_coefficients(model, c) },
             crop_radius: positive("fisheye_crop_radius")?,
             equirectangular,
         })

@@ -337,6 +337,7 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
         ("FOV", vec![0.9], Distortion::fov(0.9)),
         ("DIVISION", vec![-0.05], Distortion { model: LensModel::Division, k1: -0.05, ..Distortion::NONE }),
         ("FISHEYE", vec![], Distortion { model: LensModel::Fisheye, ..Distortion::NONE }),
+        ("EUCM", vec![0.6, 1.1], Distortion::eucm(0.6, 1.1)),
     ];
     for (name, coefficients, lens) in cases {
         let mut m = model.clone();
@@ -373,7 +374,7 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     let f = keys("SIMPLE_RADIAL_FISHEYE", vec![40.0, 31.0, 23.0, 0.1]);
     assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 40.0, 0.1, 0.0, 0.0, 0.0]));
     assert_eq!((f["cx"].as_f64(), f["cy"].as_f64(), f.get("p1")), (Some(31.0), Some(23.0), None));
-    // COLMAP 3.12's: the plain equidistant fisheyes, the division model, panoramas; EUCM refused.
+    // COLMAP 3.12's: the plain equidistant fisheyes, the division model, EUCM, panoramas.
     let f = keys("SIMPLE_FISHEYE", vec![40.0, 31.0, 23.0]);
     assert_eq!(fisheye(&f), (Some("OPENCV_FISHEYE".to_string()), [40.0, 40.0, 0.0, 0.0, 0.0, 0.0]));
     let f = keys("FISHEYE", vec![40.0, 41.0, 31.0, 23.0]);
@@ -384,12 +385,8 @@ fn binary_and_text_models_agree_and_camera_models_map_to_nerfstudio_keys() {
     assert_eq!((f["camera_model"].as_str(), f["fl_y"].as_f64(), f["cy"].as_f64(), f["k1"].as_f64()), (Some("DIVISION"), Some(41.0), Some(23.0), Some(0.05)));
     let f = keys("EQUIRECTANGULAR", vec![64.0, 48.0]);
     assert_eq!((f["camera_model"].as_str(), f["w"].as_u64(), f["h"].as_u64(), f.get("fl_x")), (Some("EQUIRECTANGULAR"), Some(64), Some(48), None));
-    let eucm = ColmapModel {
-        cameras: vec![ColmapCamera { id: 3, model: "EUCM".into(), width: 64, height: 48, params: vec![40.0, 41.0, 31.0, 23.0, 0.6, 1.1] }],
-        images: vec![ColmapImage { id: 1, qvec: [1.0, 0.0, 0.0, 0.0], tvec: [0.0; 3], camera_id: 3, name: "a.png".into() }],
-    };
-    let e = colmap::transforms_json(Path::new("images.bin"), &eucm).unwrap_err().to_string();
-    assert!(e.contains("images.bin") && e.contains("camera 3") && e.contains("EUCM is not supported"), "{e}");
+    let f = keys("EUCM", vec![40.0, 41.0, 31.0, 23.0, 0.6, 1.1]);
+    assert_eq!((f["camera_model"].as_str(), f["alpha"].as_f64(), f["beta"].as_f64(), f.get("k1")), (Some("EUCM"), Some(0.6), Some(1.1), None));
     // The identity pose: COLMAP's camera at the origin looking down +z (OpenCV) is, after
     // nerfstudio's axes, a camera at the origin looking along +y with +z up.
     let m = &f["transform_matrix"];

@@ -202,7 +202,7 @@ fn box_keys_place_instant_ngps_cube_and_rays_end_past_it() {
 #[test]
 fn camera_and_box_errors_name_the_file_and_the_key() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [(Value, [Value; 2], &str, &str); 27] = [
+    let cases: [(Value, [Value; 2], &str, &str); 30] = [
         (json!({"fl_x": 3.0, "aabb": [[0, 0, 0], [1, 1]]}), [json!({}), json!({})], "`aabb`", "finite numbers"),
         (json!({"fl_x": 3.0, "aabb": [[1, 1, 1], [1, 1, 1]]}), [json!({}), json!({})], "`aabb`", "a box with a side"),
         (json!({"fl_x": 3.0, "w": 8, "h": 4}), [json!({}), json!({})], "`w`", "r_0.png is 4x4"),
@@ -215,6 +215,9 @@ fn camera_and_box_errors_name_the_file_and_the_key() {
         (json!({"fl_x": 3.0, "camera_model": "FOV", "omega": 3.5}), [json!({}), json!({})], "`omega`", "not in (0, pi)"),
         (json!({"fl_x": 3.0, "camera_model": "DIVISION", "k1": -0.1}), [json!({}), json!({"k2": 0.01})], "`frames[1].k2`", "the DIVISION model has no coefficient `k2`"),
         (json!({"fl_x": 3.0, "camera_model": "SIMPLE_DIVISION"}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "without a fisheye lens"),
+        (json!({"fl_x": 3.0, "camera_model": "EUCM", "alpha": 0.5}), [json!({}), json!({})], "`camera_model`", "EUCM: the lens needs its `beta`"),
+        (json!({"fl_x": 3.0, "camera_model": "EUCM", "alpha": 1.5, "beta": 1.0}), [json!({}), json!({})], "`alpha`", "not in [0, 1]"),
+        (json!({"fl_x": 3.0}), [json!({}), json!({"beta": 1.0})], "`frames[1].beta`", "belongs to the EUCM model"),
         (json!({"camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({"k1": 0.1})], "`frames[1].k1`", "no lens distortion"),
         (json!({"camera_model": "EQUIRECTANGULAR"}), [json!({}), json!({"is_fisheye": true})], "`frames[1].is_fisheye`", "names an equirectangular camera"),
         (json!({"fl_x": 3.0, "camera_model": 5}), [json!({}), json!({})], "`camera_model`", "expected a string"),
@@ -352,6 +355,8 @@ fn distorted_photos_keep_their_lens_or_are_resampled_to_the_pinhole_camera() {
         (Distortion::fov(0.9), json!({"camera_model": "FOV", "omega": 0.9})),
         // COLMAP's division lens (barrel: k1 < 0).
         (Distortion { model: LensModel::Division, k1: -0.15, ..Default::default() }, json!({"camera_model": "DIVISION", "k1": -0.15})),
+        // COLMAP's EUCM lens.
+        (Distortion::eucm(0.55, 1.2), json!({"camera_model": "EUCM", "alpha": 0.55, "beta": 1.2})),
         // nerfstudio's FISHEYE624: k0..k5, p0 (OpenCV's p2), p1, s0..s3.
         (
             Distortion::from_coefficients(LensModel::Fisheye624, [0.04, -0.01, 0.002, -0.0003, 0.00005, -0.00001, 0.0015, -0.002, 0.002, -0.0005, -0.001, 0.0003]),
@@ -588,7 +593,9 @@ fn lenses_are_written_and_impossible_ones_refused() {
     fov.cameras[1].distortion = Distortion::fov(0.8);
     let mut division = d.clone();
     division.cameras[1].distortion = Distortion { model: LensModel::Division, k1: -0.04, ..Distortion::NONE };
-    for ds in [d, mixed, fov, division] {
+    let mut eucm = d.clone();
+    eucm.cameras[1].distortion = Distortion::eucm(0.3, 0.9);
+    for ds in [d, mixed, fov, division, eucm] {
         let out = tempfile::tempdir().unwrap();
         nerf_data::write_blender(&ds, out.path(), None).unwrap();
         let written: Value = serde_json::from_str(&std::fs::read_to_string(out.path().join("transforms_train.json")).unwrap()).unwrap();

@@ -364,10 +364,11 @@ pub struct GpuCamera {
     pub intrinsics: [f32; 4],
     /// `[width, height, first pixel of the view in the pixel buffer, lens]`, the lens one of
     /// [`GpuCamera::PINHOLE`], [`GpuCamera::RADIAL_TANGENTIAL`], [`GpuCamera::FISHEYE`],
-    /// [`GpuCamera::FISHEYE624`], [`GpuCamera::FOV`], [`GpuCamera::DIVISION`].
+    /// [`GpuCamera::FISHEYE624`], [`GpuCamera::FOV`], [`GpuCamera::DIVISION`], [`GpuCamera::EUCM`].
     pub size: [u32; 4],
     /// The lens's coefficients `[k1..k6, p1, p2, s1..s4]`
-    /// (`nerf_rays::Distortion::coefficients`); for [`GpuCamera::FOV`], `[ω, 0, …]`.
+    /// (`nerf_rays::Distortion::coefficients`); for [`GpuCamera::FOV`], `[ω, 0, …]`; for
+    /// [`GpuCamera::EUCM`], `[α, β, 0, …]`.
     pub lens: [f32; 12],
 }
 
@@ -384,6 +385,8 @@ impl GpuCamera {
     pub const FOV: u32 = 4;
     /// `size[3]` of COLMAP's division lens (`LensModel::Division`; `k1` in `lens[0]`).
     pub const DIVISION: u32 = 5;
+    /// `size[3]` of COLMAP's EUCM lens (`LensModel::Eucm`; `α`, `β` in `lens[0..2]`).
+    pub const EUCM: u32 = 6;
 }
 
 // ---- sampling.rs ----

@@ -148,11 +148,16 @@ impl GpuImages {
                     LensModel::Fisheye624 => GpuCamera::FISHEYE624,
                     LensModel::Fov => GpuCamera::FOV,
                     LensModel::Division => GpuCamera::DIVISION,
+                    LensModel::Eucm => GpuCamera::EUCM,
                 };
                 let mut coefficients = d.coefficients().map(|c| c as f32);
                 if d.model == LensModel::Fov {
                     coefficients = [0.0; 12];
                     coefficients[0] = d.omega as f32;
+                }
+                if d.model == LensModel::Eucm {
+                    coefficients = [0.0; 12];
+                    (coefficients[0], coefficients[1]) = (d.alpha as f32, d.beta as f32);
                 }
                 GpuCamera {
                     c2w: [m[0], m[1], m[2]],

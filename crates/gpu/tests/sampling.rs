@@ -226,15 +226,15 @@ fn ray_generation_matches_its_cpu_twin() {
 /// seeds 1–2 OpenCV's radial–tangential and fisheye lenses, 3–4 with their rational and
 /// thin-prism terms (OpenCV's 12-coefficient model, COLMAP's `THIN_PRISM_FISHEYE`), 5–6 a
 /// rational lens and a Fisheye624 with all its terms, 7–8 a FOV lens beside the Fisheye624, 9–10
-/// a division lens (COLMAP's `DIVISION`) beside it.
-/// The device's f32 Newton steps (FOV's and the division's closed forms) find the
+/// a division lens (COLMAP's `DIVISION`) beside it, 11–12 beside a wide EUCM lens.
+/// The device's f32 Newton steps (the closed forms of FOV, the division and EUCM) find the
 /// directions the CPU's f64 ones do, and those differ from the pinhole's.
 #[test]
 fn ray_generation_through_lenses_matches_its_cpu_twin() {
     use nerf_rays::{Distortion, LensModel};
     let Some(ctx) = context() else { return };
     let cap = 3000;
-    for seed in 1..=10u32 {
+    for seed in 1..=12u32 {
         let mut ds = dataset(100 + seed as u64, 3, 13, 7, false);
         let mut rng = nerf_core::rng(seed as u64, 5);
         let mut c = |s: f64| rng.gen_range(-s..s);
@@ -266,6 +266,11 @@ fn ray_generation_through_lenses_matches_its_cpu_twin() {
                 }
                 if seed > 8 {
                     ds.cameras[0].distortion = Distortion { model: LensModel::Division, k1: c(0.3), ..Distortion::NONE };
+                }
+                if seed > 10 {
+                    // Wide enough (α²·β·r² > 1 at the corners) to look back past 90°, its rim
+                    // ((2α − 1)·β·r² = 1) past the corners.
+                    ds.cameras[1].distortion = Distortion::eucm(0.6 + c(0.05), 1.0 + c(0.1));
                 }
             }
             if inverts(&ds.cameras[0]) && inverts(&ds.cameras[1]) {

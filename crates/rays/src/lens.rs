@@ -37,9 +37,21 @@ pub enum LensModel {
     /// `4·k1·ρ² > 1`), and it inverts in closed form; `k1` is its only coefficient (to first
     /// order in `ρ²` it is OpenCV's `k1`).
     Division,
+    /// COLMAP's `EUCM` (Khomutenko et al.'s enhanced unified camera model): a direction
+    /// `(x, y, z)` lands at `(x, y) / (α·d + (1 − α)·z)`, `d = √(β·(x² + y²) + z²)`, with
+    /// [`Distortion::alpha`] in `[0, 1]` and [`Distortion::beta`] above 0; `α = 0` is a pinhole.
+    /// It sees past 90° off the axis, so its directions are unit vectors as a fisheye's, and it
+    /// inverts in closed form; no other coefficients.
+    Eucm,
 }
 
 impl LensModel {
+    /// Whether the lens's directions ([`Distortion::undistort_dir`]) are unit vectors, as those
+    /// of a lens that may see past 90° off its axis (the fisheyes, EUCM), not `(x, y, 1)`.
+    pub fn unit_directions(self) -> bool {
+        self.is_fisheye() || self == LensModel::Eucm
+    }
+
     /// Whether the model projects a direction by its angle off the axis (a fisheye), not by
     /// its pinhole slope.
     pub fn is_fisheye(self) -> bool {
@@ -95,6 +107,10 @@ pub struct Distortion {
     /// [`LensModel::Fov`]'s field of view `ω`, in radians (0 for the other models): its radial
     /// factor is `R = atan(2ρ·tan(ω/2)) / (ρ·ω)`, a pinhole's as `ω` → 0.
     pub omega: f64,
+    /// [`LensModel::Eucm`]'s `α`, in `[0, 1]` (0 for the other models).
+    pub alpha: f64,
+    /// [`LensModel::Eucm`]'s `β`, above 0 (0 for the other models).
+    pub beta: f64,
 }
 
 /// Newton iterations of [`Distortion::undistort_dir`] at most (it stops once a step no longer
@@ -115,12 +131,12 @@ pub const COEFFICIENT_NAMES: [&str; 12] = ["k1", "k2", "k3", "k4", "k5", "k6", "
 impl Distortion {
     /// The pinhole camera: no distortion.
     pub const NONE: Distortion =
-        Distortion { model: LensModel::RadialTangential, k1: 0.0, k2: 0.0, k3: 0.0, k4: 0.0, k5: 0.0, k6: 0.0, p1: 0.0, p2: 0.0, s1: 0.0, s2: 0.0, s3: 0.0, s4: 0.0, omega: 0.0 };
+        Distortion { model: LensModel::RadialTangential, k1: 0.0, k2: 0.0, k3: 0.0, k4: 0.0, k5: 0.0, k6: 0.0, p1: 0.0, p2: 0.0, s1: 0.0, s2: 0.0, s3: 0.0, s4: 0.0, omega: 0.0, alpha: 0.0, beta: 0.0 };
 
     /// The lens of `model` with `coefficients` in [`COEFFICIENT_NAMES`]' order (`omega` 0).
     pub fn from_coefficients(model: LensModel, c: [f64; 12]) -> Self {
         let [k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4] = c;
-        Distortion { model, k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4, omega: 0.0 }
+        Distortion { model, k1, k2, k3, k4, k5, k6, p1, p2, s1, s2, s3, s4, omega: 0.0, alpha: 0.0, beta: 0.0 }
     }
 
     /// The coefficients in [`COEFFICIENT_NAMES`]' order: `k1..k6`, `p1`, `p2`, `s1..s4`.
@@ -138,7 +154,43 @@ impl Distortion {
 
     /// Whether every coefficient is finite.
     pub fn is_finite(&self) -> bool {
-        self.coefficients().iter().all(|c| c.is_finite()) && self.omega.is_finite()
+        self.coefficients().iter().all(|c| c.is_finite()) && self.omega.is_finite() && self.alpha.is_finite() && self.beta.is_finite()
+    }
+
+    /// The [`LensModel::Eucm`] lens of `alpha` and `beta`.
+    pub fn eucm(alpha: f64, beta: f64) -> Self {
+        Distortion { model: LensModel::Eucm, alpha, beta, ..Distortion::NONE }
+    }
+
+    /// [`LensModel::Eucm`]'s image point of the direction `p` (OpenCV's camera axes): `None`
+    /// outside what the lens sees, `z ≤ −w·d` with `w = α/(1 − α)` for `α ≤ ½` (where
+    /// `α·d + (1 − α)·z` reaches 0) and `(1 − α)/α` above (where the image's rim is; past it
+    /// the projection folds back onto the image, the backward axis onto its centre).
+    fn eucm_project(&self, p: [f64; 3]) -> Option<(f64, f64)> {
+        let a = self.alpha;
+        let d = (self.beta * (p[0] * p[0] + p[1] * p[1]) + p[2] * p[2]).sqrt();
+        let w = if a <= 0.5 { a / (1.0 - a) } else { (1.0 - a) / a };
+        let den = a * d + (1.0 - a) * p[2];
+        (p[2] > -w * d && den > 1e-12 * d).then(|| (p[0] / den, p[1] / den))
+    }
+
+    /// [`LensModel::Eucm`]'s closed-form inverse (COLMAP's `CamFromImg`, on the whole sphere):
+    /// the unit direction of image point `m`, `(m_x, m_y, m_z)` normalised with
+    /// `m_z = (1 − β·α²·r²) / (α·√(1 − (2α − 1)·β·r²) + 1 − α)`, and whether it counts: the
+    /// square root's argument not below 0 (past it, for `α > ½`, the lens images nothing) and
+    /// the direction's image `m` again.
+    fn eucm_unproject(&self, xd: f64, yd: f64) -> ([f64; 3], bool) {
+        let (a, b) = (self.alpha, self.beta);
+        let r2 = xd * xd + yd * yd;
+        let radicand = 1.0 - (2.0 * a - 1.0) * b * r2;
+        let mz = (1.0 - b * a * a * r2) / (a * radicand.max(0.0).sqrt() + 1.0 - a);
+        let n = (r2 + mz * mz).sqrt();
+        let dir = [xd / n, yd / n, mz / n];
+        let back = self.eucm_project(dir);
+        let ok = radicand >= 0.0
+            && dir.iter().all(|c| c.is_finite())
+            && back.is_some_and(|(x, y)| ((x - xd) * (x - xd) + (y - yd) * (y - yd)).sqrt() <= UNDISTORT_TOLERANCE * (1.0 + r2.sqrt()));
+        (dir, ok)
     }
 
     /// The [`LensModel::Fov`] lens of field of view `omega` (radians).
@@ -255,6 +307,7 @@ impl Distortion {
     pub fn distort_projected(&self, a: f64, b: f64) -> (f64, f64) {
         let tangential = self.has_tangential();
         match self.model {
+            LensModel::Eucm => self.eucm_project([a, b, 1.0]).unwrap_or((f64::NAN, f64::NAN)),
             LensModel::Fisheye624 => {
                 let (q, _) = self.stage::<true, false>(a, b);
                 if tangential {
@@ -287,7 +340,9 @@ impl Distortion {
     /// through its lens. `None` where the lens does not image the point: behind a
     /// radial–tangential lens (`z ≤ 0`), on a fisheye's backward axis, or non-finite.
     pub fn project(&self, p: [f64; 3]) -> Option<(f64, f64)> {
-        let out = if self.model.is_fisheye() {
+        let out = if self.model == LensModel::Eucm {
+            self.eucm_project(p)?
+        } else if self.model.is_fisheye() {
             let rho = (p[0] * p[0] + p[1] * p[1]).sqrt();
             if rho == 0.0 {
                 if !(p[2] > 0.0) {
@@ -311,7 +366,7 @@ impl Distortion {
     /// OpenCV's camera axes (x right, y down, z forward): the radial–tangential model's
     /// undistorted `(x, y, 1)` (z = 1, so that distances along it are depths), a fisheye's unit
     /// `(sin θ·a/θ, sin θ·b/θ, cos θ)` of its equidistant point `(a, b)` (a direction up to
-    /// θ = π off the axis). The inverse of [`distort`](Self::distort) is found by
+    /// θ = π off the axis), EUCM's unit direction in closed form. The inverse of [`distort`](Self::distort) is found by
     /// [`UNDISTORT_ITERATIONS`] Newton steps from `(x_d, y_d)`, as `shaders/rays.wgsl` does in
     /// f32 (nerfstudio's `radial_and_tangential_undistort` and `fisheye624_unproject`
     /// likewise). `None` where they do not reach a point the lens takes to within
@@ -393,6 +448,9 @@ impl Distortion {
             let ok = angle.abs() < std::f64::consts::FRAC_PI_2 && s.is_finite() && s > 0.0;
             return ([xd * s, yd * s, 1.0], ok);
         }
+        if self.model == LensModel::Eucm {
+            return self.eucm_unproject(xd, yd);
+        }
         if self.model == LensModel::Division {
             // The closed form: p = p_d / (1 + k1·ρ_d²), where the lens takes p back to p_d (past
             // the radius where the division folds back, it takes p elsewhere).
@@ -435,6 +493,10 @@ impl std::fmt::Display for Distortion {
         }
         if self.model == LensModel::Fov {
             write!(f, " omega {}", self.omega)?;
+            any = true;
+        }
+        if self.model == LensModel::Eucm {
+            write!(f, " alpha {}, beta {}", self.alpha, self.beta)?;
             any = true;
         }
         if !any {
@@ -501,7 +563,7 @@ mod tests {
                         s2: 0.0005 * c(),
                         s3: 0.002 * c(),
                         s4: 0.0005 * c(),
-                        omega: 0.0,
+                        ..Distortion::NONE
                     },
                 }
             })
@@ -509,6 +571,9 @@ mod tests {
             .into_iter()
             // Drawn after the others, so that theirs stay the draws they were.
             .chain((0..10).map(|_| Distortion { model: LensModel::Division, k1: rng.gen_range(-0.2..0.2), ..Distortion::NONE }))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .chain((0..10).map(|_| Distortion::eucm(rng.gen_range(0.0..1.0), rng.gen_range(0.5..2.0))))
             .collect()
     }
 
@@ -531,7 +596,7 @@ mod tests {
                 let d = lens.undistort_dir(xd, yd).unwrap_or_else(|| panic!("{lens:?} at θ {theta}"));
                 let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                 assert!((0..3).all(|a| (d[a] / n - p[a]).abs() < 1e-9), "{lens:?}: {d:?} against {p:?}");
-                if !lens.model.is_fisheye() {
+                if !lens.model.unit_directions() {
                     assert_eq!(d[2], 1.0, "z = 1");
                 } else {
                     assert!((n - 1.0).abs() < 1e-12, "a fisheye's direction is a unit vector");
@@ -569,6 +634,20 @@ mod tests {
         // 1/√(−k1), where 1 + k1·ρ_d² reaches 0.
         let barrel_division = Distortion { model: LensModel::Division, k1: -0.25, ..Distortion::NONE };
         assert!(barrel_division.undistort_dir(1.9, 0.0).is_some() && barrel_division.undistort_dir(2.0, 0.0).is_none());
+        // EUCM with α > ½ sees past 90°: a point 110° off its axis comes back from its image;
+        // one straight behind the camera has none, nor has a point past the image's rim
+        // (r² > 1/((2α − 1)·β)).
+        let eucm = Distortion::eucm(0.6, 1.2);
+        let p = [110f64.to_radians().sin(), 0.0, 110f64.to_radians().cos()];
+        let (x, y) = eucm.project(p).unwrap();
+        let d = eucm.undistort_dir(x, y).unwrap();
+        assert!((0..3).all(|a| (d[a] - p[a]).abs() < 1e-9) && d[2] < 0.0, "{d:?}");
+        assert!(eucm.project([0.0, 0.0, -1.0]).is_none());
+        let rim = (1.0 / (0.2 * 1.2f64)).sqrt();
+        assert!(eucm.undistort_dir(0.99 * rim, 0.0).is_some() && eucm.undistort_dir(1.01 * rim, 0.0).is_none());
+        // α = 0 is a pinhole.
+        let (x, y) = Distortion::eucm(0.0, 1.0).project([0.3, -0.2, 2.0]).unwrap();
+        assert!((x - 0.15).abs() < 1e-15 && (y + 0.1).abs() < 1e-15);
         let (x, _) = barrel_division.project([40.0, 0.0, 1.0]).unwrap();
         assert!(x < 2.0 && (x / (1.0 - 0.25 * x * x) - 40.0).abs() < 1e-9, "{x}");
     }
