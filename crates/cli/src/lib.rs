@@ -124,6 +124,10 @@ struct TrainArgs {
     /// The test views `--eval-every` scores, among `--test-views` (default spread:4).
     #[arg(long = "eval-views", requires = "eval_every")]
     eval_views: Option<ViewSelection>,
+    /// Also write the renders of each `--eval-every` evaluation, OUT/progress/step_NNNNNN/<view>.png
+    /// (how the views looked at that step; config `[eval_every] renders = true`).
+    #[arg(long = "eval-renders")]
+    eval_renders: bool,
     /// Training views to use: all, every:K, first:N, spread:N.
     #[arg(long = "train-views", default_value = "all")]
     train_views: ViewSelection,
@@ -649,7 +653,14 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     }
     if let Some(steps) = a.eval_every {
         let views = a.eval_views.clone().or_else(|| c.eval_every.as_ref().map(|e| e.views.clone())).unwrap_or(ViewSelection::Spread(4));
-        c.eval_every = Some(nerf::train::config::PeriodicEval { steps, views });
+        let renders = c.eval_every.as_ref().is_some_and(|e| e.renders);
+        c.eval_every = Some(nerf::train::config::PeriodicEval { steps, views, renders });
+    }
+    if a.eval_renders {
+        match c.eval_every.as_mut() {
+            Some(e) => e.renders = true,
+            None => bail!("--eval-renders writes the renders of the evaluations during the run: it needs --eval-every N (or [eval_every] in the config)"),
+        }
     }
     c.validate().map_err(|e| match &a.config {
         Some(p) => anyhow::anyhow!("invalid training config ({} and the command-line flags): {e}", p.display()),

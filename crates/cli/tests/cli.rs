@@ -534,6 +534,24 @@ fn eval_every_scores_during_the_run_and_leaves_it_unchanged() {
     assert_eq!(steps, [3, 6]);
     assert!(scored.iter().all(|v| v["test_psnr"].as_f64().unwrap().is_finite() && v["test_views"] == 1), "{scored:?}");
     assert!(!std::fs::read_to_string(plain.join("history.jsonl")).unwrap().contains("test_psnr"));
+    assert!(!probed.join("progress").exists(), "no renders unless asked for");
+    // `--eval-renders`: each evaluation's renders, by step, the size of the test views; the
+    // run still ends where it did.
+    let drawn = d.path().join("drawn");
+    let o = train_tiny(&s, &drawn, &["--iters", "7", "--eval-every", "3", "--eval-views", "all", "--eval-renders"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(metrics(&drawn)["test_psnr"], a["test_psnr"]);
+    assert_eq!(metrics(&drawn)["config"]["eval_every"]["renders"], true);
+    let mut steps: Vec<String> = std::fs::read_dir(drawn.join("progress")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    steps.sort();
+    assert_eq!(steps, ["step_000003", "step_000006"]);
+    for step in &steps {
+        let pngs: Vec<_> = std::fs::read_dir(drawn.join("progress").join(step)).unwrap().map(|e| e.unwrap().path()).collect();
+        assert_eq!(pngs.len(), 1, "{step}: one test view");
+        assert_eq!(image::image_dimensions(&pngs[0]).unwrap(), (50, 50), "{step}");
+    }
+    let o = train_tiny(&s, &d.path().join("bad3"), &["--iters", "2", "--eval-renders"]);
+    assert_clean_failure(&o, &["--eval-renders", "--eval-every"]);
     // Bad settings are clear errors.
     let o = train_tiny(&s, &d.path().join("bad"), &["--iters", "2", "--eval-every", "0"]);
     assert_clean_failure(&o, &["eval_every.steps"]);

@@ -266,6 +266,10 @@ pub struct PeriodicEval {
     /// `spread:4`: four, spread over them).
     #[serde(default = "default_eval_views")]
     pub views: ViewSelection,
+    /// Also write each evaluation's renders, `<out>/progress/step_<step>/<view>.png` (the views
+    /// as they looked at that step, as nerfstudio logs its evaluation images); default off.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub renders: bool,
 }
 
 fn default_eval_views() -> ViewSelection {
@@ -615,13 +619,17 @@ mod tests {
     fn eval_every_round_trips_and_is_validated() {
         assert!(serde_json::to_value(TrainConfig::default()).unwrap().get("eval_every").is_none());
         let c: TrainConfig = toml::from_str("[eval_every]\nsteps = 500\n").unwrap();
-        assert_eq!(c.eval_every, Some(PeriodicEval { steps: 500, views: ViewSelection::Spread(4) }));
+        assert_eq!(c.eval_every, Some(PeriodicEval { steps: 500, views: ViewSelection::Spread(4), renders: false }));
+        let c: TrainConfig = toml::from_str("[eval_every]\nsteps = 500\nrenders = true\n").unwrap();
+        assert!(c.eval_every.as_ref().unwrap().renders);
+        let back: TrainConfig = serde_json::from_value(serde_json::to_value(&c).unwrap()).unwrap();
+        assert_eq!(back.eval_every, c.eval_every);
         assert!(c.validate().is_ok());
         let c: TrainConfig = toml::from_str("[eval_every]\nsteps = 500\nviews = \"first:2\"\n").unwrap();
         assert_eq!(toml::from_str::<TrainConfig>(&toml::to_string(&c).unwrap()).unwrap(), c);
-        let e = TrainConfig { eval_every: Some(PeriodicEval { steps: 0, views: ViewSelection::All }), ..TrainConfig::default() }.validate().unwrap_err();
+        let e = TrainConfig { eval_every: Some(PeriodicEval { steps: 0, views: ViewSelection::All, renders: false }), ..TrainConfig::default() }.validate().unwrap_err();
         assert!(e.contains("eval_every.steps"), "{e}");
-        let e = TrainConfig { eval_every: Some(PeriodicEval { steps: 5, views: ViewSelection::Spread(0) }), ..TrainConfig::default() }.validate().unwrap_err();
+        let e = TrainConfig { eval_every: Some(PeriodicEval { steps: 5, views: ViewSelection::Spread(0), renders: false }), ..TrainConfig::default() }.validate().unwrap_err();
         assert!(e.contains("eval_every.views") && e.contains("spread:0"), "{e}");
         assert!(toml::from_str::<TrainConfig>("[eval_every]\nevery = 5\n").is_err());
     }

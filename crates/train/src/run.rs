@@ -196,7 +196,7 @@ pub fn run(
     let budget = config.time_budget_secs.unwrap_or(f64::INFINITY);
     // Test views scored during the run (`eval_every`), and the seconds that took (not training).
     let probe = match &config.eval_every {
-        Some(e) => Some((e.steps, test.select_views(&e.views.indices(test.n_views()).map_err(|r| TrainError::Config(format!("eval_every.views: {r}")))?))),
+        Some(e) => Some((e.steps, e.renders, test.select_views(&e.views.indices(test.n_views()).map_err(|r| TrainError::Config(format!("eval_every.views: {r}")))?))),
         None => None,
     };
     let mut eval_secs = 0.0f64;
@@ -246,11 +246,15 @@ pub fn run(
             save(&trainer, elapsed)?;
         }
         // A score on a few test views (not at the last step: the whole evaluation follows).
-        if let Some((every, views)) = probe.as_ref().filter(|(every, _)| done % every == 0 && done < config.iters) {
+        if let Some((every, renders, views)) = probe.as_ref().filter(|(every, _, _)| done % every == 0 && done < config.iters) {
             // Queued GPU steps are training time; the evaluation after them is not.
             trainer.finish()?;
             let t0 = Instant::now();
-            let r = evaluate(&trainer, views, None, |_, _| {})?;
+            let dir = renders.then(|| out.join("progress").join(format!("step_{done:06}")));
+            if let Some(d) = &dir {
+                std::fs::create_dir_all(d).map_err(io_err(d))?;
+            }
+            let r = evaluate(&trainer, views, dir.as_deref(), |_, _| {})?;
             eval_secs += t0.elapsed().as_secs_f64();
             elapsed = train_clock(eval_secs);
             if !r.psnr.is_finite() {
