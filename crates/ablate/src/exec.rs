@@ -421,7 +421,7 @@ pub fn run_ablation(
         let key = (plan.scene.clone(), plan.config.ndc);
         if !cache.contains_key(&key) {
             let load = |split, views| {
-                load_scene(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ndc: plan.config.ndc, cameras_only: false, sfm_depth: plan.config.depth_loss.is_some(), undistort: plan.config.undistort })
+                load_scene(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ndc: plan.config.ndc, cameras_only: false, sfm_depth: plan.config.depth_loss.is_some(), undistort: plan.config.undistort, aabb_scale: plan.config.aabb_scale })
                     .map_err(|e| AblateError::Scene { path: plan.scene.clone(), message: e.to_string() })
             };
             let train = load(Split::Train, s.train_views.clone())?;

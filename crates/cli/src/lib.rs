@@ -107,6 +107,12 @@ struct TrainArgs {
     /// the run.
     #[arg(long)]
     undistort: bool,
+    /// instant-ngp's `aabb_scale` in place of the scene file's: a box that reaches past the
+    /// cameras, for captures of rooms and outdoor scenes (e.g. 16; a nerfstudio capture or a
+    /// COLMAP folder trains in [-N, N]^3 about its normalised cameras), without editing the
+    /// file; eval, render and the exports follow the run (config `aabb_scale`).
+    #[arg(long = "aabb-scale", value_name = "N")]
+    aabb_scale: Option<f32>,
     /// Output folder.
     #[arg(long, default_value = "runs/latest")]
     out: PathBuf,
@@ -639,6 +645,9 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     if a.no_ndc {
         c.ndc = false;
     }
+    if let Some(s) = a.aabb_scale {
+        c.aabb_scale = Some(s);
+    }
     if a.undistort {
         c.undistort = true;
     }
@@ -711,7 +720,7 @@ fn large_box_note(config: &nerf::train::TrainConfig, bounds: &SceneBounds) -> St
 fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
     let config = build_config(&a, registry)?;
     let load = |split, views: &ViewSelection| {
-        load_scene(&a.scene, split, &LoadOptions { downscale: config.downscale, views: views.clone(), ndc: config.ndc, cameras_only: false, sfm_depth: config.depth_loss.is_some(), undistort: config.undistort })
+        load_scene(&a.scene, split, &config.load_options(views.clone(), false, config.depth_loss.is_some()))
     };
     let train = load(Split::Train, &a.train_views)?;
     let test = load(Split::Test, &config.test_views)?;
@@ -725,11 +734,8 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
             n.scale,
             if train.ngp.is_some_and(|b| b.aabb_scale > 1.0) {
                 ""
-            } else if colmap {
-                "; for content past the cameras write it as transforms files (`nerf export-scene SCENE DST --downscale 1 \
-                 --test-views all`) and add \"aabb_scale\" (e.g. 16) to them"
             } else {
-                "; for content past the cameras add \"aabb_scale\" (e.g. 16) to the file"
+                "; for content past the cameras, --aabb-scale 16 (instant-ngp's aabb_scale)"
             },
             s = train.ngp.map_or(1.0, |b| b.aabb_scale),
         );
@@ -796,7 +802,7 @@ fn cmd_eval(a: EvalArgs, registry: &Registry) -> Result<()> {
     let ck_path = a.run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
     let views = a.test_views.clone().unwrap_or_else(|| ck.config.test_views.clone());
-    let test = load_scene(&a.scene, a.split.split(), &LoadOptions { downscale: ck.config.downscale, views, ndc: ck.config.ndc, cameras_only: false, sfm_depth: ck.config.depth_loss.is_some(), undistort: ck.config.undistort })?;
+    let test = load_scene(&a.scene, a.split.split(), &ck.config.load_options(views, false, ck.config.depth_loss.is_some()))?;
     let mut config = ck.config.for_rendering();
     if let Some(spp) = a.spp {
         config.eval_spp = spp;
@@ -961,7 +967,7 @@ fn open_run(run: &Path, scene: &Path, euclidean_for: Option<&str>, pixels: bool)
     let ck_path = run.join("checkpoint.bin");
     let ck = Checkpoint::load(&ck_path)?;
     let c = &ck.config;
-    let opts = LoadOptions { downscale: c.downscale, views: ViewSelection::All, ndc: c.ndc, cameras_only: !pixels, sfm_depth: false, undistort: c.undistort };
+    let opts = c.load_options(ViewSelection::All, !pixels, false);
     let train = load_scene(scene, Split::Train, &opts)?;
     if let (Some(what), Some(_)) = (euclidean_for, &train.ndc) {
         bail!("{}: the run was trained in NDC space, not the scene's: {what} needs a run trained with --no-ndc", run.display());
@@ -1168,7 +1174,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
                 })?,
                 PathKind::Interpolate => {
                     // The run's test views (what `nerf eval` loads), in the scene's order.
-                    let opts = LoadOptions { downscale: config.downscale, views: config.test_views.clone(), ndc: config.ndc, cameras_only: true, sfm_depth: false, undistort: config.undistort };
+                    let opts = config.load_options(config.test_views.clone(), true, false);
                     let test = load_scene(&a.scene, Split::Test, &opts)?;
                     nerf::rays::interpolate(&test.cameras, k, frames).with_context(|| {
                         format!("{}: --path interpolate needs at least 2 test cameras and 2 frames", a.scene.display())
@@ -1520,7 +1526,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
     };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort };
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort, aabb_scale: None };
         let mut ds = load_scene(&a.src, split, &opts)?;
         if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
             let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));

@@ -559,6 +559,34 @@ fn eval_every_scores_during_the_run_and_leaves_it_unchanged() {
     assert!(o.status.code() == Some(2) && stderr(&o).contains("--eval-every"), "{}", stderr(&o));
 }
 
+/// `nerf train --aabb-scale N`: the scene trains in instant-ngp's box of that size without its
+/// file being edited; the run's config keeps it, so `nerf eval` loads the same box and scores
+/// what training scored, and the box differs from the file's own.
+#[test]
+fn aabb_scale_grows_the_box_and_eval_follows_the_run() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "3", "--device", "cpu", "--aabb-scale", "2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("aabb_scale 2"), "{}", stderr(&o));
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(m["config"]["aabb_scale"], 2.0);
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
+    assert_eq!(e["test_psnr"], m["test_psnr"], "eval loads the run's box");
+    // The box matters: the same run in the file's box scores otherwise.
+    let plain = d.path().join("plain");
+    let o = train_tiny(&s, &plain, &["--iters", "3", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let p: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(plain.join("metrics.json")).unwrap()).unwrap();
+    assert_ne!(p["test_psnr"], m["test_psnr"]);
+    assert!(p["config"].get("aabb_scale").is_none());
+    let o = train_tiny(&s, &d.path().join("bad"), &["--iters", "1", "--aabb-scale=-1"]);
+    assert_clean_failure(&o, &["aabb_scale", "above 0"]);
+}
+
 /// `nerf eval --step-size`: a run of the occupancy sampler rendered with a finer marching step
 /// records the step, scores differently from its own step, and a step that is not positive is a
 /// clear error. A run whose config sets `render_step_size` trains as the plain run does and

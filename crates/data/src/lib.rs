@@ -408,6 +408,13 @@ pub struct LoadOptions {
     /// so that rays go through the photo's own pixels and a fisheye keeps its whole view.
     #[serde(default)]
     pub undistort: bool,
+    /// instant-ngp's `aabb_scale` in place of the transforms file's (or of none): the side of the
+    /// training cube in instant-ngp units for an instant-ngp or Blender file, the half-side of
+    /// nerfstudio's box about its normalised cameras for a nerfstudio capture or a COLMAP folder;
+    /// the poses are read as they would be without it. `None` (the default): the file's.
+    /// LLFF scenes refuse it.
+    #[serde(default)]
+    pub aabb_scale: Option<f32>,
 }
 
 impl Default for LoadOptions {
@@ -420,6 +427,7 @@ impl Default for LoadOptions {
             cameras_only: false,
             sfm_depth: false,
             undistort: false,
+            aabb_scale: None,
         }
     }
 }
@@ -1594,7 +1602,15 @@ fn load_transforms_with(
     }
     ngp::Lens::parse(&tpath, json, None)?;
     let parsed_box = ngp::NgpBox::parse(&tpath, json)?;
+    // Whether the poses are nerfstudio's is the file's say, whatever box the options ask for.
     let nerfstudio = one_file && ngp::is_nerfstudio(json);
+    let parsed_box = match opts.aabb_scale {
+        Some(s) if !(s.is_finite() && s > 0.0) => {
+            return Err(invalid("aabb_scale".into(), format!("{s} (asked for in place of the file's): must be finite and above 0")));
+        }
+        Some(s) => Some(NgpBox { aabb_scale: s, ..parsed_box.unwrap_or_default() }),
+        None => parsed_box,
+    };
     let frames_v = json.get("frames").ok_or_else(|| missing("frames".into()))?;
     let frames_json = frames_v.as_array().ok_or_else(|| {
         invalid(

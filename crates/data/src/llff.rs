@@ -190,6 +190,13 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
     if !poses_path.is_file() {
         return Err(DataError::MissingTransforms { path: poses_path });
     }
+    if let Some(s) = opts.aabb_scale {
+        return Err(DataError::InvalidValue {
+            path: poses_path,
+            key: "aabb_scale".into(),
+            reason: format!("{s}: an LLFF scene has no instant-ngp box (its rays are bounded by its depths, or by NDC)"),
+        });
+    }
     let rows = read_rows(&poses_path)?;
     let k = opts.downscale;
     if k == 0 {

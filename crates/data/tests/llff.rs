@@ -71,12 +71,12 @@ fn scene(dir: &Path, rows: &[[f64; 17]], factors: &[u32]) {
 
 /// Euclidean rays (`--no-ndc`): the loader's geometry checked in world units.
 fn opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None }
 }
 
 /// The default: NDC rays.
 fn ndc_opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None }
 }
 
 fn poses(ds: &Dataset) -> Vec<(glam::Mat3, Vec3)> {
@@ -332,6 +332,9 @@ fn cameras_only_gives_the_full_loads_cameras_without_decoding() {
         assert_eq!(cams.cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>(), full.cameras.iter().map(|c| c.intrinsics).collect::<Vec<_>>());
         assert_eq!((cams.near, cams.far, cams.aabb, cams.depth_bounds, cams.ndc.is_some()), (full.near, full.far, full.aabb, full.depth_bounds, ndc));
     }
+    // An LLFF scene has no instant-ngp box to grow.
+    let e = load_llff(dir.path(), Split::Train, &LoadOptions { aabb_scale: Some(16.0), ..opts(4) }).unwrap_err().to_string();
+    assert!(e.contains("poses_bounds.npy") && e.contains("aabb_scale") && e.contains("LLFF"), "{e}");
     // A folder whose images are not those of the poses' aspect is still refused without decoding.
     let bad = tempfile::tempdir().unwrap();
     scene(bad.path(), &rig(9, DMat3::IDENTITY, DVec3::ZERO, 1.0), &[]);

@@ -665,7 +665,7 @@ fn writing_keeps_pixel_intrinsics_and_the_box() {
 fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
     let Some(fern) = nerf_core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else { return };
     // Euclidean rays at 504×378 (images_8), both splits, as the LLFF loader reads them.
-    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false };
+    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None };
     let (train, test) = (load_scene(&fern, Split::Train, &o).unwrap(), load_scene(&fern, Split::Test, &o).unwrap());
     let n = train.n_views() + test.n_views();
     let (mut tr, mut te) = (train.cameras.iter().zip(&train.file_paths), test.cameras.iter().zip(&test.file_paths));
@@ -827,12 +827,25 @@ fn nerfstudio_scenes_are_normalised_as_nerfstudio_does() {
     let (train4, _) = scene(big.clone(), json!({"aabb_scale": 4}));
     assert_eq!((train4.aabb.min, train4.aabb.max), ([-4.0; 3], [4.0; 3]));
     assert_eq!(train4.cameras[3].position, train.cameras[3].position);
+    // Asked for by the load options instead (`nerf train --aabb-scale`): the same box and poses
+    // as the file's key gives, and in place of a key the file has.
+    let with = |s: f32| nerf_data::load_scene(dir.path(), Split::Train, &LoadOptions { aabb_scale: Some(s), ..LoadOptions::default() });
+    scene(big.clone(), json!({}));
+    let asked = with(4.0).unwrap();
+    assert_eq!((asked.aabb.min, asked.aabb.max, asked.ngp), (train4.aabb.min, train4.aabb.max, train4.ngp));
+    assert!(asked.cameras.iter().zip(&train4.cameras).all(|(a, b)| a.position == b.position && a.rotation == b.rotation));
+    scene(big.clone(), json!({"aabb_scale": 4}));
+    assert_eq!(with(2.0).unwrap().aabb.max, [2.0; 3]);
+    let e = with(0.0).err().expect("aabb_scale 0 accepted").to_string();
+    assert!(e.contains("transforms.json") && e.contains("aabb_scale") && e.contains("above 0"), "{e}");
     // `camera_model` with `aabb_scale` but no `applied_transform`: an instant-ngp file that some
     // tool gave a camera model (its poses are taken as already scaled).
     write_json(&dir.path().join("transforms.json"), &json!({"camera_model": "OPENCV", "aabb_scale": 16, "fl_x": k.fx as f64, "w": 100, "h": 100, "frames": big.clone()}));
     let ngp16 = load(dir.path(), Split::Train);
     assert_eq!(ngp16.ngp, Some(NgpBox { aabb_scale: 16.0, ..NgpBox::default() }));
     assert!(ngp16.normalization.is_none());
+    let ngp2 = with(2.0).unwrap();
+    assert_eq!((ngp2.ngp, ngp2.normalization.is_none()), (Some(NgpBox { aabb_scale: 2.0, ..NgpBox::default() }), true));
     // instant-ngp's `scale` / `offset` keep their meaning: the file is then instant-ngp's, poses as written.
     let (ngp, _) = scene(big.clone(), json!({"scale": 0.5, "offset": [0.5, 0.5, 0.5]}));
     assert_eq!(ngp.ngp, Some(NgpBox { scale: 0.5, offset: [0.5; 3], aabb_scale: 1.0 }));

@@ -233,6 +233,13 @@ pub struct TrainConfig {
     /// and their rays go through the lens. Serialised only when `true`.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub undistort: bool,
+    /// instant-ngp's `aabb_scale` for the scene in place of its transforms file's
+    /// (`nerf_data::LoadOptions::aabb_scale`; `nerf train --aabb-scale`): the box of a capture
+    /// whose content reaches past its cameras, without editing the file. Every later load of the
+    /// run (evaluation, renders, exports) takes it too. `None` (the default, not serialised): the
+    /// file's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub aabb_scale: Option<f32>,
     /// Which test views to evaluate on.
     pub test_views: ViewSelection,
     /// Log (and update the progress bar message) every this many steps.
@@ -369,6 +376,7 @@ impl Default for TrainConfig {
             downscale: 1,
             ndc: true,
             undistort: false,
+            aabb_scale: None,
             test_views: ViewSelection::Every(8),
             log_every: 100,
             checkpoint_every: 1000,
@@ -395,6 +403,13 @@ fn is_true(b: &bool) -> bool {
 }
 
 impl TrainConfig {
+    /// How this run's scene loads: its downscale, ray space, lens handling and box, with `views`
+    /// of the split, only the cameras where `cameras_only`, and the SfM points' depths where
+    /// `sfm_depth`.
+    pub fn load_options(&self, views: ViewSelection, cameras_only: bool, sfm_depth: bool) -> nerf_data::LoadOptions {
+        nerf_data::LoadOptions { downscale: self.downscale, views, ndc: self.ndc, cameras_only, sfm_depth, undistort: self.undistort, aabb_scale: self.aabb_scale }
+    }
+
     /// The config a trainer that only renders a run needs: without the parts that act on the
     /// training photos alone (`camera_optimizer`: the corrections belong to the training views
     /// and renders use the cameras as given, and its per-step buffers are not needed). Its
@@ -416,6 +431,9 @@ impl TrainConfig {
     /// Checks values that would make a run meaningless.
     pub fn validate(&self) -> Result<(), String> {
         self.lr.validate()?;
+        if let Some(s) = self.aabb_scale.filter(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(format!("aabb_scale {s}: must be finite and above 0"));
+        }
         if self.batch_rays == 0 {
             return Err("batch_rays must be positive".into());
         }
