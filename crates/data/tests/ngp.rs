@@ -836,7 +836,8 @@ fn nerfstudio_scenes_are_normalised_as_nerfstudio_does() {
     assert!(asked.cameras.iter().zip(&train4.cameras).all(|(a, b)| a.position == b.position && a.rotation == b.rotation));
     scene(big.clone(), json!({"aabb_scale": 4}));
     assert_eq!(with(2.0).unwrap().aabb.max, [2.0; 3]);
-    let e = with(0.0).err().expect("aabb_scale 0 accepted").to_string();
+    let Err(e) = with(0.0).map(|_| ()) else { panic!("aabb_scale 0 accepted") };
+    let e = e.to_string();
     assert!(e.contains("transforms.json") && e.contains("aabb_scale") && e.contains("above 0"), "{e}");
     // `camera_model` with `aabb_scale` but no `applied_transform`: an instant-ngp file that some
     // tool gave a camera model (its poses are taken as already scaled).
