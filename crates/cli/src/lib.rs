@@ -213,6 +213,22 @@ struct EvalArgs {
     step_size: Option<f32>,
 }
 
+/// Where `nerf render --aperture` focuses (`--focus`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Focus {
+    /// On what the middle of each frame shows.
+    Auto,
+    /// This far in front of the camera.
+    Distance(f32),
+}
+
+fn parse_focus(s: &str) -> Result<Focus, String> {
+    match s {
+        "auto" => Ok(Focus::Auto),
+        _ => s.parse().map(Focus::Distance).map_err(|_| format!("`{s}` is neither a distance nor `auto`")),
+    }
+}
+
 /// `nerf eval --filter`: `box`, `blackman-harris` or `blackman-harris:WIDTH`.
 fn parse_pixel_filter(s: &str) -> Result<nerf::rays::PixelFilter, String> {
     use nerf::rays::PixelFilter;
@@ -359,11 +375,13 @@ struct RenderArgs {
     /// used unless this is given (`--aperture 0`: none).
     #[arg(long, value_name = "RADIUS")]
     aperture: Option<f32>,
-    /// Distance of the plane in focus in front of the camera, in scene units [default: for
-    /// each frame, how far in front of its camera the point the path looks at lies (the orbit's
-    /// centre); for an LLFF scene, the focus depth of nerf-pytorch's spiral].
-    #[arg(long, value_name = "DISTANCE", requires = "aperture")]
-    focus: Option<f32>,
+    /// Distance of the plane in focus in front of the camera, in scene units, or `auto`: for each
+    /// frame, what the middle of the frame shows (the median depth of its central 5x5 pixels'
+    /// rays that reach a surface, as a camera's autofocus) [default: for each frame, how far in
+    /// front of its camera the point the path looks at lies (the orbit's centre); for an LLFF
+    /// scene, the focus depth of nerf-pytorch's spiral].
+    #[arg(long, value_name = "DISTANCE|auto", requires = "aperture", value_parser = parse_focus)]
+    focus: Option<Focus>,
     /// Motion blur: the fraction of a frame's time the shutter stays open, from the frame's
     /// camera towards the next frame's (instant-ngp's `run.py` renders with 0.5). Each pixel's
     /// `--spp` rays are cast at their own moments: use 8 or more [default: 0, no blur].
@@ -1026,6 +1044,31 @@ impl NormalBuffers {
     }
 }
 
+/// `nerf render --focus auto`: the distance along `cam`'s optical axis of what the middle of its
+/// frame shows (`nerf_render::focus_distance` of the rays through a 5x5-pixel window about the
+/// centre, a pixel being the frame's: its focal length's reciprocal, or a panorama's 2π over its
+/// width); `None` when none of them reaches a surface.
+fn autofocus(trainer: &nerf::train::Trainer, cam: &nerf::rays::Camera, projection: Projection, background: [f32; 3]) -> Result<Option<f32>> {
+    let k = cam.intrinsics;
+    let f = match projection {
+        Projection::Equirectangular => k.width as f32 / std::f32::consts::TAU,
+        _ => 0.5 * (k.fx + k.fy),
+    };
+    let window = nerf::rays::Camera {
+        intrinsics: nerf::rays::Intrinsics { width: 5, height: 5, fx: f, fy: f, cx: 2.5, cy: 2.5 },
+        distortion: nerf::rays::Distortion::NONE,
+        ..*cam
+    };
+    let (mut o, mut d) = (Vec::new(), Vec::new());
+    window.frame_rays_at(Projection::Perspective, [0.5, 0.5], &mut o, &mut d);
+    let n = o.len() / 3;
+    let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
+    trainer.render_rays(&o, &d, &background.repeat(n), &mut rgb, &mut opacity, &mut depth)?;
+    let forward = -cam.rotation.z_axis.normalize();
+    let axial: Vec<f32> = d.chunks_exact(3).map(|d| nerf::rays::glam::Vec3::from_slice(d).dot(forward)).collect();
+    Ok(nerf::render::focus_distance(&depth, &opacity, &axial))
+}
+
 /// Where each frame's shutter closes towards (`nerf render --shutter`): the next frame's camera.
 enum NextCamera {
     /// Closed paths (an orbit, the spiral): the first frame follows the last.
@@ -1062,7 +1105,11 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         bail!("--shutter {}: the fraction of a frame the shutter is open must be in [0, 1]", a.shutter);
     }
     if let Some(r) = a.aperture {
-        nerf::rays::ThinLens { aperture: r, focus_distance: a.focus.unwrap_or(1.0) }.validate().map_err(|e| anyhow::anyhow!("--aperture / --focus: {e}"))?;
+        let f = match a.focus {
+            Some(Focus::Distance(f)) => f,
+            _ => 1.0,
+        };
+        nerf::rays::ThinLens { aperture: r, focus_distance: f }.validate().map_err(|e| anyhow::anyhow!("--aperture / --focus: {e}"))?;
     }
     // A user's path is read before the checkpoint, so a typo there fails fast.
     let user_path = a.camera_path.as_deref().map(nerf::data::read_camera_path).transpose()?;
@@ -1195,15 +1242,28 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         Some(_) => SceneBounds::of(train),
         None => SceneBounds::of(train).for_path(&train.cameras, &path),
     };
-    // Each frame's lens: `--aperture`, focused at `--focus` or where the path looks, else an
-    // instant-ngp path's own.
+    let LoadedRun { step, train, mut trainer, .. } = opened.into_loaded(registry, a.device, bounds)?;
+    trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
+    if let Some(s) = a.step_size {
+        trainer.set_render_step_size(Some(s)).with_context(|| format!("{}: --step-size {s}", a.run.display()))?;
+    }
+    // Each frame's lens: `--aperture`, focused at `--focus` (what the frame's middle shows, with
+    // `auto`) or where the path looks, else an instant-ngp path's own.
     let lenses: Vec<Option<nerf::rays::ThinLens>> = match (a.aperture, path_lenses) {
         (Some(r), _) if r > 0.0 => path
             .iter()
             .enumerate()
             .map(|(i, cam)| {
-                let focus_distance = match (a.focus, nerf::data::llff::focus_depth(train)) {
-                    (Some(f), _) => f,
+                let focus_distance = match (a.focus, nerf::data::llff::focus_depth(&train)) {
+                    (Some(Focus::Distance(f)), _) => f,
+                    (Some(Focus::Auto), _) => {
+                        if train.ndc.is_some() {
+                            bail!("--focus auto: the run was trained in NDC space, whose depths are not distances: give --focus DISTANCE");
+                        }
+                        autofocus(&trainer, cam, projection, config.eval_background.fixed_rgb())?.with_context(|| {
+                            format!("--focus auto: nothing in the middle of frame {i} to focus on (its central pixels' rays reach no surface): give --focus DISTANCE")
+                        })?
+                    }
                     (None, Some(f)) => f,
                     (None, None) => {
                         let forward = -cam.rotation.z_axis.normalize();
@@ -1227,11 +1287,6 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         true => serde_json::json!(lenses.iter().map(|l| l.map(|l| [l.aperture, l.focus_distance])).collect::<Vec<_>>()),
         false => serde_json::Value::Null,
     };
-    let LoadedRun { step, train, mut trainer, .. } = opened.into_loaded(registry, a.device, bounds)?;
-    trainer.set_render_appearance(a.appearance).with_context(|| format!("{}: --appearance", a.run.display()))?;
-    if let Some(s) = a.step_size {
-        trainer.set_render_step_size(Some(s)).with_context(|| format!("{}: --step-size {s}", a.run.display()))?;
-    }
     let k = path[0].intrinsics; // every camera of a path has the same size
     let n_frames = path.len();
     let video_fps = a.gif.map(f64::from).or(path_fps).unwrap_or(30.0);

@@ -343,6 +343,10 @@ fn an_llff_run_keeps_its_ray_space_through_eval_and_render() {
         let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("dof/render.json")).unwrap()).unwrap();
         let focus: Vec<f64> = (0..2).map(|i| r["lenses"][i][1].as_f64().unwrap()).collect();
         assert!(focus[0] > 0.0 && focus[0] == focus[1], "{r}");
+        if space == "ndc" {
+            let o = nerf().arg("render").arg(&run).arg(&fern).args(["--frames", "1", "--width", "16", "--aperture", "0.01", "--focus", "auto", "--device", "cpu"]).output().unwrap();
+            assert_clean_failure(&o, &["--focus auto", "NDC"]);
+        }
         // A point cloud needs distances: the Euclidean run gives one, the NDC run a clear error.
         let o = nerf().arg("export-points").arg(&run).arg(&fern).args(["--points", "50", "--min-opacity", "0", "--device", "cpu"]).output().unwrap();
         match space {
@@ -1148,6 +1152,35 @@ fn render_blurs_with_a_lens_and_an_open_shutter() {
     ] {
         let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1"]).args(args).output().unwrap();
         assert_clean_failure(&o, words);
+    }
+}
+
+/// `nerf render --aperture R --focus auto` focuses each frame on what its middle shows: on a
+/// hash field trained briefly on the in-repo lego, every orbit frame's focus lies between the
+/// near bound and the object's centre (the lego's near surface); an untrained field, which shows
+/// nothing there, is a clear error.
+#[test]
+fn render_autofocuses_on_the_middle_of_each_frame() {
+    let d = tempfile::tempdir().unwrap();
+    let (s, tiny) = tiny_cpu_run(d.path());
+    let render = |run: &Path, out: &str| {
+        nerf().arg("render").arg(run).arg(&s).args(["--frames", "3", "--width", "16", "--aperture", "0.1", "--focus", "auto", "--device", "cpu", "--quiet", "--out"]).arg(d.path().join(out)).output().unwrap()
+    };
+    let o = render(&tiny, "none");
+    assert_clean_failure(&o, &["--focus auto", "nothing in the middle of frame 0"]);
+    let cfg = d.path().join("hash.toml");
+    std::fs::write(&cfg, "target_samples_per_step = 8192\n").unwrap();
+    let run = d.path().join("hash");
+    let o = nerf().arg("train").arg(&s).args(["--field", "hash", "--iters", "60", "--device", "cpu", "--quiet", "--no-renders", "--config"]).arg(&cfg).arg("--out").arg(&run).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = render(&run, "auto");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let r: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.path().join("auto/render.json")).unwrap()).unwrap();
+    for i in 0..3 {
+        let m = &r["camera_to_world"][i];
+        let dist = (0..3).map(|a| m[a][3].as_f64().unwrap().powi(2)).sum::<f64>().sqrt();
+        let f = r["lenses"][i][1].as_f64().unwrap();
+        assert!(f > r["near"].as_f64().unwrap() && f < dist, "frame {i}: focus {f}, the object's centre {dist} away: {r}");
     }
 }
 

@@ -32,6 +32,25 @@ pub fn depth_to_gray(depth: &[f32], opacity: &[f32], range: (f32, f32), out: &mu
     }));
 }
 
+/// The distance to focus a frame on from rays through its centre (`nerf render --focus auto`):
+/// the median, over the rays whose opacity is at least ½, of their expected depth
+/// `depth[i] / opacity[i]` times `axial[i]`, the cosine between the ray and the optical axis (so
+/// a distance along the axis, what a thin lens focuses at). `None` when no ray is that opaque.
+pub fn focus_distance(depth: &[f32], opacity: &[f32], axial: &[f32]) -> Option<f32> {
+    let mut d: Vec<f32> = depth
+        .iter()
+        .zip(opacity)
+        .zip(axial)
+        .filter(|((z, &a), _)| a >= 0.5 && z.is_finite())
+        .map(|((&z, &a), &c)| z / a * c)
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    d.sort_by(f32::total_cmp);
+    Some(d[(d.len() - 1) / 2])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -56,5 +75,18 @@ mod tests {
         // No surface, or a flat one: no range.
         assert!(depth_range(&[1.0, 2.0], &[0.1, 0.2]).is_none());
         assert!(depth_range(&[1.0, 1.0], &[1.0, 1.0]).is_none());
+    }
+
+    #[test]
+    fn focus_is_the_median_axial_depth_of_the_opaque_rays() {
+        // Expected depths 2, 3, 4 and 10 (the last two halved by their opacity), a transparent
+        // ray at 1; cosines 1 but for the second ray.
+        let depth = [2.0, 3.0, 2.0, 5.0, 1.0];
+        let opacity = [1.0, 1.0, 0.5, 0.5, 0.2];
+        let axial = [1.0, 0.5, 1.0, 1.0, 1.0];
+        // Axial depths 2, 1.5, 4, 10: the lower middle of four is 2.
+        assert_eq!(focus_distance(&depth, &opacity, &axial), Some(2.0));
+        assert_eq!(focus_distance(&depth[..3], &opacity[..3], &axial[..3]), Some(2.0));
+        assert_eq!(focus_distance(&[1.0, f32::NAN], &[0.4, 1.0], &[1.0, 1.0]), None);
     }
 }
