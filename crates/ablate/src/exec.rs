@@ -328,7 +328,7 @@ pub fn train_run(
         train_log.push(p);
     }
     let last = *curve.last().expect("at least the final evaluation");
-    let corrections = trainer.pose_params().map_err(terr)?.map(|p| nerf_train::pose::corrections_json(&p, &train.cameras));
+    let corrections = trainer.pose_params().map_err(terr)?.map(|p| nerf_train::pose::corrections_json(&p, &train.cameras, &train.view_names()));
     let iters = trainer.step_count();
     let samples = trainer.samples_seen().map_err(terr)?;
     let report = last_report.into_inner().expect("at least the final evaluation");

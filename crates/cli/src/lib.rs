@@ -537,6 +537,11 @@ struct ExportArgs {
     /// taken, with their lenses.
     #[arg(long)]
     undistort: bool,
+    /// A run's `camera_corrections.json` (`[camera_optimizer]`): each training view is written
+    /// with the pose the run refined for it (matched by image name), as nerfstudio's
+    /// `ns-export cameras` exports optimised poses, for other tools to train on.
+    #[arg(long = "camera-corrections", value_name = "FILE", conflicts_with_all = ["pose_noise_rot", "pose_noise_trans"])]
+    camera_corrections: Option<PathBuf>,
 }
 
 /// Runs the command line on this process's arguments with `registry`'s fields, then returns; a
@@ -1594,6 +1599,9 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
             });
             write_json("pose_noise.json", json)?;
         }
+        if let (Some(file), Split::Train) = (&a.camera_corrections, split) {
+            apply_camera_corrections(&mut ds, file)?;
+        }
         if let (Some(x), Split::Train) = (a.exposure_jitter, split) {
             let gains = nerf::data::exposure_gains(ds.n_views(), x, a.seed);
             ds.scale_colors(&gains);
@@ -1601,6 +1609,32 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         }
         write_blender(&ds, &a.dst, a.attribution.as_deref())?;
         println!("{:?}: {} views at {} -> {}", split, ds.n_views(), ds.size_label(), a.dst.display());
+    }
+    Ok(())
+}
+
+/// `nerf export-scene --camera-corrections FILE`: each view of `ds` takes the refined pose that
+/// `FILE` (a run's `camera_corrections.json`) holds under its name, keeping its intrinsics and
+/// lens. Errors name the file: unreadable, not a run's corrections, a view it has no pose for,
+/// or a pose that is no camera.
+fn apply_camera_corrections(ds: &mut nerf::data::Dataset, file: &Path) -> Result<()> {
+    let text = std::fs::read_to_string(file).with_context(|| format!("{}: cannot read", file.display()))?;
+    let json: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", file.display()))?;
+    let views = json.get("views").and_then(serde_json::Value::as_array).with_context(|| format!("{}: no `views`: not a run's camera_corrections.json", file.display()))?;
+    let mut poses = std::collections::HashMap::new();
+    for (i, v) in views.iter().enumerate() {
+        let (Some(name), Some(m)) = (v.get("image").and_then(serde_json::Value::as_str), v.get("camera_to_world")) else {
+            bail!("{}: views[{i}] has no `image` or `camera_to_world` (corrections written before nerf-rs named the views cannot be matched)", file.display());
+        };
+        let rows: Option<Vec<[f32; 4]>> = m.as_array().and_then(|r| r.iter().map(|row| serde_json::from_value::<[f32; 4]>(row.clone()).ok()).collect());
+        poses.insert(name.to_string(), rows.with_context(|| format!("{}: views[{i}].camera_to_world is not rows of 4 numbers", file.display()))?);
+    }
+    for (i, name) in ds.view_names().into_iter().enumerate() {
+        let c2w = poses.get(&name).with_context(|| format!("{}: no refined pose for training view `{name}` (the run trained on other views?)", file.display()))?;
+        let cam = &ds.cameras[i];
+        ds.cameras[i] = nerf::rays::Camera::from_c2w(cam.intrinsics, c2w)
+            .map_err(|e| anyhow::anyhow!("{}: view `{name}`: {e}", file.display()))?
+            .with_distortion(cam.distortion);
     }
     Ok(())
 }

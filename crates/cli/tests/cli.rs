@@ -1769,6 +1769,21 @@ fn export_scene_moves_cameras_and_camera_optimizer_trains_on_it() {
     assert!((metrics["config"]["camera_optimizer"]["lr"].as_f64().unwrap() - 0.001).abs() < 1e-9, "the config as trained");
     let o = nerf().arg("eval").arg(&run).arg(&s).args(["--device", "cpu", "--quiet"]).output().unwrap();
     assert!(o.status.success(), "the run evaluates again from its checkpoint: {}", stderr(&o));
+    // `export-scene --camera-corrections`: the scene again, its training views at the refined
+    // poses (matched by name), its test views as they were.
+    assert!(views.iter().all(|v| v["image"].is_string()), "{c}");
+    let refined = d.path().join("refined");
+    let o = nerf().args(["export-scene"]).arg(&s).arg(&refined).args(["--downscale", "1", "--test-views", "all", "--camera-corrections"]).arg(run.join("camera_corrections.json")).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let written = frames(refined.join("transforms_train.json"));
+    for (v, e) in views.iter().enumerate() {
+        let m: [[f64; 4]; 4] = serde_json::from_value(e["camera_to_world"].clone()).unwrap();
+        assert!((0..3).all(|r| (0..4).all(|c| (written[v][r][c] - m[r][c]).abs() < 1e-5)), "view {v}: {:?} vs {m:?}", written[v]);
+    }
+    assert_eq!(frames(refined.join("transforms_test.json")), frames(s.join("transforms_test.json")));
+    // A view the run did not train on has no refined pose.
+    let o = nerf().args(["export-scene"]).arg(repo().join("scenes/lego_100")).arg(d.path().join("other")).args(["--downscale", "2", "--train-views", "first:4", "--camera-corrections"]).arg(run.join("camera_corrections.json")).output().unwrap();
+    assert_clean_failure(&o, &["camera_corrections.json", "no refined pose for training view", "r_3"]);
     // On a GPU adapter (lavapipe here) it trains too, and writes the corrections the same way;
     // `eval` and `render` of the CPU run run there (the corrections are the training photos').
     let gpu_run = d.path().join("gpu");

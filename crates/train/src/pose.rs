@@ -83,10 +83,12 @@ impl CpuPose {
 }
 
 /// What a run learnt, as `camera_corrections.json` holds it: per training view (in the order the
-/// scene lists them) the correction `[τ, ω]`, its size (`|τ|`, `|ω|` in degrees) and the
-/// corrected camera-to-world matrix ([`nerf_rays::pose::move_camera`]; row-major 4×4 in the
-/// scene's ray space, the frame `cameras` are in), and the mean sizes.
-pub fn corrections_json(params: &[f32], cameras: &[nerf_rays::Camera]) -> serde_json::Value {
+/// scene lists them, with its name, `names[v]`: `nerf_data::Dataset::view_names`) the correction
+/// `[τ, ω]`, its size (`|τ|`, `|ω|` in degrees) and the corrected camera-to-world matrix
+/// ([`nerf_rays::pose::move_camera`]; row-major 4×4 in the scene's ray space, the frame
+/// `cameras` are in), and the mean sizes. `nerf export-scene --camera-corrections` writes a scene
+/// with these poses.
+pub fn corrections_json(params: &[f32], cameras: &[nerf_rays::Camera], names: &[String]) -> serde_json::Value {
     let n = cameras.len().max(1) as f64;
     let (mut sum_t, mut sum_r) = (0.0, 0.0);
     let views: Vec<serde_json::Value> = params
@@ -99,7 +101,7 @@ pub fn corrections_json(params: &[f32], cameras: &[nerf_rays::Camera]) -> serde_
             let r = p[3..].iter().map(|x| (*x as f64).powi(2)).sum::<f64>().sqrt().to_degrees();
             (sum_t, sum_r) = (sum_t + t, sum_r + r);
             serde_json::json!({
-                "view": v, "correction": p, "translation": t, "rotation_degrees": r,
+                "view": v, "image": names.get(v), "correction": p, "translation": t, "rotation_degrees": r,
                 "camera_to_world": nerf_rays::pose::move_camera(cam, &p).c2w(),
             })
         })

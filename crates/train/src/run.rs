@@ -278,7 +278,7 @@ pub fn run(
     pb.finish_with_message(format!("trained {} steps in {:.1}s", trainer.step_count(), elapsed));
     save(&trainer, elapsed)?;
     // Camera pose refinement: the corrected training poses.
-    let corrections = trainer.pose_params()?.map(|p| crate::pose::corrections_json(&p, &train.cameras));
+    let corrections = trainer.pose_params()?.map(|p| crate::pose::corrections_json(&p, &train.cameras, &train.view_names()));
     if let Some(c) = &corrections {
         let text = serde_json::to_string_pretty(c).expect("a JSON value serialises");
         write_atomic(&out.join("camera_corrections.json"), text.as_bytes())?;
