@@ -213,6 +213,15 @@ struct EvalArgs {
     step_size: Option<f32>,
 }
 
+/// The colours of `nerf render --depth` maps (`--depth-colormap`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum DepthColormap {
+    /// Near bright, far dark.
+    Gray,
+    /// Google's Turbo, near blue, far red (nerfstudio's).
+    Turbo,
+}
+
 /// Where `nerf render --aperture` focuses (`--focus`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Focus {
@@ -329,10 +338,15 @@ struct RenderArgs {
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
-    /// Also write depth_0000.png, …: expected depth, near bright and far dark, over the range of
-    /// the first frame's surfaces (1st to 99th percentile; NDC scenes: NDC depth, i.e. disparity).
+    /// Also write depth_0000.png, …: expected depth, near bright and far dark (`--depth-colormap`),
+    /// over the range of the first frame's surfaces (1st to 99th percentile; NDC scenes: NDC
+    /// depth, i.e. disparity).
     #[arg(long)]
     depth: bool,
+    /// Colours of the `--depth` maps: `gray` (near bright, far dark, black where nothing is) or
+    /// `turbo` (nerfstudio's: Google's Turbo colormap, near blue, far red, over the background).
+    #[arg(long = "depth-colormap", value_enum, default_value = "gray", requires = "depth")]
+    depth_colormap: DepthColormap,
     /// Continue a render that was interrupted (Ctrl-C) in `--out`: the frames its render.json
     /// counts are kept, and rendering goes on from the next. The command must be the one that
     /// started it (the same path, frame size, rays per pixel, lens and shutter); anything else is refused.
@@ -1366,7 +1380,11 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         if a.depth {
             // One range for the whole path (the first frame with surfaces), so frames compare.
             depth_range = depth_range.or_else(|| nerf::render::depth_range(&depth, &opacity));
-            nerf::render::depth_to_gray(&depth, &opacity, depth_range.unwrap_or((0.0, 1.0)), &mut gray);
+            let range = depth_range.unwrap_or((0.0, 1.0));
+            match a.depth_colormap {
+                DepthColormap::Gray => nerf::render::depth_to_gray(&depth, &opacity, range, &mut gray),
+                DepthColormap::Turbo => nerf::render::depth_to_turbo(&depth, &opacity, range, config.eval_background.fixed_rgb(), &mut gray),
+            }
             nerf::data::save_png(&out.join(format!("depth_{i:04}.png")), k.width, k.height, &gray)?;
         }
         done = i + 1;

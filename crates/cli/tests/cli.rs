@@ -1184,6 +1184,26 @@ fn render_autofocuses_on_the_middle_of_each_frame() {
     }
 }
 
+/// `nerf render --depth --depth-colormap turbo` draws the depth maps in colour (nerfstudio's
+/// Turbo), where the default is grey; the colormap needs `--depth`.
+#[test]
+fn render_draws_depth_in_turbo_colours() {
+    let d = tempfile::tempdir().unwrap();
+    let (s, run) = tiny_cpu_run(d.path());
+    let depth = |name: &str, extra: &[&str]| -> image::RgbImage {
+        let out = d.path().join(name);
+        let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--width", "16", "--depth", "--device", "cpu", "--quiet", "--out"]).arg(&out).args(extra).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        image::open(out.join("depth_0000.png")).unwrap().to_rgb8()
+    };
+    let gray = depth("gray", &[]);
+    assert!(gray.pixels().all(|p| p[0] == p[1] && p[1] == p[2]));
+    let turbo = depth("turbo", &["--depth-colormap", "turbo"]);
+    assert!(turbo.pixels().any(|p| p[0] != p[1] || p[1] != p[2]), "coloured");
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--depth-colormap", "turbo"]).output().unwrap();
+    assert!(o.status.code() == Some(2) && stderr(&o).contains("--depth"), "{}", stderr(&o));
+}
+
 /// `nerf render --normals` writes a normal map beside each frame, the size of the frame, each
 /// pixel a blend of a unit normal's colour and the white background by the frame's opacity.
 #[test]

@@ -32,6 +32,32 @@ pub fn depth_to_gray(depth: &[f32], opacity: &[f32], range: (f32, f32), out: &mu
     }));
 }
 
+/// Google's Turbo colormap at `x` (clamped to `[0, 1]`), by Ruofei Du's polynomial fit to
+/// Anton Mikhailov's table: dark blue at 0, green-yellow in the middle, dark red at 1. The depth
+/// colormap of nerfstudio's renders.
+pub fn turbo(x: f32) -> [f32; 3] {
+    const R: [f32; 6] = [0.135_721_38, 4.615_392_6, -42.660_323, 132.131_08, -152.942_39, 59.286_38];
+    const G: [f32; 6] = [0.091_402_61, 2.194_188_4, 4.842_966_6, -14.185_033, 4.277_298_6, 2.829_566];
+    const B: [f32; 6] = [0.106_673_3, 12.641_946, -60.582_047, 110.362_77, -89.903_11, 27.348_25];
+    let x = x.clamp(0.0, 1.0);
+    let poly = |c: &[f32; 6]| c.iter().rev().fold(0.0, |acc, &k| acc * x + k);
+    [poly(&R), poly(&G), poly(&B)].map(|v| v.clamp(0.0, 1.0))
+}
+
+/// The depth map of [`depth_to_gray`] in [`turbo`]'s colours, as nerfstudio draws depth: the
+/// normalised depth `(depth[i]/opacity[i] − range.0) / (range.1 − range.0)` coloured near blue,
+/// far red, over `background` by the opacity.
+pub fn depth_to_turbo(depth: &[f32], opacity: &[f32], range: (f32, f32), background: [f32; 3], out: &mut Vec<f32>) {
+    let (lo, hi) = range;
+    out.clear();
+    out.extend(depth.iter().zip(opacity).flat_map(|(&z, &a)| {
+        let a = if a.is_finite() { a.clamp(0.0, 1.0) } else { 0.0 };
+        let t = if a > 0.0 { (z / a - lo) / (hi - lo) } else { 0.0 };
+        let c = turbo(if t.is_finite() { t } else { 0.0 });
+        std::array::from_fn::<f32, 3, _>(|k| c[k] * a + background[k] * (1.0 - a))
+    }));
+}
+
 /// The distance to focus a frame on from rays through its centre (`nerf render --focus auto`):
 /// the median, over the rays whose opacity is at least ½, of their expected depth
 /// `depth[i] / opacity[i]` times `axial[i]`, the cosine between the ray and the optical axis (so
@@ -88,5 +114,25 @@ mod tests {
         assert_eq!(focus_distance(&depth, &opacity, &axial), Some(2.0));
         assert_eq!(focus_distance(&depth[..3], &opacity[..3], &axial[..3]), Some(2.0));
         assert_eq!(focus_distance(&[1.0, f32::NAN], &[0.4, 1.0], &[1.0, 1.0]), None);
+    }
+
+    #[test]
+    fn turbo_runs_from_dark_blue_through_green_to_dark_red() {
+        // The polynomial's constant terms at 0, its sum at 1 (Du's coefficients).
+        assert_eq!(turbo(0.0), [0.135_721_38, 0.091_402_61, 0.106_673_3]);
+        assert_eq!(turbo(-1.0), turbo(0.0));
+        let end = turbo(1.0);
+        assert!(end[0] > 0.5 && end[1] < 0.1 && end[2] < 0.05, "{end:?}");
+        let mid = turbo(0.5);
+        assert!(mid[1] > 0.95 && mid[0] > 0.5 && mid[2] < 0.4, "{mid:?}");
+        let quarter = turbo(0.25);
+        assert!(quarter[2] > quarter[0], "blue before red: {quarter:?}");
+        // Depth maps: near blue, far red, the background where nothing is.
+        let mut out = Vec::new();
+        depth_to_turbo(&[2.0, 3.0, 1.0], &[1.0, 0.5, 0.0], (2.0, 6.0), [1.0; 3], &mut out);
+        assert_eq!(&out[..3], &turbo(0.0));
+        let far = turbo(1.0);
+        assert!((0..3).all(|k| (out[3 + k] - (0.5 * far[k] + 0.5)).abs() < 1e-6), "{out:?}");
+        assert_eq!(&out[6..], &[1.0; 3]);
     }
 }

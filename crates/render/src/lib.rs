@@ -34,7 +34,7 @@ mod points;
 pub use color::{
     color_correct_backward, color_correct_forward, identity_color_correction, mean_color_correction, COLOR_PARAMS_PER_VIEW,
 };
-pub use depth::{depth_range, depth_to_gray, focus_distance};
+pub use depth::{depth_range, depth_to_gray, depth_to_turbo, focus_distance, turbo};
 pub use distortion::distortion_loss_grad;
 pub use normals::{gradient_stencil, normals_from_stencil, normals_to_rgb, surface_points_of, NormalSteps};
 pub use points::{surface_points, SurfacePoint};
