@@ -1381,7 +1381,7 @@ fn a_colmap_scene_trains_and_exports() {
     let o = train_tiny(&scene, &run, &["--iters", "1", "--device", "cpu"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let e = stderr(&o);
-    assert!(e.contains("a COLMAP model") && e.contains("nerf export-scene") && e.contains("(8 train views, 1 test views"), "{e}");
+    assert!(e.contains("a COLMAP model") && e.contains("--aabb-scale 16") && e.contains("(8 train views, 1 test views"), "{e}");
     assert!(run.join("dataparser_transforms.json").is_file());
     let out = d.path().join("exported");
     let o = nerf().arg("export-scene").arg(&scene).arg(&out).args(["--downscale", "1", "--test-views", "all"]).output().unwrap();

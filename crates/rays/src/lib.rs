@@ -628,25 +628,29 @@ impl Camera {
     /// All rays, row-major (row 0 first), written into flat `origins` / `dirs` (unit) arrays,
     /// each resized to `3·W·H` (their allocations are reused).
     pub fn rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>) {
-        let (w, h) = (
-            self.intrinsics.width as usize,
-            self.intrinsics.height as usize,
-        );
-        let n = w * h;
+        self.par_rays_into(origins, dirs, |col, row| self.ray(col, row, conv).dir);
+    }
+
+    /// Every pixel's ray, row-major, into `origins` (the camera centre) and `dirs` (`dir(col,
+    /// row)`, already unit length), each resized to `3·W·H`; the rows in parallel.
+    fn par_rays_into(&self, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(u32, u32) -> Vec3 + Sync) {
+        use rayon::prelude::*;
+        let w = self.intrinsics.width as usize;
+        let n = w * self.intrinsics.height as usize;
         origins.clear();
         dirs.clear();
         origins.resize(3 * n, 0.0);
         dirs.resize(3 * n, 0.0);
-        let p = self.position.to_array();
-        for (o, d) in origins
-            .chunks_exact_mut(3)
-            .zip(dirs.chunks_exact_mut(3).enumerate())
-        {
-            let (idx, d) = d;
-            let (row, col) = ((idx / w) as u32, (idx % w) as u32);
-            o.copy_from_slice(&p);
-            d.copy_from_slice(&self.ray(col, row, conv).dir.to_array());
+        if n == 0 {
+            return;
         }
+        let p = self.position.to_array();
+        origins.par_chunks_mut(3 * w).for_each(|row| row.chunks_exact_mut(3).for_each(|o| o.copy_from_slice(&p)));
+        dirs.par_chunks_mut(3 * w).enumerate().for_each(|(row, out)| {
+            for (col, d) in out.chunks_exact_mut(3).enumerate() {
+                d.copy_from_slice(&dir(col as u32, row as u32).to_array());
+            }
+        });
     }
 }
 
@@ -723,27 +727,15 @@ impl Camera {
 
     /// Every pixel's ray, row-major, from the camera-axes direction `dir(u, v)` of its point
     /// (rotated into the world and normalised).
-    fn camera_rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3) {
+    fn camera_rays_into(&self, conv: PixelConvention, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3 + Sync) {
         let off = conv.offset();
         self.world_rays_at(off, off, origins, dirs, |u, v| self.rotation * dir(u, v));
     }
 
     /// Every pixel's ray, row-major, through the point `(col + ox, row + oy)` of pixel
     /// `(col, row)`, from the world direction `dir(u, v)` there (normalised).
-    fn world_rays_at(&self, ox: f32, oy: f32, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3) {
-        let (w, h) = (self.intrinsics.width, self.intrinsics.height);
-        let n = w as usize * h as usize;
-        origins.clear();
-        dirs.clear();
-        origins.reserve(3 * n);
-        dirs.reserve(3 * n);
-        for row in 0..h {
-            for col in 0..w {
-                let d = dir(col as f32 + ox, row as f32 + oy).normalize();
-                origins.extend_from_slice(&self.position.to_array());
-                dirs.extend_from_slice(&d.to_array());
-            }
-        }
+    fn world_rays_at(&self, ox: f32, oy: f32, origins: &mut Vec<f32>, dirs: &mut Vec<f32>, dir: impl Fn(f32, f32) -> Vec3 + Sync) {
+        self.par_rays_into(origins, dirs, |col, row| dir(col as f32 + ox, row as f32 + oy).normalize());
     }
 
     /// The unit direction, in camera axes, of continuous image coordinates `(u, v)` through this
