@@ -52,9 +52,8 @@ impl ThinLens {
 /// The camera a fraction `t` of the way from `a` (at 0) to `b` (at 1): the position lerped, the
 /// orientation slerped the shorter way round, `a`'s intrinsics and lens.
 pub fn camera_lerp(a: &Camera, b: &Camera, t: f32) -> Camera {
-    let (qa, qb) = (a.orientation(), b.orientation());
-    let qb = if qa.dot(qb) < 0.0 { -qb } else { qb };
-    Camera { rotation: Mat3::from_quat(qa.slerp(qb, t).normalize()), position: a.position.lerp(b.position, t), ..*a }
+    // glam's slerp takes the shorter way round (q and −q are the same rotation).
+    Camera { rotation: Mat3::from_quat(a.orientation().slerp(b.orientation(), t).normalize()), position: a.position.lerp(b.position, t), ..*a }
 }
 
 /// How one frame is exposed: its camera, and what blurs it.
@@ -88,10 +87,7 @@ impl Exposure<'_> {
         }
         let q_open = self.camera.orientation();
         let to_camera = q_open.inverse();
-        let close = self.shutter_close.map(|c| {
-            let q = c.orientation();
-            (if q_open.dot(q) < 0.0 { -q } else { q }, c.position)
-        });
+        let close = self.shutter_close.map(|c| (c.orientation(), c.position));
         let lens = self.lens.filter(|l| l.aperture > 0.0);
         let point = pass_point(pass, passes);
         origins.par_chunks_exact_mut(3).zip(dirs.par_chunks_exact_mut(3)).enumerate().for_each(|(pixel, (o, d))| {

@@ -925,9 +925,8 @@ pub fn interpolate(cameras: &[Camera], intrinsics: Intrinsics, n: usize) -> Opti
                 let i = (u.floor() as usize).min(cameras.len() - 2);
                 let t = u - i as f32;
                 let (a, b) = (&cameras[i], &cameras[i + 1]);
-                // The shorter way round (q and −q are the same rotation).
-                let qb = if quats[i].dot(quats[i + 1]) < 0.0 { -quats[i + 1] } else { quats[i + 1] };
-                let q = quats[i].slerp(qb, t).normalize();
+                // glam's slerp takes the shorter way round (q and −q are the same rotation).
+                let q = quats[i].slerp(quats[i + 1], t).normalize();
                 Camera { intrinsics, rotation: Mat3::from_quat(q), position: a.position.lerp(b.position, t), distortion: Distortion::NONE }
             })
             .collect(),
