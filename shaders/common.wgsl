@@ -62,3 +62,14 @@ fn slab(o: vec3<f32>, d: vec3<f32>, lo: vec3<f32>, hi: vec3<f32>) -> vec3<f32> {
     }
     return vec3<f32>(t0, t1, hit);
 }
+
+// Slab test against an oriented crop box (CPU twin: nerf_sampling::CropBox::slab): the ray in the
+// box's frame — rows ax, ay, az (xyz: the box's axes; w: half its size along each), centre c —
+// against [−half, half]. Same result layout as slab.
+fn crop_slab(o: vec3<f32>, d: vec3<f32>, ax: vec4<f32>, ay: vec4<f32>, az: vec4<f32>, c: vec3<f32>) -> vec3<f32> {
+    let q = o - c;
+    let ob = vec3<f32>(ax.x * q.x + ax.y * q.y + ax.z * q.z, ay.x * q.x + ay.y * q.y + ay.z * q.z, az.x * q.x + az.y * q.y + az.z * q.z);
+    let db = vec3<f32>(ax.x * d.x + ax.y * d.y + ax.z * d.z, ay.x * d.x + ay.y * d.y + ay.z * d.z, az.x * d.x + az.y * d.y + az.z * d.z);
+    let h = vec3<f32>(ax.w, ay.w, az.w);
+    return slab(ob, db, -h, h);
+}

@@ -8,7 +8,8 @@
 //                  only, a ray whose samples would cross the capacity gets none, as do the rays
 //                  after it; counters[1] = L; samples written at their offsets).
 //
-// Sampling rule (the CPU's): [near, far] clipped to the box (slab test) gives [t0, t1); sample k
+// Sampling rule (the CPU's): [near, far] clipped to the box (slab test), and to the render crop
+// box when crop_c.w = 1 (crop_slab; RayMarch::cropped), gives [t0, t1); sample k
 // sits at t_k = t0 + (k + u)·step (with a cone, cone > 0: t_k = S⁻¹(S(t0) + (k + u)·step), the
 // warp of nerf_sampling::Stepping, and dt = clamp(t·cone, step, 1024·step)), t_k < t1, and is
 // emitted when the cell holding o + t_k·d is
@@ -58,6 +59,10 @@ struct MarchParams {
     lv_hi: array<vec4<f32>, 8>,     // upper corner
     lv_cell: array<vec4<f32>, 8>,   // cell size
     lv_inv: array<vec4<f32>, 8>,    // res / (hi − lo)
+    crop_x: vec4<f32>,              // render crop box (crop_slab): axes (xyz) and half sizes (w)
+    crop_y: vec4<f32>,
+    crop_z: vec4<f32>,
+    crop_c: vec4<f32>,              // centre; w = 1: crop on
 }
 
 @group(0) @binding(0) var<uniform> P: MarchParams;
@@ -146,13 +151,21 @@ fn setup(r: u32) -> RaySetup {
     s.d = vec3<f32>(dirs[3u * r], dirs[3u * r + 1u], dirs[3u * r + 2u]);
     let box = slab(s.o, s.d, P.aabb_min, P.aabb_max);
     let hit = box.z != 0.0;
+    var hit_crop = true;
     s.t0 = max(P.near, box.x);
     s.t1 = min(P.far, box.y);
+    if (P.crop_c.w != 0.0) {
+        // The render crop box (CPU twin: RayMarch::cropped).
+        let c = crop_slab(s.o, s.d, P.crop_x, P.crop_y, P.crop_z, P.crop_c.xyz);
+        hit_crop = c.z != 0.0;
+        s.t0 = max(s.t0, c.x);
+        s.t1 = min(s.t1, c.y);
+    }
     s.u = 0.5;
     if (P.jitter != 0u) {
         s.u = rand_f32(P.seed, 0x4d415243u, r);
     }
-    s.ok = hit && P.far > P.near && s.t1 > s.t0 && abs(s.t0) < 1.0e38 && abs(s.t1) < 1.0e38;
+    s.ok = hit && hit_crop && P.far > P.near && s.t1 > s.t0 && abs(s.t0) < 1.0e38 && abs(s.t1) < 1.0e38;
     s.s0 = s.t0;
     s.kn = vec4<f32>(0.0);
     if (P.cone > 0.0) {

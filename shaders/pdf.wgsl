@@ -5,7 +5,8 @@
 // dirs [S][3], t [S], dt [S] with δ_i = t_{i+1} − t_i and the last δ = far − t_last (clamped ≥ 0).
 // Rays: origins [R][3], dirs [R][3] (unit), near/far scalars from the uniform; with clip = 1 each
 // ray's segment is [near, far] ∩ box, or [near, near] on a miss (`segment`, the CPU's
-// nerf_sampling::segment: NDC scenes), and far below means that ray's far.
+// nerf_sampling::segment: NDC scenes), then ∩ the render crop box when crop_c.w = 1 (CropBox::clip),
+// and far below means that ray's far.
 // Random numbers: stratified jitter u = rand_f32(seed, 0, r·N + k); hierarchical jitter
 // ξ = rand_f32(seed, 1, r·n_fine + k), u_k = min((k + ξ)·(1/n_fine), 1).
 //
@@ -28,6 +29,10 @@ struct PdfParams {
     _pad2: u32,
     box_min: vec4<f32>,
     box_max: vec4<f32>,
+    crop_x: vec4<f32>,   // render crop box (common.wgsl's crop_slab): axes (xyz), half sizes (w)
+    crop_y: vec4<f32>,
+    crop_z: vec4<f32>,
+    crop_c: vec4<f32>,   // centre; w = 1: crop on
 }
 
 override WG: u32 = 64u;
@@ -58,23 +63,34 @@ fn write_geometry(r: u32, s: u32, t: f32) {
 }
 
 // Ray r's segment: (near, far), or with prm.clip = 1 [near, far] ∩ box (common.wgsl's slab, as
-// the occupancy marcher's), [near, near] when that is empty.
+// the occupancy marcher's), then with crop_c.w = 1 ∩ the crop box; [near, near] when empty.
 fn segment(r: u32) -> vec2<f32> {
-    if (prm.clip == 0u) {
-        return vec2<f32>(prm.near, prm.far);
-    }
+    var seg = vec2<f32>(prm.near, prm.far);
     let o = vec3<f32>(origins[3u * r], origins[3u * r + 1u], origins[3u * r + 2u]);
     let d = vec3<f32>(ray_dirs[3u * r], ray_dirs[3u * r + 1u], ray_dirs[3u * r + 2u]);
-    let box = slab(o, d, prm.box_min.xyz, prm.box_max.xyz);
-    if (box.z == 0.0) {
-        return vec2<f32>(prm.near, prm.near);
+    if (prm.clip != 0u) {
+        let box = slab(o, d, prm.box_min.xyz, prm.box_max.xyz);
+        if (box.z == 0.0) {
+            return vec2<f32>(prm.near, prm.near);
+        }
+        let a = max(prm.near, box.x);
+        let b = min(prm.far, box.y);
+        if (!(b > a)) {
+            return vec2<f32>(prm.near, prm.near);
+        }
+        seg = vec2<f32>(a, b);
     }
-    let a = max(prm.near, box.x);
-    let b = min(prm.far, box.y);
-    if (b > a) {
-        return vec2<f32>(a, b);
+    if (prm.crop_c.w != 0.0) {
+        // The render crop box (CPU twin: nerf_sampling::CropBox::clip).
+        let c = crop_slab(o, d, prm.crop_x, prm.crop_y, prm.crop_z, prm.crop_c.xyz);
+        let a = max(seg.x, c.x);
+        let b = min(seg.y, c.y);
+        if (c.z == 0.0 || !(b > a)) {
+            return vec2<f32>(prm.near, prm.near);
+        }
+        seg = vec2<f32>(a, b);
     }
-    return vec2<f32>(prm.near, prm.near);
+    return seg;
 }
 
 // t of stratified sample k of a ray with segment starting at a (the CPU's expression, clamped

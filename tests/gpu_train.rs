@@ -151,8 +151,58 @@ fn gpu_checkpoint_renders_the_same_on_the_cpu(ctx: Arc<GpuContext>, config: &Tra
         assert!(diff(&again, &g_rgb).0 <= 1e-6, "back at the training step: max |Δ| {}", diff(&again, &g_rgb).0);
         assert!(cpu.set_render_step_size(Some(-1.0)).unwrap_err().to_string().contains("render_step_size"));
         assert_eq!(cpu.config().render_step_size, Some(fine), "a refused step leaves the setting");
+        cpu.set_render_step_size(None).unwrap();
     }
+    render_crops_the_same_on_both(&mut gpu, &mut cpu, &test, config, &g_rgb, &c_rgb);
     (max_diff, mean_diff)
+}
+
+/// A render crop box (`set_render_crop`) on both devices: a turned box that cuts through the
+/// object renders the same on the GPU as on the CPU, changes the image, leaves every pixel whose
+/// ray misses it empty (background, opacity 0); a box holding the whole scene box changes
+/// nothing (bit for bit on the CPU); and `None` renders the whole scene again.
+fn render_crops_the_same_on_both(gpu: &mut Trainer, cpu: &mut Trainer, test: &Dataset, config: &TrainConfig, g_rgb: &[f32], c_rgb: &[f32]) {
+    use nerf::sampling::CropBox;
+    let diff = |a: &[f32], b: &[f32]| {
+        let d = a.iter().zip(b).map(|(x, y)| (x - y).abs());
+        (d.clone().fold(0.0f32, f32::max), d.sum::<f32>() / a.len() as f32)
+    };
+    let whole = CropBox::aabb([-10.0; 3], [10.0; 3]).unwrap();
+    cpu.set_render_crop(Some(whole)).unwrap();
+    assert_eq!(render_first_view(cpu, test, config)[0], c_rgb, "a crop holding the scene box changes nothing");
+    let crop = CropBox::oriented([0.25, 0.0, 0.1], [0.0, 0.2, 0.6], [1.4, 3.0, 2.0]).unwrap();
+    for t in [&mut *gpu, &mut *cpu] {
+        t.set_render_crop(Some(crop)).unwrap();
+    }
+    let [gc, gc_op, _] = render_first_view(gpu, test, config);
+    let [cc, cc_op, _] = render_first_view(cpu, test, config);
+    let (max, mean) = diff(&gc, &cc);
+    assert!(mean < 1e-3 && max < 0.05 && diff(&gc_op, &cc_op).1 < 1e-3, "cropped: GPU vs CPU max {max}, mean {mean}");
+    let (_, moved) = diff(&cc, c_rgb);
+    assert!(moved > 1e-3, "the crop cuts the object (mean |Δ| {moved})");
+    let mut batch = nerf::data::RayBatch::default();
+    test.view_rays(0, config.eval_background, config.pixel_convention, &mut batch);
+    let (near, far) = (test.near, test.far);
+    let mut missed = 0;
+    for r in 0..batch.len() {
+        let (o, d) = (&batch.origins[3 * r..3 * r + 3], &batch.dirs[3 * r..3 * r + 3]);
+        let (a, b) = crop.slab([o[0], o[1], o[2]], [d[0], d[1], d[2]]);
+        if b.min(far) < a.max(near) {
+            missed += 1;
+            for (rgb, op) in [(&gc, &gc_op), (&cc, &cc_op)] {
+                assert_eq!(op[r], 0.0, "pixel {r} misses the crop");
+                assert_eq!(&rgb[3 * r..3 * r + 3], &batch.background[3 * r..3 * r + 3], "pixel {r} is background");
+            }
+        }
+    }
+    assert!(missed > batch.len() / 10, "{missed} of {} rays miss the crop", batch.len());
+    gpu.set_render_crop(None).unwrap();
+    assert!(diff(&render_first_view(gpu, test, config)[0], g_rgb).0 <= 1e-6, "uncropped again");
+    cpu.set_render_crop(None).unwrap();
+    // A box beside the scene would render nothing: refused, and the setting kept.
+    let beside = CropBox::aabb([5.0; 3], [6.0; 3]).unwrap();
+    assert!(cpu.set_render_crop(Some(beside)).unwrap_err().to_string().contains("outside the scene's box"));
+    assert!(cpu.render_crop().is_none());
 }
 
 #[test]

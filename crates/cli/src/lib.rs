@@ -401,6 +401,12 @@ struct RenderArgs {
     /// `--spp` rays are cast at their own moments: use 8 or more [default: 0, no blur].
     #[arg(long, value_name = "FRACTION", default_value_t = 0.0)]
     shutter: f32,
+    /// Render only what lies in this box, `x0,y0,z0,x1,y1,z1` in the scene's coordinates (as
+    /// `export-mesh --box`): every ray is clipped to it, the rest is background (instant-ngp's
+    /// render box, nerfstudio's viewer crop). A nerfstudio camera path's own `crop` (an oriented
+    /// box and its background colour) is used unless this is given. Not for NDC runs.
+    #[arg(long, value_parser = parse_box, allow_hyphen_values = true)]
+    crop: Option<([f32; 3], [f32; 3])>,
 }
 
 #[derive(Args)]
@@ -427,6 +433,11 @@ struct PointsArgs {
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
+    /// Export only the part of the scene in this box, `x0,y0,z0,x1,y1,z1` in the scene's
+    /// coordinates: the rays are rendered cropped to it (what lies outside neither shows nor
+    /// hides anything) and only points inside are kept (nerfstudio's `--obb-*` crop).
+    #[arg(long, value_parser = parse_box, allow_hyphen_values = true)]
+    crop: Option<([f32; 3], [f32; 3])>,
 }
 
 #[derive(Args)]
@@ -447,7 +458,7 @@ struct MeshArgs {
     /// The box to mesh, `x0,y0,z0,x1,y1,z1` in the scene's coordinates (clipped to the scene's
     /// box). Default: the scene's box; for an instant-ngp box with `aabb_scale` > 1, its unit cube
     /// (where instant-ngp puts the object, its finest occupancy level).
-    #[arg(long = "box", value_parser = parse_box)]
+    #[arg(long = "box", value_parser = parse_box, allow_hyphen_values = true)]
     mesh_box: Option<([f32; 3], [f32; 3])>,
     /// Where to write the mesh (default: `RUN/mesh.ply`): binary PLY for `.ply`, Wavefront OBJ
     /// for `.obj`.
@@ -887,7 +898,16 @@ type ResumePoint = (usize, f64, Option<(f32, f32)>);
 /// Where `nerf render --resume` goes on in `out`: the frames its `render.json` counts (each
 /// PNG present), with the seconds they took and their depth range. The earlier render must have
 /// had the same path (every camera within 10⁻⁵), camera type, frame size and rays per pixel.
-fn resume_point(out: &Path, path: &[nerf::rays::Camera], camera_type: &str, spp: usize, shutter: f32, lenses: &serde_json::Value) -> Result<ResumePoint> {
+#[allow(clippy::too_many_arguments)]
+fn resume_point(
+    out: &Path,
+    path: &[nerf::rays::Camera],
+    camera_type: &str,
+    spp: usize,
+    shutter: f32,
+    lenses: &serde_json::Value,
+    crop: &serde_json::Value,
+) -> Result<ResumePoint> {
     let file = out.join("render.json");
     let text = std::fs::read_to_string(&file).with_context(|| format!("{}: nothing to resume", file.display()))?;
     let r: serde_json::Value = serde_json::from_str(&text).with_context(|| format!("{}: not JSON", file.display()))?;
@@ -910,6 +930,9 @@ fn resume_point(out: &Path, path: &[nerf::rays::Camera], camera_type: &str, spp:
     }
     if r.get("lenses").unwrap_or(&serde_json::Value::Null) != lenses {
         same("lenses", lenses.clone())?;
+    }
+    if r.get("crop").unwrap_or(&serde_json::Value::Null) != crop {
+        same("crop", crop.clone())?;
     }
     let done = r.get("frames").and_then(serde_json::Value::as_u64).with_context(|| format!("{}: no `frames`", file.display()))? as usize;
     let cams = r.get("camera_to_world").and_then(serde_json::Value::as_array).with_context(|| format!("{}: no `camera_to_world`", file.display()))?;
@@ -1185,6 +1208,27 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let center = nerf::rays::look_at_point(&train.cameras)
         .filter(|p| train.aabb.contains(p.to_array()))
         .unwrap_or_else(|| nerf::rays::glam::Vec3::from_array(train.aabb.center()));
+    // The crop: `--crop`, else a nerfstudio path's own (with its background colour).
+    let background = config.eval_background.fixed_rgb();
+    let path_crop = match (a.crop, &user_path) {
+        (Some((lo, hi)), _) => Some(nerf::data::PathCrop {
+            center: std::array::from_fn(|i| 0.5 * (lo[i] + hi[i])),
+            rotation: [0.0; 3],
+            scale: std::array::from_fn(|i| hi[i] - lo[i]),
+            background,
+        }),
+        (None, Some(CameraPathFile::Nerfstudio(p))) => p.crop,
+        (None, _) => None,
+    };
+    let crop = match (a.crop, &path_crop) {
+        (Some((lo, hi)), _) => Some(nerf::sampling::CropBox::aabb(lo, hi).map_err(|e| anyhow::anyhow!("--crop: {e}"))?),
+        (None, Some(c)) => Some(
+            nerf::sampling::CropBox::oriented(c.center, c.rotation, c.scale)
+                .map_err(|e| anyhow::anyhow!("{}: crop: {e}", a.camera_path.as_deref().unwrap_or(Path::new("")).display()))?,
+        ),
+        (None, None) => None,
+    };
+    let background = path_crop.map_or(background, |c| c.background);
     let (path, path_fps, next, path_lenses) = match user_path {
         Some(CameraPathFile::Nerfstudio(p)) => {
             let mut cams = p.cameras;
@@ -1266,6 +1310,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     if let Some(s) = a.step_size {
         trainer.set_render_step_size(Some(s)).with_context(|| format!("{}: --step-size {s}", a.run.display()))?;
     }
+    trainer.set_render_crop(crop).with_context(|| format!("{}: crop box", a.run.display()))?;
     // Each frame's lens: `--aperture`, focused at `--focus` (what the frame's middle shows, with
     // `auto`) or where the path looks, else an instant-ngp path's own.
     let lenses: Vec<Option<nerf::rays::ThinLens>> = match (a.aperture, path_lenses) {
@@ -1279,7 +1324,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
                         if train.ndc.is_some() {
                             bail!("--focus auto: the run was trained in NDC space, whose depths are not distances: give --focus DISTANCE");
                         }
-                        autofocus(&trainer, cam, projection, config.eval_background.fixed_rgb())?.with_context(|| {
+                        autofocus(&trainer, cam, projection, background)?.with_context(|| {
                             format!("--focus auto: nothing in the middle of frame {i} to focus on (its central pixels' rays reach no surface): give --focus DISTANCE")
                         })?
                     }
@@ -1312,7 +1357,8 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let out = a.out.unwrap_or_else(|| a.run.join("render"));
     std::fs::create_dir_all(&out).with_context(|| format!("{}: cannot create", out.display()))?;
     let n = k.width as usize * k.height as usize;
-    let bg: Vec<f32> = config.eval_background.fixed_rgb().repeat(n);
+    let bg: Vec<f32> = background.repeat(n);
+    let crop_json = serde_json::json!(path_crop.map(|c| c.to_json()));
     let (mut o, mut d) = (Vec::new(), Vec::new());
     let (mut rgb, mut opacity, mut depth) = (vec![0.0; 3 * n], vec![0.0; n], vec![0.0; n]);
     // Supersampling: each frame is the mean of its renders through these points of each pixel.
@@ -1329,7 +1375,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     // An interrupted render goes on where it stopped: its frames so far are kept (read back
     // into the GIF), its time and depth range carried over.
     let (start, mut render_seconds, mut depth_range) = match a.resume {
-        true => resume_point(&out, &path, projection.name(), points.len(), a.shutter, &lenses_json)?,
+        true => resume_point(&out, &path, projection.name(), points.len(), a.shutter, &lenses_json, &crop_json)?,
         false => (0, 0.0, None),
     };
     if let Some(g) = gif.as_mut() {
@@ -1371,7 +1417,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
                 _ => 2.0 / (cam.intrinsics.fx + cam.intrinsics.fy),
             };
             let steps = nerf::render::NormalSteps { pixel_angle, min: min_normal_step };
-            normal_bufs.render(&trainer, &o, &d, &depth, &opacity, steps, config.eval_background.fixed_rgb())?;
+            normal_bufs.render(&trainer, &o, &d, &depth, &opacity, steps, background)?;
             nerf::data::save_png(&out.join(format!("normal_{i:04}.png")), k.width, k.height, &normal_bufs.image)?;
         }
         if let Some(g) = gif.as_mut() {
@@ -1383,7 +1429,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             let range = depth_range.unwrap_or((0.0, 1.0));
             match a.depth_colormap {
                 DepthColormap::Gray => nerf::render::depth_to_gray(&depth, &opacity, range, &mut gray),
-                DepthColormap::Turbo => nerf::render::depth_to_turbo(&depth, &opacity, range, config.eval_background.fixed_rgb(), &mut gray),
+                DepthColormap::Turbo => nerf::render::depth_to_turbo(&depth, &opacity, range, background, &mut gray),
             }
             nerf::data::save_png(&out.join(format!("depth_{i:04}.png")), k.width, k.height, &gray)?;
         }
@@ -1399,13 +1445,13 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": config.field, "iterations": step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "shutter": a.shutter, "lenses": lenses_json, "near": bounds.near, "far": bounds.far, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "shutter": a.shutter, "lenses": lenses_json, "crop": crop_json, "near": bounds.near, "far": bounds.far, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;
     nerf::train::run::write_atomic(&out.join("render.json"), text.as_bytes())?;
     // The path as nerfstudio's camera_path.json: `--camera-path` renders it again.
-    let text = serde_json::to_string_pretty(&nerf::data::camera_path_json(&path, projection, video_fps))?;
+    let text = serde_json::to_string_pretty(&nerf::data::camera_path_json(&path, projection, video_fps, path_crop.as_ref()))?;
     nerf::train::run::write_atomic(&out.join("camera_path.json"), text.as_bytes())?;
     // And as instant-ngp's base_cam.json, for its GUI (and `--camera-path` again), where the
     // scene has an instant-ngp space and the frames are perspective: the same frames at 60 a
@@ -1449,8 +1495,15 @@ fn cmd_export_points(a: PointsArgs, registry: &Registry) -> Result<()> {
     if a.points == 0 || !(0.0..=1.0).contains(&a.min_opacity) {
         bail!("--points must be at least 1 and --min-opacity in [0, 1]");
     }
-    let LoadedRun { config, train, trainer, .. } = load_run(registry, &a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"), false)?;
+    let LoadedRun { config, train, mut trainer, .. } = load_run(registry, &a.run, &a.scene, a.device, Some("a point cloud (its depths are distances)"), false)?;
     let out = a.out.unwrap_or_else(|| a.run.join("points.ply"));
+    // Points are kept in the scene box, or in its part the crop box holds.
+    let mut keep = (train.aabb.min, train.aabb.max);
+    if let Some((lo, hi)) = a.crop {
+        let c = nerf::sampling::CropBox::aabb(lo, hi).map_err(|e| anyhow::anyhow!("--crop: {e}"))?;
+        trainer.set_render_crop(Some(c)).with_context(|| format!("{}: --crop", a.run.display()))?;
+        keep = (std::array::from_fn(|i| keep.0[i].max(lo[i])), std::array::from_fn(|i| keep.1[i].min(hi[i])));
+    }
     // Batches start at twice the points asked for (at least 1024 rays) and double up to 2^16
     // while too few rays stop: a small cloud does not render 65 536 rays.
     let max_batch = 1 << 16;
@@ -1466,8 +1519,7 @@ fn cmd_export_points(a: PointsArgs, registry: &Registry) -> Result<()> {
         train.sample_camera_rays(batch, config.eval_background, config.pixel_convention, false, &mut rng, &mut rays);
         let (rgb, opacity, depth) = (&mut rgb[..3 * batch], &mut opacity[..batch], &mut depth[..batch]);
         trainer.render_rays(&rays.origins, &rays.dirs, &rays.background, rgb, opacity, depth)?;
-        let bounds = (train.aabb.min, train.aabb.max);
-        nerf::render::surface_points(&rays.origins, &rays.dirs, rgb, opacity, depth, &rays.background, a.min_opacity, bounds, &mut points);
+        nerf::render::surface_points(&rays.origins, &rays.dirs, rgb, opacity, depth, &rays.background, a.min_opacity, keep, &mut points);
         cast += batch;
         batch = (2 * batch).min(max_batch);
         pb.set_position(points.len().min(a.points) as u64);

@@ -1534,6 +1534,58 @@ fn export_points_writes_a_ply_inside_the_scene_box() {
         let o = nerf().arg("export-points").arg(&run).arg(&s).args(args).output().unwrap();
         assert_clean_failure(&o, &[needle]);
     }
+    // `--crop`: only the part of the scene in the box.
+    let out = d.path().join("cropped.ply");
+    let o = nerf().arg("export-points").arg(&run).arg(&s).args(["--points", "100", "--min-opacity", "0", "--device", "cpu", "--crop", "-0.5,-1.5,-0.2,1.5,0.3,1.5", "--out"]).arg(&out).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let bytes = std::fs::read(&out).unwrap();
+    let h = bytes.windows(end.len()).position(|w| w == end).unwrap() + end.len();
+    assert_eq!(bytes.len() - h, 100 * 15);
+    for r in bytes[h..].chunks_exact(15) {
+        let p: Vec<f32> = (0..3).map(|k| f32::from_le_bytes(r[4 * k..4 * k + 4].try_into().unwrap())).collect();
+        assert!(p[0] >= -0.5 && p[1] <= 0.3 && p[2] >= -0.2, "outside the crop: {p:?}");
+    }
+}
+
+/// `nerf render --crop BOX` renders only what lies in the box (instant-ngp's render box): rays
+/// that miss it show the background; render.json and camera_path.json hold the crop (in
+/// nerfstudio's form), and rendering that camera_path.json again gives the same frame; a
+/// resumed render must have the same crop; a box beside the scene is a clear error.
+#[test]
+fn render_crops_to_a_box() {
+    let d = tempfile::tempdir().unwrap();
+    let (s, run) = tiny_cpu_run(d.path());
+    let json = |p: &Path| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(p).unwrap()).unwrap() };
+    let render = |name: &str, extra: &[&str]| -> Vec<[u8; 3]> {
+        let out = d.path().join(name);
+        let o = nerf().arg("render").arg(&run).arg(&s).args(["--width", "24", "--device", "cpu", "--quiet", "--out"]).arg(&out).args(extra).output().unwrap();
+        assert!(o.status.success(), "{}", stderr(&o));
+        image::open(out.join("frame_0000.png")).unwrap().to_rgb8().pixels().map(|p| p.0).collect()
+    };
+    // The share of pixels that are exactly the background (the run's: white).
+    let bg = |f: &[[u8; 3]]| f.iter().filter(|p| **p == [255, 255, 255]).count() as f64 / f.len() as f64;
+    let whole = render("whole", &["--frames", "2"]);
+    // A slab at the box's +x face: almost every ray misses it.
+    let cropped = render("cropped", &["--frames", "2", "--crop", "1.2,-1.5,-1.5,1.5,1.5,1.5"]);
+    assert!(bg(&cropped) > 0.7 && bg(&cropped) > bg(&whole) + 0.2, "background: {} cropped, {} whole", bg(&cropped), bg(&whole));
+    let r = json(&d.path().join("cropped/render.json"));
+    let c = &r["crop"];
+    let num = |v: &serde_json::Value| v.as_f64().unwrap();
+    assert!((num(&c["crop_center"][0]) - 1.35).abs() < 1e-6 && (num(&c["crop_scale"][0]) - 0.3).abs() < 1e-6 && num(&c["crop_scale"][1]) == 3.0, "{r}");
+    assert_eq!(c["crop_rot"], serde_json::json!([0.0, 0.0, 0.0]));
+    assert!(json(&d.path().join("whole/render.json"))["crop"].is_null());
+    // The path it wrote holds the crop: rendering it again gives the same frame.
+    let path = d.path().join("cropped/camera_path.json");
+    assert_eq!(json(&path)["crop"], *c);
+    let again = render("again", &["--camera-path", path.to_str().unwrap()]);
+    assert_eq!(again, cropped);
+    // A resumed render keeps its crop.
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "2", "--width", "24", "--device", "cpu", "--resume", "--out"]).arg(d.path().join("cropped")).output().unwrap();
+    assert_clean_failure(&o, &["render.json", "crop", "--resume"]);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--crop", "4,4,4,5,5,5", "--device", "cpu"]).output().unwrap();
+    assert_clean_failure(&o, &["crop box", "outside the scene's box"]);
+    let o = nerf().arg("render").arg(&run).arg(&s).args(["--frames", "1", "--crop", "1,1,1,0,0,0"]).output().unwrap();
+    assert_eq!(o.status.code(), Some(2), "a usage error: {}", stderr(&o));
 }
 
 /// `nerf export-mesh`: a binary PLY triangle mesh inside the scene box with unit normals; a

@@ -35,6 +35,45 @@ pub struct CameraPath {
     pub projection: Projection,
     /// `fps` of the file, if it gives one.
     pub fps: Option<f64>,
+    /// The file's `crop` (nerfstudio's viewer crop), if it has one.
+    pub crop: Option<PathCrop>,
+}
+
+/// The crop of a nerfstudio camera path (`"crop"`, what its viewer's crop box exports and
+/// `ns-render` renders with): an oriented box in the cameras' frame and the background colour
+/// of the cropped render.
+///
+/// ```json
+/// "crop": { "crop_center": [0, 0, 0], "crop_scale": [2, 2, 2], "crop_rot": [0, 0, 0],
+///           "crop_bg_color": { "r": 0, "g": 0, "b": 0 } }
+/// ```
+///
+/// `crop_scale` is the box's full size along its axes, `crop_rot` its roll, pitch and yaw in
+/// radians (`R = Rz(yaw)·Ry(pitch)·Rx(roll)`, nerfstudio's `OrientedBox.from_params`; absent:
+/// none), `crop_bg_color` 0–255 per channel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PathCrop {
+    /// `crop_center`: the box's centre.
+    pub center: [f32; 3],
+    /// `crop_rot`: roll, pitch, yaw (radians).
+    pub rotation: [f32; 3],
+    /// `crop_scale`: the box's size along its axes (positive).
+    pub scale: [f32; 3],
+    /// `crop_bg_color` as 0–1 RGB.
+    pub background: [f32; 3],
+}
+
+impl PathCrop {
+    /// The `crop` object of a camera path file.
+    pub fn to_json(&self) -> serde_json::Value {
+        let c = |x: f32| (x * 255.0).round().clamp(0.0, 255.0) as u32;
+        serde_json::json!({
+            "crop_center": self.center,
+            "crop_scale": self.scale,
+            "crop_rot": self.rotation,
+            "crop_bg_color": { "r": c(self.background[0]), "g": c(self.background[1]), "b": c(self.background[2]) },
+        })
+    }
 }
 
 /// Reads a nerfstudio camera path (see the module docs). Errors name the file and the key:
@@ -131,7 +170,41 @@ fn parse_camera_path(path: &Path, v: &serde_json::Value) -> Result<CameraPath, D
             .map_err(|e| invalid(&key("camera_to_world"), e.to_string()))?;
         cameras.push(cam);
     }
-    Ok(CameraPath { cameras, projection, fps })
+    let crop = match v.get("crop") {
+        None | Some(serde_json::Value::Null) => None,
+        Some(c) => Some(parse_crop(c, &invalid)?),
+    };
+    Ok(CameraPath { cameras, projection, fps, crop })
+}
+
+/// The `crop` object ([`PathCrop`]).
+fn parse_crop(c: &serde_json::Value, invalid: &dyn Fn(&str, String) -> DataError) -> Result<PathCrop, DataError> {
+    let three = |key: &str, positive: bool| -> Result<Option<[f32; 3]>, DataError> {
+        let Some(x) = c.get(key) else { return Ok(None) };
+        let v: Option<Vec<f64>> = x.as_array().and_then(|a| a.iter().map(|x| x.as_f64()).collect());
+        match v {
+            Some(v) if v.len() == 3 && v.iter().all(|x| x.is_finite() && (!positive || *x > 0.0)) => Ok(Some([v[0] as f32, v[1] as f32, v[2] as f32])),
+            _ => Err(invalid(
+                &format!("crop.{key}"),
+                format!("{x}: must be 3 finite numbers{}", if positive { ", each positive" } else { "" }),
+            )),
+        }
+    };
+    let need = |key: &str, positive: bool| three(key, positive)?.ok_or_else(|| invalid(&format!("crop.{key}"), "missing: a crop needs crop_center and crop_scale".into()));
+    let center = need("crop_center", false)?;
+    let scale = need("crop_scale", true)?;
+    let rotation = three("crop_rot", false)?.unwrap_or([0.0; 3]);
+    let background = match c.get("crop_bg_color") {
+        None | Some(serde_json::Value::Null) => [0.0; 3],
+        Some(b) => {
+            let ch = |k: &str| b.get(k).and_then(|x| x.as_f64()).filter(|x| (0.0..=255.0).contains(x)).map(|x| (x / 255.0) as f32);
+            match (ch("r"), ch("g"), ch("b")) {
+                (Some(r), Some(g), Some(bl)) => [r, g, bl],
+                _ => return Err(invalid("crop.crop_bg_color", format!("{b}: must be {{\"r\", \"g\", \"b\"}}, each 0 to 255"))),
+            }
+        }
+    };
+    Ok(PathCrop { center, rotation, scale, background })
 }
 
 /// Square-pixel intrinsics with the principal point at the image centre and vertical field of view
@@ -160,7 +233,7 @@ pub fn equirect_intrinsics(width: u32, height: u32) -> Intrinsics {
 ///
 /// # Panics
 /// If `cameras` is empty.
-pub fn camera_path_json(cameras: &[Camera], projection: Projection, fps: f64) -> serde_json::Value {
+pub fn camera_path_json(cameras: &[Camera], projection: Projection, fps: f64, crop: Option<&PathCrop>) -> serde_json::Value {
     let k = cameras[0].intrinsics;
     let path: Vec<serde_json::Value> = cameras
         .iter()
@@ -179,6 +252,7 @@ pub fn camera_path_json(cameras: &[Camera], projection: Projection, fps: f64) ->
         "render_height": k.height,
         "fps": fps,
         "seconds": cameras.len() as f64 / fps,
+        "crop": crop.map(PathCrop::to_json),
         "camera_path": path,
     })
 }

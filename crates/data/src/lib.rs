@@ -33,7 +33,7 @@ pub mod colmap;
 pub mod depth;
 pub mod equirect;
 pub use colmap::is_colmap;
-pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, read_camera_path, CameraPath, CameraPathFile};
+pub use camera_path::{camera_path_json, equirect_intrinsics, load_camera_path, read_camera_path, CameraPath, CameraPathFile, PathCrop};
 pub mod llff;
 pub use llff::{is_llff, load_llff};
 pub mod mask;

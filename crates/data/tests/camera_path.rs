@@ -61,7 +61,7 @@ fn written_paths_read_back_to_the_same_cameras() {
             Camera { intrinsics: k, rotation, position: Vec3::new(3.1 * t.cos(), 0.7 - t, 2.9 * t.sin()), distortion: nerf_rays::Distortion::NONE }
         })
         .collect();
-    let text = serde_json::to_string_pretty(&camera_path_json(&cams, Projection::Perspective, 12.5)).unwrap();
+    let text = serde_json::to_string_pretty(&camera_path_json(&cams, Projection::Perspective, 12.5, None)).unwrap();
     let p = write(d.path(), "path.json", &text);
     let back = load_camera_path(&p).unwrap();
     assert_eq!(back.fps, Some(12.5));
@@ -130,7 +130,7 @@ fn equirectangular_paths_need_no_field_of_view_and_read_back() {
         assert_eq!(c.intrinsics, nerf_data::equirect_intrinsics(64, 32));
     }
     assert_eq!(path.cameras[1].position, Vec3::new(4.0, 0.0, 0.0));
-    let text = serde_json::to_string(&camera_path_json(&path.cameras, path.projection, 10.0)).unwrap();
+    let text = serde_json::to_string(&camera_path_json(&path.cameras, path.projection, 10.0, path.crop.as_ref())).unwrap();
     assert!(text.contains(r#""camera_type":"equirectangular""#), "{text}");
     let back = load_camera_path(&write(d.path(), "again.json", &text)).unwrap();
     assert_eq!(back.projection, Projection::Equirectangular);
@@ -151,7 +151,7 @@ fn fisheye_paths_take_their_focal_length_from_the_fov() {
     let path = load_camera_path(&p).unwrap();
     assert_eq!(path.projection, Projection::Fisheye);
     assert!((path.cameras[0].intrinsics.fy - 50.0).abs() < 1e-4, "{:?}", path.cameras[0].intrinsics);
-    let text = serde_json::to_string(&camera_path_json(&path.cameras, path.projection, 24.0)).unwrap();
+    let text = serde_json::to_string(&camera_path_json(&path.cameras, path.projection, 24.0, None)).unwrap();
     assert!(text.contains(r#""camera_type":"fisheye""#), "{text}");
     let no_fov = write(
         d.path(),
@@ -161,4 +161,43 @@ fn fisheye_paths_take_their_focal_length_from_the_fov() {
     );
     let e = load_camera_path(&no_fov).unwrap_err().to_string();
     assert!(e.contains("nofov.json") && e.contains("camera_path[0].fov"), "{e}");
+}
+
+#[test]
+fn a_nerfstudio_crop_reads_and_writes_back() {
+    let d = tempfile::tempdir().unwrap();
+    let cam = r#"{"camera_to_world": [1,0,0,0, 0,1,0,0, 0,0,1,4, 0,0,0,1], "fov": 50}"#;
+    let file = |crop: &str| format!(r#"{{"render_width": 8, "render_height": 8, "crop": {crop}, "camera_path": [{cam}]}}"#);
+    // What nerfstudio's viewer exports: centre, full size, roll/pitch/yaw, a 0–255 colour.
+    let p = write(
+        d.path(),
+        "crop.json",
+        &file(r#"{"crop_center": [0.5, -1, 2], "crop_scale": [1, 2, 3], "crop_rot": [0, 0, 1.5], "crop_bg_color": {"r": 255, "g": 0, "b": 51}}"#),
+    );
+    let path = load_camera_path(&p).unwrap();
+    let c = path.crop.expect("a crop");
+    assert_eq!((c.center, c.scale, c.rotation), ([0.5, -1.0, 2.0], [1.0, 2.0, 3.0], [0.0, 0.0, 1.5]));
+    assert_eq!(c.background, [1.0, 0.0, 0.2]);
+    // Written back with the path, read back the same.
+    let text = serde_json::to_string(&camera_path_json(&path.cameras, path.projection, 24.0, Some(&c))).unwrap();
+    assert_eq!(load_camera_path(&write(d.path(), "again.json", &text)).unwrap().crop, Some(c));
+    // No rotation and no colour: none and black; `null` (what the viewer writes without a crop): no crop.
+    let p = write(d.path(), "plain.json", &file(r#"{"crop_center": [0, 0, 0], "crop_scale": [2, 2, 2]}"#));
+    let c = load_camera_path(&p).unwrap().crop.unwrap();
+    assert_eq!((c.rotation, c.background), ([0.0; 3], [0.0; 3]));
+    assert!(load_camera_path(&write(d.path(), "none.json", &file("null"))).unwrap().crop.is_none());
+    // Bad crops name the key.
+    for (crop, key) in [
+        (r#"{"crop_scale": [1, 1, 1]}"#, "crop.crop_center"),
+        (r#"{"crop_center": [0, 0, 0], "crop_scale": [1, 0, 1]}"#, "crop.crop_scale"),
+        (r#"{"crop_center": [0, 0], "crop_scale": [1, 1, 1]}"#, "crop.crop_center"),
+        (r#"{"crop_center": [0, 0, 0], "crop_scale": [1, 1, 1], "crop_rot": [0, "x", 0]}"#, "crop.crop_rot"),
+        (r#"{"crop_center": [0, 0, 0], "crop_scale": [1, 1, 1], "crop_bg_color": {"r": 300, "g": 0, "b": 0}}"#, "crop.crop_bg_color"),
+    ] {
+        let p = write(d.path(), "bad.json", &file(crop));
+        match load_camera_path(&p) {
+            Err(DataError::InvalidValue { path, key: k, .. }) => assert_eq!((path, k.as_str()), (p.clone(), key), "{crop}"),
+            other => panic!("{crop}: expected an invalid {key}, got {other:?}"),
+        }
+    }
 }

@@ -301,6 +301,17 @@ pub(crate) struct PdfParams {
     /// Box corners (xyz, w unused).
     pub(crate) box_min: [f32; 4],
     pub(crate) box_max: [f32; 4],
+    /// The render crop box ([`crop_rows`]).
+    pub(crate) crop: [[f32; 4]; 4],
+}
+
+/// The render crop box as the shaders' `crop_x, crop_y, crop_z, crop_c` rows (`common.wgsl`'s
+/// `crop_slab`): the box's axes with half its size in w, then its centre with w = 1; all zero
+/// (w = 0: no crop) for `None`.
+pub(crate) fn crop_rows(crop: Option<&nerf_sampling::CropBox>) -> [[f32; 4]; 4] {
+    let Some(c) = crop else { return [[0.0; 4]; 4] };
+    let row = |i: usize| [c.axes[i][0], c.axes[i][1], c.axes[i][2], c.half[i]];
+    [row(0), row(1), row(2), [c.center[0], c.center[1], c.center[2], 1.0]]
 }
 
 /// `CompactParams` of `shaders/compact.wgsl` (16 bytes).
@@ -432,7 +443,7 @@ pub(crate) struct ScanParams {
 }
 
 // ---- sampling.rs ----
-/// `MarchParams` of `shaders/march.wgsl` (96 + 16 + 4·128 bytes).
+/// `MarchParams` of `shaders/march.wgsl` (96 + 16 + 4·128 + 64 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub(crate) struct MarchParams {
@@ -465,6 +476,8 @@ pub(crate) struct MarchParams {
     pub(crate) lv_cell: [[f32; 4]; 8],
     /// Per level: `res / (hi − lo)` (w unused).
     pub(crate) lv_inv: [[f32; 4]; 8],
+    /// The render crop box ([`crop_rows`]; zero: none).
+    pub(crate) crop: [[f32; 4]; 4],
 }
 
 /// `RoundParams` of `shaders/march.wgsl` (rendering in rounds, 32 bytes).

@@ -15,7 +15,9 @@
 
 use crate::kernel::{groups_1d, Kernel};
 use crate::{shaders, GpuContext, GpuError};
-use crate::layout::{PdfParams};
+use std::cell::Cell;
+
+use crate::layout::{crop_rows, PdfParams};
 
 const WG: u32 = 64;
 
@@ -49,6 +51,7 @@ pub struct GpuStratified {
     near: f32,
     far: f32,
     clip: Option<([f32; 3], [f32; 3])>,
+    crop: Cell<Option<nerf_sampling::CropBox>>,
     uniform: wgpu::Buffer,
     kernel: Kernel,
 }
@@ -69,6 +72,7 @@ impl GpuStratified {
             near,
             far,
             clip: None,
+            crop: Cell::new(None),
             uniform: ctx.uniform("stratified.params", &p),
             kernel: Kernel::from_module(ctx, &module(ctx), "stratified", &[("WG", WG as f64)]),
         })
@@ -79,6 +83,12 @@ impl GpuStratified {
     pub fn clip_to_box(mut self, aabb_min: [f32; 3], aabb_max: [f32; 3]) -> Self {
         self.clip = Some((aabb_min, aabb_max));
         self
+    }
+
+    /// Clips each ray's segment to a render crop box as well (`None`: none) for the records
+    /// that follow, as the CPU's `nerf_sampling::CropBox::clip` (a miss: `[near, near]`).
+    pub fn set_crop(&self, crop: Option<nerf_sampling::CropBox>) {
+        self.crop.set(crop);
     }
 
     /// Samples per ray.
@@ -107,6 +117,7 @@ impl GpuStratified {
             far: self.far,
             jitter: jitter.is_some() as u32,
             seed: jitter.unwrap_or(0),
+            crop: crop_rows(self.crop.get().as_ref()),
             ..clip_params(self.clip)
         };
         ctx.write(&self.uniform, 0, &[p]);
@@ -138,6 +149,7 @@ pub struct GpuHierarchical {
     near: f32,
     far: f32,
     clip: Option<([f32; 3], [f32; 3])>,
+    crop: Cell<Option<nerf_sampling::CropBox>>,
     uniform: wgpu::Buffer,
     offsets_kernel: Kernel,
     kernel: Kernel,
@@ -157,6 +169,7 @@ impl GpuHierarchical {
             near: 0.0,
             far,
             clip: None,
+            crop: Cell::new(None),
             uniform: ctx.uniform("hierarchical.params", &p),
             offsets_kernel: Kernel::from_module(ctx, &m, "hier_offsets", &[("WG", 256.0)]),
             kernel: Kernel::from_module(ctx, &m, "hierarchical", &[("WG", WG as f64)]),
@@ -170,6 +183,12 @@ impl GpuHierarchical {
         self.near = near;
         self.clip = Some((aabb_min, aabb_max));
         self
+    }
+
+    /// Clips each ray's segment to a render crop box as well (`None`: none) for the records
+    /// that follow, as the CPU's `nerf_sampling::CropBox::clip` (a miss: `[near, near]`).
+    pub fn set_crop(&self, crop: Option<nerf_sampling::CropBox>) {
+        self.crop.set(crop);
     }
 
     /// Fine samples per ray.
@@ -210,6 +229,7 @@ impl GpuHierarchical {
             far: self.far,
             jitter: jitter.is_some() as u32,
             seed: jitter.unwrap_or(0),
+            crop: crop_rows(self.crop.get().as_ref()),
             ..clip_params(self.clip)
         };
         ctx.write(&self.uniform, 0, &[p]);

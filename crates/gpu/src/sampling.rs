@@ -555,6 +555,8 @@ pub struct MarchConfig {
 const MARCH_STEP_OFFSET: u64 = std::mem::offset_of!(MarchParams, step) as u64;
 /// Byte offset of `max_samples` in [`MarchParams`].
 const MARCH_MAX_SAMPLES_OFFSET: u64 = std::mem::offset_of!(MarchParams, max_samples) as u64;
+/// Byte offset of the crop box's rows in [`MarchParams`].
+const MARCH_CROP_OFFSET: u64 = std::mem::offset_of!(MarchParams, crop) as u64;
 /// Byte offset of `seed` (followed by `jitter`) in [`MarchParams`].
 const MARCH_SEED_OFFSET: u64 = std::mem::offset_of!(MarchParams, seed) as u64;
 
@@ -717,6 +719,7 @@ impl GpuMarcher {
             lv_hi: lv[1],
             lv_cell: lv[2],
             lv_inv: lv[3],
+            crop: [[0.0; 4]; 4],
         };
         let n_blocks = n_levels * (cres as usize).pow(3);
         Ok(Self {
@@ -787,6 +790,13 @@ impl GpuMarcher {
         assert!(step > 0.0 && step.is_finite() && max_samples > 0, "step size must be positive, and the sample cap too");
         ctx.write(&self.params, MARCH_STEP_OFFSET, &[step]);
         ctx.write(&self.params, MARCH_MAX_SAMPLES_OFFSET, &[max_samples]);
+    }
+
+    /// Queues a render crop box for the submissions that follow (`None`: none, as configured):
+    /// every ray's `[t0, t1)` is also clipped to it, as the CPU's
+    /// `nerf_sampling::RayMarch::cropped`. Queue `None` back before training marches again.
+    pub fn queue_crop(&self, ctx: &GpuContext, crop: Option<&nerf_sampling::CropBox>) {
+        ctx.write(&self.params, MARCH_CROP_OFFSET, &crate::layout::crop_rows(crop));
     }
 
     /// Queues the configured step and sample cap back after [`queue_stepping`](Self::queue_stepping).

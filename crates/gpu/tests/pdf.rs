@@ -323,3 +323,65 @@ fn samplers_clipped_to_a_box_match_the_cpu_given_clip_segments() {
         same_fine_samples("clipped fine", &gpu, &cpu, 2e-5);
     }
 }
+
+#[test]
+fn samplers_cropped_to_an_oriented_box_match_the_cpu_given_crop_segments() {
+    let Some(ctx) = context() else { return };
+    // A turned crop box inside a larger scene box (the NDC clip on, as for NDC scenes), and the
+    // same box with no scene clip (Blender scenes: [near, far] ∩ crop).
+    let crop = nerf_sampling::CropBox::oriented([0.1, -0.2, 0.05], [0.4, -0.3, 1.1], [2.2, 1.6, 2.4]).unwrap();
+    let (lo, hi) = ([-1.0f32, -0.8, -1.0], [1.2f32, 1.0, 1.0]);
+    let (near, far) = (0.0f32, 10.0f32);
+    for (seed, n_rays, n, clip) in [(41u64, 400usize, 32usize, true), (42, 400, 16, false), (43, 3, 5, false)] {
+        let (o, d) = rays(seed, n_rays);
+        let (mut sn, mut sf) = (vec![near; n_rays], vec![far; n_rays]);
+        if clip {
+            nerf_sampling::clip_segments(lo, hi, &o, &d, near, far, &mut sn, &mut sf);
+        }
+        nerf_sampling::crop_segments(&crop, &o, &d, near, &mut sn, &mut sf);
+        if n_rays > 100 {
+            let hits = sn.iter().zip(&sf).filter(|(a, b)| b > a).count();
+            assert!(hits > n_rays / 10 && hits < n_rays, "{hits} of {n_rays} rays cross the crop: both cases are covered");
+        }
+        let k = GpuStratified::new(&ctx, n, near, far).unwrap();
+        let k = if clip { k.clip_to_box(lo, hi) } else { k };
+        k.set_crop(Some(crop));
+        let mut cpu = RaySamples::default();
+        stratified(&o, &d, &sn, &sf, n, None, &mut cpu);
+        let (gpu, _) = run_stratified(&ctx, &k, &o, &d, None);
+        same_samples("cropped centres", &gpu, &cpu, 2e-5);
+        // Every sample of a ray that crosses the crop lies in it; the others are empty.
+        for r in 0..n_rays {
+            for i in cpu.ray_range(r) {
+                if sf[r] > sn[r] {
+                    let p = [cpu.positions[3 * i], cpu.positions[3 * i + 1], cpu.positions[3 * i + 2]];
+                    let grown = nerf_sampling::CropBox { half: crop.half.map(|h| h + 1e-4), ..crop };
+                    assert!(grown.contains(p), "ray {r}: {p:?} outside the crop");
+                } else {
+                    assert_eq!(cpu.dt[i], 0.0);
+                }
+            }
+        }
+        // The crop off again: the plain samples.
+        k.set_crop(None);
+        let (sn0, sf0) = if clip {
+            let (mut a, mut b) = (vec![0.0; n_rays], vec![0.0; n_rays]);
+            nerf_sampling::clip_segments(lo, hi, &o, &d, near, far, &mut a, &mut b);
+            (a, b)
+        } else {
+            (vec![near; n_rays], vec![far; n_rays])
+        };
+        let mut plain = RaySamples::default();
+        stratified(&o, &d, &sn0, &sf0, n, None, &mut plain);
+        same_samples("uncropped again", &run_stratified(&ctx, &k, &o, &d, None).0, &plain, 2e-5);
+        // Fine: the last interval closes at each ray's cropped far.
+        let (c, w) = coarse(seed, n_rays, 24);
+        let h = GpuHierarchical::new(&ctx, 8, far).unwrap();
+        let h = if clip { h.clip_to_box(near, lo, hi) } else { h };
+        h.set_crop(Some(crop));
+        let gpu = run_hierarchical(&ctx, &h, &c, &w, &o, &d, None, n_rays);
+        let mut cpu = RaySamples::default();
+        hierarchical(&c, &w, &o, &d, &sf, 8, None, &mut cpu);
+        same_fine_samples("cropped fine", &gpu, &cpu, 2e-5);
+    }
+}

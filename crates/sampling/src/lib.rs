@@ -6,6 +6,8 @@
 //! * [`stratified`] — jittered (or bin-centre) samples in `[near, far]` per ray (NeRF's coarse pass).
 //! * [`clip_segments`] — per-ray `[near, far] ∩ box` for those two (NDC scenes, where segments
 //!   differ from ray to ray).
+//! * [`CropBox`] — a render crop box (instant-ngp's `render_aabb`, nerfstudio's oriented crop):
+//!   segments and marches clipped to it, so a render shows only what lies inside.
 //! * [`sample_pdf`] — nerf-pytorch's inverse-CDF sampler for one ray, conventions included.
 //! * [`hierarchical`] — the coarse-to-fine pass over a whole packed batch.
 //! * [`OccupancyGrid`] and [`march`] — Instant-NGP's empty-space skipping: an EMA occupancy grid
@@ -17,6 +19,7 @@
 //! ray, run in parallel over blocks of rays with rayon, and give results independent of the number
 //! of threads (per-ray generators derived from one seed drawn per call).
 
+mod crop;
 mod occupancy;
 mod packed;
 
@@ -24,6 +27,7 @@ mod pdf;
 mod segment;
 mod stratified;
 
+pub use crop::{crop_segments, CropBox};
 pub use occupancy::{
     cascade_box, march, OccupancyGrid, OccupancyGridConfig, RayMarch, Stepping, DENSITY_CHUNK, MAX_CASCADES, MAX_RESOLUTION,
     MAX_STEP_RATIO,

@@ -1316,6 +1316,22 @@ impl RayMarch {
         Self { o, d, t0, t1, k: 0, emitted: 0, done: t1 <= t0 }
     }
 
+    /// [`new`](Self::new) with the march's `[t0, t1)` also clipped to `crop` (a render crop
+    /// box): the samples start where the ray enters the crop (or the grid's box, whichever is
+    /// later) and end where it leaves either. `None` is [`new`](Self::new). GPU twin: the
+    /// crop of `setup` in `shaders/march.wgsl`.
+    pub fn cropped(grid: &OccupancyGrid, o: [f32; 3], d: [f32; 3], near: f32, far: f32, crop: Option<&crate::CropBox>) -> Self {
+        let mut m = Self::new(grid, o, d, near, far);
+        if let (Some(c), false) = (crop, m.done) {
+            let (a, b) = c.slab(o, d);
+            (m.t0, m.t1) = (m.t0.max(a), m.t1.min(b));
+            if !(m.t1 > m.t0) {
+                (m.t0, m.t1, m.done) = (0.0, 0.0, true);
+            }
+        }
+        m
+    }
+
     /// Whether the march has ended (past the far end, or `max_samples` emitted).
     pub fn is_done(&self) -> bool {
         self.done

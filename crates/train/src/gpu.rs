@@ -250,6 +250,8 @@ pub(crate) struct GpuEngine {
     last_n_samples: Cell<(usize, usize)>,
     /// Rays per rendering chunk that last fitted the sample capacity.
     render_chunk: Cell<usize>,
+    /// The render crop box (`Trainer::set_render_crop`), queued for each render only.
+    render_crop: Option<nerf_sampling::CropBox>,
     /// Frame-sized rendering buffers (rays in, image out), kept between frames.
     frame: std::cell::RefCell<Option<Frame>>,
     /// Submissions of the steps still running (at most `MAX_IN_FLIGHT`).
@@ -487,6 +489,7 @@ impl GpuEngine {
             adaptive: config.target_samples_per_step.is_some(),
             last_n_samples: Cell::new((0, 0)),
             render_chunk: Cell::new(capacity_rays),
+            render_crop: None,
             in_flight: Default::default(),
             frame: Default::default(),
             profile: Default::default(),
@@ -854,6 +857,25 @@ impl GpuEngine {
         r
     }
 
+    /// Crops the renders that follow to `crop` (`None`: none); training never crops.
+    pub(crate) fn set_render_crop(&mut self, crop: Option<nerf_sampling::CropBox>) -> Result<(), TrainError> {
+        self.render_crop = crop;
+        Ok(())
+    }
+
+    /// Queues `crop` on the sampler for the submissions that follow (`None` puts training's
+    /// uncropped sampling back).
+    fn queue_crop(&self, crop: Option<&nerf_sampling::CropBox>) {
+        match &self.sampler {
+            Sampler::Occupancy(o) => o.marcher.queue_crop(&self.ctx, crop),
+            Sampler::Stratified(s) => s.set_crop(crop.copied()),
+            Sampler::Hierarchical(s, h) => {
+                s.set_crop(crop.copied());
+                h.set_crop(crop.copied());
+            }
+        }
+    }
+
     /// The most rays [`render_rays`](Self::render_rays) gives one frame's buffers: as many as the
     /// adapter's largest buffer and storage binding hold of the rounds' per-ray state, and at most
     /// [`MAX_FRAME_RAYS`] (the frame's buffers are kept between calls).
@@ -966,6 +988,36 @@ impl GpuEngine {
         ctx.write(f_o, 0, origins);
         ctx.write(f_d, 0, dirs);
         ctx.write(f_bg, 0, background);
+        // The crop box for this frame only: training's sampling is queued back after it.
+        if self.render_crop.is_some() {
+            self.queue_crop(self.render_crop.as_ref());
+        }
+        let r = self.render_frame(cfg, n, rounds.as_ref(), (f_o, f_d, f_bg), (out_rgb, out_op, out_depth));
+        if self.render_crop.is_some() {
+            self.queue_crop(None);
+        }
+        r?;
+        let got = ctx.read_words(&[(out_rgb, 3 * n), (out_op, n), (out_depth, n)]).map_err(gerr)?;
+        for (dst, src) in [(&mut rgb[..3 * n], &got[0]), (&mut opacity[..n], &got[1]), (&mut depth[..n], &got[2])] {
+            for (d, &w) in dst.iter_mut().zip(src) {
+                *d = f32::from_bits(w);
+            }
+        }
+        self.reset_batch();
+        Ok(())
+    }
+
+    /// One frame's render into the frame's buffers: in rounds with the occupancy grid (at the
+    /// render step), else in chunks.
+    fn render_frame(
+        &self,
+        cfg: &TrainConfig,
+        n: usize,
+        rounds: Option<&nerf_gpu::sampling::RoundFrame>,
+        (f_o, f_d, f_bg): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+        (out_rgb, out_op, out_depth): (&wgpu::Buffer, &wgpu::Buffer, &wgpu::Buffer),
+    ) -> Result<(), TrainError> {
+        let ctx = &*self.ctx;
         if let (Sampler::Occupancy(o), Some(rf)) = (&self.sampler, rounds) {
             // At the render step (`render_step_size`), training's queued back after the frame.
             let stepping = match cfg.render_sampler().map_err(TrainError::Config)? {
@@ -975,18 +1027,10 @@ impl GpuEngine {
             o.marcher.queue_stepping(ctx, stepping.0, stepping.1);
             let r = self.render_rounds(o, rf, n, cfg.transmittance_threshold, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth));
             o.marcher.restore_stepping(ctx);
-            r?;
+            r
         } else {
-            self.render_chunks(n, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth))?;
+            self.render_chunks(n, (f_o, f_d, f_bg), (out_rgb, out_op, out_depth))
         }
-        let got = ctx.read_words(&[(out_rgb, 3 * n), (out_op, n), (out_depth, n)]).map_err(gerr)?;
-        for (dst, src) in [(&mut rgb[..3 * n], &got[0]), (&mut opacity[..n], &got[1]), (&mut depth[..n], &got[2])] {
-            for (d, &w) in dst.iter_mut().zip(src) {
-                *d = f32::from_bits(w);
-            }
-        }
-        self.reset_batch();
-        Ok(())
     }
 
     /// Occupancy-grid rendering in rounds (`GpuMarcher::record_round_*`): every ray of the frame

@@ -26,6 +26,8 @@ pub(crate) struct MarchParams {
     pub near: f32,
     pub far: f32,
     pub t_threshold: f32,
+    /// The render crop box: marches clipped to it.
+    pub crop: Option<nerf_sampling::CropBox>,
 }
 
 struct RayState {
@@ -68,7 +70,7 @@ pub(crate) fn render_in_rounds(
     let n = origins.len() / 3;
     s.states.clear();
     s.states.extend((0..n).map(|r| RayState {
-        march: RayMarch::new(grid, ray3(origins, r), ray3(dirs, r), p.near, p.far),
+        march: RayMarch::cropped(grid, ray3(origins, r), ray3(dirs, r), p.near, p.far, p.crop.as_ref()),
         comp: RayComposite::default(),
     }));
     s.alive.clear();
@@ -183,7 +185,7 @@ mod tests {
             bg.extend([rng.gen::<f32>(), rng.gen(), rng.gen()]);
         }
         for (t_threshold, max_samples, step) in [(1e-4f32, 1024usize, 0.01f32), (0.0, 1024, 0.01), (1e-2, 7, 0.02)] {
-            let p = MarchParams { step: step.into(), max_samples, near: 0.5, far: 8.0, t_threshold };
+            let p = MarchParams { step: step.into(), max_samples, near: 0.5, far: 8.0, t_threshold, crop: None };
             // Reference: march everything, evaluate everything, composite.
             let mut all = RaySamples::default();
             march(&grid, &o, &d, &vec![p.near; n], &vec![p.far; n], step, max_samples, None, &mut all);

@@ -243,6 +243,8 @@ pub struct Trainer {
     color: Option<CpuColor>,
     /// The training view whose colour correction renders use (`None`: the mean).
     render_appearance: Option<usize>,
+    /// The render crop box ([`Trainer::set_render_crop`]).
+    render_crop: Option<nerf_sampling::CropBox>,
     /// Camera pose refinement of the CPU path (`config.camera_optimizer`).
     pose: Option<CpuPose>,
     /// The fraction of the run done, as the caller last set it ([`Trainer::set_progress`]).
@@ -337,6 +339,7 @@ impl Trainer {
             seen_marked: false,
             color,
             render_appearance: None,
+            render_crop: None,
             progress: None,
             pose,
             round_scratch: ScratchPool::new(),
@@ -848,6 +851,37 @@ impl Trainer {
         Ok(())
     }
 
+    /// Crops what [`render_rays`](Self::render_rays) shows to `crop` (instant-ngp's
+    /// `render_aabb`, nerfstudio's crop box): every ray's segment, or its march through the
+    /// occupancy grid, is clipped to the box, so only what lies inside is rendered and the rest
+    /// is background. `None` renders the whole scene. Training never crops. Errors when the box
+    /// lies wholly outside the scene's box (it would render nothing), for NDC scenes (whose rays
+    /// are not in the scene's frame), or with a GPU sampler that cannot crop.
+    pub fn set_render_crop(&mut self, crop: Option<nerf_sampling::CropBox>) -> Result<(), TrainError> {
+        if let Some(c) = &crop {
+            if self.bounds.clip_to_box {
+                return Err(TrainError::Config("a crop box needs Euclidean rays: this scene's rays are in NDC (train with --no-ndc)".into()));
+            }
+            let (lo, hi) = c.bounds();
+            let (blo, bhi) = (self.bounds.aabb_min, self.bounds.aabb_max);
+            if (0..3).any(|a| hi[a] <= blo[a] || lo[a] >= bhi[a]) {
+                return Err(TrainError::Config(format!(
+                    "the crop box (bounds {lo:?}..{hi:?}) lies outside the scene's box {blo:?}..{bhi:?}: it would render nothing"
+                )));
+            }
+        }
+        if let Some(g) = self.gpu.as_mut() {
+            g.set_render_crop(crop)?;
+        }
+        self.render_crop = crop;
+        Ok(())
+    }
+
+    /// The render crop box ([`set_render_crop`](Self::set_render_crop)).
+    pub fn render_crop(&self) -> Option<&nerf_sampling::CropBox> {
+        self.render_crop.as_ref()
+    }
+
     /// [`render_rays`](Self::render_rays) without the colour correction.
     fn render_rays_uncorrected(
         &self,
@@ -875,6 +909,7 @@ impl Trainer {
                 near: self.bounds.near,
                 far: self.bounds.far,
                 t_threshold: self.config.transmittance_threshold,
+                crop: self.render_crop,
             };
             // Chunks render concurrently (each its own rounds), so the marching and the field's
             // serial parts overlap; the image does not depend on the thread count.
@@ -930,6 +965,9 @@ impl Trainer {
             let r1 = (r0 + chunk).min(n);
             let (o, d, bg) = (&origins[3 * r0..3 * r1], &dirs[3 * r0..3 * r1], &background[3 * r0..3 * r1]);
             self.bounds.segments(o, d, near, far);
+            if let Some(c) = &self.render_crop {
+                nerf_sampling::crop_segments(c, o, d, self.bounds.near, near, far);
+            }
             first_stage_samples(&self.config, &self.bounds, self.grid.as_ref(), o, d, near, far, None, &mut stages[0].samples);
             query_stage(fields[0].as_ref(), &mut stages[0], bg, self.config.transmittance_threshold);
             if let SamplerConfig::Hierarchical { n_fine, .. } = self.config.sampler {
