@@ -3,7 +3,7 @@
 use crate::report::write_summary;
 use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
-use nerf_data::{load_scene, Dataset, LoadOptions, Split};
+use nerf_data::{load_scene, Dataset, LoadOptions, Split, ViewSelection};
 use nerf_field::Registry;
 use nerf_train::{evaluate, make_trainer, AlphaSplit, Checkpoint, DepthError, EvalReport, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
 use serde::{Deserialize, Serialize};
@@ -398,7 +398,7 @@ pub fn run_ablation(
     let out = &opts.out_dir;
     let s = &ablation.spec;
     // Loaded scenes by folder and ray space (a run's `ndc` picks it for forward-facing scenes).
-    let mut cache: HashMap<(PathBuf, bool), (Dataset, Dataset)> = HashMap::new();
+    let mut cache: HashMap<(PathBuf, String), (Dataset, Dataset)> = HashMap::new();
     let mut outcomes = Vec::with_capacity(plans.len());
     let mut diverged = Vec::new();
     for (k, plan) in plans.into_iter().enumerate() {
@@ -418,12 +418,12 @@ pub fn run_ablation(
             outcomes.push(RunOutcome { plan, skipped: true, metrics: m });
             continue;
         }
-        let key = (plan.scene.clone(), plan.config.ndc);
+        // Runs whose configs load the scene alike share it (NDC, lens, box, pose normalisation,
+        // depth maps).
+        let load_opts = |views| LoadOptions { downscale: s.downscale, ..plan.config.load_options(views, false, plan.config.depth_loss.is_some()) };
+        let key = (plan.scene.clone(), format!("{:?}", load_opts(ViewSelection::All)));
         if !cache.contains_key(&key) {
-            let load = |split, views| {
-                load_scene(&plan.scene, split, &LoadOptions { downscale: s.downscale, views, ndc: plan.config.ndc, cameras_only: false, sfm_depth: plan.config.depth_loss.is_some(), undistort: plan.config.undistort, aabb_scale: plan.config.aabb_scale })
-                    .map_err(|e| AblateError::Scene { path: plan.scene.clone(), message: e.to_string() })
-            };
+            let load = |split, views| load_scene(&plan.scene, split, &load_opts(views)).map_err(|e| AblateError::Scene { path: plan.scene.clone(), message: e.to_string() });
             let train = load(Split::Train, s.train_views.clone())?;
             let test = load(Split::Test, s.test_views.clone())?;
             cache.insert(key.clone(), (train, test));

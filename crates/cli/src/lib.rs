@@ -113,6 +113,23 @@ struct TrainArgs {
     /// file; eval, render and the exports follow the run (config `aabb_scale`).
     #[arg(long = "aabb-scale", value_name = "N")]
     aabb_scale: Option<f32>,
+    /// nerfstudio's dataparser `--orientation-method` for a nerfstudio capture or a COLMAP
+    /// folder: `up` (the mean camera up vector onto +z, the default), `vertical` (the direction
+    /// most nearly vertical in every image; cameras that look many ways) or `none` (the poses'
+    /// own axes); eval, render and the exports follow the run (config `[nerfstudio]`).
+    #[arg(long = "orientation-method", value_enum)]
+    orientation_method: Option<OrientationArg>,
+    /// nerfstudio's `--center-method`: `poses` (the mean camera centre at the origin, the
+    /// default), `focus` (the point the cameras look at: inward-looking captures) or `none`.
+    #[arg(long = "center-method", value_enum)]
+    center_method: Option<CenterArg>,
+    /// nerfstudio's `--auto-scale-poses False`: keep the poses' scale (times `--scale-factor`)
+    /// instead of scaling the farthest camera coordinate to 1.
+    #[arg(long = "no-auto-scale-poses")]
+    no_auto_scale_poses: bool,
+    /// nerfstudio's `--scale-factor`: a further scale of the poses [default: 1].
+    #[arg(long = "scale-factor", value_name = "S")]
+    scale_factor: Option<f64>,
     /// Output folder.
     #[arg(long, default_value = "runs/latest")]
     out: PathBuf,
@@ -477,6 +494,22 @@ struct MeshArgs {
     device: nerf::gpu::DevicePreference,
 }
 
+/// `nerf train --orientation-method`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum OrientationArg {
+    Up,
+    Vertical,
+    None,
+}
+
+/// `nerf train --center-method`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum CenterArg {
+    Poses,
+    Focus,
+    None,
+}
+
 /// `x0,y0,z0,x1,y1,z1`: a box with `x0 < x1`, `y0 < y1`, `z0 < z1`.
 fn parse_box(s: &str) -> Result<([f32; 3], [f32; 3]), String> {
     let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>().map_err(|e| format!("`{x}`: {e}"))).collect::<Result<_, _>>()?;
@@ -695,6 +728,26 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     }
     if let Some(s) = a.aabb_scale {
         c.aabb_scale = Some(s);
+    }
+    if let Some(m) = a.orientation_method {
+        c.nerfstudio.orientation_method = match m {
+            OrientationArg::Up => nerf::data::OrientationMethod::Up,
+            OrientationArg::Vertical => nerf::data::OrientationMethod::Vertical,
+            OrientationArg::None => nerf::data::OrientationMethod::None,
+        };
+    }
+    if let Some(m) = a.center_method {
+        c.nerfstudio.center_method = match m {
+            CenterArg::Poses => nerf::data::CenterMethod::Poses,
+            CenterArg::Focus => nerf::data::CenterMethod::Focus,
+            CenterArg::None => nerf::data::CenterMethod::None,
+        };
+    }
+    if a.no_auto_scale_poses {
+        c.nerfstudio.auto_scale_poses = false;
+    }
+    if let Some(f) = a.scale_factor {
+        c.nerfstudio.scale_factor = f;
     }
     if a.undistort {
         c.undistort = true;
@@ -1656,7 +1709,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
     };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort, aabb_scale: None };
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort, aabb_scale: None, nerfstudio: Default::default() };
         let mut ds = load_scene(&a.src, split, &opts)?;
         if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
             let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));

@@ -1308,8 +1308,9 @@ fn a_large_instant_ngp_box_gets_cone_steps_and_a_note() {
 }
 
 /// A nerfstudio capture (COLMAP's poses, `applied_transform`) trains in nerfstudio's frame, and
-/// the run records that frame's transform as nerfstudio does (`dataparser_transforms.json`); a
-/// Blender scene's run has none.
+/// the run records that frame's transform as nerfstudio does (`dataparser_transforms.json`); its
+/// dataparser options (`--orientation-method`, `--center-method`, `--no-auto-scale-poses`,
+/// `--scale-factor`) change that frame and stay with the run; a Blender scene's run has none.
 #[test]
 fn a_nerfstudio_capture_run_writes_its_dataparser_transforms() {
     let d = tempfile::tempdir().unwrap();
@@ -1342,6 +1343,33 @@ fn a_nerfstudio_capture_run_writes_its_dataparser_transforms() {
     assert!(s > 0.0 && s < 1.0 / 5.0, "the capture's cameras are 5× lego's (4 units away): {s}");
     let m: Vec<Vec<f64>> = dt["transform"].as_array().unwrap().iter().map(|r| r.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()).collect();
     assert_eq!((m.len(), m[0].len()), (3, 4));
+    // nerfstudio's dataparser options: no turn, the origin at the cameras' focus (lego's
+    // cameras look at its origin, here at (1, 2, 3)), the poses' own scale times 0.2.
+    let opts = d.path().join("opts");
+    let o = train_tiny(
+        &scene,
+        &opts,
+        &["--iters", "1", "--device", "cpu", "--orientation-method", "none", "--center-method", "focus", "--no-auto-scale-poses", "--scale-factor", "0.2"],
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let dt: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(opts.join("dataparser_transforms.json")).unwrap()).unwrap();
+    assert!((dt["scale"].as_f64().unwrap() - 0.2).abs() < 1e-12, "{dt}");
+    for r in 0..3 {
+        for c in 0..3 {
+            assert_eq!(dt["transform"][r][c].as_f64(), Some((r == c) as u8 as f64), "no turn: {dt}");
+        }
+        assert!((dt["transform"][r][3].as_f64().unwrap() + (r + 1) as f64).abs() < 0.05, "the focus at (1, 2, 3): {dt}");
+    }
+    let m: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(opts.join("metrics.json")).unwrap()).unwrap();
+    let n = &m["config"]["nerfstudio"];
+    assert_eq!((n["orientation_method"].as_str(), n["center_method"].as_str(), n["auto_scale_poses"].as_bool()), (Some("none"), Some("focus"), Some(false)), "{n}");
+    // eval loads the run's frame, so it scores what training scored.
+    let o = nerf().arg("eval").arg(&opts).arg(&scene).args(["--device", "cpu", "--quiet"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let e: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(opts.join("eval/eval.json")).unwrap()).unwrap();
+    assert_eq!(e["test_psnr"], m["test_psnr"]);
+    let o = train_tiny(&scene, &d.path().join("bad"), &["--iters", "1", "--scale-factor", "0"]);
+    assert_clean_failure(&o, &["scale_factor", "above 0"]);
     let blender = d.path().join("blender_run");
     let o = train_tiny(&small_scene(d.path()), &blender, &["--iters", "1", "--device", "cpu"]);
     assert!(o.status.success(), "{}", stderr(&o));

@@ -42,7 +42,7 @@ pub mod ngp;
 pub mod ngp_path;
 pub use ngp_path::{NgpCameraPath, NgpSpace};
 pub mod pixels;
-pub use ngp::{Distortion, Focal, Lens, LensModel, NerfstudioNormalization, NgpBox};
+pub use ngp::{CenterMethod, Distortion, Focal, Lens, LensModel, NerfstudioNormalization, NerfstudioOptions, NgpBox, OrientationMethod};
 pub use pixels::Pixels;
 use rand::Rng as _;
 use rayon::prelude::*;
@@ -415,6 +415,10 @@ pub struct LoadOptions {
     /// LLFF scenes refuse it.
     #[serde(default)]
     pub aabb_scale: Option<f32>,
+    /// How a nerfstudio capture's or a COLMAP folder's poses are turned, centred and scaled
+    /// (nerfstudio's dataparser options; the defaults are its). Other formats ignore it.
+    #[serde(default)]
+    pub nerfstudio: NerfstudioOptions,
 }
 
 impl Default for LoadOptions {
@@ -428,6 +432,7 @@ impl Default for LoadOptions {
             sfm_depth: false,
             undistort: false,
             aabb_scale: None,
+            nerfstudio: NerfstudioOptions::default(),
         }
     }
 }
@@ -1734,7 +1739,12 @@ fn load_transforms_with(
     // nerfstudio's poses are COLMAP's: normalised here as nerfstudio does, from every frame of
     // the file (cameras that all sit at one point, e.g. a single view, cannot be: they keep
     // instant-ngp's placement).
-    let normalization = if nerfstudio { ngp::NerfstudioNormalization::of(&frames.iter().map(|f| &f.c2w[..]).collect::<Vec<_>>()) } else { None };
+    let normalization = if nerfstudio {
+        opts.nerfstudio.validate().map_err(|reason| DataError::InvalidValue { path: tpath.clone(), key: "scale_factor".into(), reason })?;
+        ngp::NerfstudioNormalization::with_options(&frames.iter().map(|f| &f.c2w[..]).collect::<Vec<_>>(), &opts.nerfstudio)
+    } else {
+        None
+    };
     let ngp_box = match normalization {
         Some(n) => {
             frames.iter_mut().for_each(|f| n.apply(&mut f.c2w));

@@ -600,12 +600,15 @@ pub fn is_nerfstudio(top: &Value) -> bool {
 /// `scene_scale = 1`; `camera_utils.auto_orient_and_center_poses`): rotate the mean camera up
 /// vector onto +z, move the mean camera centre `c` to the origin, then scale by
 /// `s = 1 / max |t'|` over every rotated, centred camera centre and axis. The scene then trains in
-/// the cube `[−1, 1]³` ([`NerfstudioNormalization::BOX`]), which holds every camera.
+/// the cube `[−1, 1]³` ([`NerfstudioNormalization::BOX`]), which holds every camera. Its other
+/// dataparser options ([`NerfstudioOptions`]) turn, centre and scale otherwise
+/// ([`NerfstudioNormalization::with_options`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct NerfstudioNormalization {
     /// The rotation (rows), applied after centring.
     pub rotation: [[f64; 3]; 3],
-    /// The mean camera centre `c` (file coordinates).
+    /// The point moved to the origin, `c` (file coordinates): the mean camera centre unless
+    /// `center_method` says otherwise.
     pub center: [f64; 3],
     /// The scale `s`.
     pub scale: f64,
@@ -616,10 +619,17 @@ impl NerfstudioNormalization {
     /// an `aabb_scale` in the file grows it about the origin.
     pub const BOX: NgpBox = NgpBox { scale: 0.5, offset: [0.5; 3], aabb_scale: 1.0 };
 
-    /// The normalisation of cameras with these camera-to-world matrices (3 or 4 rows). `None`
-    /// when there are none, their up vectors cancel out, or their centres all coincide (a single
-    /// view: nothing to scale by).
+    /// The normalisation of cameras with these camera-to-world matrices (3 or 4 rows), with
+    /// nerfstudio's default options. `None` when there are none, their up vectors cancel out, or
+    /// their centres all coincide (a single view: nothing to scale by).
     pub fn of(c2ws: &[&[[f32; 4]]]) -> Option<Self> {
+        Self::with_options(c2ws, &NerfstudioOptions::default())
+    }
+
+    /// The normalisation of these cameras with nerfstudio's dataparser options `opts`
+    /// ([`NerfstudioOptions`]). `None` as [`of`](Self::of), and also when `auto_scale_poses`
+    /// is off and `scale_factor` is not positive and finite.
+    pub fn with_options(c2ws: &[&[[f32; 4]]], opts: &NerfstudioOptions) -> Option<Self> {
         if c2ws.is_empty() || c2ws.iter().any(|m| m.len() < 3 || m.iter().flatten().any(|v| !v.is_finite())) {
             return None; // a bad pose is reported, with its frame, where the camera is built
         }
@@ -633,17 +643,30 @@ impl NerfstudioNormalization {
             }
             acc
         };
-        let center = mean(3);
-        let rotation = rotation_between(mean(1), [0.0, 0.0, 1.0])?;
-        let mut scale = 0.0f64;
-        for m in c2ws {
-            let t = col(m, 3);
-            let d: [f64; 3] = std::array::from_fn(|a| t[a] - center[a]);
-            for row in &rotation {
-                scale = scale.max((row[0] * d[0] + row[1] * d[1] + row[2] * d[2]).abs());
+        let center = match opts.center_method {
+            CenterMethod::Poses => mean(3),
+            CenterMethod::Focus => focus_of_attention(c2ws, mean(3)),
+            CenterMethod::None => [0.0; 3],
+        };
+        let rotation = match opts.orientation_method {
+            OrientationMethod::Up => rotation_between(mean(1), [0.0, 0.0, 1.0])?,
+            OrientationMethod::Vertical => rotation_between(vertical_up(c2ws, mean(1))?, [0.0, 0.0, 1.0])?,
+            OrientationMethod::None => [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        };
+        let scale = if opts.auto_scale_poses {
+            let mut extent = 0.0f64;
+            for m in c2ws {
+                let t = col(m, 3);
+                let d: [f64; 3] = std::array::from_fn(|a| t[a] - center[a]);
+                for row in &rotation {
+                    extent = extent.max((row[0] * d[0] + row[1] * d[1] + row[2] * d[2]).abs());
+                }
             }
-        }
-        (scale.is_finite() && scale > 0.0).then(|| Self { rotation, center, scale: 1.0 / scale })
+            opts.scale_factor / extent
+        } else {
+            opts.scale_factor
+        };
+        (scale.is_finite() && scale > 0.0).then_some(Self { rotation, center, scale })
     }
 
     /// nerfstudio's `dataparser_transforms.json` for it: `{"transform": 3×4 [R | −R·c],
@@ -690,6 +713,179 @@ impl NerfstudioNormalization {
     }
 }
 
+/// How nerfstudio's dataparser turns captured poses (`orientation_method`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum OrientationMethod {
+    /// The mean camera up vector onto +z (nerfstudio's default).
+    #[default]
+    Up,
+    /// The direction that projects most nearly vertically in every image onto +z (for cameras
+    /// that do not all look the same way; nerfstudio's `vertical`, its SVD of the cameras' x axes,
+    /// signed by the mean up vector).
+    Vertical,
+    /// No turn.
+    None,
+}
+
+/// Where nerfstudio's dataparser puts the origin (`center_method`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum CenterMethod {
+    /// The mean camera centre (nerfstudio's default).
+    #[default]
+    Poses,
+    /// The focus of attention: the point nearest the optical axes of the cameras that have it in
+    /// front of them (inward-looking captures).
+    Focus,
+    /// The file's origin.
+    None,
+}
+
+/// nerfstudio's dataparser options for a capture's poses (`ns-train … nerfstudio-data
+/// --orientation-method … --center-method … --auto-scale-poses … --scale-factor …`): how
+/// [`NerfstudioNormalization::with_options`] turns, centres and scales them. The defaults are
+/// nerfstudio's. Its `pca` orientation is not offered: the eigenvectors' signs it leaves to
+/// LAPACK decide its frame.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct NerfstudioOptions {
+    /// How the poses are turned.
+    pub orientation_method: OrientationMethod,
+    /// Where the origin goes.
+    pub center_method: CenterMethod,
+    /// Scale the poses so that the farthest camera coordinate is 1 (then by `scale_factor`).
+    pub auto_scale_poses: bool,
+    /// A further scale of the poses (the only one without `auto_scale_poses`).
+    pub scale_factor: f64,
+}
+
+impl Default for NerfstudioOptions {
+    fn default() -> Self {
+        Self { orientation_method: OrientationMethod::Up, center_method: CenterMethod::Poses, auto_scale_poses: true, scale_factor: 1.0 }
+    }
+}
+
+impl NerfstudioOptions {
+    /// Errors on a `scale_factor` that is not positive and finite.
+    pub fn validate(&self) -> Result<(), String> {
+        if !(self.scale_factor.is_finite() && self.scale_factor > 0.0) {
+            return Err(format!("scale_factor {}: must be finite and above 0", self.scale_factor));
+        }
+        Ok(())
+    }
+}
+
+/// nerfstudio's `focus_of_attention`: starting from `initial`, the least-squares nearest point
+/// to the optical axes (`−z`) of the cameras that have the current point in front of them,
+/// repeated until that set of cameras stops changing; with fewer than two such cameras, the
+/// point so far (`initial` when no camera looks towards it: outward-looking captures).
+fn focus_of_attention(c2ws: &[&[[f32; 4]]], initial: [f64; 3]) -> [f64; 3] {
+    use nerf_rays::glam::{DMat3, DVec3};
+    let rays: Vec<(DVec3, DVec3)> =
+        c2ws.iter().map(|m| (DVec3::new(m[0][3] as f64, m[1][3] as f64, m[2][3] as f64), -DVec3::new(m[0][2] as f64, m[1][2] as f64, m[2][2] as f64))).collect();
+    let mut focus = DVec3::from_array(initial);
+    let in_front = |f: DVec3, set: &[usize]| -> Vec<usize> { set.iter().copied().filter(|&i| rays[i].1.dot(f - rays[i].0) > 0.0).collect() };
+    let mut active = in_front(focus, &(0..rays.len()).collect::<Vec<_>>());
+    while active.len() > 1 {
+        // Σ MᵀM and Σ MᵀM·o over the active cameras, M = I − d·dᵀ (a projection: MᵀM = M).
+        let (mut a, mut b) = (DMat3::ZERO, DVec3::ZERO);
+        for &i in &active {
+            let (o, d) = rays[i];
+            let m = DMat3::IDENTITY - DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+            let mtm = m.transpose() * m;
+            a += mtm;
+            b += mtm * o;
+        }
+        if a.determinant().abs() < 1e-12 {
+            break; // parallel axes: no single nearest point
+        }
+        focus = a.inverse() * b;
+        let next = in_front(focus, &active);
+        if next.len() == active.len() {
+            break; // the set did not change
+        }
+        active = next;
+    }
+    focus.to_array()
+}
+
+/// nerfstudio's `vertical` up direction: the right singular vector of the stacked camera x axes
+/// with the smallest singular value (the direction most nearly orthogonal to every x axis), signed
+/// to agree with the mean up vector `up`; where the second singular value is at most
+/// `0.17·√n` (cameras that all look one way: the direction is not determined), `up` with its
+/// component along the first singular vector removed instead. `None` when that leaves nothing.
+fn vertical_up(c2ws: &[&[[f32; 4]]], up: [f64; 3]) -> Option<[f64; 3]> {
+    use nerf_rays::glam::DVec3;
+    let up = DVec3::from_array(up).try_normalize()?;
+    // XᵀX of the n×3 matrix of x axes: its eigenvectors are X's right singular vectors, its
+    // eigenvalues the squared singular values.
+    let mut xtx = [[0.0f64; 3]; 3];
+    for m in c2ws {
+        let x = [m[0][0] as f64, m[1][0] as f64, m[2][0] as f64];
+        for i in 0..3 {
+            for j in 0..3 {
+                xtx[i][j] += x[i] * x[j];
+            }
+        }
+    }
+    let (values, vectors) = symmetric_eigen(xtx);
+    // Descending singular values, as the SVD gives them.
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&i, &j| values[j].total_cmp(&values[i]));
+    let v = |k: usize| DVec3::from_array(vectors[order[k]]);
+    let second = values[order[1]].max(0.0).sqrt();
+    let dir = if second > 0.17 * (c2ws.len() as f64).sqrt() {
+        let w = v(2);
+        if w.dot(up) > 0.0 {
+            w
+        } else {
+            -w
+        }
+    } else {
+        (up - v(0) * up.dot(v(0))).try_normalize()?
+    };
+    Some(dir.to_array())
+}
+
+/// Eigenvalues and unit eigenvectors of a symmetric 3×3 matrix by cyclic Jacobi rotations
+/// (converged to rounding: a few sweeps).
+fn symmetric_eigen(mut a: [[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
+    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]; // columns: eigenvectors
+    for _ in 0..50 {
+        let off = a[0][1].abs() + a[0][2].abs() + a[1][2].abs();
+        if off <= 1e-300 || off <= 1e-15 * (a[0][0].abs() + a[1][1].abs() + a[2][2].abs()) {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            if a[p][q] == 0.0 {
+                continue;
+            }
+            let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+            let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+            let t = if theta == 0.0 { 1.0 } else { t };
+            let (c, s) = (1.0 / (t * t + 1.0).sqrt(), t / (t * t + 1.0).sqrt());
+            // A ← Jᵀ·A·J with J the rotation in the (p, q) plane.
+            for k in 0..3 {
+                let (akp, akq) = (a[k][p], a[k][q]);
+                a[k][p] = c * akp - s * akq;
+                a[k][q] = s * akp + c * akq;
+            }
+            for k in 0..3 {
+                let (apk, aqk) = (a[p][k], a[q][k]);
+                a[p][k] = c * apk - s * aqk;
+                a[q][k] = s * apk + c * aqk;
+            }
+            for row in v.iter_mut() {
+                let (vp, vq) = (row[p], row[q]);
+                row[p] = c * vp - s * vq;
+                row[q] = s * vp + c * vq;
+            }
+        }
+    }
+    ([a[0][0], a[1][1], a[2][2]], std::array::from_fn(|k| [v[0][k], v[1][k], v[2][k]]))
+}
+
 /// nerfstudio's `rotation_matrix_between(a, b)`: the rotation about `a × b` taking the direction
 /// of `a` onto that of `b` (Rodrigues' formula); for (anti)parallel vectors the axis is `a × x̂`
 /// (or `a × ŷ` when `a` has no x part). `None` when `a` or `b` is zero or not finite.
@@ -709,7 +905,29 @@ fn rotation_between(a: [f64; 3], b: [f64; 3]) -> Option<[[f64; 3]; 3]> {
 
 #[cfg(test)]
 mod tests {
-    use super::{rotation_between, Distortion, LensModel};
+    use super::{rotation_between, symmetric_eigen, Distortion, LensModel};
+
+    /// The Jacobi solver: A·v = λ·v with orthonormal v, for a generic, a diagonal and a
+    /// degenerate symmetric matrix.
+    #[test]
+    fn symmetric_eigen_decomposes() {
+        for a in [[[4.0, 1.0, -2.0], [1.0, 2.0, 0.5], [-2.0, 0.5, 3.0]], [[2.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 5.0]], [[1.0, 1.0, 1.0], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]] {
+            let (values, vectors) = symmetric_eigen(a);
+            for k in 0..3 {
+                let v = vectors[k];
+                for i in 0..3 {
+                    let av: f64 = (0..3).map(|j| a[i][j] * v[j]).sum();
+                    assert!((av - values[k] * v[i]).abs() < 1e-12, "{a:?}: λ {} v {v:?}", values[k]);
+                }
+                for (l, w) in vectors.iter().enumerate() {
+                    let dot: f64 = (0..3).map(|i| v[i] * w[i]).sum();
+                    assert!((dot - (k == l) as u8 as f64).abs() < 1e-12);
+                }
+            }
+            let trace: f64 = values.iter().sum();
+            assert!((trace - (a[0][0] + a[1][1] + a[2][2])).abs() < 1e-12);
+        }
+    }
 
     /// OpenCV's fisheye model: without terms it is the equidistant fisheye (a ray θ off the axis
     /// lands θ focal lengths from the principal point), the one `nerf render --camera-type

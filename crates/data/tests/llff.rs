@@ -71,12 +71,12 @@ fn scene(dir: &Path, rows: &[[f64; 17]], factors: &[u32]) {
 
 /// Euclidean rays (`--no-ndc`): the loader's geometry checked in world units.
 fn opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default() }
 }
 
 /// The default: NDC rays.
 fn ndc_opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default() }
 }
 
 fn poses(ds: &Dataset) -> Vec<(glam::Mat3, Vec3)> {

@@ -665,7 +665,7 @@ fn writing_keeps_pixel_intrinsics_and_the_box() {
 fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
     let Some(fern) = nerf_core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else { return };
     // Euclidean rays at 504×378 (images_8), both splits, as the LLFF loader reads them.
-    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None };
+    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default() };
     let (train, test) = (load_scene(&fern, Split::Train, &o).unwrap(), load_scene(&fern, Split::Test, &o).unwrap());
     let n = train.n_views() + test.n_views();
     let (mut tr, mut te) = (train.cameras.iter().zip(&train.file_paths), test.cameras.iter().zip(&test.file_paths));
@@ -857,4 +857,94 @@ fn nerfstudio_scenes_are_normalised_as_nerfstudio_does() {
     let (one, _) = scene(one_point, json!({}));
     assert_eq!(one.ngp, Some(NgpBox::default()));
     assert_eq!(one.cameras[0].position, glam::Vec3::ONE);
+}
+
+/// nerfstudio's dataparser options (`LoadOptions::nerfstudio`): `none` keeps the file's axes,
+/// origin and scale; `focus` puts the origin where the cameras look; `vertical` levels the
+/// cameras' x axes; a capture whose cameras all look one way gets the `up` turn from `vertical`
+/// too (nerfstudio's fallback); a bad scale factor names the key.
+#[test]
+fn nerfstudio_dataparser_options_turn_centre_and_scale_as_asked() {
+    use nerf_data::{CenterMethod, NerfstudioOptions, OrientationMethod};
+    let dir = tempfile::tempdir().unwrap();
+    let k = load(&lego_100(), Split::Train).cameras[0].intrinsics;
+    // lego's cameras (they look at its origin) turned by q, scaled by 3 and moved to `shift`.
+    let q = glam::Mat3::from_euler(glam::EulerRot::XYZ, 0.7, -0.4, 1.9);
+    let shift = glam::Vec3::new(4.0, -2.0, 1.0);
+    let frames: Vec<Value> = interleaved_lego()
+        .into_iter()
+        .map(|mut f| {
+            let m: Vec<Vec<f32>> = (0..3).map(|r| (0..4).map(|c| f["transform_matrix"][r][c].as_f64().unwrap() as f32).collect()).collect();
+            let rot = q * glam::Mat3::from_cols_array_2d(&std::array::from_fn(|c| std::array::from_fn(|r| m[r][c])));
+            let t = 3.0 * (q * glam::Vec3::new(m[0][3], m[1][3], m[2][3])) + shift;
+            f["transform_matrix"] = json!((0..3).map(|r| vec![rot.col(0)[r], rot.col(1)[r], rot.col(2)[r], t[r]]).chain([vec![0.0, 0.0, 0.0, 1.0]]).collect::<Vec<_>>());
+            f
+        })
+        .collect();
+    write_json(&dir.path().join("transforms.json"), &json!({"camera_model": "OPENCV", "fl_x": k.fx as f64, "fl_y": k.fy as f64, "cx": 50.0, "cy": 50.0,
+        "w": 100, "h": 100, "applied_transform": [[0, 1, 0, 0], [1, 0, 0, 0], [0, 0, -1, 0]], "frames": frames.clone()}));
+    let with = |o: NerfstudioOptions| nerf_data::load_scene(dir.path(), Split::Train, &LoadOptions { nerfstudio: o, ..LoadOptions::default() });
+    let file: Vec<(glam::Vec3, glam::Mat3)> = frames
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| i % 8 != 0)
+        .map(|(_, f)| {
+            let m = |r: usize, c: usize| f["transform_matrix"][r][c].as_f64().unwrap() as f32;
+            (glam::Vec3::new(m(0, 3), m(1, 3), m(2, 3)), glam::Mat3::from_cols_array_2d(&std::array::from_fn(|c| std::array::from_fn(|r| m(r, c)))))
+        })
+        .collect();
+    // Nothing asked: the file's poses as they are (scale factor 1).
+    let none = NerfstudioOptions { orientation_method: OrientationMethod::None, center_method: CenterMethod::None, auto_scale_poses: false, scale_factor: 1.0 };
+    let ds = with(none).unwrap();
+    for (c, (p, r)) in ds.cameras.iter().zip(&file) {
+        assert!((c.position - *p).length() < 1e-5 && (c.rotation - *r).abs().to_cols_array().iter().all(|d| *d < 1e-6));
+    }
+    // The focus of attention: the cameras look at `shift`, which becomes the origin; scaled so
+    // the farthest coordinate is 1, then by 0.5.
+    let focus = with(NerfstudioOptions { center_method: CenterMethod::Focus, scale_factor: 0.5, ..none }.with_auto_scale()).unwrap();
+    let n = focus.normalization.unwrap();
+    assert!((0..3).all(|a| (n.center[a] - shift[a] as f64).abs() < 1e-3), "focus {:?} vs {shift}", n.center);
+    let all = nerf_data::load_scene(dir.path(), Split::Test, &LoadOptions { nerfstudio: NerfstudioOptions { center_method: CenterMethod::Focus, scale_factor: 0.5, ..none }.with_auto_scale(), ..LoadOptions::default() }).unwrap();
+    let max = focus.cameras.iter().chain(&all.cameras).map(|c| c.position.abs().max_element()).fold(0.0f32, f32::max);
+    assert!((max - 0.5).abs() < 1e-5, "{max}");
+    for (c, (p, _)) in focus.cameras.iter().zip(&file) {
+        let want = (*p - shift) * n.scale as f32;
+        assert!((c.position - want).length() < 1e-3, "{} vs {want}", c.position);
+    }
+    // Vertical: lego's x axes are level in its own frame, so q's turn is undone about the axes
+    // that matter: every camera's x axis is horizontal afterwards.
+    let vertical = with(NerfstudioOptions { orientation_method: OrientationMethod::Vertical, ..NerfstudioOptions::default() }).unwrap();
+    for c in &vertical.cameras {
+        assert!(c.rotation.col(0).z.abs() < 1e-4, "x axis {}", c.rotation.col(0));
+    }
+    // (The mean up vector, nerfstudio's default, does not level them: the views are not spread
+    // evenly enough for their up vectors' tilts to cancel.)
+    let up = with(NerfstudioOptions::default()).unwrap();
+    let tilt = up.cameras.iter().map(|c| c.rotation.col(0).z.abs()).fold(0.0f32, f32::max);
+    assert!(tilt > 1e-3, "up levels the x axes too ({tilt})");
+    // All looking one way (a forward-facing rig): vertical falls back to the mean up vector.
+    let rig: Vec<Value> = (0..9)
+        .map(|i| {
+            let (x, y) = ((i % 3) as f32 * 0.3, (i / 3) as f32 * 0.2);
+            let t = q * glam::Vec3::new(x, y, 0.0);
+            json!({"file_path": frames[i]["file_path"].clone(), "transform_matrix": (0..3).map(|r| vec![q.col(0)[r], q.col(1)[r], q.col(2)[r], t[r]]).chain([vec![0.0, 0.0, 0.0, 1.0]]).collect::<Vec<_>>()})
+        })
+        .collect();
+    write_json(&dir.path().join("transforms.json"), &json!({"camera_model": "OPENCV", "fl_x": k.fx as f64, "w": 100, "h": 100, "applied_transform": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]], "frames": rig}));
+    let (up, vert) = (with(NerfstudioOptions::default()).unwrap(), with(NerfstudioOptions { orientation_method: OrientationMethod::Vertical, ..NerfstudioOptions::default() }).unwrap());
+    for (a, b) in up.cameras.iter().zip(&vert.cameras) {
+        assert!((a.position - b.position).length() < 1e-5 && (a.rotation.col(1) - glam::Vec3::Z).length() < 1e-5);
+    }
+    let Err(e) = with(NerfstudioOptions { scale_factor: 0.0, ..NerfstudioOptions::default() }).map(|_| ()) else { panic!("scale factor 0 accepted") };
+    assert!(e.to_string().contains("transforms.json") && e.to_string().contains("scale_factor"), "{e}");
+}
+
+trait WithAutoScale {
+    fn with_auto_scale(self) -> Self;
+}
+
+impl WithAutoScale for nerf_data::NerfstudioOptions {
+    fn with_auto_scale(self) -> Self {
+        Self { auto_scale_poses: true, ..self }
+    }
 }

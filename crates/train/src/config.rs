@@ -240,6 +240,12 @@ pub struct TrainConfig {
     /// file's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub aabb_scale: Option<f32>,
+    /// nerfstudio's dataparser options for a capture's (or COLMAP folder's) poses
+    /// (`nerf_data::LoadOptions::nerfstudio`; `[nerfstudio] orientation_method = "none"`, …;
+    /// `nerf train --orientation-method …`): every later load of the run takes them too.
+    /// nerfstudio's defaults (not serialised) unless set.
+    #[serde(default, skip_serializing_if = "is_default_nerfstudio")]
+    pub nerfstudio: nerf_data::NerfstudioOptions,
     /// Which test views to evaluate on.
     pub test_views: ViewSelection,
     /// Log (and update the progress bar message) every this many steps.
@@ -344,6 +350,11 @@ impl Default for ColorCorrectionConfig {
     }
 }
 
+/// Whether the dataparser options are nerfstudio's defaults (left out of a serialised config).
+fn is_default_nerfstudio(o: &nerf_data::NerfstudioOptions) -> bool {
+    *o == nerf_data::NerfstudioOptions::default()
+}
+
 impl Default for TrainConfig {
     fn default() -> Self {
         Self {
@@ -377,6 +388,7 @@ impl Default for TrainConfig {
             ndc: true,
             undistort: false,
             aabb_scale: None,
+            nerfstudio: nerf_data::NerfstudioOptions::default(),
             test_views: ViewSelection::Every(8),
             log_every: 100,
             checkpoint_every: 1000,
@@ -407,7 +419,16 @@ impl TrainConfig {
     /// of the split, only the cameras where `cameras_only`, and the SfM points' depths where
     /// `sfm_depth`.
     pub fn load_options(&self, views: ViewSelection, cameras_only: bool, sfm_depth: bool) -> nerf_data::LoadOptions {
-        nerf_data::LoadOptions { downscale: self.downscale, views, ndc: self.ndc, cameras_only, sfm_depth, undistort: self.undistort, aabb_scale: self.aabb_scale }
+        nerf_data::LoadOptions {
+            downscale: self.downscale,
+            views,
+            ndc: self.ndc,
+            cameras_only,
+            sfm_depth,
+            undistort: self.undistort,
+            aabb_scale: self.aabb_scale,
+            nerfstudio: self.nerfstudio,
+        }
     }
 
     /// The config a trainer that only renders a run needs: without the parts that act on the
@@ -434,6 +455,7 @@ impl TrainConfig {
         if let Some(s) = self.aabb_scale.filter(|s| !(s.is_finite() && *s > 0.0)) {
             return Err(format!("aabb_scale {s}: must be finite and above 0"));
         }
+        self.nerfstudio.validate().map_err(|e| format!("nerfstudio.{e}"))?;
         if self.batch_rays == 0 {
             return Err("batch_rays must be positive".into());
         }
