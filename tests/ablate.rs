@@ -841,3 +841,32 @@ name = "hash"
     assert!(!run_ablation(&ab, &registry, &opts).unwrap().runs[0].skipped);
     assert!(ck_path.is_file());
 }
+
+/// Runs whose configs load the scene differently (here instant-ngp's `aabb_scale`, which places
+/// the scene in another box) each get their own load: the two runs train in different boxes
+/// and score differently, where a load shared by both would have given the same run twice.
+#[test]
+fn runs_that_load_the_scene_differently_get_their_own_load() {
+    let tmp = tempfile::tempdir().unwrap();
+    tiny_scene(tmp.path());
+    let file = tmp.path().join("box.toml");
+    let text = r#"
+scenes = ["lego_tiny"]
+test_views = "all"
+[budget]
+iters = 3
+[[runs]]
+name = "box1"
+config = { field = "freq", aabb_scale = 1.0, batch_rays = 64, field_config = { width = 16, depth = 2, skips = [], view_width = 8 }, sampler = { kind = "hierarchical", n_coarse = 8, n_fine = 8 } }
+[[runs]]
+name = "box4"
+config = { field = "freq", aabb_scale = 4.0, batch_rays = 64, field_config = { width = 16, depth = 2, skips = [], view_width = 8 }, sampler = { kind = "hierarchical", n_coarse = 8, n_fine = 8 } }
+"#;
+    std::fs::write(&file, text).unwrap();
+    let opts = AblateOptions { out_dir: tmp.path().join("out"), verbose: false, device: nerf::gpu::DevicePreference::Cpu };
+    let report = run_ablation(&Ablation::load(&file).unwrap(), &nerf::registry(), &opts).unwrap();
+    let psnr: Vec<f64> = report.runs.iter().map(|r| r.metrics.test_psnr).collect();
+    assert_eq!(psnr.len(), 2);
+    assert!(psnr.iter().all(|p| p.is_finite()), "{psnr:?}");
+    assert_ne!(psnr[0], psnr[1], "each box its own load");
+}
