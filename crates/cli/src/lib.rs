@@ -130,6 +130,13 @@ struct TrainArgs {
     /// nerfstudio's `--scale-factor`: a further scale of the poses [default: 1].
     #[arg(long = "scale-factor", value_name = "S")]
     scale_factor: Option<f64>,
+    /// Which views of a scene without split files (one transforms.json, a COLMAP folder, an
+    /// LLFF scene) are held out for testing, nerfstudio's `--eval-mode`: `interval:K` (every
+    /// K-th), `fraction:F` (nerfstudio's default: the fraction F trains, evenly spread, e.g.
+    /// `fraction:0.9`) or `all` (every view trains and tests); frames taken in the order of their
+    /// images' names [default: every 8th view in the file's order]. eval and render follow the run.
+    #[arg(long, value_name = "interval:K|fraction:F|all")]
+    holdout: Option<nerf::data::Holdout>,
     /// Output folder.
     #[arg(long, default_value = "runs/latest")]
     out: PathBuf,
@@ -748,6 +755,9 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     }
     if let Some(f) = a.scale_factor {
         c.nerfstudio.scale_factor = f;
+    }
+    if let Some(h) = a.holdout {
+        c.holdout = Some(h);
     }
     if a.undistort {
         c.undistort = true;
@@ -1709,7 +1719,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
     };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort, aabb_scale: None, nerfstudio: Default::default() };
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort, aabb_scale: None, nerfstudio: Default::default(), holdout: None };
         let mut ds = load_scene(&a.src, split, &opts)?;
         if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
             let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));

@@ -1370,6 +1370,18 @@ fn a_nerfstudio_capture_run_writes_its_dataparser_transforms() {
     assert_eq!(e["test_psnr"], m["test_psnr"]);
     let o = train_tiny(&scene, &d.path().join("bad"), &["--iters", "1", "--scale-factor", "0"]);
     assert_clean_failure(&o, &["scale_factor", "above 0"]);
+    // nerfstudio's `--eval-mode fraction`: 9 of the 10 frames train, one tests (every 8th: two).
+    let held = |name: &str, extra: &[&str]| -> serde_json::Value {
+        let run = d.path().join(name);
+        let o = train_tiny(&scene, &run, &[&["--iters", "1", "--device", "cpu", "--test-views", "all"], extra].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap()
+    };
+    let (every8, frac) = (held("every8", &[]), held("frac", &["--holdout", "fraction:0.9"]));
+    assert_eq!((every8["n_test_views"].as_u64(), every8["config"].get("holdout")), (Some(2), None), "{every8}");
+    assert_eq!((frac["n_test_views"].as_u64(), frac["config"]["holdout"].as_str()), (Some(1), Some("fraction:0.9")), "{frac}");
+    let o = train_tiny(&scene, &d.path().join("bad"), &["--iters", "1", "--holdout", "fraction:1.5"]);
+    assert!(o.status.code() == Some(2) && stderr(&o).contains("invalid holdout"), "{}", stderr(&o));
     let blender = d.path().join("blender_run");
     let o = train_tiny(&small_scene(d.path()), &blender, &["--iters", "1", "--device", "cpu"]);
     assert!(o.status.success(), "{}", stderr(&o));

@@ -371,6 +371,97 @@ impl From<ViewSelection> for String {
     }
 }
 
+/// How a scene without split files (one `transforms.json`, a COLMAP folder, an LLFF scene)
+/// holds views out for testing: nerfstudio's dataparser `eval_mode`. Serialised as its string
+/// form (`"interval:8"`, `"fraction:0.9"`, `"all"`), as on the command line. The frames are
+/// taken in the order of their images' names (nerfstudio sorts them so), and the split is:
+/// - `interval:K` (K ≥ 2; nerfstudio's `interval` with `eval_interval = K`): views `0, K, 2K, …`
+///   test, the others train;
+/// - `fraction:F` (0 < F < 1; nerfstudio's default `fraction` with `train_split_fraction = F`):
+///   `⌈N·F⌉` training views evenly spaced from the first to the last
+///   (`linspace(0, N − 1, ⌈N·F⌉)` truncated), the others test;
+/// - `all` (nerfstudio's `all`): every view both trains and tests.
+///
+/// Without one ([`LoadOptions::holdout`] `None`) a scene keeps every 8th view in the file's order
+/// for testing, as nerf-pytorch and instant-ngp's scripts do. A file's own
+/// `train_filenames` / `test_filenames` lists win over either.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub enum Holdout {
+    /// Every K-th view tests (K ≥ 2).
+    Interval(usize),
+    /// This fraction of the views trains (0 < F < 1).
+    Fraction(f64),
+    /// Every view trains and tests.
+    All,
+}
+
+impl Holdout {
+    /// The indices of `split` among `n` views (in the order the split is taken in).
+    pub fn indices(&self, n: usize, split: Split) -> Vec<usize> {
+        let train = split == Split::Train;
+        match *self {
+            Holdout::Interval(k) => (0..n).filter(|i| (i % k == 0) != train).collect(),
+            Holdout::Fraction(f) => {
+                let n_train = ((n as f64) * f).ceil() as usize;
+                // numpy's linspace(0, n − 1, n_train, dtype=int): i·step with step = (n − 1)/(m − 1),
+                // the last exactly n − 1, the floats truncated.
+                let chosen: Vec<usize> = match n_train {
+                    0 => vec![],
+                    1 => vec![0],
+                    m => {
+                        let step = (n - 1) as f64 / (m - 1) as f64;
+                        (0..m).map(|i| if i + 1 == m { n - 1 } else { (i as f64 * step) as usize }).collect()
+                    }
+                };
+                (0..n).filter(|i| chosen.contains(i) == train).collect()
+            }
+            Holdout::All => (0..n).collect(),
+        }
+    }
+}
+
+impl std::fmt::Display for Holdout {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Holdout::Interval(k) => write!(f, "interval:{k}"),
+            Holdout::Fraction(x) => write!(f, "fraction:{x}"),
+            Holdout::All => write!(f, "all"),
+        }
+    }
+}
+
+impl std::str::FromStr for Holdout {
+    type Err = String;
+    /// Parses `"interval:K"` (K ≥ 2), `"fraction:F"` (0 < F < 1) or `"all"`.
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || format!("invalid holdout `{s}` (expected `interval:K` with K >= 2, `fraction:F` with 0 < F < 1, or `all`)");
+        let t = s.trim();
+        if t == "all" {
+            return Ok(Holdout::All);
+        }
+        let (kind, num) = t.split_once(':').ok_or_else(bad)?;
+        match kind.trim() {
+            "interval" => num.trim().parse::<usize>().ok().filter(|k| *k >= 2).map(Holdout::Interval).ok_or_else(bad),
+            "fraction" => num.trim().parse::<f64>().ok().filter(|f| *f > 0.0 && *f < 1.0).map(Holdout::Fraction).ok_or_else(bad),
+            _ => Err(bad()),
+        }
+    }
+}
+
+impl TryFrom<String> for Holdout {
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        s.parse()
+    }
+}
+
+impl From<Holdout> for String {
+    fn from(v: Holdout) -> String {
+        v.to_string()
+    }
+}
+
 /// Options of [`load_blender`].
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct LoadOptions {
@@ -419,6 +510,10 @@ pub struct LoadOptions {
     /// (nerfstudio's dataparser options; the defaults are its). Other formats ignore it.
     #[serde(default)]
     pub nerfstudio: NerfstudioOptions,
+    /// How a scene without split files holds views out for testing ([`Holdout`]); `None` (the
+    /// default): every 8th view in the file's order.
+    #[serde(default)]
+    pub holdout: Option<Holdout>,
 }
 
 impl Default for LoadOptions {
@@ -433,6 +528,7 @@ impl Default for LoadOptions {
             undistort: false,
             aabb_scale: None,
             nerfstudio: NerfstudioOptions::default(),
+            holdout: None,
         }
     }
 }
@@ -1704,7 +1800,16 @@ fn load_transforms_with(
                 }
                 (0..frames.len()).filter(|&i| wanted.contains(&frames[i].image)).collect()
             }
-            None => llff::split_indices(frames.len(), split),
+            None => match opts.holdout {
+                None => llff::split_indices(frames.len(), split),
+                // nerfstudio's eval modes take the frames in the order of their images' names
+                // (and so does the split).
+                Some(h) => {
+                    let mut by_name: Vec<usize> = (0..frames.len()).collect();
+                    by_name.sort_by(|&a, &b| frames[a].image.cmp(&frames[b].image));
+                    h.indices(frames.len(), split).into_iter().map(|i| by_name[i]).collect()
+                }
+            },
         }
     } else {
         (0..frames.len()).collect()
@@ -2566,6 +2671,37 @@ fn focal_keys(k: &nerf_rays::Intrinsics) -> [(&'static str, f64); 4] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// nerfstudio's eval modes: `fraction` as numpy's `linspace(0, N − 1, ⌈N·F⌉, dtype=int)` leaves
+    /// out (the held-out indices printed by numpy 1.24 for these N and F), `interval` every K-th,
+    /// `all` everything in both splits; the string forms round-trip and bad ones are refused.
+    #[test]
+    fn holdouts_split_as_nerfstudio() {
+        let eval = |n: usize, f: f64| Holdout::Fraction(f).indices(n, Split::Test);
+        assert_eq!(eval(10, 0.9), [8]);
+        assert_eq!(eval(25, 0.9), [11, 23]);
+        assert_eq!(eval(100, 0.9), [9, 19, 29, 39, 49, 59, 69, 79, 89, 98]);
+        assert_eq!(eval(37, 0.5), (1..36).step_by(2).collect::<Vec<_>>());
+        assert_eq!(eval(7, 0.3), [1, 2, 4, 5]);
+        let e300 = eval(300, 0.9);
+        assert_eq!((e300.len(), e300[0], e300[28], e300[29]), (30, 9, 289, 298));
+        for (n, f) in [(10, 0.9), (37, 0.5), (300, 0.9)] {
+            let (tr, te) = (Holdout::Fraction(f).indices(n, Split::Train), eval(n, f));
+            assert_eq!(tr.len(), (n as f64 * f).ceil() as usize);
+            let mut all: Vec<usize> = tr.into_iter().chain(te).collect();
+            all.sort_unstable();
+            assert_eq!(all, (0..n).collect::<Vec<_>>(), "each view in one split");
+        }
+        assert_eq!(Holdout::Interval(8).indices(20, Split::Test), [0, 8, 16]);
+        assert_eq!(Holdout::Interval(8).indices(20, Split::Train).len(), 17);
+        assert_eq!(Holdout::All.indices(5, Split::Test), Holdout::All.indices(5, Split::Train));
+        for s in ["interval:8", "fraction:0.9", "all"] {
+            assert_eq!(s.parse::<Holdout>().unwrap().to_string(), s);
+        }
+        for s in ["interval:1", "fraction:1", "fraction:0", "every:8", "fraction:x"] {
+            assert!(s.parse::<Holdout>().unwrap_err().contains("invalid holdout"), "{s}");
+        }
+    }
 
     #[test]
     fn view_selection_parse_and_indices() {

@@ -226,7 +226,11 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
     let near_bound = sc * rows.iter().map(|r| r.bounds[0]).fold(f64::INFINITY, f64::min);
     let far_bound = sc * rows.iter().map(|r| r.bounds[1]).fold(0.0, f64::max);
 
-    let selected_split = split_indices(rows.len(), split);
+    // The images are in the order of their names.
+    let selected_split = match opts.holdout {
+        Some(h) => h.indices(rows.len(), split),
+        None => split_indices(rows.len(), split),
+    };
     let selected: Vec<usize> = opts
         .views
         .indices(selected_split.len())

@@ -71,12 +71,12 @@ fn scene(dir: &Path, rows: &[[f64; 17]], factors: &[u32]) {
 
 /// Euclidean rays (`--no-ndc`): the loader's geometry checked in world units.
 fn opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default() }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None }
 }
 
 /// The default: NDC rays.
 fn ndc_opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default() }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None }
 }
 
 fn poses(ds: &Dataset) -> Vec<(glam::Mat3, Vec3)> {
@@ -106,6 +106,11 @@ fn poses_are_recentred_scaled_and_split_as_nerf_pytorch_does() {
     assert_eq!(names(&train).len(), 8);
     assert!(!names(&train).contains(&"IMG_008.png".to_string()));
     assert_eq!(names(&load_llff(dir.path(), Split::Val, &opts(2)).unwrap()), names(&test));
+    // nerfstudio's fraction split (`LoadOptions::holdout`): ⌈0.9·10⌉ = 9 train views spread as
+    // numpy's linspace(0, 9, 9) truncated, image 8 held out.
+    let frac = LoadOptions { holdout: Some(nerf_data::Holdout::Fraction(0.9)), ..opts(2) };
+    assert_eq!(names(&load_llff(dir.path(), Split::Test, &frac).unwrap()), ["IMG_008.png"]);
+    assert_eq!(names(&load_llff(dir.path(), Split::Train, &frac).unwrap()).len(), 9);
     // Images of images_2 (32×24), the focal of the full-resolution poses halved.
     assert_eq!((train.width, train.height), (32, 24));
     let k = train.cameras[0].intrinsics;

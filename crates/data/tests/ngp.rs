@@ -665,7 +665,7 @@ fn writing_keeps_pixel_intrinsics_and_the_box() {
 fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
     let Some(fern) = nerf_core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else { return };
     // Euclidean rays at 504×378 (images_8), both splits, as the LLFF loader reads them.
-    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default() };
+    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None };
     let (train, test) = (load_scene(&fern, Split::Train, &o).unwrap(), load_scene(&fern, Split::Test, &o).unwrap());
     let n = train.n_views() + test.n_views();
     let (mut tr, mut te) = (train.cameras.iter().zip(&train.file_paths), test.cameras.iter().zip(&test.file_paths));
@@ -947,4 +947,33 @@ impl WithAutoScale for nerf_data::NerfstudioOptions {
     fn with_auto_scale(self) -> Self {
         Self { auto_scale_poses: true, ..self }
     }
+}
+
+/// `LoadOptions::holdout` (nerfstudio's `eval_mode`): the frames are taken in the order of their
+/// images' names, whatever the file's order, and split by the rule; without it every 8th frame
+/// in the file's order tests; a file's own lists win over it.
+#[test]
+fn a_holdout_splits_the_frames_in_name_order() {
+    use nerf_data::Holdout;
+    let dir = tempfile::tempdir().unwrap();
+    // lego's 32 interleaved frames, written in reverse name order.
+    let mut frames = interleaved_lego();
+    frames.sort_by(|a, b| b["file_path"].as_str().cmp(&a["file_path"].as_str()));
+    let mut names: Vec<PathBuf> = frames.iter().map(|f| PathBuf::from(f["file_path"].as_str().unwrap())).collect();
+    write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 100.0, "frames": frames.clone()}));
+    let split = |h: Option<Holdout>, s: Split| load_scene(dir.path(), s, &LoadOptions { holdout: h, cameras_only: true, ..LoadOptions::default() }).unwrap().file_paths;
+    // Default: every 8th frame of the file.
+    assert_eq!(split(None, Split::Test), [0, 8, 16, 24].map(|i| names[i].clone()));
+    names.sort();
+    // nerfstudio's fraction 0.9 of the 32 sorted names: 29 train (numpy's linspace), 3 test.
+    let (train, test) = (split(Some(Holdout::Fraction(0.9)), Split::Train), split(Some(Holdout::Fraction(0.9)), Split::Test));
+    assert_eq!(train.len(), 29);
+    let want: Vec<PathBuf> = Holdout::Fraction(0.9).indices(32, Split::Test).into_iter().map(|i| names[i].clone()).collect();
+    assert_eq!((test.len(), &test), (3, &want));
+    assert!(train.iter().all(|p| !test.contains(p)));
+    assert_eq!(split(Some(Holdout::Interval(8)), Split::Test), [0, 8, 16, 24].map(|i| names[i].clone()));
+    assert_eq!(split(Some(Holdout::All), Split::Test).len(), 32);
+    // The file's lists win.
+    write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 100.0, "frames": frames, "train_filenames": [names[0]], "test_filenames": [names[1]]}));
+    assert_eq!(split(Some(Holdout::Fraction(0.5)), Split::Test), [names[1].clone()]);
 }

@@ -246,6 +246,12 @@ pub struct TrainConfig {
     /// nerfstudio's defaults (not serialised) unless set.
     #[serde(default, skip_serializing_if = "is_default_nerfstudio")]
     pub nerfstudio: nerf_data::NerfstudioOptions,
+    /// How a scene without split files holds test views out (`nerf_data::Holdout`:
+    /// `"interval:8"`, `"fraction:0.9"`, `"all"`; `nerf train --holdout`), nerfstudio's
+    /// `eval_mode`; every later load of the run takes it. `None` (the default, not serialised):
+    /// every 8th view in the file's order.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub holdout: Option<nerf_data::Holdout>,
     /// Which test views to evaluate on.
     pub test_views: ViewSelection,
     /// Log (and update the progress bar message) every this many steps.
@@ -389,6 +395,7 @@ impl Default for TrainConfig {
             undistort: false,
             aabb_scale: None,
             nerfstudio: nerf_data::NerfstudioOptions::default(),
+            holdout: None,
             test_views: ViewSelection::Every(8),
             log_every: 100,
             checkpoint_every: 1000,
@@ -428,6 +435,7 @@ impl TrainConfig {
             undistort: self.undistort,
             aabb_scale: self.aabb_scale,
             nerfstudio: self.nerfstudio,
+            holdout: self.holdout,
         }
     }
 
