@@ -66,6 +66,9 @@ fn write_geometry(r: u32, s: u32, t: f32) {
 // the occupancy marcher's), then with crop_c.w = 1 ∩ the crop box; [near, near] when empty.
 fn segment(r: u32) -> vec2<f32> {
     var seg = vec2<f32>(prm.near, prm.far);
+    if (prm.clip == 0u && prm.crop_c.w == 0.0) {
+        return seg;
+    }
     let o = vec3<f32>(origins[3u * r], origins[3u * r + 1u], origins[3u * r + 2u]);
     let d = vec3<f32>(ray_dirs[3u * r], ray_dirs[3u * r + 1u], ray_dirs[3u * r + 2u]);
     if (prm.clip != 0u) {

@@ -1273,23 +1273,17 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         .unwrap_or_else(|| nerf::rays::glam::Vec3::from_array(train.aabb.center()));
     // The crop: `--crop`, else a nerfstudio path's own (with its background colour).
     let background = config.eval_background.fixed_rgb();
-    let path_crop = match (a.crop, &user_path) {
-        (Some((lo, hi)), _) => Some(nerf::data::PathCrop {
-            center: std::array::from_fn(|i| 0.5 * (lo[i] + hi[i])),
-            rotation: [0.0; 3],
-            scale: std::array::from_fn(|i| hi[i] - lo[i]),
-            background,
-        }),
-        (None, Some(CameraPathFile::Nerfstudio(p))) => p.crop,
-        (None, _) => None,
-    };
-    let crop = match (a.crop, &path_crop) {
-        (Some((lo, hi)), _) => Some(nerf::sampling::CropBox::aabb(lo, hi).map_err(|e| anyhow::anyhow!("--crop: {e}"))?),
-        (None, Some(c)) => Some(
-            nerf::sampling::CropBox::oriented(c.center, c.rotation, c.scale)
-                .map_err(|e| anyhow::anyhow!("{}: crop: {e}", a.camera_path.as_deref().unwrap_or(Path::new("")).display()))?,
-        ),
-        (None, None) => None,
+    let (crop, path_crop) = match (a.crop, &user_path) {
+        (Some((lo, hi)), _) => {
+            let b = nerf::sampling::CropBox::aabb(lo, hi).map_err(|e| anyhow::anyhow!("--crop: {e}"))?;
+            (Some(b), Some(nerf::data::PathCrop { center: b.center, rotation: [0.0; 3], scale: b.size(), background }))
+        }
+        (None, Some(CameraPathFile::Nerfstudio(nerf::data::CameraPath { crop: Some(c), .. }))) => {
+            let b = nerf::sampling::CropBox::oriented(c.center, c.rotation, c.scale)
+                .map_err(|e| anyhow::anyhow!("{}: crop: {e}", a.camera_path.as_deref().unwrap_or(Path::new("")).display()))?;
+            (Some(b), Some(*c))
+        }
+        _ => (None, None),
     };
     let background = path_crop.map_or(background, |c| c.background);
     let (path, path_fps, next, path_lenses) = match user_path {

@@ -858,9 +858,8 @@ impl GpuEngine {
     }
 
     /// Crops the renders that follow to `crop` (`None`: none); training never crops.
-    pub(crate) fn set_render_crop(&mut self, crop: Option<nerf_sampling::CropBox>) -> Result<(), TrainError> {
+    pub(crate) fn set_render_crop(&mut self, crop: Option<nerf_sampling::CropBox>) {
         self.render_crop = crop;
-        Ok(())
     }
 
     /// Queues `crop` on the sampler for the submissions that follow (`None` puts training's

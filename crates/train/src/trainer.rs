@@ -855,8 +855,8 @@ impl Trainer {
     /// `render_aabb`, nerfstudio's crop box): every ray's segment, or its march through the
     /// occupancy grid, is clipped to the box, so only what lies inside is rendered and the rest
     /// is background. `None` renders the whole scene. Training never crops. Errors when the box
-    /// lies wholly outside the scene's box (it would render nothing), for NDC scenes (whose rays
-    /// are not in the scene's frame), or with a GPU sampler that cannot crop.
+    /// lies wholly outside the scene's box (it would render nothing) and for NDC scenes (whose
+    /// rays are not in the scene's frame). Every sampler crops, on either device.
     pub fn set_render_crop(&mut self, crop: Option<nerf_sampling::CropBox>) -> Result<(), TrainError> {
         if let Some(c) = &crop {
             if self.bounds.clip_to_box {
@@ -871,7 +871,7 @@ impl Trainer {
             }
         }
         if let Some(g) = self.gpu.as_mut() {
-            g.set_render_crop(crop)?;
+            g.set_render_crop(crop);
         }
         self.render_crop = crop;
         Ok(())
