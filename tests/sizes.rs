@@ -86,6 +86,7 @@ fn portrait_and_landscape_crops_train_the_field_on_both_devices() {
     let two = |d: &Dataset| d.select_views(&[0, 1]);
     let out = tempfile::tempdir().unwrap();
     let report = nerf::train::evaluate(&trained[1], &two(&crops), Some(out.path()), |_, _| {}).unwrap();
+    assert!(two(&crops).masks.is_some() && report.masked.is_none(), "views on a canvas keep all their own pixels: no masked scores");
     let whole = common::render_views(&trained[1], &two(&full));
     for (v, m) in report.views.iter().enumerate() {
         let (x0, y0, w, h) = crop_of(v);

@@ -906,6 +906,9 @@ fn cmd_train(a: TrainArgs, registry: &Registry) -> Result<()> {
     if let Some(d) = &s.eval.depth {
         println!("  {}", d.summary());
     }
+    if let Some(m) = &s.eval.masked {
+        println!("  {}", m.summary());
+    }
     Ok(())
 }
 
@@ -937,7 +940,7 @@ fn cmd_eval(a: EvalArgs, registry: &Registry) -> Result<()> {
     pb.finish_and_clear();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": ck.config.field, "split": a.split.name(), "iterations": ck.step, "device": trainer.device(), "adapter": trainer.adapter(), "spp": config.eval_spp, "filter": config.eval_filter, "sampler": config.sampler, "render_step_size": config.render_step_size, "background": config.eval_background, "test_psnr": report.psnr, "test_ssim": report.ssim,
-        "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "test_depth": report.depth, "per_view": report.views,
+        "n_test_views": report.views.len(), "width": test.width, "height": test.height, "alpha_split": report.alpha_split, "test_depth": report.depth, "test_masked": report.masked, "per_view": report.views,
     }))?;
     nerf::train::run::write_atomic(&out.join("eval.json"), text.as_bytes())?;
     let spp = match (config.eval_spp, config.eval_filter) {
@@ -951,6 +954,9 @@ fn cmd_eval(a: EvalArgs, registry: &Registry) -> Result<()> {
     }
     if let Some(d) = &report.depth {
         println!("  {}", d.summary());
+    }
+    if let Some(m) = &report.masked {
+        println!("  {}", m.summary());
     }
     Ok(())
 }

@@ -132,9 +132,62 @@ fn a_scene_with_masks_trains_and_a_missing_mask_is_named() {
     let o = train_tiny(&s, &d.path().join("run"), &["--iters", "2"]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stderr(&o).contains("training masks keep 50.0 % of the training views' pixels"), "{}", stderr(&o));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.path().join("run/metrics.json")).unwrap()).unwrap();
+    assert!(metrics["test_masked"].is_null() && metrics["per_view"][0].get("masked").is_none(), "test views without masks score whole: {metrics}");
     std::fs::remove_file(s.join("masks/1.png")).unwrap();
     let o = train_tiny(&s, &d.path().join("run2"), &["--iters", "1"]);
     assert_clean_failure(&o, &["masks/1.png", "mask of frame 1", "not found"]);
+}
+
+/// Test views with masks are also scored over the pixels their masks keep (`test_masked` and
+/// each view's `masked` in metrics.json and eval.json, printed by `nerf eval`): the scores agree
+/// with the written render against the ground truth over the kept pixels.
+#[test]
+fn test_views_with_masks_are_scored_over_the_kept_pixels() {
+    let d = tempfile::tempdir().unwrap();
+    let s = small_scene(d.path());
+    let p = s.join("transforms_test.json");
+    let mut t: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    std::fs::create_dir_all(s.join("masks")).unwrap();
+    // The top 20 rows of each 50×50 test view kept (40 %).
+    for (i, f) in t["frames"].as_array_mut().unwrap().iter_mut().enumerate() {
+        f["mask_path"] = serde_json::json!(format!("masks/t{i}.png"));
+        image::GrayImage::from_fn(50, 50, |_, y| image::Luma([if y < 20 { 255 } else { 0 }])).save(s.join(format!("masks/t{i}.png"))).unwrap();
+    }
+    std::fs::write(&p, serde_json::to_string(&t).unwrap()).unwrap();
+    let run = d.path().join("run");
+    let o = train_tiny(&s, &run, &["--iters", "3", "--device", "cpu"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["test_masked"]["kept_fraction"], 0.4, "{}", metrics["test_masked"]);
+    assert_eq!(metrics["per_view"][0]["masked"]["kept_fraction"], 0.4);
+    let o = nerf().arg("eval").arg(&run).arg(&s).args(["--quiet", "--device", "cpu"]).output().unwrap();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let out = String::from_utf8_lossy(&o.stdout).to_string();
+    assert!(out.contains("over the pixels the masks keep (40.0 % of them): PSNR"), "{out}");
+    let eval: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("eval/eval.json")).unwrap()).unwrap();
+    let (psnr, masked) = (eval["test_psnr"].as_f64().unwrap(), eval["test_masked"]["psnr"].as_f64().unwrap());
+    // The render as written against the ground truth on white, whole and over the kept rows.
+    let render = std::fs::read_dir(run.join("eval")).unwrap().map(|e| e.unwrap().path()).find(|p| p.extension().is_some_and(|e| e == "png")).unwrap();
+    let render = image::open(&render).unwrap().to_rgb8();
+    let file = t["frames"][0]["file_path"].as_str().unwrap().trim_start_matches("./");
+    let gt = image::open(s.join(format!("{file}.png"))).unwrap().to_rgba8();
+    let (mut sse, mut sse_kept) = (0.0f64, 0.0f64);
+    for (x, y, px) in gt.enumerate_pixels() {
+        let a = px[3] as f64 / 255.0;
+        for c in 0..3 {
+            let g = px[c] as f64 / 255.0 * a + (1.0 - a);
+            let e = (render.get_pixel(x, y)[c] as f64 / 255.0 - g).powi(2);
+            sse += e;
+            if y < 20 {
+                sse_kept += e;
+            }
+        }
+    }
+    let (whole, kept) = (-10.0 * (sse / 7500.0).log10(), -10.0 * (sse_kept / 3000.0).log10());
+    assert!((whole - psnr).abs() < 0.05, "whole view: {whole} from the PNG, {psnr} reported");
+    assert!((kept - masked).abs() < 0.05, "kept rows: {kept} from the PNG, {masked} reported");
+    assert!((masked - psnr).abs() > 0.1, "the kept rows score apart from the whole view: {masked} vs {psnr}");
 }
 
 /// A scene with depth maps (nerfstudio's `depth_file_path`, millimetres): `nerf train` says how

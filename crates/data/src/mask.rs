@@ -4,7 +4,7 @@
 //! [`crate::ngp::pixels_seen`]; see docs/formats.md). A masked-out pixel (a passer-by, the
 //! photographer's shadow, a car that moved between photos) is never drawn as a training ray;
 //! the others are drawn uniformly, as nerfstudio's pixel sampler does. Evaluation scores whole
-//! images.
+//! images, and test views with masks also over the pixels they keep (`nerf_train::MaskedMetrics`).
 //!
 //! [`PixelMasks`] keeps, per view, the sorted indices (`row·W + col`) of its kept pixels — or
 //! nothing for a view that keeps every pixel (a photo without a dynamic mask) — and the running

@@ -124,6 +124,26 @@ pub fn ssim(a: &[f32], b: &[f32], width: usize, height: usize) -> f64 {
 /// # Panics
 /// If a slice length differs from `3·width·height`.
 pub fn ssim_per_channel(a: &[f32], b: &[f32], width: usize, height: usize) -> [f64; 3] {
+    ssim_map_mean(a, b, width, height, None)
+}
+
+/// SSIM over the kept pixels of an image: [`ssim`]'s map averaged over the windows that hold
+/// kept pixels only (`keep`: one flag per pixel, row-major), so nothing a mask drops (a
+/// passer-by, the black beyond a fisheye's image circle) enters the score, not even through a
+/// neighbour's window. With every pixel kept it is [`ssim`] exactly. NaN when no 11×11 window
+/// holds kept pixels only (or the image is smaller than the window).
+///
+/// # Panics
+/// If a slice length differs from `3·width·height`, or `keep` from `width·height`.
+pub fn ssim_masked(a: &[f32], b: &[f32], width: usize, height: usize, keep: &[bool]) -> f64 {
+    assert_eq!(keep.len(), width * height, "ssim_masked: not one flag per pixel");
+    let s = ssim_map_mean(a, b, width, height, Some(keep));
+    (s[0] + s[1] + s[2]) / 3.0
+}
+
+/// The per-channel mean of the SSIM map over the valid positions whose window `keep` keeps
+/// whole (all without a mask).
+fn ssim_map_mean(a: &[f32], b: &[f32], width: usize, height: usize, keep: Option<&[bool]>) -> [f64; 3] {
     let n = 3 * width * height;
     assert_eq!(a.len(), n, "ssim: first image is not 3·width·height long");
     assert_eq!(b.len(), n, "ssim: second image is not 3·width·height long");
@@ -133,6 +153,26 @@ pub fn ssim_per_channel(a: &[f32], b: &[f32], width: usize, height: usize) -> [f
     }
     let win = ssim_window();
     let (vw, vh) = (width - 2 * SSIM_RADIUS, height - 2 * SSIM_RADIUS);
+    // With a mask: the summed-area table of dropped pixels, `(width + 1)·(height + 1)`, so that a
+    // window's count of them is four lookups.
+    let dropped: Option<Vec<u32>> = keep.map(|k| {
+        let mut sat = vec![0u32; (width + 1) * (height + 1)];
+        for y in 0..height {
+            let mut row = 0u32;
+            for x in 0..width {
+                row += u32::from(!k[y * width + x]);
+                sat[(y + 1) * (width + 1) + x + 1] = sat[y * (width + 1) + x + 1] + row;
+            }
+        }
+        sat
+    });
+    let whole_window_kept = |x: usize, y: usize| {
+        dropped.as_ref().is_none_or(|sat| {
+            let at = |yy: usize, xx: usize| sat[yy * (width + 1) + xx];
+            let (x1, y1) = (x + taps, y + taps);
+            at(y1, x1) + at(y, x) == at(y, x1) + at(y1, x)
+        })
+    };
     let c1 = (SSIM_K1 * 1.0).powi(2);
     let c2 = (SSIM_K2 * 1.0).powi(2);
 
@@ -165,12 +205,17 @@ pub fn ssim_per_channel(a: &[f32], b: &[f32], width: usize, height: usize) -> [f
         });
 
     // Vertical pass over valid rows, then the SSIM map, summed per output row.
-    let row_sums: Vec<[f64; 3]> = (0..vh)
+    let row_sums: Vec<([f64; 3], usize)> = (0..vh)
         .into_par_iter()
         .map(|y| {
             let mut sums = [0.0f64; 3];
+            let mut kept = 0usize;
             let mut acc = [0.0f64; M];
             for x in 0..vw {
+                if !whole_window_kept(x, y) {
+                    continue;
+                }
+                kept += 1;
                 acc.iter_mut().for_each(|v| *v = 0.0);
                 for (t, &w) in win.iter().enumerate() {
                     let h = &horiz[((y + t) * vw + x) * M..((y + t) * vw + x + 1) * M];
@@ -189,12 +234,12 @@ pub fn ssim_per_channel(a: &[f32], b: &[f32], width: usize, height: usize) -> [f
                     *sum += num / den;
                 }
             }
-            sums
+            (sums, kept)
         })
         .collect();
-    let count = (vw * vh) as f64;
+    let count = row_sums.iter().map(|(_, k)| k).sum::<usize>() as f64;
     let mut out = [0.0f64; 3];
-    for s in &row_sums {
+    for (s, _) in &row_sums {
         for c in 0..3 {
             out[c] += s[c];
         }

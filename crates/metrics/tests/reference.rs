@@ -1,7 +1,7 @@
 //! SSIM and PSNR against skimage (shared/reference/ssim.json), plus identity, symmetry and an
 //! independent brute-force implementation of skimage's reflect-filter-then-crop procedure.
 
-use nerf_metrics::{mse, psnr, ssim, ssim_per_channel, ssim_window};
+use nerf_metrics::{mse, psnr, ssim, ssim_masked, ssim_per_channel, ssim_window};
 use rand::{Rng, SeedableRng};
 use serde_json::Value;
 
@@ -90,6 +90,12 @@ fn identity_and_symmetry() {
 /// skimage's procedure literally: filter the whole image with a separable Gaussian in scipy
 /// "reflect" mode (d c b a | a b c d), compute the SSIM map, crop 5 pixels, mean.
 fn brute_force(a: &[f32], b: &[f32], w: usize, h: usize, c: usize) -> f64 {
+    brute_force_masked(a, b, w, h, c, &vec![true; w * h])
+}
+
+/// [`brute_force`] with the cropped map's mean taken over the positions whose 11×11 window
+/// `keep` keeps whole.
+fn brute_force_masked(a: &[f32], b: &[f32], w: usize, h: usize, c: usize, keep: &[bool]) -> f64 {
     let win = ssim_window();
     let refl = |i: isize, n: usize| -> usize {
         let n = n as isize;
@@ -136,6 +142,9 @@ fn brute_force(a: &[f32], b: &[f32], w: usize, h: usize, c: usize) -> f64 {
     for y in 5..h - 5 {
         for x in 5..w - 5 {
             let i = y * w + x;
+            if (y - 5..=y + 5).any(|yy| (x - 5..=x + 5).any(|xx| !keep[yy * w + xx])) {
+                continue;
+            }
             let vx = uxx[i] - ux[i] * ux[i];
             let vy = uyy[i] - uy[i] * uy[i];
             let vxy = uxy[i] - ux[i] * uy[i];
@@ -162,4 +171,35 @@ fn matches_brute_force_on_non_square_images() {
     let (a, b) = random_pair(w, h, 5);
     let s = ssim(&a, &b, w, h);
     assert!(s < 1.0 && (s - ssim(&b, &a, w, h)).abs() < 1e-12);
+}
+
+/// The masked SSIM is the map's mean over the windows of kept pixels only (against the brute
+/// force), the plain SSIM with every pixel kept, blind to what it drops, and NaN when no
+/// window is kept whole.
+#[test]
+fn masked_ssim_averages_the_kept_windows() {
+    let (w, h) = (41, 29);
+    let (a, mut b) = random_pair(w, h, 6);
+    assert_eq!(ssim_masked(&a, &b, w, h, &vec![true; w * h]), ssim(&a, &b, w, h));
+    // Drop a disc and a few random pixels; ruin the disc in `b` (a passer-by in the photo).
+    let mut r = rand::rngs::StdRng::seed_from_u64(7);
+    let in_disc = |i: usize| {
+        let (x, y) = ((i % w) as f64 - 25.0, (i / w) as f64 - 14.0);
+        x * x + y * y < 36.0
+    };
+    let keep: Vec<bool> = (0..w * h).map(|i| !in_disc(i) && r.gen::<f32>() > 0.005).collect();
+    let clean = b.clone();
+    for (i, p) in b.chunks_exact_mut(3).enumerate() {
+        if in_disc(i) {
+            p.copy_from_slice(&[1.0, 0.0, 1.0]);
+        }
+    }
+    let got = ssim_masked(&a, &b, w, h, &keep);
+    let want = (0..3).map(|c| brute_force_masked(&a, &b, w, h, c, &keep)).sum::<f64>() / 3.0;
+    assert!(got.is_finite() && (got - want).abs() < 1e-12, "masked {got} vs brute force {want}");
+    assert_eq!(got, ssim_masked(&a, &clean, w, h, &keep), "what the mask drops does not count");
+    assert!(ssim(&a, &b, w, h) < ssim(&a, &clean, w, h));
+    // A dropped pixel in every 11×11 window: none kept whole.
+    let sparse: Vec<bool> = (0..w * h).map(|i| !(i % w % 10 == 0 && i / w % 10 == 0)).collect();
+    assert!(ssim_masked(&a, &b, w, h, &sparse).is_nan());
 }

@@ -32,6 +32,80 @@ pub struct ViewMetrics {
     /// has measured pixels.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth: Option<DepthError>,
+    /// The scores over the pixels the view's mask keeps ([`MaskedMetrics`]); `None` unless some
+    /// view of the set has a mask that drops pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub masked: Option<MaskedMetrics>,
+}
+
+/// A view's PSNR and SSIM over the pixels its mask keeps ([`Dataset::masks`]: nerfstudio's
+/// `mask_path`, instant-ngp's dynamic masks, the pixels past a fisheye's
+/// `fisheye_crop_radius` or that a resampled photo did not see). A masked-out pixel holds
+/// something the field is not asked to reproduce (a passer-by, the black beyond the image
+/// circle), so these scores leave it out, while [`ViewMetrics::psnr`] and `ssim` score the
+/// whole image as nerfstudio's and instant-ngp's evaluations do. A view without a mask in a set
+/// with masks keeps every pixel and scores as the whole image. For a set of views, each value
+/// is the mean of the views' values.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MaskedMetrics {
+    /// Share of the view's pixels the mask keeps.
+    pub kept_fraction: f64,
+    /// PSNR over the kept pixels (the MSE of their values).
+    pub psnr: f64,
+    /// SSIM over the windows of kept pixels ([`nerf_metrics::ssim_masked`]).
+    pub ssim: f64,
+}
+
+impl MaskedMetrics {
+    /// The scores of a rendered view `rgb` (`w × h`, RGB) against its ground truth `gt` over the
+    /// pixels `keep` keeps (one flag per pixel); `None` when it keeps none.
+    pub fn of(rgb: &[f32], gt: &[f32], w: usize, h: usize, keep: &[bool]) -> Option<Self> {
+        let (sse, count) = nerf_metrics::sse_split(rgb, gt, 3, keep);
+        (count[1] > 0).then(|| Self {
+            kept_fraction: (count[1] / 3) as f64 / keep.len() as f64,
+            psnr: nerf_metrics::mse_to_psnr(sse[1] / count[1] as f64),
+            ssim: nerf_metrics::ssim_masked(rgb, gt, w, h, keep),
+        })
+    }
+
+    /// The mean of the views' scores; `None` when no view has them.
+    pub fn mean<'a>(views: impl Iterator<Item = &'a MaskedMetrics>) -> Option<Self> {
+        let (mut acc, mut n) = ([0.0f64; 3], 0usize);
+        for m in views {
+            acc[0] += m.kept_fraction;
+            acc[1] += m.psnr;
+            acc[2] += m.ssim;
+            n += 1;
+        }
+        (n > 0).then(|| Self { kept_fraction: acc[0] / n as f64, psnr: acc[1] / n as f64, ssim: acc[2] / n as f64 })
+    }
+
+    /// One line for a report.
+    pub fn summary(&self) -> String {
+        format!("over the pixels the masks keep ({:.1} % of them): PSNR {:.2} dB, SSIM {:.4}", 100.0 * self.kept_fraction, self.psnr, self.ssim)
+    }
+}
+
+/// Which pixels of view `i` (its own `w × h`, row-major) its mask keeps; `None` for a dataset
+/// without masks.
+fn kept_flags(data: &Dataset, i: usize) -> Option<Vec<bool>> {
+    let masks = data.masks.as_ref()?;
+    let (w, h) = data.view_size(i);
+    let (w, h, cw) = (w as usize, h as usize, data.width as usize);
+    Some(match masks.view(i) {
+        None => vec![true; w * h],
+        Some(list) => {
+            // Kept pixels are canvas indices (row·W + col of the dataset's W).
+            let mut keep = vec![false; w * h];
+            for &p in list {
+                let (row, col) = (p as usize / cw, p as usize % cw);
+                if row < h && col < w {
+                    keep[row * w + col] = true;
+                }
+            }
+            keep
+        }
+    })
 }
 
 /// Rendered expected depth against a depth map (`Dataset::depths`: distances along the rays, in
@@ -172,6 +246,10 @@ pub struct EvalReport {
     /// views that have measured pixels.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth: Option<DepthError>,
+    /// The mean of the views' scores over the pixels their masks keep ([`MaskedMetrics`]);
+    /// `None` unless some view has a mask that drops pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub masked: Option<MaskedMetrics>,
     /// Seconds spent rendering and scoring.
     pub seconds: f64,
     /// Seconds spent rendering alone (ray generation excluded; on the GPU including the upload of
@@ -272,8 +350,13 @@ pub fn evaluate(
         let alpha = image.chunks_exact(4).map(|p| p[3]);
         let alpha_split = AlphaSplit::of(&rgb, &opacity, gt, alpha);
         let depth = data.depths.as_ref().and_then(|d| DepthError::of(&depth, &data.view_crop(i, 1, &d[i])));
-        views.push(ViewMetrics { index: i, file, width: w as u32, height: h as u32, psnr, ssim, alpha_split, depth });
+        let masked = kept_flags(data, i).and_then(|keep| MaskedMetrics::of(&rgb, gt, w, h, &keep));
+        views.push(ViewMetrics { index: i, file, width: w as u32, height: h as u32, psnr, ssim, alpha_split, depth, masked });
         on_view(i + 1, data.n_views());
+    }
+    // Masks that drop nothing (views of several sizes each keep their own pixels) add nothing.
+    if views.iter().all(|v| v.masked.is_none_or(|m| m.kept_fraction == 1.0)) {
+        views.iter_mut().for_each(|v| v.masked = None);
     }
     let n = views.len().max(1) as f64;
     Ok(EvalReport {
@@ -281,6 +364,7 @@ pub fn evaluate(
         ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
         alpha_split: AlphaSplit::mean(views.iter().filter_map(|v| v.alpha_split.as_ref())),
         depth: DepthError::mean(views.iter().filter_map(|v| v.depth.as_ref())),
+        masked: MaskedMetrics::mean(views.iter().filter_map(|v| v.masked.as_ref())),
         views,
         seconds: t0.elapsed().as_secs_f64(),
         render_seconds,
@@ -289,7 +373,29 @@ pub fn evaluate(
 
 #[cfg(test)]
 mod tests {
-    use super::{AlphaSplit, DepthError, PassMean};
+    use super::{AlphaSplit, DepthError, MaskedMetrics, PassMean};
+
+    /// Over every pixel the masked scores are the whole view's; over some, the MSE of theirs;
+    /// over none, none.
+    #[test]
+    fn masked_metrics_score_the_kept_pixels() {
+        let (w, h) = (32, 16);
+        let gt: Vec<f32> = (0..3 * w * h).map(|i| ((i * 37) % 101) as f32 / 100.0).collect();
+        // The left half off by 0.1, the right half by 0.2.
+        let rgb: Vec<f32> = gt.iter().enumerate().map(|(i, &g)| g + if (i / 3) % w < w / 2 { 0.1 } else { 0.2 }).collect();
+        let all = MaskedMetrics::of(&rgb, &gt, w, h, &vec![true; w * h]).unwrap();
+        assert_eq!((all.kept_fraction, all.psnr, all.ssim), (1.0, nerf_metrics::psnr(&rgb, &gt), nerf_metrics::ssim(&rgb, &gt, w, h)));
+        let left: Vec<bool> = (0..w * h).map(|p| p % w < w / 2).collect();
+        let m = MaskedMetrics::of(&rgb, &gt, w, h, &left).unwrap();
+        assert_eq!(m.kept_fraction, 0.5);
+        assert!((m.psnr - 20.0).abs() < 1e-4, "{m:?}");
+        assert!(m.ssim.is_finite() && m.ssim != all.ssim, "{m:?}");
+        assert!(MaskedMetrics::of(&rgb, &gt, w, h, &vec![false; w * h]).is_none());
+        let mean = MaskedMetrics::mean([all, m].iter()).unwrap();
+        assert_eq!(mean.kept_fraction, 0.75);
+        assert!((mean.psnr - 0.5 * (all.psnr + m.psnr)).abs() < 1e-12);
+        assert!(MaskedMetrics::mean(std::iter::empty()).is_none());
+    }
 
     /// The mean of the passes lands in the buffers; a new first pass starts over at its size; one
     /// pass leaves the buffers alone.

@@ -24,7 +24,7 @@ pub use checkpoint::Checkpoint;
 pub use color::ColorState;
 pub use views::{ViewKind, ViewState};
 pub use config::{LossConfig, SamplerConfig, TrainConfig};
-pub use eval::{evaluate, AlphaSplit, DepthError, EvalReport, PassMean, ViewMetrics};
+pub use eval::{evaluate, AlphaSplit, DepthError, EvalReport, MaskedMetrics, PassMean, ViewMetrics};
 pub use profile::{GpuProfile, ProfileWindow};
 pub use run::{make_trainer, run, run_progress, RunOptions, RunSummary};
 pub use trainer::{ema_from_entries, ema_to_entries, seen_from_entry, seen_to_entry, SceneBounds, StepStats, Trainer, SEEN_ENTRY};

@@ -321,6 +321,7 @@ pub fn run(
         "device_note": trainer.device_note(),
         "alpha_split": report.alpha_split,
         "test_depth": report.depth,
+        "test_masked": report.masked,
         "per_view": report.views,
     });
     if let Some(c) = &corrections {
