@@ -386,6 +386,12 @@ struct RenderArgs {
     /// second (each frame in 256 colours: a preview to share; the PNGs keep full colour).
     #[arg(long, value_name = "FPS")]
     gif: Option<f32>,
+    /// Write the frames as RGBA PNGs with a transparent background (nerfstudio's `rgba`
+    /// output, instant-ngp's screenshots): the field's own colour, with its opacity as alpha,
+    /// to composite over anything (with `--crop`, a cut-out of the scene). The GIF, depth and
+    /// normal images still show the background.
+    #[arg(long)]
+    alpha: bool,
     /// Where to render: auto, cpu or gpu (as `train --device`).
     #[arg(long, default_value = "auto")]
     device: nerf::gpu::DevicePreference,
@@ -976,6 +982,7 @@ fn resume_point(
     shutter: f32,
     lenses: &serde_json::Value,
     crop: &serde_json::Value,
+    alpha: bool,
 ) -> Result<ResumePoint> {
     let file = out.join("render.json");
     let text = std::fs::read_to_string(&file).with_context(|| format!("{}: nothing to resume", file.display()))?;
@@ -1002,6 +1009,9 @@ fn resume_point(
     }
     if r.get("crop").unwrap_or(&serde_json::Value::Null) != crop {
         same("crop", crop.clone())?;
+    }
+    if r.get("alpha").and_then(serde_json::Value::as_bool).unwrap_or(false) != alpha {
+        same("alpha", alpha.into())?;
     }
     let done = r.get("frames").and_then(serde_json::Value::as_u64).with_context(|| format!("{}: no `frames`", file.display()))? as usize;
     let cams = r.get("camera_to_world").and_then(serde_json::Value::as_array).with_context(|| format!("{}: no `camera_to_world`", file.display()))?;
@@ -1438,12 +1448,20 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     // An interrupted render goes on where it stopped: its frames so far are kept (read back
     // into the GIF), its time and depth range carried over.
     let (start, mut render_seconds, mut depth_range) = match a.resume {
-        true => resume_point(&out, &path, projection.name(), points.len(), a.shutter, &lenses_json, &crop_json)?,
+        true => resume_point(&out, &path, projection.name(), points.len(), a.shutter, &lenses_json, &crop_json, a.alpha)?,
         false => (0, 0.0, None),
     };
+    let mut rgba = Vec::new();
     if let Some(g) = gif.as_mut() {
         for i in 0..start {
-            g.push(&nerf::data::load_png_rgb(&out.join(format!("frame_{i:04}.png")), k.width, k.height)?)?;
+            let frame = out.join(format!("frame_{i:04}.png"));
+            if a.alpha {
+                // The GIF shows the frames over the background.
+                nerf::render::over_background(&nerf::data::load_png_rgba(&frame, k.width, k.height)?, background, &mut gray);
+                g.push(&gray)?;
+            } else {
+                g.push(&nerf::data::load_png_rgb(&frame, k.width, k.height)?)?;
+            }
         }
     }
     // Ctrl-C stops after the frame being rendered; the frames so far and the json files stay.
@@ -1468,7 +1486,12 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
             mean.add(j, [&rgb, &opacity, &depth]);
         }
         mean.finish([&mut rgb, &mut opacity, &mut depth]);
-        nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
+        if a.alpha {
+            nerf::render::to_rgba(&rgb, &opacity, &bg, &mut rgba);
+            nerf::data::save_png_rgba(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgba)?;
+        } else {
+            nerf::data::save_png(&out.join(format!("frame_{i:04}.png")), k.width, k.height, &rgb)?;
+        }
         if a.normals {
             if points.len() > 1 {
                 // The surface of the pixel centres' rays (depth and opacity: the mean of the passes).
@@ -1508,7 +1531,7 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
     let cameras: Vec<_> = path[..done].iter().map(|c| c.c2w()).collect();
     let text = serde_json::to_string_pretty(&serde_json::json!({
         "field": config.field, "iterations": step, "device": trainer.device(), "adapter": trainer.adapter(),
-        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "shutter": a.shutter, "lenses": lenses_json, "crop": crop_json, "near": bounds.near, "far": bounds.far, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
+        "render_step_size": trainer.config().render_step_size, "spp": points.len(), "shutter": a.shutter, "lenses": lenses_json, "crop": crop_json, "alpha": a.alpha, "near": bounds.near, "far": bounds.far, "frames": done, "path_frames": n_frames, "camera_type": projection.name(), "width": k.width, "height": k.height, "render_seconds": render_seconds, "frames_per_second": fps,
         "depth_range": depth_range.map(|(lo, hi)| [lo, hi]),
         "camera_to_world": cameras,
     }))?;

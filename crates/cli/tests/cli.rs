@@ -1681,6 +1681,60 @@ fn render_crops_to_a_box() {
     assert_eq!(o.status.code(), Some(2), "a usage error: {}", stderr(&o));
 }
 
+/// `nerf render --alpha`: RGBA frames whose colour over the background is the plain render
+/// (to 8-bit rounding), transparent where the rays miss the crop box; render.json records it,
+/// `--resume` keeps it (and rebuilds the GIF over the background from the frames so far).
+#[test]
+fn render_alpha_writes_frames_without_their_background() {
+    let d = tempfile::tempdir().unwrap();
+    let (s, run) = tiny_cpu_run(d.path());
+    let render = |name: &str, extra: &[&str]| -> Output {
+        nerf().arg("render").arg(&run).arg(&s).args(["--width", "24", "--frames", "2", "--device", "cpu", "--quiet", "--crop", "-0.3,-1.5,-1.5,1.5,1.5,1.5", "--out"]).arg(d.path().join(name)).args(extra).output().unwrap()
+    };
+    let o = render("plain", &[]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = render("alpha", &["--alpha", "--gif", "10"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let frame = |name: &str, i: usize| image::open(d.path().join(format!("{name}/frame_{i:04}.png"))).unwrap();
+    for i in 0..2 {
+        let (plain, alpha) = (frame("plain", i), frame("alpha", i));
+        assert!(!plain.color().has_alpha() && alpha.color().has_alpha());
+        let (plain, alpha) = (plain.to_rgb8(), alpha.to_rgba8());
+        let (mut clear, mut seen) = (0, 0);
+        for (p, q) in plain.pixels().zip(alpha.pixels()) {
+            let a = q[3] as f64 / 255.0;
+            for c in 0..3 {
+                // Over the run's white background.
+                let over = q[c] as f64 / 255.0 * a + (1.0 - a);
+                assert!((over - p[c] as f64 / 255.0).abs() < 2.0 / 255.0, "frame {i}: {q:?} over white is not {p:?}");
+            }
+            if p.0 == [255, 255, 255] {
+                clear += usize::from(q[3] == 0);
+            }
+            seen += usize::from(q[3] > 0);
+        }
+        let n = (plain.width() * plain.height()) as usize;
+        assert!(clear > n / 4 && seen > 0, "frame {i}: {clear} transparent, {seen} with opacity, of {n}");
+    }
+    let json = |p: &str| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(d.path().join(p)).unwrap()).unwrap() };
+    assert_eq!((json("alpha/render.json")["alpha"].clone(), json("plain/render.json")["alpha"].clone()), (true.into(), false.into()));
+    assert!(d.path().join("alpha/render.gif").is_file());
+    // Resumed after its first frame: the second is rendered again, the GIF made anew.
+    let first = std::fs::read(d.path().join("alpha/frame_0001.png")).unwrap();
+    let mut r = json("alpha/render.json");
+    r["frames"] = 1.into();
+    r["camera_to_world"] = serde_json::json!([r["camera_to_world"][0].clone()]);
+    std::fs::write(d.path().join("alpha/render.json"), r.to_string()).unwrap();
+    std::fs::remove_file(d.path().join("alpha/frame_0001.png")).unwrap();
+    std::fs::remove_file(d.path().join("alpha/render.gif")).unwrap();
+    let o = render("alpha", &["--resume"]);
+    assert_clean_failure(&o, &["render.json", "alpha", "--resume"]);
+    let o = render("alpha", &["--alpha", "--gif", "10", "--resume"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(d.path().join("alpha/frame_0001.png")).unwrap(), first);
+    assert!(d.path().join("alpha/render.gif").is_file());
+}
+
 /// `nerf export-mesh`: a binary PLY triangle mesh inside the scene box with unit normals; a
 /// threshold above every density is a clear error that names the highest one, which then gives a
 /// mesh; bad arguments are clear errors.

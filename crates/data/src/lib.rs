@@ -2260,18 +2260,32 @@ pub fn save_png(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(),
     write_png(path, width, height, &bytes, image::ExtendedColorType::Rgb8)
 }
 
+/// Writes an `f32` RGBA image (`4·W·H` values in `[0, 1]`, straight alpha, clamped) as an 8-bit
+/// RGBA PNG (`nerf render --alpha`). Errors name the file.
+///
+/// # Panics
+/// If `rgba` is not `4·width·height` long.
+pub fn save_png_rgba(path: &Path, width: u32, height: u32, rgba: &[f32]) -> Result<(), DataError> {
+    assert_eq!(rgba.len(), 4 * width as usize * height as usize, "save_png_rgba: rgba is not 4·W·H long");
+    let bytes: Vec<u8> = rgba.iter().map(|&v| to_u8(v)).collect();
+    write_png(path, width, height, &bytes, image::ExtendedColorType::Rgba8)
+}
+
+/// Reads back an RGBA image [`save_png_rgba`] wrote: `4·W·H` values in `[0, 1]` (an RGB file's
+/// alpha is 1). Errors name the file: missing, undecodable, or not `width × height`.
+pub fn load_png_rgba(path: &Path, width: u32, height: u32) -> Result<Vec<f32>, DataError> {
+    let (w, h, px) = decode_rgba(path)?;
+    if (w, h) != (width, height) {
+        return Err(DataError::InvalidValue { path: path.to_path_buf(), key: "size".into(), reason: format!("{w}x{h}, expected {width}x{height}") });
+    }
+    Ok(px)
+}
+
 /// Reads back an RGB image [`save_png`] wrote (`nerf render --resume`): `3·W·H` values in
 /// `[0, 1]`, the alpha of an RGBA file dropped. Errors name the file: missing, undecodable, or
 /// not `width × height`.
 pub fn load_png_rgb(path: &Path, width: u32, height: u32) -> Result<Vec<f32>, DataError> {
-    let (w, h, px) = decode_rgba(path)?;
-    if (w, h) != (width, height) {
-        return Err(DataError::InvalidValue {
-            path: path.to_path_buf(),
-            key: "size".into(),
-            reason: format!("{w}x{h}, expected {width}x{height}"),
-        });
-    }
+    let px = load_png_rgba(path, width, height)?;
     Ok(px.chunks_exact(4).flat_map(|p| [p[0], p[1], p[2]]).collect())
 }
 

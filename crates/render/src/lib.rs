@@ -23,14 +23,17 @@
 //! [`normals_from_stencil`] and [`normals_to_rgb`] the density's gradient at each ray's surface
 //! point into a normal map. [`distortion_loss_grad`] is mip-NeRF 360's
 //! regulariser on the weights; [`color_correct_forward`] the per-view affine colour correction
-//! of real captures (exposure, white balance).
+//! of real captures (exposure, white balance). [`to_rgba`] takes a render apart from its
+//! background (transparent renders).
 
+mod alpha;
 mod color;
 mod depth;
 mod distortion;
 mod normals;
 mod points;
 
+pub use alpha::{over_background, to_rgba};
 pub use color::{
     color_correct_backward, color_correct_forward, identity_color_correction, mean_color_correction, COLOR_PARAMS_PER_VIEW,
 };
