@@ -1564,12 +1564,12 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         return Err(RenderInterrupted { done, total: n_frames, out }.into());
     }
     println!("{n_frames} frames at {}x{} ({fps:.2} frames/s on {}) -> {}", k.width, k.height, trainer.device(), out.display());
-    // A video at full colour is one ffmpeg call away.
-    println!(
-        "video: ffmpeg -framerate {video_fps} -i {} -pix_fmt yuv420p {}",
-        out.join("frame_%04d.png").display(),
-        out.join("render.mp4").display()
-    );
+    // A video at full colour is one ffmpeg call away (with --alpha, VP9 in WebM keeps the alpha).
+    let (codec, video) = match a.alpha {
+        true => ("-c:v libvpx-vp9 -pix_fmt yuva420p", "render.webm"),
+        false => ("-pix_fmt yuv420p", "render.mp4"),
+    };
+    println!("video: ffmpeg -framerate {video_fps} -i {} {codec} {}", out.join("frame_%04d.png").display(), out.join(video).display());
     Ok(())
 }
 

@@ -1695,6 +1695,7 @@ fn render_alpha_writes_frames_without_their_background() {
     assert!(o.status.success(), "{}", stderr(&o));
     let o = render("alpha", &["--alpha", "--gif", "10"]);
     assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("-pix_fmt yuva420p"), "a video that keeps the alpha: {}", String::from_utf8_lossy(&o.stdout));
     let frame = |name: &str, i: usize| image::open(d.path().join(format!("{name}/frame_{i:04}.png"))).unwrap();
     for i in 0..2 {
         let (plain, alpha) = (frame("plain", i), frame("alpha", i));
