@@ -371,6 +371,11 @@ struct RenderArgs {
     /// `turbo` (nerfstudio's: Google's Turbo colormap, near blue, far red, over the background).
     #[arg(long = "depth-colormap", value_enum, default_value = "gray", requires = "depth")]
     depth_colormap: DepthColormap,
+    /// The depths the `--depth` maps span, `NEAR,FAR` (scene units along the ray; NDC runs: NDC
+    /// depth), as nerfstudio's `--depth-near-plane` and `--depth-far-plane`: nearer is drawn as
+    /// NEAR, farther as FAR. By default the range of the first frame's surfaces.
+    #[arg(long = "depth-range", value_name = "NEAR,FAR", value_parser = parse_range, requires = "depth", allow_hyphen_values = true)]
+    depth_range: Option<(f32, f32)>,
     /// Continue a render that was interrupted (Ctrl-C) in `--out`: the frames its render.json
     /// counts are kept, and rendering goes on from the next. The command must be the one that
     /// started it (the same path, frame size, rays per pixel, lens and shutter); anything else is refused.
@@ -534,6 +539,15 @@ fn parse_box(s: &str) -> Result<([f32; 3], [f32; 3]), String> {
         return Err(format!("an empty box: {lo:?} to {hi:?}"));
     }
     Ok((lo, hi))
+}
+
+/// `near,far`: two finite numbers with `near < far`.
+fn parse_range(s: &str) -> Result<(f32, f32), String> {
+    let v: Vec<f32> = s.split(',').map(|x| x.trim().parse::<f32>().map_err(|e| format!("`{x}`: {e}"))).collect::<Result<_, _>>()?;
+    match v[..] {
+        [near, far] if near.is_finite() && far.is_finite() && near < far => Ok((near, far)),
+        _ => Err(format!("expected two finite numbers NEAR,FAR with NEAR < FAR, got `{s}`")),
+    }
 }
 
 /// The frames of `nerf render` (nerfstudio's camera types).
@@ -1451,6 +1465,13 @@ fn cmd_render(a: RenderArgs, registry: &Registry) -> Result<()> {
         true => resume_point(&out, &path, projection.name(), points.len(), a.shutter, &lenses_json, &crop_json, a.alpha)?,
         false => (0, 0.0, None),
     };
+    if let Some(want) = a.depth_range {
+        // A resumed render's frames so far span the range it recorded.
+        if let Some(got) = depth_range.filter(|&got| start > 0 && got != want) {
+            bail!("{}: the depth maps so far span {got:?}, not --depth-range {want:?}: --resume continues the render that was started, with the same path and options", out.join("render.json").display());
+        }
+        depth_range = Some(want);
+    }
     let mut rgba = Vec::new();
     if let Some(g) = gif.as_mut() {
         for i in 0..start {

@@ -1257,6 +1257,33 @@ fn render_draws_depth_in_turbo_colours() {
     assert!(o.status.code() == Some(2) && stderr(&o).contains("--depth"), "{}", stderr(&o));
 }
 
+/// `nerf render --depth --depth-range NEAR,FAR` draws the depth maps over that range
+/// (nerfstudio's depth near and far planes): a farther far plane draws every pixel at least as
+/// bright, the surfaces brighter; render.json records it, and `--resume` refuses another.
+#[test]
+fn render_draws_depth_over_a_given_range() {
+    let d = tempfile::tempdir().unwrap();
+    let (s, run) = tiny_cpu_run(d.path());
+    let render = |name: &str, extra: &[&str]| -> Output {
+        nerf().arg("render").arg(&run).arg(&s).args(["--frames", "2", "--width", "24", "--depth", "--device", "cpu", "--quiet", "--out"]).arg(d.path().join(name)).args(extra).output().unwrap()
+    };
+    let maps = |name: &str| -> Vec<u8> { (0..2).flat_map(|i| image::open(d.path().join(format!("{name}/depth_{i:04}.png"))).unwrap().to_luma8().into_raw()).collect() };
+    let json = |name: &str| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(d.path().join(format!("{name}/render.json"))).unwrap()).unwrap() };
+    // Lego's cameras are 4 from its centre: its surfaces lie between 2 and 6.
+    for (name, range) in [("near", "2,4"), ("wide", "2,8")] {
+        let o = render(name, &["--depth-range", range]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    assert_eq!(json("near")["depth_range"], serde_json::json!([2.0, 4.0]));
+    let (near, wide) = (maps("near"), maps("wide"));
+    assert!(near.iter().zip(&wide).all(|(a, w)| w >= a), "a farther far plane: no pixel darker");
+    assert!(near.iter().zip(&wide).filter(|(a, w)| w > a).count() > near.len() / 20, "and surfaces brighter");
+    let o = render("near", &["--depth-range", "2,8", "--resume"]);
+    assert_clean_failure(&o, &["render.json", "--depth-range", "--resume"]);
+    let o = render("bad", &["--depth-range", "3,1"]);
+    assert!(o.status.code() == Some(2) && stderr(&o).contains("NEAR < FAR"), "{}", stderr(&o));
+}
+
 /// `nerf render --normals` writes a normal map beside each frame, the size of the frame, each
 /// pixel a blend of a unit normal's colour and the white background by the frame's opacity.
 #[test]
