@@ -137,6 +137,12 @@ struct TrainArgs {
     /// images' names [default: every 8th view in the file's order]. eval and render follow the run.
     #[arg(long, value_name = "interval:K|fraction:F|all")]
     holdout: Option<nerf::data::Holdout>,
+    /// Which loader reads the scene folder, as nerfstudio's dataparser names one: `transforms`
+    /// (Blender, instant-ngp, nerfstudio), `llff` (poses_bounds.npy) or `colmap` (the sparse
+    /// model, whatever else the folder holds: mip-NeRF 360's scenes, which hold LLFF's poses
+    /// too) [default: auto, by what the folder holds]. eval and render follow the run.
+    #[arg(long = "scene-format", value_enum)]
+    scene_format: Option<FormatArg>,
     /// Output folder.
     #[arg(long, default_value = "runs/latest")]
     out: PathBuf,
@@ -520,6 +526,26 @@ enum OrientationArg {
     None,
 }
 
+/// `--scene-format`: `nerf_data::SceneFormat`.
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum FormatArg {
+    Auto,
+    Transforms,
+    Llff,
+    Colmap,
+}
+
+impl From<FormatArg> for nerf::data::SceneFormat {
+    fn from(f: FormatArg) -> Self {
+        match f {
+            FormatArg::Auto => Self::Auto,
+            FormatArg::Transforms => Self::Transforms,
+            FormatArg::Llff => Self::Llff,
+            FormatArg::Colmap => Self::Colmap,
+        }
+    }
+}
+
 /// `nerf train --center-method`.
 #[derive(Clone, Copy, clap::ValueEnum)]
 enum CenterArg {
@@ -584,6 +610,9 @@ struct ExportArgs {
     /// Downscale factor.
     #[arg(long, default_value_t = 8)]
     downscale: u32,
+    /// Which loader reads SRC (as `train --scene-format`).
+    #[arg(long = "scene-format", value_enum, default_value = "auto")]
+    scene_format: FormatArg,
     /// Training views to keep.
     #[arg(long = "train-views", default_value = "all")]
     train_views: ViewSelection,
@@ -778,6 +807,9 @@ fn build_config(a: &TrainArgs, registry: &Registry) -> Result<TrainConfig> {
     }
     if let Some(h) = a.holdout {
         c.holdout = Some(h);
+    }
+    if let Some(f) = a.scene_format {
+        c.scene_format = f.into();
     }
     if a.undistort {
         c.undistort = true;
@@ -1737,7 +1769,8 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         bail!("{}: destination must differ from the source", a.dst.display());
     }
     if a.sfm_depth {
-        let model = nerf::data::colmap::find_model(&a.src).filter(|_| nerf::data::is_colmap(&a.src));
+        let forced = matches!(a.scene_format, FormatArg::Colmap);
+        let model = nerf::data::colmap::find_model(&a.src).filter(|_| forced || nerf::data::is_colmap(&a.src));
         let Some(dir) = model else {
             bail!("{}: --sfm-depth needs a COLMAP folder (images/ and a sparse model, no transforms file)", a.src.display());
         };
@@ -1763,7 +1796,7 @@ fn cmd_export(a: ExportArgs) -> Result<()> {
         std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("{}: cannot write", path.display()))
     };
     for (split, views) in [(Split::Train, &a.train_views), (Split::Test, &a.test_views)] {
-        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort, aabb_scale: None, nerfstudio: Default::default(), holdout: None };
+        let opts = LoadOptions { downscale: a.downscale, views: views.clone(), ndc: false, cameras_only: false, sfm_depth: a.sfm_depth, undistort: a.undistort, aabb_scale: None, nerfstudio: Default::default(), holdout: None, format: a.scene_format.into() };
         let mut ds = load_scene(&a.src, split, &opts)?;
         if split == Split::Train && (a.pose_noise_rot.is_some() || a.pose_noise_trans.is_some()) {
             let (rot, trans) = (a.pose_noise_rot.unwrap_or(0.0), a.pose_noise_trans.unwrap_or(0.0));

@@ -277,6 +277,31 @@ fn colmap_lego(dir: &Path) -> PathBuf {
     root
 }
 
+/// `--scene-format colmap` reads a folder's COLMAP model whatever else it holds (mip-NeRF 360's
+/// scenes hold LLFF's poses_bounds.npy beside it, which the default would read); the run records
+/// it, so `nerf eval` loads the same; a format whose files are missing is named.
+#[test]
+fn scene_format_picks_the_loader_and_the_run_keeps_it() {
+    let d = tempfile::tempdir().unwrap();
+    let src = colmap_lego(d.path());
+    // Poses the LLFF loader cannot read: the default loader reads them and fails.
+    std::fs::write(src.join("poses_bounds.npy"), b"not an array").unwrap();
+    let o = train_tiny(&src, &d.path().join("auto"), &["--iters", "1", "--device", "cpu"]);
+    assert_clean_failure(&o, &["poses_bounds.npy"]);
+    let run = d.path().join("run");
+    let o = train_tiny(&src, &run, &["--iters", "2", "--device", "cpu", "--scene-format", "colmap"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(run.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["config"]["scene_format"], "colmap");
+    let o = nerf().arg("eval").arg(&run).arg(&src).args(["--quiet", "--device", "cpu"]).output().unwrap();
+    assert!(o.status.success(), "eval reads the model as the run did: {}", stderr(&o));
+    // A format whose files the folder lacks.
+    let o = train_tiny(&repo().join("scenes/lego_100"), &d.path().join("llff"), &["--iters", "1", "--scene-format", "llff"]);
+    assert_clean_failure(&o, &["poses_bounds.npy"]);
+    let o = train_tiny(&repo().join("scenes/lego_100"), &d.path().join("colmap"), &["--iters", "1", "--scene-format", "colmap"]);
+    assert_clean_failure(&o, &["sparse/0"]);
+}
+
 /// `nerf export-scene --sfm-depth` writes a COLMAP folder's points as sparse depth maps beside
 /// the images (what `nerf train` with `depth_loss` trains on, and depth-nerfacto reads); on a
 /// scene that is not a COLMAP folder it says so.

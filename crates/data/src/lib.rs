@@ -514,6 +514,44 @@ pub struct LoadOptions {
     /// default): every 8th view in the file's order.
     #[serde(default)]
     pub holdout: Option<Holdout>,
+    /// Which loader reads the folder ([`SceneFormat`]; [`load_scene`]); the default tells by
+    /// what the folder holds.
+    #[serde(default)]
+    pub format: SceneFormat,
+}
+
+/// Which of the loaders reads a scene folder ([`load_scene`]), as nerfstudio's dataparser
+/// names one. A folder may hold several descriptions of one capture: mip-NeRF 360's scenes hold
+/// LLFF's `poses_bounds.npy` beside the COLMAP model it was made from, and `ns-process-data`
+/// writes a `transforms.json` beside its COLMAP model. Serialised as `auto`, `transforms`,
+/// `llff` or `colmap`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SceneFormat {
+    /// By what the folder holds: LLFF where it holds `poses_bounds.npy`, COLMAP where it holds a
+    /// sparse model and no transforms file, else the transforms files.
+    #[default]
+    Auto,
+    /// Transforms files: Blender's `transforms_<split>.json`, instant-ngp's and nerfstudio's
+    /// `transforms.json` ([`load_blender`]).
+    Transforms,
+    /// LLFF's `poses_bounds.npy` ([`load_llff`]).
+    Llff,
+    /// COLMAP's sparse model, in `sparse/0/` or `colmap/sparse/0/` ([`load_colmap`]), whatever
+    /// else the folder holds.
+    Colmap,
+}
+
+impl SceneFormat {
+    /// The name it is serialised and given on the command line as.
+    pub fn name(self) -> &'static str {
+        match self {
+            SceneFormat::Auto => "auto",
+            SceneFormat::Transforms => "transforms",
+            SceneFormat::Llff => "llff",
+            SceneFormat::Colmap => "colmap",
+        }
+    }
 }
 
 impl Default for LoadOptions {
@@ -529,6 +567,7 @@ impl Default for LoadOptions {
             aabb_scale: None,
             nerfstudio: NerfstudioOptions::default(),
             holdout: None,
+            format: SceneFormat::Auto,
         }
     }
 }
@@ -1588,16 +1627,18 @@ fn to_canvas(
     PixelMasks::with_shared_views(canvas.0 * canvas.1, kept)
 }
 
-/// Loads one split of a scene in any format: LLFF ([`load_llff`]) where the folder holds
-/// `poses_bounds.npy`, COLMAP ([`load_colmap`]) where it holds a sparse model and no transforms
-/// file, else Blender or instant-ngp / nerfstudio ([`load_blender`]).
+/// Loads one split of a scene in any format, by [`LoadOptions::format`]; by default LLFF
+/// ([`load_llff`]) where the folder holds `poses_bounds.npy`, COLMAP ([`load_colmap`]) where it
+/// holds a sparse model and no transforms file, else Blender or instant-ngp / nerfstudio
+/// ([`load_blender`]).
 pub fn load_scene(root: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset, DataError> {
-    if is_llff(root) {
-        load_llff(root, split, opts)
-    } else if is_colmap(root) {
-        load_colmap(root, split, opts)
-    } else {
-        load_blender(root, split, opts)
+    match opts.format {
+        SceneFormat::Llff => load_llff(root, split, opts),
+        SceneFormat::Colmap => load_colmap(root, split, opts),
+        SceneFormat::Transforms => load_blender(root, split, opts),
+        SceneFormat::Auto if is_llff(root) => load_llff(root, split, opts),
+        SceneFormat::Auto if is_colmap(root) => load_colmap(root, split, opts),
+        SceneFormat::Auto => load_blender(root, split, opts),
     }
 }
 

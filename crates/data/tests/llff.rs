@@ -71,12 +71,12 @@ fn scene(dir: &Path, rows: &[[f64; 17]], factors: &[u32]) {
 
 /// Euclidean rays (`--no-ndc`): the loader's geometry checked in world units.
 fn opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None, format: Default::default() }
 }
 
 /// The default: NDC rays.
 fn ndc_opts(k: u32) -> LoadOptions {
-    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None }
+    LoadOptions { downscale: k, views: ViewSelection::All, ndc: true, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None, format: Default::default() }
 }
 
 fn poses(ds: &Dataset) -> Vec<(glam::Mat3, Vec3)> {
@@ -194,7 +194,15 @@ fn ndc_rays_are_nerf_pytorchs_and_the_box_holds_their_whole_segment() {
     scene(bad.path(), &rows, &[2]);
     let e = load_llff(bad.path(), Split::Train, &ndc_opts(2)).unwrap_err().to_string();
     assert!(e.contains("poses_bounds.npy") && e.contains("forward-facing") && e.contains("--no-ndc"), "{e}");
+    assert!(!e.contains("--scene-format"), "{e}");
     assert!(load_llff(bad.path(), Split::Train, &opts(2)).is_ok());
+    // With a COLMAP model beside the poses (mip-NeRF 360's scenes), the message points to it.
+    std::fs::create_dir_all(bad.path().join("sparse/0")).unwrap();
+    for f in ["cameras.txt", "images.txt"] {
+        std::fs::write(bad.path().join("sparse/0").join(f), "").unwrap();
+    }
+    let e = load_llff(bad.path(), Split::Train, &ndc_opts(2)).unwrap_err().to_string();
+    assert!(e.contains("--no-ndc") && e.contains("--scene-format colmap"), "{e}");
 }
 
 fn assert_same_poses_only(a: &Dataset, b: &Dataset) {

@@ -665,7 +665,7 @@ fn writing_keeps_pixel_intrinsics_and_the_box() {
 fn fern_stored_as_one_transforms_json_gives_the_llff_cameras() {
     let Some(fern) = nerf_core::shared::data(env!("CARGO_MANIFEST_DIR"), "nerf_llff_data/fern") else { return };
     // Euclidean rays at 504×378 (images_8), both splits, as the LLFF loader reads them.
-    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None };
+    let o = LoadOptions { downscale: 8, views: ViewSelection::All, ndc: false, cameras_only: false, sfm_depth: false, undistort: false, aabb_scale: None, nerfstudio: Default::default(), holdout: None, format: Default::default() };
     let (train, test) = (load_scene(&fern, Split::Train, &o).unwrap(), load_scene(&fern, Split::Test, &o).unwrap());
     let n = train.n_views() + test.n_views();
     let (mut tr, mut te) = (train.cameras.iter().zip(&train.file_paths), test.cameras.iter().zip(&test.file_paths));

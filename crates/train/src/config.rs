@@ -252,6 +252,11 @@ pub struct TrainConfig {
     /// every 8th view in the file's order.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub holdout: Option<nerf_data::Holdout>,
+    /// Which loader reads the scene folder (`nerf_data::SceneFormat`: `"auto"`, `"transforms"`,
+    /// `"llff"`, `"colmap"`; `nerf train --scene-format`); every later load of the run takes it.
+    /// `"auto"` (the default, not serialised): by what the folder holds.
+    #[serde(default, skip_serializing_if = "is_auto_format")]
+    pub scene_format: nerf_data::SceneFormat,
     /// Which test views to evaluate on.
     pub test_views: ViewSelection,
     /// Log (and update the progress bar message) every this many steps.
@@ -356,6 +361,11 @@ impl Default for ColorCorrectionConfig {
     }
 }
 
+/// Whether the scene format is told by the folder (left out of a serialised config).
+fn is_auto_format(f: &nerf_data::SceneFormat) -> bool {
+    *f == nerf_data::SceneFormat::Auto
+}
+
 /// Whether the dataparser options are nerfstudio's defaults (left out of a serialised config).
 fn is_default_nerfstudio(o: &nerf_data::NerfstudioOptions) -> bool {
     *o == nerf_data::NerfstudioOptions::default()
@@ -396,6 +406,7 @@ impl Default for TrainConfig {
             aabb_scale: None,
             nerfstudio: nerf_data::NerfstudioOptions::default(),
             holdout: None,
+            scene_format: nerf_data::SceneFormat::Auto,
             test_views: ViewSelection::Every(8),
             log_every: 100,
             checkpoint_every: 1000,
@@ -436,6 +447,7 @@ impl TrainConfig {
             aabb_scale: self.aabb_scale,
             nerfstudio: self.nerfstudio,
             holdout: self.holdout,
+            format: self.scene_format,
         }
     }
 
