@@ -5,7 +5,7 @@ use crate::spec::{Ablation, RunPlan};
 use crate::AblateError;
 use nerf_data::{load_scene, Dataset, LoadOptions, Split, ViewSelection};
 use nerf_field::Registry;
-use nerf_train::{evaluate, make_trainer, AlphaSplit, Checkpoint, DepthError, EvalReport, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
+use nerf_train::{evaluate, make_trainer, AlphaSplit, Checkpoint, DepthError, EvalReport, MaskedMetrics, SceneBounds, TrainConfig, TrainError, Trainer, ViewMetrics};
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -107,6 +107,10 @@ pub struct RunMetrics {
     /// The last evaluation's depth error against the test views' depth maps (scenes with them).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub test_depth: Option<DepthError>,
+    /// The last evaluation's scores over the pixels the test views' masks keep (scenes whose
+    /// test views have masks).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_masked: Option<MaskedMetrics>,
     /// The last evaluation's metrics per test view.
     #[serde(default)]
     pub per_view: Vec<ViewMetrics>,
@@ -374,6 +378,7 @@ pub fn train_run(
         curve,
         alpha_split: report.alpha_split,
         test_depth: report.depth,
+        test_masked: report.masked,
         per_view: report.views,
         train_log,
         config_hash: plan.config_hash.clone(),
