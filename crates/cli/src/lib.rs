@@ -133,9 +133,10 @@ struct TrainArgs {
     /// Which views of a scene without split files (one transforms.json, a COLMAP folder, an
     /// LLFF scene) are held out for testing, nerfstudio's `--eval-mode`: `interval:K` (every
     /// K-th), `fraction:F` (nerfstudio's default: the fraction F trains, evenly spread, e.g.
-    /// `fraction:0.9`) or `all` (every view trains and tests); frames taken in the order of their
-    /// images' names [default: every 8th view in the file's order]. eval and render follow the run.
-    #[arg(long, value_name = "interval:K|fraction:F|all")]
+    /// `fraction:0.9`), `all` (every view trains and tests) or `filename` (images named with
+    /// `train` train, those with `eval` test); frames taken in the order of their images' names
+    /// [default: every 8th view in the file's order]. eval and render follow the run.
+    #[arg(long, value_name = "interval:K|fraction:F|all|filename")]
     holdout: Option<nerf::data::Holdout>,
     /// Which loader reads the scene folder, as nerfstudio's dataparser names one: `transforms`
     /// (Blender, instant-ngp, nerfstudio), `llff` (poses_bounds.npy) or `colmap` (the sparse

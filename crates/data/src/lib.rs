@@ -380,7 +380,9 @@ impl From<ViewSelection> for String {
 /// - `fraction:F` (0 < F < 1; nerfstudio's default `fraction` with `train_split_fraction = F`):
 ///   `⌈N·F⌉` training views evenly spaced from the first to the last
 ///   (`linspace(0, N − 1, ⌈N·F⌉)` truncated), the others test;
-/// - `all` (nerfstudio's `all`): every view both trains and tests.
+/// - `all` (nerfstudio's `all`): every view both trains and tests;
+/// - `filename` (nerfstudio's `filename`): views whose image's file name contains `train` train,
+///   the others test, and each of those must contain `eval` (an error names one that does not).
 ///
 /// Without one ([`LoadOptions::holdout`] `None`) a scene keeps every 8th view in the file's order
 /// for testing, as nerf-pytorch and instant-ngp's scripts do. A file's own
@@ -394,10 +396,30 @@ pub enum Holdout {
     Fraction(f64),
     /// Every view trains and tests.
     All,
+    /// By the images' file names: `train` in a name trains, `eval` tests.
+    Filename,
 }
 
 impl Holdout {
-    /// The indices of `split` among `n` views (in the order the split is taken in).
+    /// The indices of `split` among the views whose images' file names are `names` (in the order
+    /// the split is taken in: by name). Errors, for [`Holdout::Filename`], with the first name
+    /// that holds neither `train` nor `eval`.
+    pub fn split(&self, names: &[&str], split: Split) -> Result<Vec<usize>, String> {
+        if *self != Holdout::Filename {
+            return Ok(self.indices(names.len(), split));
+        }
+        // nerfstudio's get_train_eval_split_filename: `train` first, then `eval`.
+        if let Some(n) = names.iter().find(|n| !n.contains("train") && !n.contains("eval")) {
+            return Err(format!("`{n}` holds neither `train` nor `eval` in its name: the filename holdout needs one in every image's"));
+        }
+        Ok((0..names.len()).filter(|&i| names[i].contains("train") == (split == Split::Train)).collect())
+    }
+
+    /// The indices of `split` among `n` views (in the order the split is taken in); the
+    /// filename holdout, which needs the names, is [`split`](Self::split)'s.
+    ///
+    /// # Panics
+    /// For [`Holdout::Filename`].
     pub fn indices(&self, n: usize, split: Split) -> Vec<usize> {
         let train = split == Split::Train;
         match *self {
@@ -417,6 +439,7 @@ impl Holdout {
                 (0..n).filter(|i| chosen.contains(i) == train).collect()
             }
             Holdout::All => (0..n).collect(),
+            Holdout::Filename => panic!("the filename holdout splits by the images' names: Holdout::split"),
         }
     }
 }
@@ -427,18 +450,21 @@ impl std::fmt::Display for Holdout {
             Holdout::Interval(k) => write!(f, "interval:{k}"),
             Holdout::Fraction(x) => write!(f, "fraction:{x}"),
             Holdout::All => write!(f, "all"),
+            Holdout::Filename => write!(f, "filename"),
         }
     }
 }
 
 impl std::str::FromStr for Holdout {
     type Err = String;
-    /// Parses `"interval:K"` (K ≥ 2), `"fraction:F"` (0 < F < 1) or `"all"`.
+    /// Parses `"interval:K"` (K ≥ 2), `"fraction:F"` (0 < F < 1), `"all"` or `"filename"`.
     fn from_str(s: &str) -> Result<Self, String> {
-        let bad = || format!("invalid holdout `{s}` (expected `interval:K` with K >= 2, `fraction:F` with 0 < F < 1, or `all`)");
+        let bad = || format!("invalid holdout `{s}` (expected `interval:K` with K >= 2, `fraction:F` with 0 < F < 1, `all` or `filename`)");
         let t = s.trim();
-        if t == "all" {
-            return Ok(Holdout::All);
+        match t {
+            "all" => return Ok(Holdout::All),
+            "filename" => return Ok(Holdout::Filename),
+            _ => {}
         }
         let (kind, num) = t.split_once(':').ok_or_else(bad)?;
         match kind.trim() {
@@ -460,6 +486,11 @@ impl From<Holdout> for String {
     fn from(v: Holdout) -> String {
         v.to_string()
     }
+}
+
+/// The file name of `path` (lossy), for name-based rules.
+fn file_name_of(path: &Path) -> String {
+    path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned())
 }
 
 /// Options of [`load_blender`].
@@ -1848,7 +1879,9 @@ fn load_transforms_with(
                 Some(h) => {
                     let mut by_name: Vec<usize> = (0..frames.len()).collect();
                     by_name.sort_by(|&a, &b| frames[a].image.cmp(&frames[b].image));
-                    h.indices(frames.len(), split).into_iter().map(|i| by_name[i]).collect()
+                    let names: Vec<String> = by_name.iter().map(|&i| file_name_of(&frames[i].image)).collect();
+                    let names: Vec<&str> = names.iter().map(String::as_str).collect();
+                    h.split(&names, split).map_err(|e| invalid("holdout".into(), e))?.into_iter().map(|i| by_name[i]).collect()
                 }
             },
         }
@@ -2750,9 +2783,15 @@ mod tests {
         assert_eq!(Holdout::Interval(8).indices(20, Split::Test), [0, 8, 16]);
         assert_eq!(Holdout::Interval(8).indices(20, Split::Train).len(), 17);
         assert_eq!(Holdout::All.indices(5, Split::Test), Holdout::All.indices(5, Split::Train));
-        for s in ["interval:8", "fraction:0.9", "all"] {
+        for s in ["interval:8", "fraction:0.9", "all", "filename"] {
             assert_eq!(s.parse::<Holdout>().unwrap().to_string(), s);
         }
+        // By name: `train` first (a name with both trains), then `eval`; neither is an error.
+        let names = ["a_train", "b_eval", "c_train_eval", "d_eval"];
+        assert_eq!(Holdout::Filename.split(&names, Split::Train).unwrap(), [0, 2]);
+        assert_eq!(Holdout::Filename.split(&names, Split::Test).unwrap(), [1, 3]);
+        assert!(Holdout::Filename.split(&["a_train", "b"], Split::Test).unwrap_err().contains("`b`"));
+        assert_eq!(Holdout::Interval(2).split(&names, Split::Test).unwrap(), [0, 2]);
         for s in ["interval:1", "fraction:1", "fraction:0", "every:8", "fraction:x"] {
             assert!(s.parse::<Holdout>().unwrap_err().contains("invalid holdout"), "{s}");
         }

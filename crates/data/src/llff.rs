@@ -228,7 +228,11 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
 
     // The images are in the order of their names.
     let selected_split = match opts.holdout {
-        Some(h) => h.indices(rows.len(), split),
+        Some(h) => {
+            let names: Vec<String> = files.iter().map(|f| crate::file_name_of(f)).collect();
+            let names: Vec<&str> = names.iter().map(String::as_str).collect();
+            h.split(&names, split).map_err(|reason| DataError::InvalidValue { path: dir.clone(), key: "holdout".into(), reason })?
+        }
         None => split_indices(rows.len(), split),
     };
     let selected: Vec<usize> = opts

@@ -977,3 +977,34 @@ fn a_holdout_splits_the_frames_in_name_order() {
     write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 100.0, "frames": frames, "train_filenames": [names[0]], "test_filenames": [names[1]]}));
     assert_eq!(split(Some(Holdout::Fraction(0.5)), Split::Test), [names[1].clone()]);
 }
+
+/// nerfstudio's `filename` eval mode: images named with `train` train, those with `eval` test
+/// (by the file's name, not its folder's); a name with neither is an error naming it.
+#[test]
+fn the_filename_holdout_splits_by_the_images_names() {
+    use nerf_data::Holdout;
+    let dir = tempfile::tempdir().unwrap();
+    let mut frames = frames_of(&lego_100(), "train");
+    frames.truncate(6);
+    std::fs::create_dir_all(dir.path().join("eval_shots")).unwrap();
+    let mut names = Vec::new();
+    for (i, f) in frames.iter_mut().enumerate() {
+        // Views 1 and 4 test; the folder's name does not count.
+        let name = if i % 3 == 1 { format!("eval_shots/{i:02}_eval.png") } else { format!("eval_shots/frame_train_{i:02}.png") };
+        std::fs::copy(f["file_path"].as_str().unwrap(), dir.path().join(&name)).unwrap();
+        f["file_path"] = json!(name);
+        names.push(dir.path().join(&name));
+    }
+    write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 100.0, "frames": frames.clone()}));
+    let load = |s: Split| load_scene(dir.path(), s, &LoadOptions { holdout: Some(Holdout::Filename), cameras_only: true, ..LoadOptions::default() });
+    // In name order: `01_eval`, `04_eval`, then the `frame_train_*`.
+    assert_eq!(load(Split::Test).unwrap().file_paths, [names[1].clone(), names[4].clone()]);
+    assert_eq!(load(Split::Train).unwrap().file_paths, [0, 2, 3, 5].map(|i| names[i].clone()));
+    assert_eq!("filename".parse::<Holdout>().unwrap(), Holdout::Filename);
+    // A frame named with neither.
+    std::fs::copy(&names[2], dir.path().join("eval_shots/other.png")).unwrap();
+    frames[2]["file_path"] = json!("eval_shots/other.png");
+    write_json(&dir.path().join("transforms.json"), &json!({"fl_x": 100.0, "frames": frames}));
+    let e = load(Split::Train).unwrap_err().to_string();
+    assert!(e.contains("transforms.json") && e.contains("holdout") && e.contains("other.png") && e.contains("neither"), "{e}");
+}

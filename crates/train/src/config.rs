@@ -247,7 +247,7 @@ pub struct TrainConfig {
     #[serde(default, skip_serializing_if = "is_default_nerfstudio")]
     pub nerfstudio: nerf_data::NerfstudioOptions,
     /// How a scene without split files holds test views out (`nerf_data::Holdout`:
-    /// `"interval:8"`, `"fraction:0.9"`, `"all"`; `nerf train --holdout`), nerfstudio's
+    /// `"interval:8"`, `"fraction:0.9"`, `"all"`, `"filename"`; `nerf train --holdout`), nerfstudio's
     /// `eval_mode`; every later load of the run takes it. `None` (the default, not serialised):
     /// every 8th view in the file's order.
     #[serde(default, skip_serializing_if = "Option::is_none")]
