@@ -70,20 +70,24 @@ impl MaskedMetrics {
 
     /// The mean of the views' scores; `None` when no view has them.
     pub fn mean<'a>(views: impl Iterator<Item = &'a MaskedMetrics>) -> Option<Self> {
-        let (mut acc, mut n) = ([0.0f64; 3], 0usize);
-        for m in views {
-            acc[0] += m.kept_fraction;
-            acc[1] += m.psnr;
-            acc[2] += m.ssim;
-            n += 1;
-        }
-        (n > 0).then(|| Self { kept_fraction: acc[0] / n as f64, psnr: acc[1] / n as f64, ssim: acc[2] / n as f64 })
+        let [kept_fraction, psnr, ssim] = mean_of(views, |m| [m.kept_fraction, m.psnr, m.ssim])?;
+        Some(Self { kept_fraction, psnr, ssim })
     }
 
     /// One line for a report.
     pub fn summary(&self) -> String {
         format!("over the pixels the masks keep ({:.1} % of them): PSNR {:.2} dB, SSIM {:.4}", 100.0 * self.kept_fraction, self.psnr, self.ssim)
     }
+}
+
+/// The mean over `items` of each of the `N` values `values` reads from one; `None` without items.
+fn mean_of<'a, T: 'a, const N: usize>(items: impl Iterator<Item = &'a T>, values: impl Fn(&T) -> [f64; N]) -> Option<[f64; N]> {
+    let (mut acc, mut n) = ([0.0f64; N], 0usize);
+    for item in items {
+        acc.iter_mut().zip(values(item)).for_each(|(a, v)| *a += v);
+        n += 1;
+    }
+    (n > 0).then(|| acc.map(|a| a / n as f64))
 }
 
 /// Which pixels of view `i` (its own `w × h`, row-major) its mask keeps; `None` for a dataset
@@ -139,14 +143,8 @@ impl DepthError {
 
     /// The mean of the views' errors; `None` when no view has one.
     pub fn mean<'a>(errors: impl Iterator<Item = &'a DepthError>) -> Option<Self> {
-        let (mut acc, mut n) = ([0.0f64; 3], 0usize);
-        for e in errors {
-            acc[0] += e.mse;
-            acc[1] += e.mean_abs;
-            acc[2] += e.measured_fraction;
-            n += 1;
-        }
-        (n > 0).then(|| Self { mse: acc[0] / n as f64, mean_abs: acc[1] / n as f64, measured_fraction: acc[2] / n as f64 })
+        let [mse, mean_abs, measured_fraction] = mean_of(errors, |e| [e.mse, e.mean_abs, e.measured_fraction])?;
+        Some(Self { mse, mean_abs, measured_fraction })
     }
 
     /// One line for a report.
@@ -201,18 +199,8 @@ impl AlphaSplit {
 
     /// The mean of the views' splits; `None` when no view has one.
     pub fn mean<'a>(splits: impl Iterator<Item = &'a AlphaSplit>) -> Option<Self> {
-        let mut acc = [0.0f64; 5];
-        let mut n = 0usize;
-        for s in splits {
-            for (a, v) in acc.iter_mut().zip([s.empty_fraction, s.mse_empty, s.mse_object, s.empty_error_share, s.empty_opacity]) {
-                *a += v;
-            }
-            n += 1;
-        }
-        (n > 0).then(|| {
-            let m = acc.map(|a| a / n as f64);
-            Self { empty_fraction: m[0], mse_empty: m[1], mse_object: m[2], empty_error_share: m[3], empty_opacity: m[4] }
-        })
+        let m = mean_of(splits, |s| [s.empty_fraction, s.mse_empty, s.mse_object, s.empty_error_share, s.empty_opacity])?;
+        Some(Self { empty_fraction: m[0], mse_empty: m[1], mse_object: m[2], empty_error_share: m[3], empty_opacity: m[4] })
     }
 
     /// One line for a report: the two parts' PSNRs (of their MSEs), the empty pixels' share of
