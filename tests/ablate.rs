@@ -795,6 +795,11 @@ ndc = [true, false]
 fn a_kept_checkpoint_scores_as_the_run_did() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = tiny_scene(tmp.path());
+    // The test view with a mask that keeps its left 12 columns: the run keeps its masked scores.
+    let test = load_blender(&scene, Split::Test, &LoadOptions::default()).unwrap();
+    let (w, h) = (test.width, test.height);
+    let keep: Vec<bool> = (0..w * h).map(|p| p % w < 12).collect();
+    write_blender(&nerf::data::Dataset { masks: Some(nerf::data::PixelMasks::from_flags(w * h, [&keep[..]])), ..test }, &scene, None).unwrap();
     let registry = nerf::registry();
     let file = tmp.path().join("ck.toml");
     std::fs::write(
@@ -834,6 +839,8 @@ name = "hash"
     assert_eq!(run.metrics.per_view.len(), test.n_views());
     assert!((run.metrics.per_view[0].psnr - r.views[0].psnr).abs() < 1e-9);
     assert_eq!(run.metrics.alpha_split.is_some(), r.alpha_split.is_some());
+    let (m, rm) = (run.metrics.test_masked.expect("the masked scores"), r.masked.expect("the masked scores"));
+    assert!((m.psnr - rm.psnr).abs() < 1e-9 && (m.ssim - rm.ssim).abs() < 1e-9 && m.kept_fraction == 12.0 / w as f64, "{m:?} against {rm:?}");
 
     // Re-running skips the finished run; without its checkpoint it trains again.
     assert!(run_ablation(&ab, &registry, &opts).unwrap().runs[0].skipped);
