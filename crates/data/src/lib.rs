@@ -404,25 +404,10 @@ impl Holdout {
     /// The indices of `split` among the views whose images' file names are `names` (in the order
     /// the split is taken in: by name). Errors, for [`Holdout::Filename`], with the first name
     /// that holds neither `train` nor `eval`.
-    pub fn split(&self, names: &[&str], split: Split) -> Result<Vec<usize>, String> {
-        if *self != Holdout::Filename {
-            return Ok(self.indices(names.len(), split));
-        }
-        // nerfstudio's get_train_eval_split_filename: `train` first, then `eval`.
-        if let Some(n) = names.iter().find(|n| !n.contains("train") && !n.contains("eval")) {
-            return Err(format!("`{n}` holds neither `train` nor `eval` in its name: the filename holdout needs one in every image's"));
-        }
-        Ok((0..names.len()).filter(|&i| names[i].contains("train") == (split == Split::Train)).collect())
-    }
-
-    /// The indices of `split` among `n` views (in the order the split is taken in); the
-    /// filename holdout, which needs the names, is [`split`](Self::split)'s.
-    ///
-    /// # Panics
-    /// For [`Holdout::Filename`].
-    pub fn indices(&self, n: usize, split: Split) -> Vec<usize> {
+    pub fn split(&self, names: &[impl AsRef<str>], split: Split) -> Result<Vec<usize>, String> {
+        let n = names.len();
         let train = split == Split::Train;
-        match *self {
+        Ok(match *self {
             Holdout::Interval(k) => (0..n).filter(|i| (i % k == 0) != train).collect(),
             Holdout::Fraction(f) => {
                 let n_train = ((n as f64) * f).ceil() as usize;
@@ -439,8 +424,15 @@ impl Holdout {
                 (0..n).filter(|i| chosen.contains(i) == train).collect()
             }
             Holdout::All => (0..n).collect(),
-            Holdout::Filename => panic!("the filename holdout splits by the images' names: Holdout::split"),
-        }
+            Holdout::Filename => {
+                // nerfstudio's get_train_eval_split_filename: `train` first, then `eval`.
+                let names: Vec<&str> = names.iter().map(AsRef::as_ref).collect();
+                if let Some(n) = names.iter().find(|n| !n.contains("train") && !n.contains("eval")) {
+                    return Err(format!("`{n}` holds neither `train` nor `eval` in its name: the filename holdout needs one in every image's"));
+                }
+                (0..n).filter(|&i| names[i].contains("train") == train).collect()
+            }
+        })
     }
 }
 
@@ -571,18 +563,6 @@ pub enum SceneFormat {
     /// COLMAP's sparse model, in `sparse/0/` or `colmap/sparse/0/` ([`load_colmap`]), whatever
     /// else the folder holds.
     Colmap,
-}
-
-impl SceneFormat {
-    /// The name it is serialised and given on the command line as.
-    pub fn name(self) -> &'static str {
-        match self {
-            SceneFormat::Auto => "auto",
-            SceneFormat::Transforms => "transforms",
-            SceneFormat::Llff => "llff",
-            SceneFormat::Colmap => "colmap",
-        }
-    }
 }
 
 impl Default for LoadOptions {
@@ -1880,7 +1860,6 @@ fn load_transforms_with(
                     let mut by_name: Vec<usize> = (0..frames.len()).collect();
                     by_name.sort_by(|&a, &b| frames[a].image.cmp(&frames[b].image));
                     let names: Vec<String> = by_name.iter().map(|&i| file_name_of(&frames[i].image)).collect();
-                    let names: Vec<&str> = names.iter().map(String::as_str).collect();
                     h.split(&names, split).map_err(|e| invalid("holdout".into(), e))?.into_iter().map(|i| by_name[i]).collect()
                 }
             },
@@ -2765,7 +2744,8 @@ mod tests {
     /// `all` everything in both splits; the string forms round-trip and bad ones are refused.
     #[test]
     fn holdouts_split_as_nerfstudio() {
-        let eval = |n: usize, f: f64| Holdout::Fraction(f).indices(n, Split::Test);
+        let by_count = |h: Holdout, n: usize, s: Split| h.split(&vec![""; n], s).unwrap();
+        let eval = |n: usize, f: f64| by_count(Holdout::Fraction(f), n, Split::Test);
         assert_eq!(eval(10, 0.9), [8]);
         assert_eq!(eval(25, 0.9), [11, 23]);
         assert_eq!(eval(100, 0.9), [9, 19, 29, 39, 49, 59, 69, 79, 89, 98]);
@@ -2774,15 +2754,15 @@ mod tests {
         let e300 = eval(300, 0.9);
         assert_eq!((e300.len(), e300[0], e300[28], e300[29]), (30, 9, 289, 298));
         for (n, f) in [(10, 0.9), (37, 0.5), (300, 0.9)] {
-            let (tr, te) = (Holdout::Fraction(f).indices(n, Split::Train), eval(n, f));
+            let (tr, te) = (by_count(Holdout::Fraction(f), n, Split::Train), eval(n, f));
             assert_eq!(tr.len(), (n as f64 * f).ceil() as usize);
             let mut all: Vec<usize> = tr.into_iter().chain(te).collect();
             all.sort_unstable();
             assert_eq!(all, (0..n).collect::<Vec<_>>(), "each view in one split");
         }
-        assert_eq!(Holdout::Interval(8).indices(20, Split::Test), [0, 8, 16]);
-        assert_eq!(Holdout::Interval(8).indices(20, Split::Train).len(), 17);
-        assert_eq!(Holdout::All.indices(5, Split::Test), Holdout::All.indices(5, Split::Train));
+        assert_eq!(by_count(Holdout::Interval(8), 20, Split::Test), [0, 8, 16]);
+        assert_eq!(by_count(Holdout::Interval(8), 20, Split::Train).len(), 17);
+        assert_eq!(by_count(Holdout::All, 5, Split::Test), by_count(Holdout::All, 5, Split::Train));
         for s in ["interval:8", "fraction:0.9", "all", "filename"] {
             assert_eq!(s.parse::<Holdout>().unwrap().to_string(), s);
         }

@@ -230,7 +230,6 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
     let selected_split = match opts.holdout {
         Some(h) => {
             let names: Vec<String> = files.iter().map(|f| crate::file_name_of(f)).collect();
-            let names: Vec<&str> = names.iter().map(String::as_str).collect();
             h.split(&names, split).map_err(|reason| DataError::InvalidValue { path: dir.clone(), key: "holdout".into(), reason })?
         }
         None => split_indices(rows.len(), split),
@@ -294,14 +293,8 @@ pub fn load_llff(root: &Path, split: Split, opts: &LoadOptions) -> Result<Datase
         // ray's segment is its part inside the box, z' ∈ [−1, 1].
         let ndc = Ndc::new(&intr, Ndc::NEAR_PLANE);
         let aabb = ndc.scene_box(&all_cameras, 0.05).ok_or_else(|| {
-            bad_poses(
-                &poses_path,
-                if crate::colmap::find_model(root).is_some() {
-                    "a camera looks away from the scene's mean viewing direction: not a forward-facing capture, so NDC does not apply (train with --no-ndc, or read the folder's COLMAP model with --scene-format colmap, as for mip-NeRF 360's scenes)"
-                } else {
-                    "a camera looks away from the scene's mean viewing direction: not a forward-facing capture, so NDC does not apply (train with --no-ndc)"
-                },
-            )
+            let colmap = crate::colmap::find_model(root).map_or("", |_| ", or read the folder's COLMAP model with --scene-format colmap, as for mip-NeRF 360's scenes");
+            bad_poses(&poses_path, format!("a camera looks away from the scene's mean viewing direction: not a forward-facing capture, so NDC does not apply (train with --no-ndc{colmap})"))
         })?;
         // Any segment inside the box is shorter than its diagonal: a far bound the clip reaches.
         let far = aabb.extent().iter().map(|e| e * e).sum::<f32>().sqrt();

@@ -94,22 +94,10 @@ fn mean_of<'a, T: 'a, const N: usize>(items: impl Iterator<Item = &'a T>, values
 /// without masks.
 fn kept_flags(data: &Dataset, i: usize) -> Option<Vec<bool>> {
     let masks = data.masks.as_ref()?;
-    let (w, h) = data.view_size(i);
-    let (w, h, cw) = (w as usize, h as usize, data.width as usize);
-    Some(match masks.view(i) {
-        None => vec![true; w * h],
-        Some(list) => {
-            // Kept pixels are canvas indices (row·W + col of the dataset's W).
-            let mut keep = vec![false; w * h];
-            for &p in list {
-                let (row, col) = (p as usize / cw, p as usize % cw);
-                if row < h && col < w {
-                    keep[row * w + col] = true;
-                }
-            }
-            keep
-        }
-    })
+    // The kept pixels are the canvas's (`row·W + col` of the dataset's width).
+    let mut canvas = vec![false; masks.n_pixels() as usize];
+    masks.kept(i).for_each(|p| canvas[p as usize] = true);
+    Some(data.view_crop(i, 1, &canvas).into_owned())
 }
 
 /// Rendered expected depth against a depth map (`Dataset::depths`: distances along the rays, in
